@@ -1,0 +1,125 @@
+"""Top-down and side-view plots of a trajectory inside its cave (SPEC section 7).
+
+topdown.png projects every wall triangle onto the horizontal plane (the cave's
+footprint) and draws the path coloured by clearance. side.png unrolls the path: distance
+travelled against height, with the ceiling and floor straight above and below each point,
+so undulating and bending caves read the same way.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import matplotlib
+
+matplotlib.use("Agg")  # headless: never open a window
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from matplotlib.collections import LineCollection  # noqa: E402
+from matplotlib.colors import Normalize  # noqa: E402
+
+from cavenav.world.raycast import RayCaster  # noqa: E402
+from cavenav.world.scenarios import Scenario  # noqa: E402
+
+if TYPE_CHECKING:
+    from cavenav.episode.loop import EpisodeResult
+
+__all__ = ["plot_episode"]
+
+_CMAP = "viridis"
+_CREDIT = "Open Robotics / DARPA SubT"
+
+
+def _coloured_path(ax: plt.Axes, x: np.ndarray, y: np.ndarray, c: np.ndarray, norm: Normalize):
+    segments = np.stack([np.column_stack([x[:-1], y[:-1]]), np.column_stack([x[1:], y[1:]])], axis=1)
+    lines = LineCollection(segments, cmap=_CMAP, norm=norm, linewidths=2.5, zorder=3)
+    lines.set_array(0.5 * (c[:-1] + c[1:]))
+    ax.add_collection(lines)
+    ax.scatter(x, y, c=c, cmap=_CMAP, norm=norm, s=9, zorder=4)
+    return lines
+
+
+def _title(result: EpisodeResult) -> str:
+    s = result.summary
+    return (
+        f"{s['scenario']} · {s['pilot']} · seed {s['seed']} · {s['termination']} after "
+        f"{s['steps']} steps · min clearance {s['min_clearance_m']:.2f} m"
+    )
+
+
+def _finish(fig: plt.Figure, ax: plt.Axes, lines, scenario: Scenario, path: Path) -> None:
+    fig.colorbar(lines, ax=ax, label="clearance to nearest surface (m)", shrink=0.8)
+    if scenario.mesh.name.startswith("cave_") and scenario.mesh.name.endswith(".dae"):
+        fig.text(0.01, 0.01, f"mesh: {_CREDIT}", fontsize=7, color="0.4")
+    fig.savefig(path, dpi=110, bbox_inches="tight")
+    plt.close(fig)
+
+
+def plot_episode(result: EpisodeResult, scenario: Scenario, caster: RayCaster, out_dir: Path) -> dict[str, str]:
+    """Write topdown.png and side.png into ``out_dir``; returns their file names."""
+    p = np.array([pose.position for pose in result.poses])
+    c = np.asarray(result.clearances)
+    norm = Normalize(vmin=0.0, vmax=max(3.0, float(c.max())))
+    mesh = scenario.mesh
+    collision = result.summary.get("collision_pose")
+
+    # ---- top-down
+    fig, ax = plt.subplots(figsize=(8, 8))
+    v = mesh.vertices
+    ax.tripcolor(v[:, 0], v[:, 1], mesh.faces, facecolors=np.ones(len(mesh.faces)),
+                 cmap="Greys", vmin=0, vmax=4, edgecolors="none", rasterized=True)
+    lines = _coloured_path(ax, p[:, 0], p[:, 1], c, norm)
+    ax.plot(*p[0, :2], marker="o", color="tab:green", ms=9, zorder=5, label="start")
+    ex = np.asarray(scenario.exit.point)
+    n = np.asarray(scenario.exit.normal)[:2]
+    n = n / max(np.linalg.norm(n), 1e-9)
+    across = np.array([-n[1], n[0]]) * scenario.exit.radius
+    ax.plot([ex[0] - across[0], ex[0] + across[0]], [ex[1] - across[1], ex[1] + across[1]],
+            color="tab:orange", lw=3, zorder=5, label="exit")
+    if collision:
+        ax.plot(collision["x"], collision["y"], marker="X", color="tab:red", ms=12, zorder=6,
+                label="collision")
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.set_title(_title(result), fontsize=9)
+    ax.legend(loc="upper left", fontsize=8, framealpha=0.9)
+    _finish(fig, ax, lines, scenario, out_dir / "topdown.png")
+
+    # ---- side view, unrolled along the path
+    dense, s_dense = _densify(p, 0.25)
+    up = caster.first_hit(dense, np.array([0.0, 0.0, 1.0]))
+    down = caster.first_hit(dense, np.array([0.0, 0.0, -1.0]))
+    ceiling = np.where(np.isfinite(up), dense[:, 2] + up, np.nan)
+    floor = np.where(np.isfinite(down), dense[:, 2] - down, np.nan)
+    s_pose = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))])
+    fig, ax = plt.subplots(figsize=(11, 4))
+    lo = np.nanmin(floor) - 1.0 if np.isfinite(floor).any() else p[:, 2].min() - 3
+    hi = np.nanmax(ceiling) + 1.0 if np.isfinite(ceiling).any() else p[:, 2].max() + 3
+    ax.fill_between(s_dense, lo, floor, color="0.55", step="mid", label="rock")
+    ax.fill_between(s_dense, ceiling, hi, color="0.55", step="mid")
+    ax.fill_between(s_dense, floor, ceiling, color="#d9ecf2", step="mid", label="water")
+    lines = _coloured_path(ax, s_pose, p[:, 2], c, norm)
+    ax.plot(0, p[0, 2], marker="o", color="tab:green", ms=9, zorder=5, label="start")
+    if collision:
+        s_hit = s_pose[-1] + float(np.linalg.norm(np.array([collision["x"], collision["y"], collision["z"]]) - p[-1]))
+        ax.plot(s_hit, collision["z"], marker="X", color="tab:red", ms=12, zorder=6, label="collision")
+    ax.set_xlim(0, max(s_pose[-1], 1.0))
+    ax.set_ylim(lo, hi)
+    ax.set_xlabel("distance along the path (m)")
+    ax.set_ylabel("z (m)")
+    ax.set_title(_title(result) + " · ceiling and floor straight above and below the path", fontsize=9)
+    ax.legend(loc="upper right", fontsize=8, ncols=4)
+    _finish(fig, ax, lines, scenario, out_dir / "side.png")
+    return {"topdown": "topdown.png", "side": "side.png"}
+
+
+def _densify(points: np.ndarray, spacing: float) -> tuple[np.ndarray, np.ndarray]:
+    """Points every ``spacing`` metres along a polyline, and their arc length."""
+    if len(points) < 2:
+        return points.copy(), np.zeros(len(points))
+    seg = np.linalg.norm(np.diff(points, axis=0), axis=1)
+    s = np.concatenate([[0.0], np.cumsum(seg)])
+    s_new = np.unique(np.concatenate([np.arange(0.0, s[-1], spacing), s]))
+    return np.stack([np.interp(s_new, s, points[:, k]) for k in range(3)], axis=1), s_new

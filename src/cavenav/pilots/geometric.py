@@ -1,0 +1,362 @@
+"""The geometric baseline: the paper's strategy, executed by arithmetic on depth.
+
+It sees exactly what the VLM sees (the normalised depth image, d_top and d_bottom, and
+its own short history), never the mesh, and answers in the VLM's form: one admissible
+action string and a justification in words (situation, constraints, choice). It follows
+the prompt's strategy (SPEC section 3), so it is the yardstick a VLM pilot must beat:
+
+1. Read the depth image as a point cloud in the camera frame and measure, for bearings
+   across the field of view, how far a corridor the vehicle's size stays free.
+2. Steer toward the middle of the farthest-reaching bearings (the passage's continuation);
+   when nothing in view reaches far, turn toward the roomier side (45 or 90 degrees)
+   and keep turning the same way rather than reversing.
+3. Centre vertically between ceiling and floor, following the passage's slope ahead.
+4. Cap forward motion by the standoff rules: none within 1.5 m of an obstacle ahead,
+   0.1-0.2 m (with a turn or a shift) below the 2.0 m standoff, otherwise 0.5-1.0 m.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass, replace
+
+import numpy as np
+from scipy import ndimage
+
+from cavenav.actions import DEFAULT_SPACE, ActionSpace, format_action
+from cavenav.sensors.depth import denormalise_depth
+from cavenav.types import Action, Decision, Observation
+
+__all__ = ["GeometricPilot", "GeometricPilotConfig"]
+
+# Candidate directions, degrees: bearings span the 53-degree view, elevations most of the
+# 41-degree vertical view (left and up positive).
+_BEARINGS = np.arange(-25.0, 25.01, 2.5)
+_ELEVATIONS = np.arange(-18.0, 18.01, 3.0)
+
+
+@dataclass(frozen=True)
+class GeometricPilotConfig:
+    """Numbers of the strategy; the first three are the prompt's (SPEC section 3).
+
+    Attributes:
+        standoff_m: desired distance to walls, ceiling and floor.
+        no_forward_within_m: obstacle range ahead under which no forward motion is allowed.
+        slow_forward_m: largest forward step while closer than the standoff.
+        corridor_half_width_m: half-width of the corridor tested along a bearing: the
+            vehicle's half-width (0.17 m) plus a margin for rough walls.
+        corridor_half_height_m: the same vertically (half-height 0.125 m plus margin).
+        open_range_m: a bearing free this far counts as the passage's continuation.
+        fov_deg: horizontal field of view of the depth image (SPEC: 53.13).
+        history: number of previous observations kept (K in SPEC section 3).
+        stride: use every n-th pixel of the depth image; 5 keeps 128x96 points.
+        memory_frames: how many recent depth images the pilot remembers as points, moved
+            by its own commanded actions, to know the walls beside it that are out of view.
+        camera_offset_m: where the camera sits ahead of the vehicle's centre.
+        body_radius_m: half-diagonal of the vehicle's box (BlueROV2: 0.31 m).
+        margin_m: extra distance every move keeps from remembered surfaces.
+    """
+
+    standoff_m: float = 2.0
+    no_forward_within_m: float = 1.5
+    slow_forward_m: float = 0.2
+    corridor_half_width_m: float = 0.6
+    corridor_half_height_m: float = 0.5
+    open_range_m: float = 8.0
+    fov_deg: float = 2 * math.degrees(math.atan(0.5))
+    history: int = 2
+    stride: int = 5
+    memory_frames: int = 8
+    camera_offset_m: float = 0.2
+    body_radius_m: float = 0.31
+    margin_m: float = 0.3
+
+
+@dataclass(frozen=True)
+class _Scene:
+    """What the pilot measured in one depth image (metres, degrees; left and up positive)."""
+
+    free: np.ndarray  # (bearings, elevations) free corridor length along each direction
+    ahead_m: float  # free corridor straight ahead
+    nearest_m: float  # nearest remembered surface point, from the vehicle's centre
+    nearest_left: bool  # whether it lies to the left
+    cloud: np.ndarray  # (n, 3) remembered surface points, body frame
+    left_offset_m: float  # sideways distance of the walls beside and up to 8 m ahead
+    right_offset_m: float
+    left_room_m: float  # mean depth of the left and right thirds of the image
+    right_room_m: float
+
+
+class GeometricPilot:
+    """A reactive passage follower; see the module docstring for the strategy."""
+
+    name = "geometric"
+
+    def __init__(self, config: GeometricPilotConfig | None = None, space: ActionSpace = DEFAULT_SPACE):
+        self.config = config or GeometricPilotConfig()
+        self.space = space
+        self._actions: deque[Action] = deque(maxlen=max(self.config.history, 1))
+        self._turning_in_place = 0.0  # degrees turned since the last forward motion
+        self._memory: list[np.ndarray] = []  # recent surface points, current body frame
+        bearings, elevations = np.meshgrid(_BEARINGS, _ELEVATIONS, indexing="ij")
+        b, e = np.radians(bearings.ravel()), np.radians(elevations.ravel())
+        # (k, 3) unit directions in (forward, left, up) for every (bearing, elevation).
+        self._directions = np.stack([np.cos(e) * np.cos(b), np.cos(e) * np.sin(b), np.sin(e)], 1)
+
+    def reset(self) -> None:
+        self._actions.clear()
+        self._turning_in_place = 0.0
+        self._memory = []
+
+    # ------------------------------------------------------------------ perception
+    def _measure(self, obs: Observation) -> _Scene:
+        cfg = self.config
+        depth = denormalise_depth(obs.depth_png[:: cfg.stride, :: cfg.stride], *obs.depth_range)
+        h, w = obs.depth_png.shape
+        focal = 0.5 * w / math.tan(math.radians(cfg.fov_deg) / 2)
+        v, u = np.mgrid[0:h:cfg.stride, 0:w:cfg.stride].astype(np.float32) + 0.5
+        forward = depth
+        left = -(u - 0.5 * w) / focal * depth
+        up = -(v - 0.5 * h) / focal * depth
+        d_max = obs.depth_range[1]
+        surface = depth < 0.995 * d_max  # no-hit pixels read as D_max and block nothing
+
+        # Free length of a cylinder of the corridor's radius along every direction.
+        points = np.stack([forward[surface], left[surface], up[surface]], axis=1)
+        along = points @ self._directions.T.astype(np.float32)  # (n, k)
+        across2 = (points**2).sum(axis=1)[:, None] - along**2
+        radius = cfg.corridor_half_width_m
+        blocking = (across2 < radius**2) & (along > 0)
+        free = np.where(blocking, along, d_max).min(axis=0, initial=d_max)
+        free = free.reshape(len(_BEARINGS), len(_ELEVATIONS))
+        # Remember what was seen: surfaces beside the vehicle are out of view now but were
+        # in view a few steps ago. Points are kept in the body frame (forward, left, up
+        # from the vehicle's centre) and moved by each action the pilot itself commanded.
+        keep = surface[:: 2, :: 2] & (depth[:: 2, :: 2] < 10.0)
+        seen = np.stack([forward[::2, ::2][keep] + cfg.camera_offset_m, left[::2, ::2][keep],
+                         up[::2, ::2][keep]], axis=1)
+        if self._actions:
+            self._memory = [_move_points(pts, self._actions[-1]) for pts in self._memory]
+        self._memory.append(seen.astype(np.float32))
+        self._memory = self._memory[-cfg.memory_frames:]
+        cloud = np.concatenate(self._memory)
+        at_height = np.abs(cloud[:, 2]) < cfg.corridor_half_height_m + 0.3
+        beside = at_height & (cloud[:, 0] > -1.5) & (cloud[:, 0] < 8.0)
+        beside &= ~((np.abs(cloud[:, 1]) < radius) & (cloud[:, 0] > 1.0))  # ahead, not beside
+        lefts, rights = cloud[beside & (cloud[:, 1] > 0), 1], -cloud[beside & (cloud[:, 1] < 0), 1]
+        span = 8.0 * math.tan(math.radians(cfg.fov_deg) / 2)  # an unseen wall is at least this far
+        left_offset = float(lefts.min()) if lefts.size else span
+        right_offset = float(rights.min()) if rights.size else span
+        distance = np.linalg.norm(cloud, axis=1)
+        nearest = int(np.argmin(distance)) if len(cloud) else -1
+        third = depth.shape[1] // 3
+        return _Scene(
+            free=free,
+            ahead_m=float(free[len(_BEARINGS) // 2, len(_ELEVATIONS) // 2]),
+            nearest_m=float(distance[nearest]) if nearest >= 0 else d_max,
+            nearest_left=bool(cloud[nearest, 1] > 0) if nearest >= 0 else True,
+            cloud=cloud,
+            left_offset_m=left_offset,
+            right_offset_m=right_offset,
+            left_room_m=float(depth[:, :third].mean()),
+            right_room_m=float(depth[:, -third:].mean()),
+        )
+
+    # ------------------------------------------------------------------ decision
+    def _snap_yaw(self, degrees: float) -> float:
+        options = np.array(self.space.yaw_deg)
+        return math.copysign(float(options[np.argmin(np.abs(options - abs(degrees)))]), degrees)
+
+    def _snap_up(self, metres: float) -> float:
+        lo, hi = self.space.vertical_range_m
+        if abs(metres) < 0.5 * lo:
+            return 0.0
+        return math.copysign(round(min(max(abs(metres), lo), hi), 2), metres)
+
+    def _target(self, free: np.ndarray) -> tuple[float, float]:
+        """(bearing, elevation) in the middle of the widest far-reaching opening.
+
+        Directions that reach far are grouped into connected openings, so that two gaps
+        either side of a boulder are never averaged into a bearing straight at it.
+        """
+        best = float(free.max())
+        reach = free >= min(self.config.open_range_m, 0.85 * best)
+        labels, count = ndimage.label(reach)
+        sizes = ndimage.sum(free, labels, index=np.arange(1, count + 1))
+        members = labels == 1 + int(np.argmax(sizes))
+        bi, ei = np.nonzero(members)
+        bearing, elevation = _BEARINGS[bi].mean(), _ELEVATIONS[ei].mean()
+        if not members[np.argmin(np.abs(_BEARINGS - bearing)), np.argmin(np.abs(_ELEVATIONS - elevation))]:
+            # A curved opening whose middle is blocked: take its member nearest the middle.
+            k = np.argmin(np.hypot(_BEARINGS[bi] - bearing, _ELEVATIONS[ei] - elevation))
+            bearing, elevation = _BEARINGS[bi[k]], _ELEVATIONS[ei[k]]
+        return float(bearing), float(elevation)
+
+    def _free_along(self, free: np.ndarray, bearing: float, elevation: float) -> float:
+        i = int(np.argmin(np.abs(_BEARINGS - bearing)))
+        j = int(np.argmin(np.abs(_ELEVATIONS - elevation)))
+        return float(free[i, j])
+
+    def _choose_yaw(self, free: np.ndarray, bearing: float, elevation: float) -> float:
+        """The admissible yaw nearest ``bearing`` whose corridor is open; else the nearest."""
+        half_view = self.config.fov_deg / 2
+        options = sorted(
+            (y for a in self.space.yaw_deg for y in {a, -a} if abs(y) <= half_view),
+            key=lambda y: abs(y - bearing),
+        )
+        for yaw in options[:3]:
+            if self._free_along(free, yaw, elevation) >= 2 * self.config.no_forward_within_m:
+                return float(yaw)
+        return float(options[0])
+
+    def _keep_clear(self, action: Action, cloud: np.ndarray) -> tuple[Action, str]:
+        """Shrink ``action`` until its move keeps a margin from every remembered surface.
+
+        Returns the action to take and, if it had to be changed, why.
+        """
+        margin = self.config.body_radius_m + self.config.margin_m
+        candidates = [action]
+        if action.right:
+            candidates.append(replace(action, right=0.0))
+        for forward in (0.5, 0.2, 0.1, 0.0):
+            if forward < action.forward:
+                candidates.append(replace(action, right=0.0, forward=forward))
+        candidates.append(replace(action, right=0.0, forward=0.0, up=0.0))
+        for k, candidate in enumerate(candidates):
+            if _clearance_of_move(cloud, candidate) >= margin:
+                return candidate, "" if k == 0 else (
+                    f"the move would pass within {margin:.2f} m of a remembered surface, "
+                    f"so it becomes '{format_action(candidate)}'")
+        return candidates[-1], "boxed in: turning in place only"
+
+    def decide(self, observation: Observation) -> Decision:
+        cfg = self.config
+        scene = self._measure(observation)
+        d_top, d_bottom = observation.d_top, observation.d_bottom
+
+        best = float(scene.free.max())
+        elevation = 0.0
+        if best < max(cfg.no_forward_within_m + 1.0, 0.35 * cfg.open_range_m):
+            # Nothing in view reaches far: turn 45 degrees toward the roomier side. Keep
+            # turning the way the last blocked turn went (no dithering), but never more
+            # than half a circle in place, which would reverse the direction of travel.
+            roomier = 1.0 if scene.left_room_m >= scene.right_room_m else -1.0
+            side = roomier
+            if self._turning_in_place:
+                side = math.copysign(1.0, self._turning_in_place)
+                if abs(self._turning_in_place) >= 180.0:
+                    side = -side
+            yaw = side * 45.0
+            target_free = 0.0
+            situation = f"no direction in view stays free beyond {best:.1f} m"
+        else:
+            bearing, elevation = self._target(scene.free)
+            yaw = self._choose_yaw(scene.free, bearing, elevation)
+            target_free = self._free_along(scene.free, yaw, elevation)
+            situation = f"the passage continues {best:.1f} m toward {_bearing_words(bearing, elevation)}"
+
+        nearest = min(d_top, d_bottom, scene.nearest_m, scene.ahead_m)
+        if target_free < cfg.no_forward_within_m or abs(yaw) > cfg.fov_deg / 2:
+            forward = 0.0
+            constraint = (
+                f"obstacle within {cfg.no_forward_within_m} m ahead: no forward motion"
+                if target_free < cfg.no_forward_within_m
+                else "the new heading lies outside the view: turn first, no forward motion"
+            )
+        elif nearest < cfg.standoff_m:
+            forward = cfg.slow_forward_m if target_free > 3.0 else 0.1
+            constraint = (
+                f"nearest surface {nearest:.1f} m is inside the {cfg.standoff_m} m standoff: "
+                f"forward capped at {forward} m"
+            )
+        elif abs(yaw) >= 15:
+            # In a bend the inner wall is beside the vehicle, out of view: go gently.
+            forward = 0.5
+            constraint = "turning into a bend whose inner wall is out of view: forward 0.5 m"
+        else:
+            forward = 1.0 if target_free > 6.0 else 0.5
+            constraint = f"all clearances above the {cfg.standoff_m} m standoff"
+
+        # Vertical: centre between ceiling and floor, and follow the passage's slope.
+        up = 0.5 * (d_top - d_bottom) + math.tan(math.radians(elevation)) * forward
+        up = self._snap_up(float(np.clip(up, -1.0, 1.0)))
+
+        # Lateral: shift away from a wall seen closer than the standoff when the other
+        # side has more room; never toward a side whose wall is out of view.
+        right = 0.0
+        near_side = "left" if scene.left_offset_m < scene.right_offset_m else "right"
+        near_offset = min(scene.left_offset_m, scene.right_offset_m)
+        gap = abs(scene.left_offset_m - scene.right_offset_m)
+        if near_offset < cfg.standoff_m and gap > 0.6 and abs(yaw) <= 20:
+            magnitude = 0.5 if gap > 2.0 else 0.2 if gap > 1.0 else 0.1
+            right = magnitude if near_side == "left" else -magnitude
+        # Below the standoff, forward motion must come with a turn or a shift.
+        if forward > 0 and nearest < cfg.standoff_m and not (yaw or right or up):
+            right = 0.1 if scene.right_room_m >= scene.left_room_m else -0.1
+        if not (forward or right or up or yaw):  # never idle: look for a way on
+            yaw = 20.0 if scene.left_room_m >= scene.right_room_m else -20.0
+
+        action, shielded = self._keep_clear(
+            Action(forward=forward, right=right, up=up, yaw_deg=yaw), scene.cloud)
+        if shielded:
+            constraint += f"; {shielded}"
+        action = self.space.validate(action)
+        yaw, up, right = action.yaw_deg, action.up, action.right
+        self._turning_in_place = (self._turning_in_place + yaw) if action.forward == 0 else 0.0
+        self._actions.append(action)
+        text = format_action(action)
+        justification = (
+            f"Situation: {situation}; free straight ahead {scene.ahead_m:.1f} m; ceiling "
+            f"{d_top:.1f} m, floor {d_bottom:.1f} m; nearest surface {scene.nearest_m:.1f} m "
+            f"{'left' if scene.nearest_left else 'right'}. "
+            f"Constraints: {constraint}. Choice: {text}{_why(yaw, up, right)}."
+        )
+        return Decision(action=action, action_text=text, justification=justification, raw=justification)
+
+
+def _move_points(points: np.ndarray, action: Action) -> np.ndarray:
+    """Body-frame points (forward, left, up) after the vehicle executes ``action``.
+
+    The vehicle turns by dpsi (left positive), then translates by (df, -dr, dz) in its new
+    frame (SPEC section 5); fixed points therefore turn by -dpsi and shift back.
+    """
+    a = math.radians(-action.yaw_deg)
+    rot = np.array([[math.cos(a), -math.sin(a), 0.0], [math.sin(a), math.cos(a), 0.0], [0.0, 0.0, 1.0]],
+                   np.float32)
+    shift = np.array([action.forward, -action.right, action.up], np.float32)
+    return points @ rot.T - shift
+
+
+def _clearance_of_move(cloud: np.ndarray, action: Action) -> float:
+    """Smallest distance from remembered points to the straight move of the centre."""
+    if not len(cloud):
+        return math.inf
+    a = math.radians(-action.yaw_deg)
+    rot = np.array([[math.cos(a), -math.sin(a), 0.0], [math.sin(a), math.cos(a), 0.0], [0.0, 0.0, 1.0]],
+                   np.float32)
+    pts = cloud @ rot.T  # in the frame after the turn, before the translation
+    move = np.array([action.forward, -action.right, action.up], np.float32)
+    length2 = float(move @ move)
+    t = np.clip(pts @ move / length2, 0.0, 1.0) if length2 > 0 else np.zeros(len(pts), np.float32)
+    return float(np.linalg.norm(pts - t[:, None] * move, axis=1).min())
+
+
+def _bearing_words(bearing: float, elevation: float) -> str:
+    words = []
+    if abs(bearing) >= 2.5:
+        words.append(f"{abs(bearing):.0f} deg {'left' if bearing > 0 else 'right'}")
+    if abs(elevation) >= 3:
+        words.append(f"{abs(elevation):.0f} deg {'up' if elevation > 0 else 'down'}")
+    return ", ".join(words) if words else "straight ahead"
+
+
+def _why(yaw: float, up: float, right: float) -> str:
+    reasons = []
+    if yaw:
+        reasons.append("turning toward the open passage")
+    if up:
+        reasons.append("re-centring between ceiling and floor")
+    if right:
+        reasons.append("moving away from the nearer wall")
+    return (", " + " and ".join(reasons)) if reasons else ", holding the passage centre"

@@ -1,0 +1,148 @@
+"""The sensor rig: renders one Observation for a pose from a single main ray cast.
+
+Forward colour and depth share one 640x480 cast (depth is the ray parameter, colour is
+shaded from the same hits); the two echo sounders are tiny extra casts.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+
+from cavenav.sensors.camera import CameraIntrinsics, camera_to_world, look_frame
+from cavenav.sensors.depth import normalise_depth
+from cavenav.sensors.optics import Optics, rock_albedo, shade
+from cavenav.types import Observation, Pose
+from cavenav.world.raycast import RayCaster
+
+__all__ = ["SensorConfig", "SensorRig"]
+
+_UP = np.array([0.0, 0.0, 1.0])
+_SEDIMENT = np.array([0.46, 0.40, 0.30], np.float32)
+
+
+@dataclass(frozen=True)
+class SensorConfig:
+    """Sensor set-up of SPEC section 2.
+
+    Attributes:
+        camera: forward RGB and depth intrinsics (co-located, identical).
+        depth_min_m, depth_max_m: range mapped to black and white in the depth PNG.
+        camera_offset_m: the camera sits this far ahead of the vehicle's centre (the
+            BlueROV2's front dome), so depth is measured from the nose.
+        sounder: "camera" emulates each echo sounder as the reference set-up does, with an
+            upward or downward depth camera whose minimum planar depth is taken; "beam"
+            takes the minimum range over a cone of rays, like a single-beam sounder.
+        sounder_fov_deg: full field of view of either model. 25 degrees is the beam width
+            of a Ping2-class sounder; with the forward camera's 53 degrees, a round 5 m
+            passage reads about 1.7 m to the ceiling from its centre (the side walls).
+        sounder_pixels: resolution of the emulating depth cameras; the minimum of a
+            32x24 image is as good as a full frame's for a smooth ceiling and costs nothing.
+        sounder_max_range_m: reading when nothing is in range.
+        optics: water and light parameters of the colour image.
+        albedo_seed: seeds the rock colour field.
+    """
+
+    camera: CameraIntrinsics = field(default_factory=CameraIntrinsics)
+    depth_min_m: float = 0.0
+    depth_max_m: float = 20.0
+    camera_offset_m: float = 0.2
+    sounder: Literal["camera", "beam"] = "camera"
+    sounder_fov_deg: float = 25.0
+    sounder_pixels: tuple[int, int] = (32, 24)
+    sounder_max_range_m: float = 50.0
+    optics: Optics = field(default_factory=Optics)
+    albedo_seed: int = 0
+
+
+def _beam_directions(cone_deg: float, rings: int = 3, per_ring: int = 8) -> np.ndarray:
+    """(n, 3) unit directions filling a cone around +z, for the narrow-beam sounder."""
+    dirs = [np.array([0.0, 0.0, 1.0])]
+    half = np.radians(cone_deg) / 2.0
+    for k in range(1, rings + 1):
+        theta = half * k / rings
+        for j in range(per_ring):
+            phi = 2 * np.pi * j / per_ring
+            dirs.append(np.array([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)]))
+    return np.array(dirs)
+
+
+class SensorRig:
+    """Renders observations of one cave; holds the precomputed rays and rock colours."""
+
+    def __init__(self, caster: RayCaster, config: SensorConfig | None = None):
+        self.caster = caster
+        self.config = config or SensorConfig()
+        cfg = self.config
+        self._pixel_dirs = cfg.camera.directions.reshape(-1, 3)
+        self._ray_length = np.linalg.norm(self._pixel_dirs, axis=1)  # rotation-invariant
+        if cfg.sounder == "camera":
+            w, h = cfg.sounder_pixels
+            focal_mm = 0.5 * cfg.camera.sensor_width_mm / math.tan(math.radians(cfg.sounder_fov_deg) / 2)
+            sounder = CameraIntrinsics(w, h, focal_mm, cfg.camera.sensor_width_mm)
+            self._sounder_dirs = sounder.directions.reshape(-1, 3)
+            self._sounder_planar = True
+        else:
+            self._sounder_dirs = _beam_directions(cfg.sounder_fov_deg)
+            self._sounder_planar = False
+        albedo = rock_albedo(caster.mesh, cfg.albedo_seed)
+        # One colour per triangle (mean of its corners): one gather per pixel when shading.
+        self._face_albedo = albedo[caster.mesh.faces].mean(axis=1).astype(np.float32)
+
+    def camera_position(self, pose: Pose) -> np.ndarray:
+        return pose.position + self.config.camera_offset_m * pose.forward
+
+    def forward_frame(self, pose: Pose) -> tuple[np.ndarray, np.ndarray]:
+        """(H, W) float32 planar depth and (H, W, 3) uint8 colour at ``pose``."""
+        cam = self.config.camera
+        rot = camera_to_world(pose).astype(np.float32)
+        dirs = self._pixel_dirs @ rot.T
+        hits = self.caster.cast(self.camera_position(pose), dirs)
+        hit = hits.triangle >= 0
+        albedo = self._face_albedo[hits.triangle]  # index -1 (no hit) is masked in shade
+        n = hits.normals
+        n_dot_d = np.einsum("ij,ij->i", n, dirs)
+        # Sediment settles on up-facing surfaces: a browner, brighter floor.
+        up_facing = np.where(n_dot_d < 0, n[:, 2], -n[:, 2])
+        floor = np.clip((up_facing - 0.55) * 3.0, 0.0, 1.0)[:, None]
+        albedo += floor * (_SEDIMENT - albedo)
+        rgb = shade(
+            hits.t * self._ray_length,
+            np.abs(n_dot_d) / self._ray_length,
+            albedo,
+            hit,
+            self.config.optics,
+        )
+        shape = (cam.height, cam.width)
+        return hits.t.reshape(shape), rgb.reshape(*shape, 3)
+
+    def echo_sounders(self, pose: Pose) -> tuple[float, float]:
+        """(d_top, d_bottom) in metres from the vehicle's centre."""
+        readings = []
+        for sign in (1.0, -1.0):
+            # An up- (down-) looking camera: optical axis +-z, image x along the vehicle's right.
+            rot = look_frame(sign * _UP, pose.right if sign > 0 else -pose.right)
+            dirs = self._sounder_dirs @ rot.T
+            t = self.caster.first_hit(pose.position, dirs)
+            if not self._sounder_planar:
+                t = t * np.linalg.norm(dirs, axis=1)
+            readings.append(float(min(np.min(t), self.config.sounder_max_range_m)))
+        return readings[0], readings[1]
+
+    def observe(self, pose: Pose, step: int = 0) -> Observation:
+        """Render everything a pilot sees at ``pose``."""
+        cfg = self.config
+        depth, rgb = self.forward_frame(pose)
+        d_top, d_bottom = self.echo_sounders(pose)
+        return Observation(
+            rgb=rgb,
+            depth_m=depth,
+            depth_png=normalise_depth(depth, cfg.depth_min_m, cfg.depth_max_m),
+            d_top=d_top,
+            d_bottom=d_bottom,
+            depth_range=(cfg.depth_min_m, cfg.depth_max_m),
+            step=step,
+        )

