@@ -236,6 +236,8 @@ def _parse_clause(clause: str) -> tuple[str, float]:
     left, right = words & set(_LEFT_WORDS), words & set(_RIGHT_WORDS)
     up, down = words & set(_UP_WORDS), words & set(_DOWN_WORDS)
     ahead, back = words & set(_FORWARD_WORDS), words & set(_BACK_WORDS)
+    if "deg" in words and not words & set(_YAW_WORDS) and (ahead or back or up or down):
+        raise ActionError(f"'{clause}': degrees only make sense for a turn")
     is_yaw = bool(words & set(_YAW_WORDS)) or "deg" in words
     is_lateral = bool(words & set(_LATERAL_WORDS))
     leftover = words - _FILLER - set(_YAW_WORDS) - set(_UP_WORDS) - set(_DOWN_WORDS)
@@ -255,8 +257,6 @@ def _parse_clause(clause: str) -> tuple[str, float]:
         if "m" in words or "cm" in words:
             raise ActionError(f"'{clause}': a turn is measured in degrees, not metres")
         return "yaw", side(left, right, "turn") * magnitude
-    if "deg" in words:
-        raise ActionError(f"'{clause}': degrees only make sense for a turn")
     kinds = [bool(up or down), bool(ahead or back), bool(left or right or is_lateral)]
     if sum(kinds) > 1:
         raise ActionError(f"'{clause}' mixes several motions; separate them with commas")

@@ -110,7 +110,7 @@ def run_episode(
         "mesh": scenario.mesh.name,
         "triangles": scenario.mesh.triangle_count,
         "start_pose": scenario.start.to_dict(),
-        "exit": asdict(scenario.exit),
+        "exits": [asdict(portal) for portal in scenario.exits],
         "config": asdict(config),
     }
 
@@ -130,7 +130,7 @@ def run_episode(
             **summarise_clearance(clearances, config.standoff_m),
             "final_pose": poses[-1].to_dict(),
             "collision_pose": collision_pose.to_dict() if collision_pose else None,
-            "exit_distance_m": round(scenario.exit.distance(poses[-1].position), 4),
+            "exit_distance_m": round(scenario.exit_distance(poses[-1].position), 4),
             "failure": failure,
             "wall_time_s": round(time.perf_counter() - started, 3),
             "mean_sense_ms": _mean_timing(steps, "sense"),
@@ -177,7 +177,7 @@ def run_episode(
                     pose = new_pose
                     poses.append(pose)
                     clearances.append(clearance(caster, pose))
-                    if scenario.exit.reached(pose.position):
+                    if scenario.exited(pose.position):
                         termination = "exit"
             else:
                 record.update(action=None, failure=failure)

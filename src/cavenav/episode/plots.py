@@ -43,7 +43,8 @@ def _coloured_path(ax: plt.Axes, x: np.ndarray, y: np.ndarray, c: np.ndarray, no
 def _title(result: EpisodeResult) -> str:
     s = result.summary
     return (
-        f"{s['scenario']} · {s['pilot']} · seed {s['seed']} · {s['termination']} after "
+        f"{s['scenario']} · {s['pilot']} · seed {'-' if s['seed'] is None else s['seed']} · "
+        f"{s['termination']} after "
         f"{s['steps']} steps · min clearance {s['min_clearance_m']:.2f} m"
     )
 
@@ -71,12 +72,13 @@ def plot_episode(result: EpisodeResult, scenario: Scenario, caster: RayCaster, o
                  cmap="Greys", vmin=0, vmax=4, edgecolors="none", rasterized=True)
     lines = _coloured_path(ax, p[:, 0], p[:, 1], c, norm)
     ax.plot(*p[0, :2], marker="o", color="tab:green", ms=9, zorder=5, label="start")
-    ex = np.asarray(scenario.exit.point)
-    n = np.asarray(scenario.exit.normal)[:2]
-    n = n / max(np.linalg.norm(n), 1e-9)
-    across = np.array([-n[1], n[0]]) * scenario.exit.radius
-    ax.plot([ex[0] - across[0], ex[0] + across[0]], [ex[1] - across[1], ex[1] + across[1]],
-            color="tab:orange", lw=3, zorder=5, label="exit")
+    for k, portal in enumerate(scenario.exits):
+        ex = np.asarray(portal.point)
+        n = np.asarray(portal.normal)[:2]
+        n = n / max(np.linalg.norm(n), 1e-9)
+        across = np.array([-n[1], n[0]]) * portal.radius
+        ax.plot([ex[0] - across[0], ex[0] + across[0]], [ex[1] - across[1], ex[1] + across[1]],
+                color="tab:orange", lw=3, zorder=5, label="exit" if k == 0 else None)
     if collision:
         ax.plot(collision["x"], collision["y"], marker="X", color="tab:red", ms=12, zorder=6,
                 label="collision")

@@ -78,10 +78,12 @@ class _Scene:
     """What the pilot measured in one depth image (metres, degrees; left and up positive)."""
 
     free: np.ndarray  # (bearings, elevations) free corridor length along each direction
+    target: tuple[float, float]  # (bearing, elevation) of the middle of the widest opening
     ahead_m: float  # free corridor straight ahead
     nearest_m: float  # nearest remembered surface point, from the vehicle's centre
     nearest_left: bool  # whether it lies to the left
     cloud: np.ndarray  # (n, 3) remembered surface points, body frame
+    beside_m: float  # sideways distance of the nearer wall over the next 5 m
     left_offset_m: float  # sideways distance of the walls beside and up to 8 m ahead
     right_offset_m: float
     left_room_m: float  # mean depth of the left and right thirds of the image
@@ -141,22 +143,34 @@ class GeometricPilot:
         self._memory.append(seen.astype(np.float32))
         self._memory = self._memory[-cfg.memory_frames:]
         cloud = np.concatenate(self._memory)
-        at_height = np.abs(cloud[:, 2]) < cfg.corridor_half_height_m + 0.3
+        # "At the vehicle's height" follows the passage's slope, so that a ceiling or floor
+        # ahead of a descent or a climb is not mistaken for a side wall.
+        bearing, elevation = self._target(free)
+        slope = math.tan(math.radians(elevation))
+        at_height = np.abs(cloud[:, 2] - slope * np.maximum(cloud[:, 0], 0.0)) < cfg.corridor_half_height_m + 0.3
         beside = at_height & (cloud[:, 0] > -1.5) & (cloud[:, 0] < 8.0)
         beside &= ~((np.abs(cloud[:, 1]) < radius) & (cloud[:, 0] > 1.0))  # ahead, not beside
-        lefts, rights = cloud[beside & (cloud[:, 1] > 0), 1], -cloud[beside & (cloud[:, 1] < 0), 1]
         span = 8.0 * math.tan(math.radians(cfg.fov_deg) / 2)  # an unseen wall is at least this far
-        left_offset = float(lefts.min()) if lefts.size else span
-        right_offset = float(rights.min()) if rights.size else span
+
+        def wall_offsets(window: np.ndarray) -> tuple[float, float]:
+            # The 5th percentile: the wall, not the single most protruding knob of rock.
+            lefts, rights = cloud[window & (cloud[:, 1] > 0), 1], -cloud[window & (cloud[:, 1] < 0), 1]
+            return (float(np.percentile(lefts, 5)) if lefts.size else span,
+                    float(np.percentile(rights, 5)) if rights.size else span)
+
+        left_offset, right_offset = wall_offsets(beside)  # to steer toward the middle
+        beside_now = wall_offsets(beside & (cloud[:, 0] < 5.0))  # for the standoff: next 5 m
         distance = np.linalg.norm(cloud, axis=1)
         nearest = int(np.argmin(distance)) if len(cloud) else -1
         third = depth.shape[1] // 3
         return _Scene(
             free=free,
+            target=(bearing, elevation),
             ahead_m=float(free[len(_BEARINGS) // 2, len(_ELEVATIONS) // 2]),
             nearest_m=float(distance[nearest]) if nearest >= 0 else d_max,
             nearest_left=bool(cloud[nearest, 1] > 0) if nearest >= 0 else True,
             cloud=cloud,
+            beside_m=min(beside_now),
             left_offset_m=left_offset,
             right_offset_m=right_offset,
             left_room_m=float(depth[:, :third].mean()),
@@ -251,12 +265,13 @@ class GeometricPilot:
             target_free = 0.0
             situation = f"no direction in view stays free beyond {best:.1f} m"
         else:
-            bearing, elevation = self._target(scene.free)
+            bearing, elevation = scene.target
             yaw = self._choose_yaw(scene.free, bearing, elevation)
             target_free = self._free_along(scene.free, yaw, elevation)
             situation = f"the passage continues {best:.1f} m toward {_bearing_words(bearing, elevation)}"
 
-        nearest = min(d_top, d_bottom, scene.nearest_m, scene.ahead_m)
+        # The standoff counts walls beside the next metres of path: they will be beside us.
+        nearest = min(d_top, d_bottom, scene.nearest_m, scene.ahead_m, scene.beside_m)
         if target_free < cfg.no_forward_within_m or abs(yaw) > cfg.fov_deg / 2:
             forward = 0.0
             constraint = (

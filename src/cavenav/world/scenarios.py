@@ -63,14 +63,22 @@ class ExitPortal:
 
 @dataclass(frozen=True, eq=False)
 class Scenario:
-    """A cave to fly: mesh (metres, z up), start pose and exit."""
+    """A cave to fly: mesh (metres, z up), start pose and one or more exit portals."""
 
     name: str
     mesh: CaveMesh
     start: Pose
-    exit: ExitPortal
+    exits: tuple[ExitPortal, ...]
     description: str = ""
     seed: int | None = None
+
+    def exited(self, position: np.ndarray) -> bool:
+        """Whether ``position`` lies past any exit portal."""
+        return any(portal.reached(position) for portal in self.exits)
+
+    def exit_distance(self, position: np.ndarray) -> float:
+        """Distance still to go before the nearest exit plane (negative once past it)."""
+        return min(portal.distance(position) for portal in self.exits)
 
 
 # ------------------------------------------------------------------ procedural S1-S5
@@ -138,8 +146,8 @@ def _s1(rng: np.random.Generator, seed: int) -> _Layout:
     z = _straighten_ends(s, 0.5 * _smooth_noise(s, 12.0, rng), length)
     points = np.stack([x, -s, z], axis=1)
     necks = [c + rng.uniform(-2, 2) for c in (15.0, 29.0, 42.0)]
-    half_w = 3.3 - _dips(s, necks, 1.45)
-    half_h = 2.8 - _dips(s, necks[1:2], 0.8)
+    half_w = 3.5 - _dips(s, necks, 1.7)
+    half_h = 3.0 - _dips(s, necks[1:2], 1.0)
     return _layout_from_profiles(
         s, points, half_w, half_h, length, seed,
         description="narrow passage with three constrictions to about 3.6 m",
@@ -155,8 +163,8 @@ def _s2(rng: np.random.Generator, seed: int) -> _Layout:
     points = np.stack([x, -s, z], axis=1)
     # Constrictions on the slopes, between a crest and a trough.
     necks = [period * (k / 2 + 0.5) + rng.uniform(-1.5, 1.5) for k in (0, 1)]
-    half_w = 2.9 - _dips(s, necks, 1.1)
-    half_h = 2.5 - _dips(s, necks, 0.55)
+    half_w = 3.2 - _dips(s, necks, 1.3)
+    half_h = 2.9 - _dips(s, necks, 0.8)
     return _layout_from_profiles(
         s, points, half_w, half_h, length, seed,
         description="narrow passage with vertical undulations of about 4 m and two constrictions",
@@ -267,7 +275,7 @@ def procedural_scenario(name: str, seed: int = 0) -> Scenario:
         radius=float(max(spec.half_width.max(), spec.half_height.max()) + 1.5),
     )
     mesh = build_cave(spec, name=f"{key}-seed{seed}")
-    return Scenario(key, mesh, layout.start, exit_, layout.description, seed)
+    return Scenario(key, mesh, layout.start, (exit_,), layout.description, seed)
 
 
 # ------------------------------------------------------------------ scenario files
@@ -301,7 +309,7 @@ class _ScenarioFileModel(BaseModel):
     scale: float | None = Field(None, gt=0, description="metres per mesh unit")
     up_axis: Literal["x", "y", "z"] | None = None
     start: _StartModel
-    exit: _ExitModel
+    exit: _ExitModel | list[_ExitModel] = Field(description="one portal or a list of them")
 
 
 def load_scenario_file(path: str | Path) -> Scenario:
@@ -316,7 +324,7 @@ def load_scenario_file(path: str | Path) -> Scenario:
         [start]
         position = [0.0, 8.0, 2.0]
         yaw_deg = 0.0        # 0 heads along -y
-        [exit]
+        [[exit]]                    # one or more portals
         point = [0.0, -10.0, 2.0]
         normal = [0.0, -1.0, 0.0]   # pointing out of the cave
         radius = 3.0
@@ -336,12 +344,17 @@ def load_scenario_file(path: str | Path) -> Scenario:
         model = _ScenarioFileModel.model_validate(raw)
     except ValidationError as exc:
         first = exc.errors()[0]
-        where = ".".join(str(p) for p in first["loc"]) or "(top level)"
+        # Drop the class names pydantic inserts for union members ("exit._ExitModel.radius").
+        parts = [str(p) for p in first["loc"] if not str(p).startswith(("_", "list["))]
+        where = ".".join(parts) or "(top level)"
         raise ConfigError(f"{path}: field '{where}': {first['msg']}") from None
     mesh = load_mesh(path.parent / model.mesh, scale=model.scale, up_axis=model.up_axis)
     start = Pose(*model.start.position, psi=math.radians(model.start.yaw_deg))
-    exit_ = ExitPortal(model.exit.point, model.exit.normal, model.exit.radius)
-    return Scenario(model.name or path.stem, mesh, start, exit_, model.description)
+    portals = model.exit if isinstance(model.exit, list) else [model.exit]
+    if not portals:
+        raise ConfigError(f"{path}: give at least one [[exit]]")
+    exits = tuple(ExitPortal(p.point, p.normal, p.radius) for p in portals)
+    return Scenario(model.name or path.stem, mesh, start, exits, model.description)
 
 
 def load_scenario(name_or_path: str, seed: int = 0) -> Scenario:

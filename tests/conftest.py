@@ -1,0 +1,34 @@
+"""Shared fixtures: small exact geometries whose answers are known by hand."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from cavenav.types import Pose
+from cavenav.world.mesh import CaveMesh, make_mesh
+from cavenav.world.scenarios import ExitPortal, Scenario
+
+
+def box_room(extents=(4.0, 20.0, 4.0), centre=(0.0, 0.0, 0.0)) -> CaveMesh:
+    """A closed rectangular room: walls at +-x/2, +-y/2, +-z/2 around ``centre``."""
+    box = trimesh.creation.box(extents=extents)
+    return make_mesh(box.vertices + np.asarray(centre), box.faces, "box-room")
+
+
+@pytest.fixture
+def room() -> CaveMesh:
+    return box_room()
+
+
+@pytest.fixture
+def room_scenario(room: CaveMesh) -> Scenario:
+    """A 20 m corridor, 4 m square, start near +y heading -y, exit just before the -y wall."""
+    return Scenario(
+        name="room",
+        mesh=room,
+        start=Pose(0.0, 8.0, 0.0, 0.0),
+        exits=(ExitPortal((0.0, -6.0, 0.0), (0.0, -1.0, 0.0), 3.0),),
+        description="test corridor",
+    )

@@ -1,0 +1,43 @@
+"""The command line, as a user types it."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+
+def cavenav(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "cavenav.cli", *args], capture_output=True, text=True, cwd=cwd,
+        timeout=300,
+    )
+
+
+def test_run_writes_a_run_folder_and_prints_where(tmp_path: Path) -> None:
+    done = cavenav("run", "S4", "--steps", "3", "--no-frames", "--out", str(tmp_path))
+    assert done.returncode == 0, done.stderr
+    (run_dir,) = tmp_path.iterdir()
+    assert str(run_dir) in done.stdout
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["termination"] == "budget" and summary["steps"] == 3
+    assert "episode summary" in done.stdout
+    assert (run_dir / "topdown.png").exists() and (run_dir / "side.png").exists()
+
+
+def test_scenarios_lists_the_five_topologies_and_example_files() -> None:
+    done = cavenav("scenarios", cwd=Path(__file__).resolve().parents[1])
+    assert done.returncode == 0
+    for name in ("S1", "S2", "S3", "S4", "S5", "osrf_cave_L.toml"):
+        assert name in done.stdout
+
+
+def test_bad_input_is_one_line_on_stderr_not_a_traceback(tmp_path: Path) -> None:
+    broken = tmp_path / "broken.toml"
+    broken.write_text("mesh = 'cave.obj'\n[start]\nposition = [0, 0]\n")
+    for args in (("run", "S9"), ("run", str(broken)), ("run", "S4", "--pilot", "oracle")):
+        done = cavenav(*args)
+        assert done.returncode == 2
+        assert "Traceback" not in done.stderr
+        assert done.stderr.startswith("error:") and done.stderr.count("\n") == 1, done.stderr

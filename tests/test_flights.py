@@ -1,0 +1,28 @@
+"""The acceptance flights: the geometric pilot through every shipped cave, no collision.
+
+These are the slowest tests (10-20 s each): whole episodes on the full sensor rig.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from cavenav.episode.loop import EpisodeConfig, run_episode
+from cavenav.pilots.geometric import GeometricPilot
+from cavenav.world.scenarios import load_scenario
+
+EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
+CAVES = ["S1", "S2", "S3", "S4", "S5"] + [
+    str(EXAMPLES / f"osrf_cave_{name}.toml") for name in ("straight", "L", "3way")
+]
+
+
+@pytest.mark.parametrize("cave", CAVES, ids=lambda c: Path(c).stem)
+def test_the_geometric_pilot_reaches_the_exit_without_collision(cave: str) -> None:
+    result = run_episode(load_scenario(cave, seed=0), GeometricPilot(), EpisodeConfig(plots=False))
+    assert result.termination == "exit", result.summary
+    assert result.summary["collisions"] == 0
+    assert result.summary["steps"] <= 150
+    assert result.summary["min_clearance_m"] > 0.5
