@@ -63,12 +63,17 @@ def test_magnitudes_are_never_rounded_to_the_set() -> None:
 
 signs = st.sampled_from([1.0, -1.0])
 valid_actions = st.builds(
-    lambda f, sf, r, sr, z, sz, y, sy: Action(forward=f * sf + 0.0, right=r * sr + 0.0, up=z * sz + 0.0,
-                                              yaw_deg=y * sy + 0.0),
-    st.sampled_from(DEFAULT_SPACE.forward_m), signs,
-    st.sampled_from(DEFAULT_SPACE.lateral_m), signs,
-    st.one_of(st.just(0.0), st.floats(0.1, 2.0)), signs,
-    st.sampled_from(DEFAULT_SPACE.yaw_deg), signs,
+    lambda f, sf, r, sr, z, sz, y, sy: Action(
+        forward=f * sf + 0.0, right=r * sr + 0.0, up=z * sz + 0.0, yaw_deg=y * sy + 0.0
+    ),
+    st.sampled_from(DEFAULT_SPACE.forward_m),
+    signs,
+    st.sampled_from(DEFAULT_SPACE.lateral_m),
+    signs,
+    st.one_of(st.just(0.0), st.floats(0.1, 2.0)),
+    signs,
+    st.sampled_from(DEFAULT_SPACE.yaw_deg),
+    signs,
 )
 
 

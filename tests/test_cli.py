@@ -10,7 +10,10 @@ from pathlib import Path
 
 def cavenav(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess[str]:
     return subprocess.run(
-        [sys.executable, "-m", "cavenav.cli", *args], capture_output=True, text=True, cwd=cwd,
+        [sys.executable, "-m", "cavenav.cli", *args],
+        capture_output=True,
+        text=True,
+        cwd=cwd,
         timeout=300,
     )
 

@@ -18,7 +18,9 @@ from cavenav.world.raycast import RayCaster
 from .conftest import box_room
 
 
-def synthetic(depth_m: float | np.ndarray, d_top: float = 3.0, d_bottom: float = 3.0) -> Observation:
+def synthetic(
+    depth_m: float | np.ndarray, d_top: float = 3.0, d_bottom: float = 3.0
+) -> Observation:
     depth = np.broadcast_to(np.float32(depth_m), (480, 640)).astype(np.float32)
     return Observation(
         rgb=np.zeros((480, 640, 3), np.uint8),

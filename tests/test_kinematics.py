@@ -52,6 +52,8 @@ def test_equations_are_exactly_those_of_the_spec() -> None:
 
 
 @given(st.floats(-10, 10), st.floats(-10, 10), st.floats(-math.pi, math.pi), st.floats(0, 2))
-def test_a_move_has_the_length_of_its_horizontal_command(x: float, y: float, psi: float, df: float) -> None:
+def test_a_move_has_the_length_of_its_horizontal_command(
+    x: float, y: float, psi: float, df: float
+) -> None:
     pose = apply(Pose(x, y, 0, psi), Action(forward=df, right=0.5))
     assert math.hypot(pose.x - x, pose.y - y) == pytest.approx(math.hypot(df, 0.5))

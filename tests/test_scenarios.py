@@ -35,7 +35,9 @@ def test_the_same_seed_builds_the_same_cave_bit_for_bit(tmp_path: Path, monkeypa
 
 def test_another_seed_builds_another_cave() -> None:
     a, b = load_scenario("S3", seed=0), load_scenario("S3", seed=1)
-    assert a.mesh.vertices.shape != b.mesh.vertices.shape or not np.allclose(a.mesh.vertices, b.mesh.vertices)
+    assert a.mesh.vertices.shape != b.mesh.vertices.shape or not np.allclose(
+        a.mesh.vertices, b.mesh.vertices
+    )
 
 
 @pytest.mark.parametrize("name", list(SCENARIOS))
@@ -114,7 +116,9 @@ def test_a_scenario_file_with_one_exit_table(tmp_path: Path) -> None:
         (VALID.replace("room.obj", "missing.obj"), "not found", MeshError),
     ],
 )
-def test_malformed_scenario_files_are_one_line_errors(tmp_path: Path, text: str, match: str, error) -> None:
+def test_malformed_scenario_files_are_one_line_errors(
+    tmp_path: Path, text: str, match: str, error
+) -> None:
     with pytest.raises(error, match=match) as info:
         load_scenario_file(_write(tmp_path, text))
     assert "\n" not in str(info.value)

@@ -46,7 +46,7 @@ def test_exr_round_trip_is_exact(tmp_path: Path) -> None:
 def test_depth_of_a_wall_ahead_is_its_planar_distance() -> None:
     # Room walls at y = -10; vehicle at y = 0 heading -y; camera 0.2 m ahead of centre.
     rig = SensorRig(RayCaster(box_room()))
-    depth, rgb = rig.forward_frame(Pose(0, 0, 0, 0))
+    depth, _, rgb = rig.forward_frame(Pose(0, 0, 0, 0))
     assert depth.shape == (480, 640) and rgb.shape == (480, 640, 3) and rgb.dtype == np.uint8
     # The central pixels see the far wall 9.8 m away; planar depth is the same off-axis.
     assert depth[240, 320] == pytest.approx(9.8, abs=1e-3)
@@ -68,14 +68,16 @@ def test_clearance_is_the_exact_distance_to_the_nearest_surface() -> None:
 
 def test_brighter_when_the_wall_is_closer() -> None:
     rig = SensorRig(RayCaster(box_room()))
-    _, far = rig.forward_frame(Pose(0, 5, 0, 0))
-    _, near = rig.forward_frame(Pose(0, -7, 0, 0))
+    *_, far = rig.forward_frame(Pose(0, 5, 0, 0))
+    *_, near = rig.forward_frame(Pose(0, -7, 0, 0))
     assert near[200:280, 280:360].mean() > far[200:280, 280:360].mean()
 
 
 def test_rays_that_leave_the_cave_see_open_water() -> None:
-    floor_only = make_mesh(np.array([[-50, -50, -1], [50, -50, -1], [0, 50, -1]], float), np.array([[0, 1, 2]]))
-    depth, rgb = SensorRig(RayCaster(floor_only)).forward_frame(Pose(0, 0, 0, 0))
+    floor_only = make_mesh(
+        np.array([[-50, -50, -1], [50, -50, -1], [0, 50, -1]], float), np.array([[0, 1, 2]])
+    )
+    depth, _, rgb = SensorRig(RayCaster(floor_only)).forward_frame(Pose(0, 0, 0, 0))
     assert np.isinf(depth[0]).all()  # the top row looks above the horizon
     assert rgb[0, 0, 2] > rgb[0, 0, 0]  # blue-green water, red absorbed
 

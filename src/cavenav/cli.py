@@ -1,14 +1,15 @@
 """The command line: flags -> configuration -> library calls, nothing else.
 
-    cavenav run S4                         fly S4 with the geometric pilot
-    cavenav run examples/osrf_cave_L.toml  fly a user mesh described by a scenario file
-    cavenav scenarios                      list what can be flown
+cavenav run S4                         fly S4 with the geometric pilot
+cavenav run examples/osrf_cave_L.toml  fly a user mesh described by a scenario file
+cavenav scenarios                      list what can be flown
 """
 
 from __future__ import annotations
 
 import sys
 from dataclasses import replace
+from enum import StrEnum
 from pathlib import Path
 from typing import Annotated
 
@@ -30,6 +31,13 @@ errors = Console(stderr=True, soft_wrap=True)
 PILOTS = ("geometric",)
 
 
+class Sounder(StrEnum):
+    """Echo-sounder models (see `cavenav.sensors.rig.SensorConfig`)."""
+
+    camera = "camera"
+    beam = "beam"
+
+
 @app.command()
 def run(
     scenario: Annotated[str, typer.Argument(help="S1..S5, or the path of a scenario .toml file")],
@@ -38,7 +46,7 @@ def run(
     out: Annotated[Path, typer.Option(help="folder that receives the run folder")] = Path("runs"),
     steps: Annotated[int, typer.Option(min=1, help="step budget")] = 150,
     frames: Annotated[bool, typer.Option(help="save RGB, depth PNG and EXR of every step")] = True,
-    sounder: Annotated[str, typer.Option(help="echo-sounder model: camera or beam")] = "camera",
+    sounder: Annotated[Sounder, typer.Option(help="echo-sounder model")] = Sounder.camera,
     depth_max: Annotated[float, typer.Option(help="D_max of the depth PNG, metres")] = 20.0,
 ) -> None:
     """Fly one episode and write its run folder (summary, steps, frames, plots)."""
@@ -49,21 +57,25 @@ def run(
 
     if pilot not in PILOTS:
         raise CavenavError(f"unknown pilot '{pilot}'; choose one of {', '.join(PILOTS)}")
-    if sounder not in ("camera", "beam"):
-        raise CavenavError(f"unknown sounder model '{sounder}'; choose camera or beam")
     with console.status(f"building {scenario} (seed {seed})"):
         cave = load_scenario(scenario, seed)
     config = EpisodeConfig(
         max_steps=steps,
         save_frames=frames,
-        sensors=replace(SensorConfig(), sounder=sounder, depth_max_m=depth_max),
+        sensors=replace(SensorConfig(), sounder=sounder.value, depth_max_m=depth_max),
     )
     run_dir = new_run_dir(out, cave.name, pilot, cave.seed)
-    console.print(f"[bold]{cave.name}[/]: {cave.description or cave.mesh.name} "
-                  f"({cave.mesh.triangle_count:,} triangles)")
+    console.print(
+        f"[bold]{cave.name}[/]: {cave.description or cave.mesh.name} "
+        f"({cave.mesh.triangle_count:,} triangles)"
+    )
     with Progress(
-        TextColumn("[progress.description]{task.description}"), BarColumn(), MofNCompleteColumn(),
-        TextColumn("{task.fields[status]}"), TimeElapsedColumn(), console=console,
+        TextColumn("[progress.description]{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TextColumn("{task.fields[status]}"),
+        TimeElapsedColumn(),
+        console=console,
     ) as progress:
         task = progress.add_task(f"flying {cave.name}", total=steps, status="")
 
@@ -122,7 +134,9 @@ def _metres(value: float | None) -> str:
 
 @app.command()
 def scenarios(
-    examples: Annotated[Path, typer.Option(help="folder searched for scenario files")] = Path("examples"),
+    examples: Annotated[Path, typer.Option(help="folder searched for scenario files")] = Path(
+        "examples"
+    ),
 ) -> None:
     """List the built-in scenarios and the scenario files found in EXAMPLES."""
     from cavenav.world.scenarios import SCENARIOS
@@ -146,25 +160,15 @@ def _first_comment(path: Path) -> str:
 
 
 def main() -> None:
-    """Entry point: one line per error instead of a traceback."""
+    """Entry point: typer reports usage errors; our own errors become one line, exit 2."""
     try:
-        app(standalone_mode=False)
+        app()
     except CavenavError as exc:
-        errors.print(f"[red]error:[/] {exc}")
+        errors.print(f"[red]error:[/] {exc}", highlight=False)
         sys.exit(2)
     except KeyboardInterrupt:
         errors.print("interrupted")
         sys.exit(130)
-    except (typer.Exit, SystemExit) as exc:
-        code = getattr(exc, "exit_code", getattr(exc, "code", 0))
-        sys.exit(code)
-    except Exception as exc:  # click usage errors
-        import click
-
-        if isinstance(exc, click.ClickException):
-            exc.show()
-            sys.exit(exc.exit_code)
-        raise
 
 
 if __name__ == "__main__":

@@ -49,7 +49,8 @@ class Pose:
     def facing(cls, position: np.ndarray, direction: np.ndarray) -> Pose:
         """A pose at ``position`` heading along the horizontal part of ``direction``."""
         dx, dy = float(direction[0]), float(direction[1])
-        return cls(*map(float, position), psi=math.atan2(dx, -dy))
+        x, y, z = (float(v) for v in position)
+        return cls(x, y, z, psi=math.atan2(dx, -dy))
 
     def to_dict(self) -> dict[str, float]:
         return {

@@ -97,7 +97,8 @@ def run_episode(
     pilot.reset()
 
     pose = scenario.start
-    poses, clearances, steps = [pose], [clearance(caster, pose)], []
+    poses, clearances = [pose], [clearance(caster, pose)]
+    steps: list[dict[str, Any]] = []
     termination: str | None = None
     failure: str | None = None
     collision_pose: Pose | None = None
@@ -165,8 +166,13 @@ def run_episode(
                 record.update(
                     action=decision.action_text,
                     justification=decision.justification,
-                    twist=dict(zip(("linear_x", "linear_y", "linear_z", "angular_z"),
-                                   to_twist(decision.action), strict=True)),
+                    twist=dict(
+                        zip(
+                            ("linear_x", "linear_y", "linear_z", "angular_z"),
+                            to_twist(decision.action),
+                            strict=True,
+                        )
+                    ),
                     next_pose=new_pose.to_dict(),
                     collision=hit,
                     **decision.extra,
@@ -204,7 +210,9 @@ def run_episode(
         status = "interrupted"
         raise
     finally:
-        result = EpisodeResult(summary(status), poses, clearances, steps, folder.path if folder else None)
+        result = EpisodeResult(
+            summary(status), poses, clearances, steps, folder.path if folder else None
+        )
         if folder:
             if status == "finished" and config.plots:
                 from cavenav.episode.plots import plot_episode

@@ -19,7 +19,9 @@ def path_length(poses: Sequence[Pose]) -> float:
     return float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum())
 
 
-def summarise_clearance(clearances: Sequence[float], standoff_m: float) -> dict[str, float | int | None]:
+def summarise_clearance(
+    clearances: Sequence[float], standoff_m: float
+) -> dict[str, float | int | None]:
     """Minimum, mean and the number of poses closer than the standoff."""
     c = np.asarray(clearances, np.float64)
     if c.size == 0:

@@ -32,8 +32,10 @@ _CREDIT = "Open Robotics / DARPA SubT"
 
 
 def _coloured_path(ax: plt.Axes, x: np.ndarray, y: np.ndarray, c: np.ndarray, norm: Normalize):
-    segments = np.stack([np.column_stack([x[:-1], y[:-1]]), np.column_stack([x[1:], y[1:]])], axis=1)
-    lines = LineCollection(segments, cmap=_CMAP, norm=norm, linewidths=2.5, zorder=3)
+    segments = np.stack(
+        [np.column_stack([x[:-1], y[:-1]]), np.column_stack([x[1:], y[1:]])], axis=1
+    )
+    lines = LineCollection(list(segments), cmap=_CMAP, norm=norm, linewidths=2.5, zorder=3)
     lines.set_array(0.5 * (c[:-1] + c[1:]))
     ax.add_collection(lines)
     ax.scatter(x, y, c=c, cmap=_CMAP, norm=norm, s=9, zorder=4)
@@ -57,7 +59,9 @@ def _finish(fig: plt.Figure, ax: plt.Axes, lines, scenario: Scenario, path: Path
     plt.close(fig)
 
 
-def plot_episode(result: EpisodeResult, scenario: Scenario, caster: RayCaster, out_dir: Path) -> dict[str, str]:
+def plot_episode(
+    result: EpisodeResult, scenario: Scenario, caster: RayCaster, out_dir: Path
+) -> dict[str, str]:
     """Write topdown.png and side.png into ``out_dir``; returns their file names."""
     p = np.array([pose.position for pose in result.poses])
     c = np.asarray(result.clearances)
@@ -68,8 +72,17 @@ def plot_episode(result: EpisodeResult, scenario: Scenario, caster: RayCaster, o
     # ---- top-down
     fig, ax = plt.subplots(figsize=(8, 8))
     v = mesh.vertices
-    ax.tripcolor(v[:, 0], v[:, 1], mesh.faces, facecolors=np.ones(len(mesh.faces)),
-                 cmap="Greys", vmin=0, vmax=4, edgecolors="none", rasterized=True)
+    ax.tripcolor(
+        v[:, 0],
+        v[:, 1],
+        mesh.faces,
+        facecolors=np.ones(len(mesh.faces)),
+        cmap="Greys",
+        vmin=0,
+        vmax=4,
+        edgecolors="none",
+        rasterized=True,
+    )
     lines = _coloured_path(ax, p[:, 0], p[:, 1], c, norm)
     ax.plot(*p[0, :2], marker="o", color="tab:green", ms=9, zorder=5, label="start")
     for k, portal in enumerate(scenario.exits):
@@ -77,11 +90,24 @@ def plot_episode(result: EpisodeResult, scenario: Scenario, caster: RayCaster, o
         n = np.asarray(portal.normal)[:2]
         n = n / max(np.linalg.norm(n), 1e-9)
         across = np.array([-n[1], n[0]]) * portal.radius
-        ax.plot([ex[0] - across[0], ex[0] + across[0]], [ex[1] - across[1], ex[1] + across[1]],
-                color="tab:orange", lw=3, zorder=5, label="exit" if k == 0 else None)
+        ax.plot(
+            [ex[0] - across[0], ex[0] + across[0]],
+            [ex[1] - across[1], ex[1] + across[1]],
+            color="tab:orange",
+            lw=3,
+            zorder=5,
+            label="exit" if k == 0 else None,
+        )
     if collision:
-        ax.plot(collision["x"], collision["y"], marker="X", color="tab:red", ms=12, zorder=6,
-                label="collision")
+        ax.plot(
+            collision["x"],
+            collision["y"],
+            marker="X",
+            color="tab:red",
+            ms=12,
+            zorder=6,
+            label="collision",
+        )
     ax.set_aspect("equal")
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
@@ -105,13 +131,19 @@ def plot_episode(result: EpisodeResult, scenario: Scenario, caster: RayCaster, o
     lines = _coloured_path(ax, s_pose, p[:, 2], c, norm)
     ax.plot(0, p[0, 2], marker="o", color="tab:green", ms=9, zorder=5, label="start")
     if collision:
-        s_hit = s_pose[-1] + float(np.linalg.norm(np.array([collision["x"], collision["y"], collision["z"]]) - p[-1]))
-        ax.plot(s_hit, collision["z"], marker="X", color="tab:red", ms=12, zorder=6, label="collision")
+        s_hit = s_pose[-1] + float(
+            np.linalg.norm(np.array([collision["x"], collision["y"], collision["z"]]) - p[-1])
+        )
+        ax.plot(
+            s_hit, collision["z"], marker="X", color="tab:red", ms=12, zorder=6, label="collision"
+        )
     ax.set_xlim(0, max(s_pose[-1], 1.0))
     ax.set_ylim(lo, hi)
     ax.set_xlabel("distance along the path (m)")
     ax.set_ylabel("z (m)")
-    ax.set_title(_title(result) + " · ceiling and floor straight above and below the path", fontsize=9)
+    ax.set_title(
+        _title(result) + " · ceiling and floor straight above and below the path", fontsize=9
+    )
     ax.legend(loc="upper right", fontsize=8, ncols=4)
     _finish(fig, ax, lines, scenario, out_dir / "side.png")
     return {"topdown": "topdown.png", "side": "side.png"}

@@ -1,11 +1,11 @@
 """The run folder: an append-only, crash-safe record of one episode.
 
-    RUN_DIR/
-      summary.json   rewritten atomically after every step (status "running" until the
-                     end), so a crash or Ctrl-C leaves a valid partial summary
-      steps.jsonl    one JSON object per step, flushed as it happens
-      frames/        step_NNNN_rgb.png, step_NNNN_depth.png, step_NNNN_depth.exr
-      topdown.png, side.png   trajectory plots, written at the end
+RUN_DIR/
+  summary.json   rewritten atomically after every step (status "running" until the
+                 end), so a crash or Ctrl-C leaves a valid partial summary
+  steps.jsonl    one JSON object per step, flushed as it happens
+  frames/        step_NNNN_rgb.png, step_NNNN_depth.png, step_NNNN_depth.exr
+  topdown.png, side.png   trajectory plots, written at the end
 """
 
 from __future__ import annotations
@@ -75,7 +75,11 @@ class RunFolder:
         if not self.save_frames:
             return {}
         stem = f"frames/step_{step:04d}"
-        files = {"rgb": f"{stem}_rgb.png", "depth_png": f"{stem}_depth.png", "depth_exr": f"{stem}_depth.exr"}
+        files = {
+            "rgb": f"{stem}_rgb.png",
+            "depth_png": f"{stem}_depth.png",
+            "depth_exr": f"{stem}_depth.exr",
+        }
         Image.fromarray(obs.rgb).save(self.path / files["rgb"], compress_level=1)
         Image.fromarray(obs.depth_png).save(self.path / files["depth_png"], compress_level=1)
         write_exr(self.path / files["depth_exr"], obs.depth_m)

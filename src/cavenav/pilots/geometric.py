@@ -95,7 +95,9 @@ class GeometricPilot:
 
     name = "geometric"
 
-    def __init__(self, config: GeometricPilotConfig | None = None, space: ActionSpace = DEFAULT_SPACE):
+    def __init__(
+        self, config: GeometricPilotConfig | None = None, space: ActionSpace = DEFAULT_SPACE
+    ):
         self.config = config or GeometricPilotConfig()
         self.space = space
         self._actions: deque[Action] = deque(maxlen=max(self.config.history, 1))
@@ -117,7 +119,7 @@ class GeometricPilot:
         depth = denormalise_depth(obs.depth_png[:: cfg.stride, :: cfg.stride], *obs.depth_range)
         h, w = obs.depth_png.shape
         focal = 0.5 * w / math.tan(math.radians(cfg.fov_deg) / 2)
-        v, u = np.mgrid[0:h:cfg.stride, 0:w:cfg.stride].astype(np.float32) + 0.5
+        v, u = np.mgrid[0 : h : cfg.stride, 0 : w : cfg.stride].astype(np.float32) + 0.5
         forward = depth
         left = -(u - 0.5 * w) / focal * depth
         up = -(v - 0.5 * h) / focal * depth
@@ -135,28 +137,42 @@ class GeometricPilot:
         # Remember what was seen: surfaces beside the vehicle are out of view now but were
         # in view a few steps ago. Points are kept in the body frame (forward, left, up
         # from the vehicle's centre) and moved by each action the pilot itself commanded.
-        keep = surface[:: 2, :: 2] & (depth[:: 2, :: 2] < 10.0)
-        seen = np.stack([forward[::2, ::2][keep] + cfg.camera_offset_m, left[::2, ::2][keep],
-                         up[::2, ::2][keep]], axis=1)
+        keep = surface[::2, ::2] & (depth[::2, ::2] < 10.0)
+        seen = np.stack(
+            [
+                forward[::2, ::2][keep] + cfg.camera_offset_m,
+                left[::2, ::2][keep],
+                up[::2, ::2][keep],
+            ],
+            axis=1,
+        )
         if self._actions:
             self._memory = [_move_points(pts, self._actions[-1]) for pts in self._memory]
         self._memory.append(seen.astype(np.float32))
-        self._memory = self._memory[-cfg.memory_frames:]
+        self._memory = self._memory[-cfg.memory_frames :]
         cloud = np.concatenate(self._memory)
         # "At the vehicle's height" follows the passage's slope, so that a ceiling or floor
         # ahead of a descent or a climb is not mistaken for a side wall.
         bearing, elevation = self._target(free)
         slope = math.tan(math.radians(elevation))
-        at_height = np.abs(cloud[:, 2] - slope * np.maximum(cloud[:, 0], 0.0)) < cfg.corridor_half_height_m + 0.3
+        at_height = (
+            np.abs(cloud[:, 2] - slope * np.maximum(cloud[:, 0], 0.0))
+            < cfg.corridor_half_height_m + 0.3
+        )
         beside = at_height & (cloud[:, 0] > -1.5) & (cloud[:, 0] < 8.0)
         beside &= ~((np.abs(cloud[:, 1]) < radius) & (cloud[:, 0] > 1.0))  # ahead, not beside
         span = 8.0 * math.tan(math.radians(cfg.fov_deg) / 2)  # an unseen wall is at least this far
 
         def wall_offsets(window: np.ndarray) -> tuple[float, float]:
             # The 5th percentile: the wall, not the single most protruding knob of rock.
-            lefts, rights = cloud[window & (cloud[:, 1] > 0), 1], -cloud[window & (cloud[:, 1] < 0), 1]
-            return (float(np.percentile(lefts, 5)) if lefts.size else span,
-                    float(np.percentile(rights, 5)) if rights.size else span)
+            lefts, rights = (
+                cloud[window & (cloud[:, 1] > 0), 1],
+                -cloud[window & (cloud[:, 1] < 0), 1],
+            )
+            return (
+                float(np.percentile(lefts, 5)) if lefts.size else span,
+                float(np.percentile(rights, 5)) if rights.size else span,
+            )
 
         left_offset, right_offset = wall_offsets(beside)  # to steer toward the middle
         beside_now = wall_offsets(beside & (cloud[:, 0] < 5.0))  # for the standoff: next 5 m
@@ -201,7 +217,9 @@ class GeometricPilot:
         members = labels == 1 + int(np.argmax(sizes))
         bi, ei = np.nonzero(members)
         bearing, elevation = _BEARINGS[bi].mean(), _ELEVATIONS[ei].mean()
-        if not members[np.argmin(np.abs(_BEARINGS - bearing)), np.argmin(np.abs(_ELEVATIONS - elevation))]:
+        if not members[
+            np.argmin(np.abs(_BEARINGS - bearing)), np.argmin(np.abs(_ELEVATIONS - elevation))
+        ]:
             # A curved opening whose middle is blocked: take its member nearest the middle.
             k = np.argmin(np.hypot(_BEARINGS[bi] - bearing, _ELEVATIONS[ei] - elevation))
             bearing, elevation = _BEARINGS[bi[k]], _ELEVATIONS[ei[k]]
@@ -241,7 +259,8 @@ class GeometricPilot:
             if _clearance_of_move(cloud, candidate) >= margin:
                 return candidate, "" if k == 0 else (
                     f"the move would pass within {margin:.2f} m of a remembered surface, "
-                    f"so it becomes '{format_action(candidate)}'")
+                    f"so it becomes '{format_action(candidate)}'"
+                )
         return candidates[-1], "boxed in: turning in place only"
 
     def decide(self, observation: Observation) -> Decision:
@@ -268,7 +287,9 @@ class GeometricPilot:
             bearing, elevation = scene.target
             yaw = self._choose_yaw(scene.free, bearing, elevation)
             target_free = self._free_along(scene.free, yaw, elevation)
-            situation = f"the passage continues {best:.1f} m toward {_bearing_words(bearing, elevation)}"
+            situation = (
+                f"the passage continues {best:.1f} m toward {_bearing_words(bearing, elevation)}"
+            )
 
         # The standoff counts walls beside the next metres of path: they will be beside us.
         nearest = min(d_top, d_bottom, scene.nearest_m, scene.ahead_m, scene.beside_m)
@@ -313,7 +334,8 @@ class GeometricPilot:
             yaw = 20.0 if scene.left_room_m >= scene.right_room_m else -20.0
 
         action, shielded = self._keep_clear(
-            Action(forward=forward, right=right, up=up, yaw_deg=yaw), scene.cloud)
+            Action(forward=forward, right=right, up=up, yaw_deg=yaw), scene.cloud
+        )
         if shielded:
             constraint += f"; {shielded}"
         action = self.space.validate(action)
@@ -327,7 +349,9 @@ class GeometricPilot:
             f"{'left' if scene.nearest_left else 'right'}. "
             f"Constraints: {constraint}. Choice: {text}{_why(yaw, up, right)}."
         )
-        return Decision(action=action, action_text=text, justification=justification, raw=justification)
+        return Decision(
+            action=action, action_text=text, justification=justification, raw=justification
+        )
 
 
 def _move_points(points: np.ndarray, action: Action) -> np.ndarray:
@@ -337,8 +361,10 @@ def _move_points(points: np.ndarray, action: Action) -> np.ndarray:
     frame (SPEC section 5); fixed points therefore turn by -dpsi and shift back.
     """
     a = math.radians(-action.yaw_deg)
-    rot = np.array([[math.cos(a), -math.sin(a), 0.0], [math.sin(a), math.cos(a), 0.0], [0.0, 0.0, 1.0]],
-                   np.float32)
+    rot = np.array(
+        [[math.cos(a), -math.sin(a), 0.0], [math.sin(a), math.cos(a), 0.0], [0.0, 0.0, 1.0]],
+        np.float32,
+    )
     shift = np.array([action.forward, -action.right, action.up], np.float32)
     return points @ rot.T - shift
 
@@ -348,8 +374,10 @@ def _clearance_of_move(cloud: np.ndarray, action: Action) -> float:
     if not len(cloud):
         return math.inf
     a = math.radians(-action.yaw_deg)
-    rot = np.array([[math.cos(a), -math.sin(a), 0.0], [math.sin(a), math.cos(a), 0.0], [0.0, 0.0, 1.0]],
-                   np.float32)
+    rot = np.array(
+        [[math.cos(a), -math.sin(a), 0.0], [math.sin(a), math.cos(a), 0.0], [0.0, 0.0, 1.0]],
+        np.float32,
+    )
     pts = cloud @ rot.T  # in the frame after the turn, before the translation
     move = np.array([action.forward, -action.right, action.up], np.float32)
     length2 = float(move @ move)

@@ -7,7 +7,7 @@ A deliberately simple model, evaluated per pixel in linear light then tone-mappe
       + B * (1 - exp(-c r))                              (veiling light of the water)
 
 with per-channel attenuation ``c`` (red lost first). Rays that leave the cave see open
-water. All arrays are float32 and the cost is a handful of vectorised passes.
+water. The per-pixel evaluation lives in `cavenav.sensors.kernels` (one compiled pass).
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ import numpy as np
 
 from cavenav.world.mesh import CaveMesh
 
-__all__ = ["Optics", "rock_albedo", "shade"]
+__all__ = ["LUT_SCALE", "Optics", "rock_albedo", "tone_lut"]
 
 
 @dataclass(frozen=True)
@@ -62,53 +62,18 @@ def rock_albedo(mesh: CaveMesh, seed: int = 0) -> np.ndarray:
     return np.clip(grey[:, None] * tint, 0.05, 0.9).astype(np.float32)
 
 
+LUT_SIZE = 65536
+LUT_SCALE = LUT_SIZE / 16.0
+
+
 @lru_cache(maxsize=8)
-def _tone_lut(exposure: float) -> np.ndarray:
+def tone_lut(exposure: float) -> np.ndarray:
     """(65536,) uint8 map from linear radiance in [0, 16) to tone-mapped sRGB.
 
     One table lookup replaces an exp, a power and a branch per channel and pixel; 65536
-    steps keep the darkest tones within about one 8-bit level.
+    steps keep the darkest tones within about one 8-bit level. Index: radiance * LUT_SCALE.
     """
-    radiance = np.arange(_LUT_SIZE, dtype=np.float64) / _LUT_SCALE
+    radiance = np.arange(LUT_SIZE, dtype=np.float64) / LUT_SCALE
     mapped = 1.0 - np.exp(-exposure * radiance)  # soft shoulder instead of clipping
     srgb = np.where(mapped <= 0.0031308, 12.92 * mapped, 1.055 * mapped ** (1 / 2.4) - 0.055)
     return (np.clip(srgb, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
-
-
-_LUT_SIZE = 65536
-_LUT_SCALE = _LUT_SIZE / 16.0
-
-
-def shade(
-    r: np.ndarray,
-    cos: np.ndarray,
-    albedo: np.ndarray,
-    hit: np.ndarray,
-    optics: Optics,
-) -> np.ndarray:
-    """Shade a batch of camera rays.
-
-    Args:
-        r: (n,) float32 range from the camera to the surface along each ray, metres.
-        cos: (n,) float32 cosine between the ray and the surface normal.
-        albedo: (n, 3) float32 surface reflectance.
-        hit: (n,) bool, False where the ray leaves the cave.
-        optics: water and light parameters.
-
-    Returns:
-        (n, 3) uint8 sRGB colours.
-    """
-    r = np.where(hit, r, np.float32(0.0))
-    c = np.asarray(optics.attenuation, np.float32)
-    trans = np.exp(r[:, None] * -c)  # camera <- surface
-    light = np.float32(optics.light_power) * cos / np.maximum(r, np.float32(0.3)) ** 2
-    radiance = light[:, None] * trans
-    radiance += np.asarray(optics.ambient, np.float32)
-    radiance *= trans
-    radiance *= albedo
-    veil = np.asarray(optics.veil, np.float32)
-    radiance += veil
-    radiance -= veil * trans
-    radiance[~hit] = optics.open_water
-    index = np.minimum(radiance * np.float32(_LUT_SCALE), np.float32(_LUT_SIZE - 1))
-    return _tone_lut(optics.exposure)[index.astype(np.int32)]

@@ -13,8 +13,8 @@ from typing import Literal
 import numpy as np
 
 from cavenav.sensors.camera import CameraIntrinsics, camera_to_world, look_frame
-from cavenav.sensors.depth import normalise_depth
-from cavenav.sensors.optics import Optics, rock_albedo, shade
+from cavenav.sensors.kernels import fill_rays, shade_frame
+from cavenav.sensors.optics import LUT_SCALE, Optics, rock_albedo, tone_lut
 from cavenav.types import Observation, Pose
 from cavenav.world.raycast import RayCaster
 
@@ -66,7 +66,9 @@ def _beam_directions(cone_deg: float, rings: int = 3, per_ring: int = 8) -> np.n
         theta = half * k / rings
         for j in range(per_ring):
             phi = 2 * np.pi * j / per_ring
-            dirs.append(np.array([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)]))
+            dirs.append(
+                np.array([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)])
+            )
     return np.array(dirs)
 
 
@@ -79,9 +81,12 @@ class SensorRig:
         cfg = self.config
         self._pixel_dirs = cfg.camera.directions.reshape(-1, 3)
         self._ray_length = np.linalg.norm(self._pixel_dirs, axis=1)  # rotation-invariant
+        self._rays = np.empty((len(self._pixel_dirs), 6), np.float32)
         if cfg.sounder == "camera":
             w, h = cfg.sounder_pixels
-            focal_mm = 0.5 * cfg.camera.sensor_width_mm / math.tan(math.radians(cfg.sounder_fov_deg) / 2)
+            focal_mm = (
+                0.5 * cfg.camera.sensor_width_mm / math.tan(math.radians(cfg.sounder_fov_deg) / 2)
+            )
             sounder = CameraIntrinsics(w, h, focal_mm, cfg.camera.sensor_width_mm)
             self._sounder_dirs = sounder.directions.reshape(-1, 3)
             self._sounder_planar = True
@@ -95,29 +100,41 @@ class SensorRig:
     def camera_position(self, pose: Pose) -> np.ndarray:
         return pose.position + self.config.camera_offset_m * pose.forward
 
-    def forward_frame(self, pose: Pose) -> tuple[np.ndarray, np.ndarray]:
-        """(H, W) float32 planar depth and (H, W, 3) uint8 colour at ``pose``."""
-        cam = self.config.camera
+    def forward_frame(self, pose: Pose) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Planar depth (H, W) float32 metres, its PNG (H, W) uint8 and colour (H, W, 3) uint8."""
+        cfg = self.config
+        optics = cfg.optics
         rot = camera_to_world(pose).astype(np.float32)
-        dirs = self._pixel_dirs @ rot.T
-        hits = self.caster.cast(self.camera_position(pose), dirs)
-        hit = hits.triangle >= 0
-        albedo = self._face_albedo[hits.triangle]  # index -1 (no hit) is masked in shade
-        n = hits.normals
-        n_dot_d = np.einsum("ij,ij->i", n, dirs)
-        # Sediment settles on up-facing surfaces: a browner, brighter floor.
-        up_facing = np.where(n_dot_d < 0, n[:, 2], -n[:, 2])
-        floor = np.clip((up_facing - 0.55) * 3.0, 0.0, 1.0)[:, None]
-        albedo += floor * (_SEDIMENT - albedo)
-        rgb = shade(
-            hits.t * self._ray_length,
-            np.abs(n_dot_d) / self._ray_length,
-            albedo,
-            hit,
-            self.config.optics,
+        # Write origins and directions straight into the (n, 6) ray buffer Open3D reads.
+        rays = self._rays
+        fill_rays(self._pixel_dirs, rot, self.camera_position(pose).astype(np.float32), rays)
+        dirs = rays[:, 3:]
+        raw = self.caster.cast_raw_rays(rays)
+        n = len(rays)
+        rgb = np.empty((n, 3), np.uint8)
+        depth_png = np.empty(n, np.uint8)
+        shade_frame(
+            raw["t_hit"],
+            raw["primitive_ids"],
+            raw["primitive_normals"],
+            dirs,
+            self._ray_length,
+            self._face_albedo,
+            _SEDIMENT,
+            np.asarray(optics.attenuation, np.float32),
+            optics.light_power,
+            np.asarray(optics.ambient, np.float32),
+            np.asarray(optics.veil, np.float32),
+            np.asarray(optics.open_water, np.float32),
+            tone_lut(optics.exposure),
+            LUT_SCALE,
+            cfg.depth_min_m,
+            cfg.depth_max_m,
+            rgb,
+            depth_png,
         )
-        shape = (cam.height, cam.width)
-        return hits.t.reshape(shape), rgb.reshape(*shape, 3)
+        shape = (cfg.camera.height, cfg.camera.width)
+        return raw["t_hit"].reshape(shape), depth_png.reshape(shape), rgb.reshape(*shape, 3)
 
     def echo_sounders(self, pose: Pose) -> tuple[float, float]:
         """(d_top, d_bottom) in metres from the vehicle's centre."""
@@ -135,12 +152,12 @@ class SensorRig:
     def observe(self, pose: Pose, step: int = 0) -> Observation:
         """Render everything a pilot sees at ``pose``."""
         cfg = self.config
-        depth, rgb = self.forward_frame(pose)
+        depth, depth_png, rgb = self.forward_frame(pose)
         d_top, d_bottom = self.echo_sounders(pose)
         return Observation(
             rgb=rgb,
             depth_m=depth,
-            depth_png=normalise_depth(depth, cfg.depth_min_m, cfg.depth_max_m),
+            depth_png=depth_png,
             d_top=d_top,
             d_bottom=d_bottom,
             depth_range=(cfg.depth_min_m, cfg.depth_max_m),

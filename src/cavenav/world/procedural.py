@@ -70,8 +70,18 @@ class PassageSpec:
         h = hashlib.sha256()
         for arr in (self.centreline, self.half_width, self.half_height):
             h.update(np.ascontiguousarray(arr, np.float64).tobytes())
-        h.update(repr((self.boulders, self.exit_index, self.roughness, self.seed, self.voxel,
-                       GENERATOR_VERSION)).encode())
+        h.update(
+            repr(
+                (
+                    self.boulders,
+                    self.exit_index,
+                    self.roughness,
+                    self.seed,
+                    self.voxel,
+                    GENERATOR_VERSION,
+                )
+            ).encode()
+        )
         return h.hexdigest()[:16]
 
 
@@ -98,7 +108,10 @@ def _frames(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 def _fractal_noise(shape: tuple[int, ...], voxel: float, rng: np.random.Generator) -> np.ndarray:
-    """Smooth noise of unit standard deviation: octaves of wavelength 4, 1.6 and 0.8 m (weights 1, .5, .25)."""
+    """Smooth noise of unit standard deviation.
+
+    Octaves of wavelength 4, 1.6 and 0.8 m weighted 1, 0.5 and 0.25: bulges, ledges, knobs.
+    """
     out = np.zeros(shape, np.float32)
     for wavelength, weight in ((4.0, 1.0), (1.6, 0.5), (0.8, 0.25)):
         cells = max(wavelength / voxel, 1.0)
@@ -118,7 +131,9 @@ def build_cave(spec: PassageSpec, name: str = "cave") -> CaveMesh:
     mesh = _generate(spec, name)
     cache.parent.mkdir(parents=True, exist_ok=True)
     tmp = cache.with_suffix(f".{os.getpid()}.tmp.npz")
-    np.savez_compressed(tmp, vertices=mesh.vertices.astype(np.float32), faces=mesh.faces.astype(np.int32))
+    np.savez_compressed(
+        tmp, vertices=mesh.vertices.astype(np.float32), faces=mesh.faces.astype(np.int32)
+    )
     tmp.replace(cache)
     with np.load(cache) as data:  # the cached float32 copy, so cold and warm runs agree
         return make_mesh(data["vertices"], data["faces"], name)

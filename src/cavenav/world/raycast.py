@@ -83,6 +83,16 @@ class RayCaster:
             uv=out["primitive_uvs"].numpy().reshape(*shape, 2),
         )
 
+    def cast_raw_rays(self, rays: np.ndarray) -> dict[str, np.ndarray]:
+        """Cast a C-contiguous (n, 6) float32 array of (origin, direction) rows as is.
+
+        The renderer's fast path: no copies, and Open3D's outputs come back unconverted
+        as flat numpy arrays: ``t_hit``, ``primitive_normals`` and ``primitive_ids``
+        (uint32, 0xFFFFFFFF where a ray escapes).
+        """
+        out = self._scene.cast_rays(self._o3d.core.Tensor.from_numpy(rays))
+        return {k: out[k].numpy() for k in ("t_hit", "primitive_ids", "primitive_normals")}
+
     def first_hit(self, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
         """(...) float32 ray parameter of the first hit only; cheaper than `cast`."""
         rays, shape = self._rays(origins, directions)

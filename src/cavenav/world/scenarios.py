@@ -84,6 +84,10 @@ class Scenario:
 # ------------------------------------------------------------------ procedural S1-S5
 
 
+def _vec3(v: np.ndarray) -> tuple[float, float, float]:
+    return float(v[0]), float(v[1]), float(v[2])
+
+
 def _smooth_noise(s: np.ndarray, wavelength: float, rng: np.random.Generator) -> np.ndarray:
     """Smooth 1-D noise along arc length ``s``, roughly in [-1, 1]."""
     knots = np.arange(s[0] - wavelength, s[-1] + 2 * wavelength, wavelength)
@@ -101,7 +105,9 @@ def _dips(s: np.ndarray, centres: list[float], depth: float, sigma: float = 1.6)
     return out
 
 
-def _straighten_ends(s: np.ndarray, values: np.ndarray, length: float, margin: float = 6.0) -> np.ndarray:
+def _straighten_ends(
+    s: np.ndarray, values: np.ndarray, length: float, margin: float = 6.0
+) -> np.ndarray:
     """Hold a profile constant before s=2 and after s=length-margin: straight portals."""
     head = np.interp(2.0, s, values)
     tail = np.interp(length - margin, s, values)
@@ -142,14 +148,21 @@ def _layout_from_profiles(
 def _s1(rng: np.random.Generator, seed: int) -> _Layout:
     length = 55.0
     s = np.arange(-4.0, length + 4.0, 0.25)
-    x = _straighten_ends(s, 1.6 * np.sin(2 * np.pi * s / rng.uniform(26, 34) + rng.uniform(0, 6.3)), length)
+    x = _straighten_ends(
+        s, 1.6 * np.sin(2 * np.pi * s / rng.uniform(26, 34) + rng.uniform(0, 6.3)), length
+    )
     z = _straighten_ends(s, 0.5 * _smooth_noise(s, 12.0, rng), length)
     points = np.stack([x, -s, z], axis=1)
     necks = [c + rng.uniform(-2, 2) for c in (15.0, 29.0, 42.0)]
     half_w = 3.5 - _dips(s, necks, 1.7)
     half_h = 3.0 - _dips(s, necks[1:2], 1.0)
     return _layout_from_profiles(
-        s, points, half_w, half_h, length, seed,
+        s,
+        points,
+        half_w,
+        half_h,
+        length,
+        seed,
         description="narrow passage with three constrictions to about 3.6 m",
     )
 
@@ -166,7 +179,12 @@ def _s2(rng: np.random.Generator, seed: int) -> _Layout:
     half_w = 3.2 - _dips(s, necks, 1.3)
     half_h = 2.9 - _dips(s, necks, 0.8)
     return _layout_from_profiles(
-        s, points, half_w, half_h, length, seed,
+        s,
+        points,
+        half_w,
+        half_h,
+        length,
+        seed,
         description="narrow passage with vertical undulations of about 4 m and two constrictions",
     )
 
@@ -187,7 +205,13 @@ def _s3(rng: np.random.Generator, seed: int) -> _Layout:
         Boulder((wall_side * 3.6, lateral_y, -0.3), (2.3, 1.8, 1.9)),
     )
     return _layout_from_profiles(
-        s, points, half_w, half_h, length, seed, boulders,
+        s,
+        points,
+        half_w,
+        half_h,
+        length,
+        seed,
+        boulders,
         start_offset=(-wall_side * 2.0, 0.0, 0.0),
         description="straight passage with a frontal and a lateral obstacle; "
         "start near the wall at the frontal obstacle's height",
@@ -204,7 +228,12 @@ def _s4(rng: np.random.Generator, seed: int) -> _Layout:
     half_w = 2.9 + 0.3 * _smooth_noise(s, 10.0, rng)
     half_h = 2.7 + 0.2 * _smooth_noise(s, 10.0, rng)
     return _layout_from_profiles(
-        s, points, half_w, half_h, length, seed,
+        s,
+        points,
+        half_w,
+        half_h,
+        length,
+        seed,
         description=f"sharp 90-degree bend to the {'left' if side > 0 else 'right'}",
     )
 
@@ -238,9 +267,15 @@ def _s5(rng: np.random.Generator, seed: int) -> _Layout:
             side = 1.0 if rng.random() < 0.5 else -1.0
             centre = points[i] + side * left * (half_w[i] - 0.2 * r)
             centre = centre + np.array([0.0, 0.0, rng.uniform(-0.8, 0.8)])
-        boulders.append(Boulder(tuple(map(float, centre)), (r, r * 1.1, r * 0.9)))
+        boulders.append(Boulder(_vec3(centre), (r, r * 1.1, r * 0.9)))
     return _layout_from_profiles(
-        s, points, half_w, half_h, length, seed, tuple(boulders),
+        s,
+        points,
+        half_w,
+        half_h,
+        length,
+        seed,
+        tuple(boulders),
         description="irregular winding passage with rocks spread along it",
     )
 
@@ -270,8 +305,8 @@ def procedural_scenario(name: str, seed: int = 0) -> Scenario:
     tangent = spec.centreline[spec.exit_index + 1] - spec.centreline[spec.exit_index - 1]
     tangent /= np.linalg.norm(tangent)
     exit_ = ExitPortal(
-        point=tuple(map(float, spec.centreline[spec.exit_index])),
-        normal=tuple(map(float, tangent)),
+        point=_vec3(spec.centreline[spec.exit_index]),
+        normal=_vec3(tangent),
         radius=float(max(spec.half_width.max(), spec.half_height.max()) + 1.5),
     )
     mesh = build_cave(spec, name=f"{key}-seed{seed}")

@@ -1,0 +1,88 @@
+"""Cost of one sensor step against the bare ray cast it is built on.
+
+For each of S1-S5 (seed 0), at poses along the geometric pilot's own trajectory, prints
+the median time of:
+
+- bare cast:  Open3D's `cast_rays` of the 640x480 forward frame (rays prepared in advance)
+- full step:  everything the loop pays per step: forward RGB + raw depth + depth PNG, both
+              echo sounders, the clearance query and the swept collision check of the move
+- ratio:      full step / bare cast (target: at most 1.5)
+
+Run: make bench   (or: python benchmarks/sensor_step.py [--poses N] [--repeats N])
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+
+import numpy as np
+
+from cavenav.kinematics import apply
+from cavenav.pilots.geometric import GeometricPilot
+from cavenav.sensors.camera import camera_to_world
+from cavenav.sensors.rig import SensorRig
+from cavenav.world.collision import VehicleBody, clearance, swept_collision
+from cavenav.world.raycast import RayCaster
+from cavenav.world.scenarios import SCENARIOS, load_scenario
+
+
+def _median_ms(fn, repeats: int) -> float:
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return 1e3 * statistics.median(times)
+
+
+def bench(name: str, poses: int, repeats: int) -> tuple[float, float]:
+    scenario = load_scenario(name, seed=0)
+    caster = RayCaster(scenario.mesh)
+    rig = SensorRig(caster)
+    body = VehicleBody()
+    pilot = GeometricPilot()
+    pose = scenario.start
+    rig.observe(pose)  # compile the kernels, warm the caches
+    bare, full = [], []
+    for _ in range(poses):
+        obs = rig.observe(pose)
+        nxt = apply(pose, pilot.decide(obs).action)
+        dirs = (
+            rig.config.camera.directions.reshape(-1, 3) @ camera_to_world(pose).astype(np.float32).T
+        )
+        rays, _ = caster._rays(rig.camera_position(pose), dirs)
+        bare.append(_median_ms(lambda rays=rays: caster._scene.cast_rays(rays), repeats))
+
+        def step(pose=pose, nxt=nxt) -> None:
+            rig.observe(pose)
+            gap = clearance(caster, pose)
+            swept_collision(caster, body, pose, nxt, gap)
+
+        full.append(_median_ms(step, repeats))
+        pose = nxt
+    return statistics.median(bare), statistics.median(full)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--poses", type=int, default=8, help="poses per scenario")
+    parser.add_argument("--repeats", type=int, default=5, help="timings per pose")
+    args = parser.parse_args()
+    print(
+        f"{'scenario':<9} {'triangles':>9} {'bare cast ms':>13} {'full step ms':>13} {'ratio':>6}"
+    )
+    ratios = []
+    for name in SCENARIOS:
+        bare, full = bench(name, args.poses, args.repeats)
+        triangles = load_scenario(name, seed=0).mesh.triangle_count
+        ratios.append(full / bare)
+        print(f"{name:<9} {triangles:>9,} {bare:>13.1f} {full:>13.1f} {full / bare:>6.2f}")
+    print(f"median ratio {statistics.median(ratios):.2f} (target <= 1.5)")
+
+
+if __name__ == "__main__":
+    main()
