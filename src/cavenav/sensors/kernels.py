@@ -34,6 +34,7 @@ def shade_frame(
     ambient: np.ndarray,  # (3,) float32
     veil: np.ndarray,  # (3,) float32
     open_water: np.ndarray,  # (3,) float32 radiance of rays leaving the cave
+    gains: np.ndarray,  # (3,) float32 camera white-balance gains
     lut: np.ndarray,  # (k,) uint8 tone map from linear radiance * lut_scale
     lut_scale: float,
     d_min: float,
@@ -50,7 +51,7 @@ def shade_frame(
         tri = triangle[i]
         if tri == _NO_HIT:
             for c in range(3):
-                rgb[i, c] = lut[min(int(open_water[c] * lut_scale), last)]
+                rgb[i, c] = lut[min(int(gains[c] * open_water[c] * lut_scale), last)]
             continue
         nx, ny, nz = normals[i, 0], normals[i, 1], normals[i, 2]
         n_dot_d = nx * directions[i, 0] + ny * directions[i, 1] + nz * directions[i, 2]
@@ -64,7 +65,7 @@ def shade_frame(
             albedo = face_albedo[tri, c] + floor * (sediment[c] - face_albedo[tri, c])
             trans = math.exp(-attenuation[c] * r)
             radiance = albedo * trans * (light * trans + ambient[c]) + veil[c] * (1.0 - trans)
-            rgb[i, c] = lut[min(int(radiance * lut_scale), last)]
+            rgb[i, c] = lut[min(int(gains[c] * radiance * lut_scale), last)]
 
 
 @numba.njit(parallel=True, fastmath=True, cache=True)

@@ -33,14 +33,25 @@ class Optics:
         veil: colour of light scattered by the water toward the camera.
         open_water: radiance seen along rays that leave the cave.
         exposure: scales linear light before tone mapping.
+        white_balance_m: the camera's white balance cancels the water's colour for a
+            surface this far away (lit and seen through 2x this much water), as an ROV
+            camera's does; nearer rock looks warmer, farther rock fades to blue-green.
     """
 
     attenuation: tuple[float, float, float] = (0.22, 0.07, 0.06)
-    light_power: float = 40.0
+    light_power: float = 20.0
     ambient: tuple[float, float, float] = (0.006, 0.010, 0.012)
     veil: tuple[float, float, float] = (0.002, 0.010, 0.014)
     open_water: tuple[float, float, float] = (0.05, 0.35, 0.40)
     exposure: float = 1.6
+    white_balance_m: float = 2.0
+
+    @property
+    def gains(self) -> np.ndarray:
+        """(3,) float32 per-channel camera gains, green = 1."""
+        c = np.asarray(self.attenuation, np.float64)
+        gains = np.exp(2.0 * self.white_balance_m * (c - c[1]))
+        return gains.astype(np.float32)
 
 
 def rock_albedo(mesh: CaveMesh, seed: int = 0) -> np.ndarray:
@@ -57,7 +68,7 @@ def rock_albedo(mesh: CaveMesh, seed: int = 0) -> np.ndarray:
             k = rng.normal(size=3).astype(np.float32)
             k *= 2 * np.pi / wavelength / np.linalg.norm(k)
             field += weight * np.sin(p @ k + rng.uniform(0, 2 * np.pi)) / 1.7
-    grey = 0.38 + 0.16 * field  # rock reflectance around 0.2-0.55
+    grey = 0.36 + 0.22 * field  # rock reflectance around 0.15-0.6
     tint = np.array([1.0, 0.93, 0.82], np.float32)  # warm limestone
     return np.clip(grey[:, None] * tint, 0.05, 0.9).astype(np.float32)
 

@@ -126,6 +126,7 @@ class SensorRig:
             np.asarray(optics.ambient, np.float32),
             np.asarray(optics.veil, np.float32),
             np.asarray(optics.open_water, np.float32),
+            optics.gains,
             tone_lut(optics.exposure),
             LUT_SCALE,
             cfg.depth_min_m,
