@@ -11,7 +11,7 @@ import sys
 from dataclasses import replace
 from enum import StrEnum
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 from rich.console import Console
@@ -28,7 +28,7 @@ app = typer.Typer(
 console = Console()
 errors = Console(stderr=True, soft_wrap=True)
 
-PILOTS = ("geometric",)
+PILOTS = ("geometric", "vlm", "replay")
 
 
 class Sounder(StrEnum):
@@ -36,6 +36,107 @@ class Sounder(StrEnum):
 
     camera = "camera"
     beam = "beam"
+
+
+class Backend(StrEnum):
+    openai = "openai"
+    transformers = "transformers"
+
+
+# Options shared by `run --pilot vlm` and `ask`.
+BaseUrl = Annotated[
+    str | None,
+    typer.Option(
+        help="OpenAI-compatible endpoint, e.g. http://localhost:8000/v1 (vLLM, "
+        "SGLang, Ollama, llama.cpp); default: api.openai.com"
+    ),
+]
+Model = Annotated[str | None, typer.Option(help="model name, or a local folder for transformers")]
+BackendOpt = Annotated[Backend, typer.Option(help="where the model runs")]
+ApiKeyEnv = Annotated[str, typer.Option(help="environment variable that holds the API key")]
+Timeout = Annotated[float, typer.Option(help="seconds per request")]
+Retries = Annotated[int, typer.Option(min=0, help="transport retries per request")]
+Temperature = Annotated[float, typer.Option(help="sampling temperature")]
+MaxTokens = Annotated[int, typer.Option(min=16, help="maximum output tokens per reply")]
+Detail = Annotated[str | None, typer.Option(help="image detail sent with images: low, high, auto")]
+Requeries = Annotated[int, typer.Option(min=0, help="re-queries after an unusable reply")]
+History = Annotated[int, typer.Option(min=0, help="earlier observations sent (K)")]
+PromptFile = Annotated[Path | None, typer.Option(help="your own system-prompt template")]
+Structured = Annotated[bool, typer.Option(help="ask for a JSON schema with fixed keys")]
+Price = Annotated[str | None, typer.Option(help="USD per million tokens, 'input,output'")]
+Cache = Annotated[Path | None, typer.Option(help="reply cache folder (keyed by request hash)")]
+Device = Annotated[str, typer.Option(help="transformers device: auto, cpu, cuda")]
+
+
+def _vlm_pilot(
+    *,
+    backend: Backend,
+    base_url: str | None,
+    model: str | None,
+    api_key_env: str,
+    timeout: float,
+    retries: int,
+    temperature: float,
+    max_tokens: int,
+    detail: str | None,
+    requeries: int,
+    history: int,
+    prompt_file: Path | None,
+    structured: bool,
+    price: str | None,
+    cache: Path | None,
+    device: str,
+    depth_max: float = 20.0,
+):  # noqa: ANN202 - VLMPilot
+    from cavenav.pilots.backends import (
+        CachedBackend,
+        OpenAIBackend,
+        OpenAIConfig,
+        TransformersBackend,
+        TransformersConfig,
+    )
+    from cavenav.pilots.prompt import PromptConfig
+    from cavenav.pilots.vlm import VLMPilot
+
+    if not model:
+        raise CavenavError(
+            "the VLM pilot needs --model (a model name, or a folder for transformers)"
+        )
+    engine: Any
+    if backend is Backend.openai:
+        engine = OpenAIBackend(
+            OpenAIConfig(
+                model=model,
+                base_url=base_url,
+                api_key_env=api_key_env,
+                timeout_s=timeout,
+                max_retries=retries,
+                temperature=temperature,
+                max_tokens=max_tokens,
+                detail=detail or "auto",
+            )
+        )
+    else:
+        engine = TransformersBackend(
+            TransformersConfig(
+                model=model, device=device, max_new_tokens=max_tokens, temperature=temperature
+            )
+        )
+    if cache is not None:
+        engine = CachedBackend(engine, cache)
+    prices = None
+    if price:
+        try:
+            price_in, price_out = (float(v) for v in price.split(","))
+        except ValueError:
+            raise CavenavError(
+                f"--price must be 'input,output' in USD per million tokens, got '{price}'"
+            ) from None
+        prices = (price_in, price_out)
+    prompt = PromptConfig(
+        history=history, system_file=prompt_file, structured=structured, depth_max_m=depth_max
+    )
+    return VLMPilot(engine, prompt, max_requeries=requeries, detail=detail, price_per_mtok=prices)
 
 
 @app.command()
@@ -48,6 +149,23 @@ def run(
     frames: Annotated[bool, typer.Option(help="save RGB, depth PNG and EXR of every step")] = True,
     sounder: Annotated[Sounder, typer.Option(help="echo-sounder model")] = Sounder.camera,
     depth_max: Annotated[float, typer.Option(help="D_max of the depth PNG, metres")] = 20.0,
+    from_: Annotated[Path | None, typer.Option("--from", help="run folder to replay")] = None,
+    backend: BackendOpt = Backend.openai,
+    base_url: BaseUrl = None,
+    model: Model = None,
+    api_key_env: ApiKeyEnv = "OPENAI_API_KEY",
+    timeout: Timeout = 60.0,
+    retries: Retries = 4,
+    temperature: Temperature = 0.2,
+    max_tokens: MaxTokens = 1024,
+    detail: Detail = None,
+    requeries: Requeries = 3,
+    history: History = 2,
+    prompt_file: PromptFile = None,
+    structured: Structured = False,
+    price: Price = None,
+    cache: Cache = None,
+    device: Device = "auto",
 ) -> None:
     """Fly one episode and write its run folder (summary, steps, frames, plots)."""
     from cavenav.episode.loop import EpisodeConfig, run_episode
@@ -57,6 +175,43 @@ def run(
 
     if pilot not in PILOTS:
         raise CavenavError(f"unknown pilot '{pilot}'; choose one of {', '.join(PILOTS)}")
+    flyer: Any
+    if pilot == "replay":
+        from cavenav.pilots.replay import ReplayPilot, recorded_scenario
+
+        if from_ is None:
+            raise CavenavError("--pilot replay needs --from RUN_DIR")
+        flyer = ReplayPilot(from_)
+        recorded, recorded_seed = recorded_scenario(from_)
+        if recorded != scenario.upper() and Path(scenario).stem not in recorded:
+            console.print(
+                f"[yellow]note:[/] the recording flew {recorded}, replaying in {scenario}"
+            )
+        seed = recorded_seed if recorded_seed is not None else seed
+    elif pilot == "vlm":
+        flyer = _vlm_pilot(
+            backend=backend,
+            base_url=base_url,
+            model=model,
+            api_key_env=api_key_env,
+            timeout=timeout,
+            retries=retries,
+            temperature=temperature,
+            max_tokens=max_tokens,
+            detail=detail,
+            requeries=requeries,
+            history=history,
+            prompt_file=prompt_file,
+            structured=structured,
+            price=price,
+            cache=cache,
+            device=device,
+            depth_max=depth_max,
+        )
+    else:
+        from cavenav.pilots.geometric import GeometricPilot
+
+        flyer = GeometricPilot()
     with console.status(f"building {scenario} (seed {seed})"):
         cave = load_scenario(scenario, seed)
     config = EpisodeConfig(
@@ -84,7 +239,7 @@ def run(
             progress.update(task, advance=1, status=status[:60])
 
         try:
-            result = run_episode(cave, _make_pilot(pilot), config, run_dir, on_step)
+            result = run_episode(cave, flyer, config, run_dir, on_step)
         except KeyboardInterrupt:
             progress.stop()
             errors.print(f"interrupted: the partial record is in {run_dir}")
@@ -96,10 +251,75 @@ def run(
         console.print(f"plot:       {run_dir / name}", soft_wrap=True)
 
 
-def _make_pilot(name: str):  # noqa: ANN202 - Pilot protocol
-    from cavenav.pilots.geometric import GeometricPilot
+@app.command()
+def ask(
+    image: Annotated[Path, typer.Argument(help="a colour photograph (PNG or JPEG)")],
+    depth: Annotated[Path | None, typer.Option(help="a depth PNG (dark near, bright far)")] = None,
+    top: Annotated[float | None, typer.Option(help="d_top: metres to the ceiling")] = None,
+    bottom: Annotated[float | None, typer.Option(help="d_bottom: metres to the floor")] = None,
+    backend: BackendOpt = Backend.openai,
+    base_url: BaseUrl = None,
+    model: Model = None,
+    api_key_env: ApiKeyEnv = "OPENAI_API_KEY",
+    timeout: Timeout = 60.0,
+    retries: Retries = 4,
+    temperature: Temperature = 0.2,
+    max_tokens: MaxTokens = 1024,
+    detail: Detail = None,
+    requeries: Requeries = 3,
+    prompt_file: PromptFile = None,
+    structured: Structured = False,
+    device: Device = "auto",
+) -> None:
+    """Send one query for a single image (e.g. a photograph from a real cave)."""
+    import numpy as np
+    from PIL import Image, UnidentifiedImageError
 
-    return GeometricPilot()
+    from cavenav.types import Observation
+
+    def read(path: Path, mode: str) -> np.ndarray:
+        try:
+            return np.asarray(Image.open(path).convert(mode))
+        except (OSError, UnidentifiedImageError) as exc:
+            raise CavenavError(f"cannot read image {path}: {exc}") from None
+
+    rgb = read(image, "RGB")
+    depth_png = read(depth, "L") if depth else np.full(rgb.shape[:2], 255, np.uint8)
+    pilot = _vlm_pilot(
+        backend=backend,
+        base_url=base_url,
+        model=model,
+        api_key_env=api_key_env,
+        timeout=timeout,
+        retries=retries,
+        temperature=temperature,
+        max_tokens=max_tokens,
+        detail=detail,
+        requeries=requeries,
+        history=0,
+        prompt_file=prompt_file,
+        structured=structured,
+        price=None,
+        cache=None,
+        device=device,
+    )
+    nan = float("nan")
+    observation = Observation(
+        rgb=rgb,
+        depth_m=depth_png.astype(np.float32),
+        depth_png=depth_png,
+        d_top=nan if top is None else top,
+        d_bottom=nan if bottom is None else bottom,
+    )
+    decision = pilot.decide(observation)
+    console.rule("reasoning")
+    console.print(decision.raw, markup=False, highlight=False)
+    console.rule("parsed action")
+    console.print(f"action:        {decision.action_text}", markup=False)
+    console.print(f"justification: {decision.justification}", markup=False)
+    from cavenav.actions import to_twist
+
+    console.print(f"twist:         {to_twist(decision.action)}", markup=False)
 
 
 def _print_summary(summary: dict) -> None:
@@ -121,6 +341,16 @@ def _print_summary(summary: dict) -> None:
         ("sensing per step", f"{summary['mean_sense_ms']} ms"),
         ("pilot per step", f"{summary['mean_pilot_ms']} ms"),
     ]
+    usage = summary.get("usage")
+    if usage:
+        rows += [
+            ("prompt tokens", usage["prompt_tokens"]),
+            ("completion tokens", usage["completion_tokens"]),
+            ("mean model latency", f"{usage['mean_latency_s']:.2f} s"),
+            ("re-queries", usage["requeries"]),
+            ("transport retries", usage["transport_retries"]),
+            ("cost", "-" if usage["cost_usd"] is None else f"${usage['cost_usd']:.4f}"),
+        ]
     if summary.get("failure"):
         rows.append(("failure", summary["failure"]))
     for key, value in rows:

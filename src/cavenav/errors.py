@@ -8,11 +8,16 @@ from __future__ import annotations
 
 __all__ = [
     "ActionError",
+    "BackendAuthError",
+    "BackendError",
+    "BackendTimeout",
+    "BackendUnavailable",
     "CavenavError",
     "ConfigError",
     "DependencyError",
     "MeshError",
     "PilotFailure",
+    "RateLimited",
     "ScenarioError",
 ]
 
@@ -38,8 +43,36 @@ class ActionError(CavenavError, ValueError):
 
 
 class PilotFailure(CavenavError):
-    """The pilot could not produce a valid action; the episode ends as `pilot_failure`."""
+    """The pilot could not produce a valid action; the episode ends as `pilot_failure`.
+
+    Attributes:
+        exchanges: the requests and replies of the failed step, kept for the record.
+    """
+
+    def __init__(self, message: str, exchanges: tuple = ()):
+        super().__init__(message)
+        self.exchanges = exchanges
 
 
 class DependencyError(CavenavError, ImportError):
     """An optional dependency is missing; the message carries the install command."""
+
+
+class BackendError(CavenavError):
+    """A model backend failed after its bounded retries."""
+
+
+class BackendAuthError(BackendError):
+    """The endpoint refused the credentials (401/403) or no key was given."""
+
+
+class BackendTimeout(BackendError):
+    """The endpoint did not answer within the timeout."""
+
+
+class RateLimited(BackendError):
+    """The endpoint kept answering 429 (too many requests)."""
+
+
+class BackendUnavailable(BackendError):
+    """Connection refused, or the endpoint kept answering 408/409/5xx."""

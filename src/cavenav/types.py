@@ -109,7 +109,8 @@ class Observation:
 class Decision:
     """A pilot's answer: the action, its string form, the justification and the raw text.
 
-    ``raw`` keeps the complete reply (reasoning included) so a run can be audited.
+    ``raw`` keeps the complete reply (reasoning included) so a run can be audited;
+    ``extra`` holds per-step accounting (tokens, latency) that goes into steps.jsonl.
     """
 
     action: Action
@@ -117,3 +118,4 @@ class Decision:
     justification: str
     raw: str = ""
     extra: dict[str, object] = field(default_factory=dict)
+    exchanges: tuple = ()  # model requests and replies behind this decision, if any

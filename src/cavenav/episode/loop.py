@@ -136,6 +136,7 @@ def run_episode(
             "wall_time_s": round(time.perf_counter() - started, 3),
             "mean_sense_ms": _mean_timing(steps, "sense"),
             "mean_pilot_ms": _mean_timing(steps, "pilot"),
+            "usage": total_usage([s["vlm"] for s in steps if "vlm" in s]),
             **meta,
         }
 
@@ -159,6 +160,13 @@ def run_episode(
             except PilotFailure as exc:
                 failure = str(exc)
                 termination = "pilot_failure"
+                if exc.exchanges:
+                    record["vlm"] = exchange_usage(exc.exchanges)
+                    if folder:
+                        folder.record_exchanges(step, exc.exchanges)
+            else:
+                if folder and decision.exchanges:
+                    folder.record_exchanges(step, decision.exchanges)
             t2 = time.perf_counter()
             if termination is None:
                 new_pose = apply(pose, decision.action)
@@ -221,6 +229,34 @@ def run_episode(
             folder.write_json("summary.json", result.summary)
             folder.close()
     return result
+
+
+def exchange_usage(exchanges: tuple) -> dict[str, Any]:
+    """Token and latency totals of a step's model exchanges (used for failed steps)."""
+    return {
+        "prompt_tokens": sum(e.completion.prompt_tokens for e in exchanges),
+        "completion_tokens": sum(e.completion.completion_tokens for e in exchanges),
+        "latency_s": round(sum(e.completion.latency_s for e in exchanges), 4),
+        "requeries": max(len(exchanges) - 1, 0),
+        "transport_retries": sum(e.completion.retries for e in exchanges),
+    }
+
+
+def total_usage(per_step: list[dict[str, Any]]) -> dict[str, Any] | None:
+    """Episode totals of the per-step model accounting; None for pilots without a model."""
+    if not per_step:
+        return None
+    costs = [s["cost_usd"] for s in per_step if s.get("cost_usd") is not None]
+    latencies = [s["latency_s"] for s in per_step]
+    return {
+        "model_steps": len(per_step),
+        "prompt_tokens": sum(s["prompt_tokens"] for s in per_step),
+        "completion_tokens": sum(s["completion_tokens"] for s in per_step),
+        "requeries": sum(s["requeries"] for s in per_step),
+        "transport_retries": sum(s["transport_retries"] for s in per_step),
+        "mean_latency_s": round(sum(latencies) / len(latencies), 4),
+        "cost_usd": round(sum(costs), 6) if costs else None,
+    }
 
 
 def _mean_timing(steps: list[dict[str, Any]], key: str) -> float | None:

@@ -6,10 +6,14 @@ RUN_DIR/
   steps.jsonl    one JSON object per step, flushed as it happens
   frames/        step_NNNN_rgb.png, step_NNNN_depth.png, step_NNNN_depth.exr
   topdown.png, side.png   trajectory plots, written at the end
+  exchanges.jsonl  (model pilots) every request and raw reply, reasoning included
+  images/        the images those requests carried, stored once by content hash
 """
 
 from __future__ import annotations
 
+import base64
+import hashlib
 import json
 import os
 import re
@@ -88,6 +92,60 @@ class RunFolder:
     def append_step(self, record: dict[str, Any]) -> None:
         self._steps.write(json.dumps(_finite(record), default=_json_default) + "\n")
         self._steps.flush()
+
+    def store_image(self, data_url: str) -> str:
+        """Write a data-URL image once, named by its content hash; returns its path."""
+        header, _, payload = data_url.partition(",")
+        raw = base64.b64decode(payload)
+        suffix = "png" if "png" in header else "jpg"
+        name = f"images/{hashlib.sha256(raw).hexdigest()[:20]}.{suffix}"
+        path = self.path / name
+        if not path.exists():
+            path.parent.mkdir(exist_ok=True)
+            path.write_bytes(raw)
+        return name
+
+    def record_exchanges(self, step: int, exchanges: tuple, model: str = "") -> None:
+        """Append every model request and raw reply of a step to exchanges.jsonl.
+
+        Images are replaced by references to images/, stored once; the request carries
+        no credentials (keys live in the backend's HTTP headers, never in messages).
+        """
+        from cavenav.pilots.backends import request_hash
+
+        with open(self.path / "exchanges.jsonl", "a", encoding="utf-8") as out:
+            for attempt, exchange in enumerate(exchanges):
+                completion = exchange.completion
+                record = {
+                    "step": step,
+                    "attempt": attempt,
+                    "request_sha256": request_hash(
+                        completion.model or model, exchange.messages, {}
+                    ),
+                    "messages": [self._strip_images(m) for m in exchange.messages],
+                    "reply": completion.text,
+                    "rejected": exchange.error,
+                    "model": completion.model or model,
+                    "prompt_tokens": completion.prompt_tokens,
+                    "completion_tokens": completion.completion_tokens,
+                    "latency_s": round(completion.latency_s, 4),
+                    "transport_retries": completion.retries,
+                    "transport_errors": list(completion.errors),
+                    "cached": completion.cached,
+                }
+                out.write(json.dumps(record) + "\n")
+
+    def _strip_images(self, message: dict[str, Any]) -> dict[str, Any]:
+        content = message["content"]
+        if isinstance(content, str):
+            return message
+        parts = []
+        for part in content:
+            if part.get("type") == "image_url":
+                parts.append({"type": "image", "file": self.store_image(part["image_url"]["url"])})
+            else:
+                parts.append(part)
+        return {**message, "content": parts}
 
     def write_json(self, name: str, data: dict[str, Any]) -> None:
         """Atomically (re)write a JSON file: readers never see half a file."""

@@ -1,0 +1,200 @@
+"""The VLM pilot of SPEC sections 3-4: prompt, images, chain of thought, bounded re-query.
+
+Per step it sends the fixed system prompt first (servers with prefix caching reuse it),
+then the K most recent earlier observations with the action taken after each, then the
+current RGB and depth images with d_top and d_bottom. A reply that cannot be used is sent
+back with the reason, at most `max_requeries` times; after that, or when the backend
+gives up after its own retries, the pilot raises `PilotFailure` and the episode ends as
+``pilot_failure``. It never substitutes a default action.
+"""
+
+from __future__ import annotations
+
+import base64
+import io
+from collections import deque
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from PIL import Image
+
+from cavenav.errors import ActionError, BackendAuthError, BackendError, PilotFailure
+from cavenav.pilots.backends import Backend, Completion, Message
+from cavenav.pilots.prompt import STRUCTURED_SCHEMA, PromptConfig, render_repair, render_system
+from cavenav.pilots.reply import parse_reply
+from cavenav.types import Decision, Observation
+
+__all__ = ["Exchange", "VLMPilot", "build_messages", "png_data_url"]
+
+
+def png_data_url(image: np.ndarray) -> str:
+    """An (H, W) or (H, W, 3) uint8 image as a PNG data URL."""
+    buffer = io.BytesIO()
+    Image.fromarray(image).save(buffer, format="PNG", compress_level=1)
+    return "data:image/png;base64," + base64.b64encode(buffer.getvalue()).decode("ascii")
+
+
+@dataclass(frozen=True)
+class _Seen:
+    """An observation as sent: encoded images, sounder readings, action taken after it."""
+
+    rgb_url: str
+    depth_url: str
+    d_top: float
+    d_bottom: float
+    action: str = ""
+
+
+@dataclass(frozen=True)
+class Exchange:
+    """One request and its reply, for the run folder (images are stored by hash there)."""
+
+    messages: list[Message]
+    completion: Completion
+    error: str | None = None  # why the reply was rejected, if it was
+
+
+def _image(url: str, detail: str | None) -> dict[str, Any]:
+    image_url: dict[str, Any] = {"url": url}
+    if detail:
+        image_url["detail"] = detail
+    return {"type": "image_url", "image_url": image_url}
+
+
+def _readings(seen: _Seen) -> str:
+    return f"d_top = {seen.d_top:.2f} m, d_bottom = {seen.d_bottom:.2f} m"
+
+
+def build_messages(
+    system: str, current: _Seen, history: list[_Seen], detail: str | None = None
+) -> list[Message]:
+    """OpenAI-format messages: system prompt, then one user turn with every image."""
+    content: list[dict[str, Any]] = []
+    for k, seen in enumerate(history):
+        age = len(history) - k
+        content += [
+            {
+                "type": "text",
+                "text": f"Earlier observation ({age} step{'s' if age > 1 else ''} "
+                f"ago): {_readings(seen)}. Colour, then depth:",
+            },
+            _image(seen.rgb_url, detail),
+            _image(seen.depth_url, detail),
+            {"type": "text", "text": f"Action taken after it: {seen.action}"},
+        ]
+    content += [
+        {"type": "text", "text": f"Current observation: {_readings(current)}. Colour, then depth:"},
+        _image(current.rgb_url, detail),
+        _image(current.depth_url, detail),
+        {"type": "text", "text": "Think step by step, then give the final one-pair dictionary."},
+    ]
+    return [{"role": "system", "content": system}, {"role": "user", "content": content}]
+
+
+class VLMPilot:
+    """Steers with a vision-language model behind any `Backend`."""
+
+    def __init__(
+        self,
+        backend: Backend,
+        prompt: PromptConfig | None = None,
+        max_requeries: int = 3,
+        detail: str | None = None,
+        price_per_mtok: tuple[float, float] | None = None,
+        check: bool = True,
+    ):
+        """
+        Args:
+            backend: where the model runs.
+            prompt: prompt numbers and switches (shared with the reply parser).
+            max_requeries: re-queries after unusable replies before giving up (SPEC: N).
+            detail: image detail sent with each image ("low", "high", "auto"), if any.
+            price_per_mtok: (input, output) USD per million tokens, for a cost estimate.
+            check: verify the backend (key, reachability) now, not at step 40.
+        """
+        self.backend = backend
+        self.prompt = prompt or PromptConfig()
+        self.max_requeries = max_requeries
+        self.detail = detail
+        self.price_per_mtok = price_per_mtok
+        self.name = f"vlm:{backend.model}"
+        self._system = render_system(self.prompt)
+        self._history: deque[_Seen] = deque(maxlen=max(self.prompt.history, 0) or None)
+        if self.prompt.history == 0:
+            self._history = deque(maxlen=0)
+        if check:
+            backend.check()
+
+    def reset(self) -> None:
+        self._history.clear()
+
+    def _cost(self, prompt_tokens: int, completion_tokens: int) -> float | None:
+        if self.price_per_mtok is None:
+            return None
+        price_in, price_out = self.price_per_mtok
+        return (prompt_tokens * price_in + completion_tokens * price_out) / 1e6
+
+    def decide(self, observation: Observation) -> Decision:
+        current = _Seen(
+            png_data_url(observation.rgb),
+            png_data_url(observation.depth_png),
+            observation.d_top,
+            observation.d_bottom,
+        )
+        messages = build_messages(self._system, current, list(self._history), self.detail)
+        schema = STRUCTURED_SCHEMA if self.prompt.structured else None
+        exchanges: list[Exchange] = []
+        reason = ""
+        for attempt in range(self.max_requeries + 1):
+            try:
+                completion = self.backend.complete(messages, schema)
+            except BackendAuthError:
+                raise
+            except BackendError as exc:
+                raise PilotFailure(f"backend failed: {exc}", tuple(exchanges)) from None
+            try:
+                parsed = parse_reply(completion.text, self.prompt.space)
+            except ActionError as exc:
+                reason = str(exc)
+                exchanges.append(Exchange(list(messages), completion, reason))
+                messages = messages + [
+                    {"role": "assistant", "content": completion.text},
+                    {"role": "user", "content": render_repair(self.prompt, reason)},
+                ]
+                continue
+            exchanges.append(Exchange(list(messages), completion))
+            self._history.append(
+                _Seen(
+                    current.rgb_url,
+                    current.depth_url,
+                    current.d_top,
+                    current.d_bottom,
+                    parsed.action_text,
+                )
+            )
+            return Decision(
+                action=parsed.action,
+                action_text=parsed.action_text,
+                justification=parsed.justification,
+                raw=completion.text,
+                extra={"vlm": self._usage(exchanges, attempt)},
+                exchanges=tuple(exchanges),
+            )
+        raise PilotFailure(
+            f"no usable reply after {self.max_requeries + 1} attempts; last problem: {reason}",
+            tuple(exchanges),
+        )
+
+    def _usage(self, exchanges: list[Exchange], requeries: int) -> dict[str, Any]:
+        prompt_tokens = sum(e.completion.prompt_tokens for e in exchanges)
+        completion_tokens = sum(e.completion.completion_tokens for e in exchanges)
+        return {
+            "prompt_tokens": prompt_tokens,
+            "completion_tokens": completion_tokens,
+            "latency_s": round(sum(e.completion.latency_s for e in exchanges), 4),
+            "requeries": requeries,
+            "transport_retries": sum(e.completion.retries for e in exchanges),
+            "cached": all(e.completion.cached for e in exchanges),
+            "cost_usd": self._cost(prompt_tokens, completion_tokens),
+        }

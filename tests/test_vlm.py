@@ -1,0 +1,262 @@
+"""The VLM path end to end, against a real HTTP server on 127.0.0.1 (tests/vlm_server.py)."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from cavenav.episode.loop import EpisodeConfig, run_episode
+from cavenav.errors import BackendAuthError
+from cavenav.pilots.backends import CachedBackend, OpenAIBackend, OpenAIConfig
+from cavenav.pilots.prompt import PromptConfig
+from cavenav.pilots.replay import ReplayPilot
+from cavenav.pilots.vlm import VLMPilot
+from cavenav.world.scenarios import load_scenario
+
+from .vlm_server import FakeVLM
+
+QUICK = dict(timeout_s=0.8, max_retries=3, backoff_s=0.01, backoff_cap_s=0.2)
+
+
+@pytest.fixture
+def server():
+    with FakeVLM() as fake:
+        yield fake
+
+
+def pilot_for(server: FakeVLM, **overrides) -> VLMPilot:
+    config = OpenAIConfig(model="fake-vlm", base_url=server.base_url, **{**QUICK, **overrides})
+    return VLMPilot(OpenAIBackend(config), price_per_mtok=(0.5, 1.5))
+
+
+def read_jsonl(path: Path) -> list[dict]:
+    return [json.loads(line) for line in path.read_text().splitlines()]
+
+
+@pytest.mark.parametrize("cave", ["S4", "S1"])
+def test_a_vlm_episode_reaches_the_exit(server: FakeVLM, cave: str, tmp_path: Path) -> None:
+    run_dir = tmp_path / "run"
+    config = EpisodeConfig(save_frames=False, plots=False)
+    result = run_episode(load_scenario(cave), pilot_for(server), config, run_dir)
+    assert result.termination == "exit" and result.summary["collisions"] == 0
+    usage = result.summary["usage"]
+    assert usage["model_steps"] == result.summary["steps"]
+    assert usage["prompt_tokens"] > 0 and usage["completion_tokens"] > 0
+    assert usage["cost_usd"] > 0
+    steps = read_jsonl(run_dir / "steps.jsonl")
+    assert all(s["vlm"]["requeries"] == 0 for s in steps)
+    exchanges = read_jsonl(run_dir / "exchanges.jsonl")
+    assert len(exchanges) == len(steps)
+    assert "step by step" in exchanges[0]["reply"]  # the reasoning is kept
+
+
+def test_requests_put_the_system_prompt_first_and_carry_history(server: FakeVLM) -> None:
+    run_episode(
+        load_scenario("S4"),
+        pilot_for(server),
+        EpisodeConfig(max_steps=4, save_frames=False, plots=False),
+    )
+    first, fourth = server.requests[0], server.requests[3]
+    assert first["messages"][0]["role"] == "system"
+    assert first["messages"][0]["content"] == fourth["messages"][0]["content"]  # cacheable prefix
+
+    def images(request: dict) -> list[str]:
+        return [
+            p["image_url"]["url"]
+            for p in request["messages"][1]["content"]
+            if p["type"] == "image_url"
+        ]
+
+    assert len(images(first)) == 2 and len(images(fourth)) == 6  # K = 2 earlier observations
+    assert all(url.startswith("data:image/png;base64,") for url in images(fourth))
+    texts = [p["text"] for p in fourth["messages"][1]["content"] if p["type"] == "text"]
+    assert any(t.startswith("Action taken after it:") for t in texts)
+
+
+def test_faults_are_requeried_or_retried_and_recorded(server: FakeVLM, tmp_path: Path) -> None:
+    server.faults.extend(["garbage", "429", "two_keys", "500", "out_of_set", "slow"])
+    server.slow_s = 1.2
+    run_dir = tmp_path / "run"
+    config = EpisodeConfig(max_steps=3, save_frames=False, plots=False)
+    result = run_episode(load_scenario("S4"), pilot_for(server), config, run_dir)
+    assert result.termination == "budget"  # every fault was recovered from
+    exchanges = read_jsonl(run_dir / "exchanges.jsonl")
+    rejected = [e["rejected"] for e in exchanges if e["rejected"]]
+    assert any("no final dictionary" in r for r in rejected)
+    assert any("2 key-value pairs" in r for r in rejected)
+    assert any("not admissible" in r for r in rejected)
+    errors = [err for e in exchanges for err in e["transport_errors"]]
+    assert any("HTTP 429" in err for err in errors)
+    assert any("HTTP 500" in err for err in errors)
+    assert any("timeout" in err for err in errors)
+    assert result.summary["usage"]["requeries"] == 3
+    assert result.summary["usage"]["transport_retries"] >= 3
+    # The model is told what was wrong when re-queried.
+    repair = [
+        r
+        for r in server.requests
+        if r["messages"][-1]["role"] == "user" and isinstance(r["messages"][-1]["content"], str)
+    ]
+    assert any("could not be used" in r["messages"][-1]["content"] for r in repair)
+
+
+@pytest.mark.parametrize("fault", ["garbage", "out_of_set", "500", "429"])
+def test_persistent_faults_end_cleanly_as_pilot_failure(
+    server: FakeVLM, fault: str, tmp_path: Path
+) -> None:
+    server.persistent_fault = fault
+    run_dir = tmp_path / "run"
+    result = run_episode(
+        load_scenario("S4"), pilot_for(server, max_retries=1), EpisodeConfig(plots=False), run_dir
+    )
+    assert result.termination == "pilot_failure"
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["status"] == "finished" and summary["termination"] == "pilot_failure"
+    assert summary["steps"] == 1 and summary["failure"]
+    assert len(read_jsonl(run_dir / "steps.jsonl")) == 1
+    if fault in ("garbage", "out_of_set"):
+        assert len(read_jsonl(run_dir / "exchanges.jsonl")) == 4  # 1 + 3 re-queries
+
+
+def test_a_refused_key_is_a_one_line_error_at_start() -> None:
+    with FakeVLM(required_key="right") as server:
+        os.environ["CAVENAV_TEST_KEY"] = "wrong"
+        try:
+            with pytest.raises(BackendAuthError, match="refused the API key"):
+                pilot_for(server, api_key_env="CAVENAV_TEST_KEY")
+            os.environ["CAVENAV_TEST_KEY"] = "right"
+            pilot_for(server, api_key_env="CAVENAV_TEST_KEY")
+        finally:
+            del os.environ["CAVENAV_TEST_KEY"]
+
+
+def test_the_key_never_reaches_the_run_folder(tmp_path: Path) -> None:
+    with FakeVLM(required_key="sk-secret-123") as server:
+        os.environ["CAVENAV_TEST_KEY"] = "sk-secret-123"
+        try:
+            pilot = pilot_for(server, api_key_env="CAVENAV_TEST_KEY")
+            run_episode(
+                load_scenario("S4"), pilot, EpisodeConfig(max_steps=2, plots=False), tmp_path / "r"
+            )
+        finally:
+            del os.environ["CAVENAV_TEST_KEY"]
+    for path in (tmp_path / "r").rglob("*"):
+        if path.is_file():
+            assert b"sk-secret-123" not in path.read_bytes(), path
+
+
+def test_replay_reproduces_a_recorded_episode(server: FakeVLM, tmp_path: Path) -> None:
+    config = EpisodeConfig(save_frames=False, plots=False)
+    original = run_episode(load_scenario("S4"), pilot_for(server), config, tmp_path / "a")
+    n_requests = len(server.requests)
+    replay = run_episode(load_scenario("S4"), ReplayPilot(tmp_path / "a"), config, tmp_path / "b")
+    assert len(server.requests) == n_requests  # no model involved
+    assert replay.poses == original.poses
+    assert replay.summary["termination"] == original.summary["termination"]
+
+
+def test_the_reply_cache_makes_a_rerun_free(server: FakeVLM, tmp_path: Path) -> None:
+    config = EpisodeConfig(max_steps=5, save_frames=False, plots=False)
+    backend = OpenAIBackend(OpenAIConfig(model="fake-vlm", base_url=server.base_url, **QUICK))
+    first = run_episode(
+        load_scenario("S4"), VLMPilot(CachedBackend(backend, tmp_path / "cache")), config
+    )
+    n_requests = len(server.requests)
+    again = run_episode(
+        load_scenario("S4"), VLMPilot(CachedBackend(backend, tmp_path / "cache")), config
+    )
+    assert len(server.requests) == n_requests
+    assert again.poses == first.poses
+    assert all(s["vlm"]["cached"] for s in again.steps)
+
+
+def test_structured_mode_sends_a_fixed_key_schema(server: FakeVLM) -> None:
+    config = OpenAIConfig(model="fake-vlm", base_url=server.base_url, **QUICK)
+    pilot = VLMPilot(OpenAIBackend(config), PromptConfig(structured=True))
+    run_episode(
+        load_scenario("S4"), pilot, EpisodeConfig(max_steps=1, save_frames=False, plots=False)
+    )
+    schema = server.requests[0]["response_format"]["json_schema"]["schema"]
+    assert schema["required"] == ["situation", "constraints", "action", "justification"]
+
+
+def test_cli_runs_the_vlm_pilot_and_replays_it(server: FakeVLM, tmp_path: Path) -> None:
+    base = [
+        sys.executable,
+        "-m",
+        "cavenav.cli",
+        "run",
+        "S4",
+        "--steps",
+        "3",
+        "--no-frames",
+        "--out",
+        str(tmp_path),
+    ]
+    done = subprocess.run(
+        [
+            *base,
+            "--pilot",
+            "vlm",
+            "--base-url",
+            server.base_url,
+            "--model",
+            "fake-vlm",
+            "--price",
+            "0.5,1.5",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert done.returncode == 0, done.stderr
+    assert "prompt tokens" in done.stdout and "cost" in done.stdout
+    (run_dir,) = tmp_path.iterdir()
+    done = subprocess.run(
+        [*base, "--pilot", "replay", "--from", str(run_dir)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert done.returncode == 0, done.stderr
+
+
+def test_ask_answers_one_photograph(server: FakeVLM, tmp_path: Path) -> None:
+    photo = tmp_path / "frame.png"
+    Image.fromarray(np.full((480, 640, 3), 40, np.uint8)).save(photo)
+    depth = tmp_path / "depth.png"
+    Image.fromarray(np.full((480, 640), 200, np.uint8)).save(depth)
+    done = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "cavenav.cli",
+            "ask",
+            str(photo),
+            "--depth",
+            str(depth),
+            "--top",
+            "3.0",
+            "--bottom",
+            "1.0",
+            "--base-url",
+            server.base_url,
+            "--model",
+            "fake-vlm",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert done.returncode == 0, done.stderr
+    assert "step by step" in done.stdout and "action:" in done.stdout
+    assert (
+        "ascend" in done.stdout or "up" in done.stdout or "rise" in done.stdout
+    )  # more room above

@@ -1,0 +1,218 @@
+"""A real OpenAI-compatible chat-completions server on 127.0.0.1 for the tests.
+
+Its replies are computed from the images it receives: it decodes the current depth PNG
+from the request, chooses as the geometric pilot would, and phrases the answer the way
+models do (reasoning first, fenced or inline, single or double quotes, varied wording).
+Faults can be queued per request or switched on for good to exercise the failure paths.
+"""
+
+from __future__ import annotations
+
+import base64
+import io
+import json
+import re
+import threading
+import time
+from collections import deque
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+
+import numpy as np
+from PIL import Image
+
+from cavenav.pilots.geometric import GeometricPilot
+from cavenav.types import Action, Observation
+
+FAULTS = ("garbage", "two_keys", "out_of_set", "429", "500", "slow", "401")
+
+
+def _decode(url: str, mode: str) -> np.ndarray:
+    return np.asarray(Image.open(io.BytesIO(base64.b64decode(url.split(",", 1)[1]))).convert(mode))
+
+
+def _phrase(action: Action, style: int) -> str:
+    """The action in one of several wordings a model might use."""
+    parts = []
+    if action.forward:
+        word = ("forward", "ahead", "move forward")[style % 3] if action.forward > 0 else "back"
+        unit = ("m", "meters", "metres")[style % 3]
+        parts.append(f"{word} {abs(action.forward):g} {unit}")
+    if action.right:
+        side = "right" if action.right > 0 else "left"
+        parts.append(f"{('strafe', 'shift', 'move')[style % 3]} {side} {abs(action.right):g} m")
+    if action.up:
+        word = (
+            ("ascend", "up", "rise")[style % 3]
+            if action.up > 0
+            else ("descend", "down", "sink")[style % 3]
+        )
+        parts.append(f"{word} {abs(action.up):g}m")
+    if action.yaw_deg:
+        side = "left" if action.yaw_deg > 0 else "right"
+        unit = ("deg", "degrees", "°")[style % 3]
+        verb = ("turn", "yaw", "rotate")[style % 3]
+        parts.append(f"{verb} {side} {abs(action.yaw_deg):g}{'' if unit == '°' else ' '}{unit}")
+    if not parts:
+        return ("hold", "Hold", "stay")[style % 3]
+    if style % 2:
+        parts.reverse()
+    return (", ", " + ", " and ")[style % 3].join(parts)
+
+
+def _reply(action: Action, justification: str, style: int) -> str:
+    text = _phrase(action, style)
+    reasoning = (
+        "Let me think step by step.\n(a) Situation: "
+        + justification.split("Constraints:")[0]
+        + "\n(b) Constraints: "
+        + justification.split("Constraints:")[-1].split("Choice:")[0]
+        + "\n(c) Action: I choose the motion below."
+    )
+    if style % 3 == 0:
+        return f"{reasoning}\n\n```json\n{json.dumps({text: justification})}\n```"
+    if style % 3 == 1:
+        quoted = justification.replace("'", "")
+        return f"{reasoning}\nFinal answer: {{'{text}': '{quoted}'}}\nI will re-assess then."
+    return f'**Reasoning**\n{reasoning}\n\n{{"{text}": "{justification}"}}'
+
+
+class FakeVLM:
+    """Owns the server thread; use as a context manager."""
+
+    def __init__(self, required_key: str | None = None):
+        self.faults: deque[str] = deque()
+        self.persistent_fault: str | None = None
+        self.required_key = required_key
+        self.requests: list[dict] = []
+        self.slow_s = 1.5
+        self._pilot = GeometricPilot()
+        self._last_answer: tuple[str, str] | None = None
+        self._style = 0
+        self._lock = threading.Lock()
+        self._server = ThreadingHTTPServer(("127.0.0.1", 0), self._handler())
+        self._thread = threading.Thread(target=self._server.serve_forever, daemon=True)
+
+    @property
+    def base_url(self) -> str:
+        return f"http://127.0.0.1:{self._server.server_address[1]}/v1"
+
+    def __enter__(self) -> FakeVLM:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._server.shutdown()
+        self._server.server_close()
+
+    def answer(self, body: dict) -> str:
+        """The reply text for a chat request (the geometric pilot's choice, phrased)."""
+        messages = body["messages"]
+        fresh = messages[-1]["role"] == "user" and isinstance(messages[-1]["content"], list)
+        if fresh or self._last_answer is None:
+            content = messages[1]["content"]
+            images = [p["image_url"]["url"] for p in content if p["type"] == "image_url"]
+            texts = [p["text"] for p in content if p["type"] == "text"]
+            current = next(t for t in reversed(texts) if t.startswith("Current observation"))
+            top, bottom = (float(v) for v in re.findall(r"= ([-\d.]+) m", current)[:2])
+            depth = _decode(images[-1], "L")
+            obs = Observation(
+                _decode(images[-2], "RGB"), depth.astype(np.float32), depth, top, bottom
+            )
+            decision = self._pilot.decide(obs)
+            self._last_answer = (decision.action, decision.justification)
+        self._style += 1
+        action, justification = self._last_answer
+        return _reply(action, justification, self._style)
+
+    def _handler(self) -> type[BaseHTTPRequestHandler]:
+        owner = self
+
+        class Handler(BaseHTTPRequestHandler):
+            def log_message(self, *args: object) -> None:  # keep test output clean
+                pass
+
+            def _send(self, status: int, payload: dict, headers: dict | None = None) -> None:
+                data = json.dumps(payload).encode()
+                self.send_response(status)
+                self.send_header("content-type", "application/json")
+                self.send_header("content-length", str(len(data)))
+                for k, v in (headers or {}).items():
+                    self.send_header(k, v)
+                self.end_headers()
+                self.wfile.write(data)
+
+            def _authorised(self) -> bool:
+                if owner.required_key is None:
+                    return True
+                if self.headers.get("authorization") == f"Bearer {owner.required_key}":
+                    return True
+                self._send(
+                    401, {"error": {"message": "invalid api key", "type": "invalid_request_error"}}
+                )
+                return False
+
+            def do_GET(self) -> None:  # noqa: N802 - http.server's naming
+                if not self._authorised():
+                    return
+                self._send(200, {"object": "list", "data": [{"id": "fake-vlm", "object": "model"}]})
+
+            def do_POST(self) -> None:  # noqa: N802
+                body = json.loads(self.rfile.read(int(self.headers["content-length"])))
+                if not self._authorised():
+                    return
+                with owner._lock:
+                    owner.requests.append(body)
+                    fault = owner.faults.popleft() if owner.faults else owner.persistent_fault
+                if fault in ("429", "500"):
+                    status = int(fault)
+                    headers = {"retry-after": "0.05"} if status == 429 else None
+                    self._send(status, {"error": {"message": f"fault {fault}"}}, headers)
+                    return
+                if fault == "slow":
+                    time.sleep(owner.slow_s)  # longer than the client's timeout
+                if fault == "garbage":
+                    text = "The cave is dark and I am not sure where to go."
+                elif fault == "two_keys":
+                    text = 'Two options:\n{"forward 0.5 m": "open", "turn left 10 deg": "wall"}'
+                elif fault == "out_of_set":
+                    text = 'I will go ahead a bit.\n{"forward 0.3 m": "gap ahead"}'
+                else:
+                    with owner._lock:
+                        text = owner.answer(body)
+                n_images = sum(
+                    1
+                    for m in body["messages"]
+                    if isinstance(m["content"], list)
+                    for p in m["content"]
+                    if p["type"] == "image_url"
+                )
+                chars = sum(
+                    len(json.dumps(m["content"]))
+                    if isinstance(m["content"], str)
+                    else sum(len(p.get("text", "")) for p in m["content"])
+                    for m in body["messages"]
+                )
+                prompt_tokens = chars // 4 + 85 * n_images
+                self._send(
+                    200,
+                    {
+                        "id": f"chatcmpl-{len(owner.requests)}",
+                        "object": "chat.completion",
+                        "created": int(time.time()),
+                        "model": body["model"],
+                        "choices": [
+                            {
+                                "index": 0,
+                                "finish_reason": "stop",
+                                "message": {"role": "assistant", "content": text},
+                            }
+                        ],
+                        "usage": {
+                            "prompt_tokens": prompt_tokens,
+                            "completion_tokens": len(text) // 4,
+                            "total_tokens": prompt_tokens + len(text) // 4,
+                        },
+                    },
+                )
+
+        return Handler
