@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pytest
 import trimesh
@@ -9,6 +11,10 @@ import trimesh
 from cavenav.types import Pose
 from cavenav.world.mesh import CaveMesh, make_mesh
 from cavenav.world.scenarios import ExitPortal, Scenario
+
+# Tests never reach a model hub: whatever they load, they built themselves.
+os.environ["HF_HUB_OFFLINE"] = "1"
+os.environ["TRANSFORMERS_OFFLINE"] = "1"
 
 
 def box_room(extents=(4.0, 20.0, 4.0), centre=(0.0, 0.0, 0.0)) -> CaveMesh:

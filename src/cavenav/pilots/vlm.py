@@ -25,7 +25,7 @@ from cavenav.pilots.prompt import STRUCTURED_SCHEMA, PromptConfig, render_repair
 from cavenav.pilots.reply import parse_reply
 from cavenav.types import Decision, Observation
 
-__all__ = ["Exchange", "VLMPilot", "build_messages", "png_data_url"]
+__all__ = ["EncodedObservation", "Exchange", "VLMPilot", "build_messages", "png_data_url"]
 
 
 def png_data_url(image: np.ndarray) -> str:
@@ -36,7 +36,7 @@ def png_data_url(image: np.ndarray) -> str:
 
 
 @dataclass(frozen=True)
-class _Seen:
+class EncodedObservation:
     """An observation as sent: encoded images, sounder readings, action taken after it."""
 
     rgb_url: str
@@ -62,12 +62,15 @@ def _image(url: str, detail: str | None) -> dict[str, Any]:
     return {"type": "image_url", "image_url": image_url}
 
 
-def _readings(seen: _Seen) -> str:
+def _readings(seen: EncodedObservation) -> str:
     return f"d_top = {seen.d_top:.2f} m, d_bottom = {seen.d_bottom:.2f} m"
 
 
 def build_messages(
-    system: str, current: _Seen, history: list[_Seen], detail: str | None = None
+    system: str,
+    current: EncodedObservation,
+    history: list[EncodedObservation],
+    detail: str | None = None,
 ) -> list[Message]:
     """OpenAI-format messages: system prompt, then one user turn with every image."""
     content: list[dict[str, Any]] = []
@@ -120,7 +123,7 @@ class VLMPilot:
         self.price_per_mtok = price_per_mtok
         self.name = f"vlm:{backend.model}"
         self._system = render_system(self.prompt)
-        self._history: deque[_Seen] = deque(maxlen=max(self.prompt.history, 0) or None)
+        self._history: deque[EncodedObservation] = deque(maxlen=max(self.prompt.history, 0) or None)
         if self.prompt.history == 0:
             self._history = deque(maxlen=0)
         if check:
@@ -136,7 +139,7 @@ class VLMPilot:
         return (prompt_tokens * price_in + completion_tokens * price_out) / 1e6
 
     def decide(self, observation: Observation) -> Decision:
-        current = _Seen(
+        current = EncodedObservation(
             png_data_url(observation.rgb),
             png_data_url(observation.depth_png),
             observation.d_top,
@@ -165,7 +168,7 @@ class VLMPilot:
                 continue
             exchanges.append(Exchange(list(messages), completion))
             self._history.append(
-                _Seen(
+                EncodedObservation(
                     current.rgb_url,
                     current.depth_url,
                     current.d_top,

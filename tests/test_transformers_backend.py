@@ -1,0 +1,63 @@
+"""The local transformers backend, on a tiny random model the test builds itself."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("torch")
+pytest.importorskip("transformers")
+
+from cavenav.episode.loop import EpisodeConfig, run_episode  # noqa: E402
+from cavenav.errors import ConfigError  # noqa: E402
+from cavenav.pilots.backends import TransformersBackend, TransformersConfig  # noqa: E402
+from cavenav.pilots.prompt import PromptConfig, render_system  # noqa: E402
+from cavenav.pilots.vlm import EncodedObservation, VLMPilot, build_messages, png_data_url  # noqa: E402
+from cavenav.world.scenarios import load_scenario  # noqa: E402
+
+from .tiny_vlm import build_tiny_idefics3  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def tiny_model(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return build_tiny_idefics3(tmp_path_factory.mktemp("tiny-idefics3"))
+
+
+def test_the_tiny_model_answers_through_the_real_backend(tiny_model: Path) -> None:
+    backend = TransformersBackend(
+        TransformersConfig(str(tiny_model), device="cpu", max_new_tokens=12)
+    )
+    image = png_data_url(np.zeros((480, 640, 3), np.uint8))
+    depth = png_data_url(np.zeros((480, 640), np.uint8))
+    system = render_system(PromptConfig())
+    messages = build_messages(system, EncodedObservation(image, depth, 2.0, 2.0), [])
+    completion = backend.complete(messages)
+    assert completion.completion_tokens == 12
+    assert completion.prompt_tokens > 100  # the system prompt went in
+    assert isinstance(completion.text, str)
+
+
+def test_its_garbage_ends_the_episode_as_pilot_failure(tiny_model: Path, tmp_path: Path) -> None:
+    backend = TransformersBackend(
+        TransformersConfig(str(tiny_model), device="cpu", max_new_tokens=16)
+    )
+    run_dir = tmp_path / "run"
+    result = run_episode(
+        load_scenario("S4"), VLMPilot(backend), EpisodeConfig(plots=False), run_dir
+    )
+    assert result.termination == "pilot_failure"
+    assert "no usable reply after 4 attempts" in result.summary["failure"]
+    exchanges = [
+        json.loads(line) for line in (run_dir / "exchanges.jsonl").read_text().splitlines()
+    ]
+    assert len(exchanges) == 4 and all(e["rejected"] for e in exchanges)
+    assert all(e["completion_tokens"] == 16 for e in exchanges)
+    assert json.loads((run_dir / "summary.json").read_text())["usage"]["requeries"] == 3
+
+
+def test_a_missing_model_folder_is_a_one_line_error(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match="cannot load the model"):
+        TransformersBackend(TransformersConfig(str(tmp_path / "nothing-here"), device="cpu"))
