@@ -194,10 +194,6 @@ class GeometricPilot:
         )
 
     # ------------------------------------------------------------------ decision
-    def _snap_yaw(self, degrees: float) -> float:
-        options = np.array(self.space.yaw_deg)
-        return math.copysign(float(options[np.argmin(np.abs(options - abs(degrees)))]), degrees)
-
     def _snap_up(self, metres: float) -> float:
         lo, hi = self.space.vertical_range_m
         if abs(metres) < 0.5 * lo:
