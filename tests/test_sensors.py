@@ -43,6 +43,12 @@ def test_exr_round_trip_is_exact(tmp_path: Path) -> None:
     assert np.array_equal(read_exr(tmp_path / "d.exr"), depth)
 
 
+def test_the_rendered_depth_png_is_the_normalised_raw_depth() -> None:
+    # The renderer's compiled kernel re-implements normalise_depth; they must agree.
+    obs = SensorRig(RayCaster(box_room())).observe(Pose(0.5, 3, 0.2, 0.3))
+    assert np.array_equal(obs.depth_png, normalise_depth(obs.depth_m, *obs.depth_range))
+
+
 def test_depth_of_a_wall_ahead_is_its_planar_distance() -> None:
     # Room walls at y = -10; vehicle at y = 0 heading -y; camera 0.2 m ahead of centre.
     rig = SensorRig(RayCaster(box_room()))

@@ -324,11 +324,11 @@ class TransformersBackend:
                 f"unknown dtype '{config.dtype}'; use auto, float32, bfloat16 or float16"
             )
         try:
-            self._processor = AutoProcessor.from_pretrained(config.model)
-            self._model = AutoModelForImageTextToText.from_pretrained(config.model, dtype=dtype)
+            self._processor: Any = AutoProcessor.from_pretrained(config.model)
+            model: Any = AutoModelForImageTextToText.from_pretrained(config.model, dtype=dtype)
         except (OSError, ValueError) as exc:
             raise ConfigError(f"cannot load the model '{config.model}': {_short(exc)}") from None
-        self._model.to(device).eval()
+        self._model: Any = model.to(device).eval()
         self.device = device
 
     @property

@@ -12,7 +12,7 @@ import numpy as np
 from cavenav.errors import DependencyError
 from cavenav.world.mesh import CaveMesh
 
-__all__ = ["RayCaster", "RayHits"]
+__all__ = ["RayCaster"]
 
 
 def _import_open3d():  # noqa: ANN202 - module type
@@ -26,23 +26,6 @@ def _import_open3d():  # noqa: ANN202 - module type
         )
         raise DependencyError(f"Open3D cannot be imported ({exc}); fix with: {hint}") from None
     return o3d
-
-
-class RayHits:
-    """Results of one batch of rays, all arrays flattened to the batch's shape.
-
-    Attributes:
-        t: (...) float32 ray parameter of the first hit (hit = origin + t * direction),
-            ``inf`` where the ray escapes.
-        normals: (..., 3) float32 unit normal of the hit triangle (zeros where none).
-        triangle: (...) int64 index of the hit triangle, -1 where none.
-        uv: (..., 2) float32 barycentric coordinates of the hit inside its triangle.
-    """
-
-    __slots__ = ("normals", "t", "triangle", "uv")
-
-    def __init__(self, t: np.ndarray, normals: np.ndarray, triangle: np.ndarray, uv: np.ndarray):
-        self.t, self.normals, self.triangle, self.uv = t, normals, triangle, uv
 
 
 class RayCaster:
@@ -65,23 +48,6 @@ class RayCaster:
         rays[..., :3] = origins
         rays[..., 3:] = directions
         return self._o3d.core.Tensor.from_numpy(rays.reshape(-1, 6)), shape[:-1]
-
-    def cast(self, origins: np.ndarray, directions: np.ndarray) -> RayHits:
-        """Cast rays; ``origins`` and ``directions`` broadcast to (..., 3).
-
-        Directions need not be unit length: ``t`` is in units of the direction's length,
-        so a direction whose optical-axis component is 1 returns planar depth directly.
-        """
-        rays, shape = self._rays(origins, directions)
-        out = self._scene.cast_rays(rays)
-        triangle = out["primitive_ids"].numpy().astype(np.int64)
-        triangle[triangle == np.iinfo(np.uint32).max] = -1
-        return RayHits(
-            t=out["t_hit"].numpy().reshape(shape),
-            normals=out["primitive_normals"].numpy().reshape(*shape, 3),
-            triangle=triangle.reshape(shape),
-            uv=out["primitive_uvs"].numpy().reshape(*shape, 2),
-        )
 
     def cast_raw_rays(self, rays: np.ndarray) -> dict[str, np.ndarray]:
         """Cast a C-contiguous (n, 6) float32 array of (origin, direction) rows as is.
