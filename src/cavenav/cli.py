@@ -2,6 +2,7 @@
 
 cavenav run S4                         fly S4 with the geometric pilot
 cavenav run examples/osrf_cave_L.toml  fly a user mesh described by a scenario file
+cavenav render S4 --water turbid       contact sheet of the views along the passage
 cavenav scenarios                      list what can be flown
 """
 
@@ -41,6 +42,45 @@ class Sounder(StrEnum):
 class Backend(StrEnum):
     openai = "openai"
     transformers = "transformers"
+
+
+class WaterType(StrEnum):
+    """Water presets (see `cavenav.sensors.optics.WATER_TYPES`)."""
+
+    clear = "clear"
+    ocean = "ocean"
+    coastal = "coastal"
+    turbid = "turbid"
+
+
+# Options shared by `run` and `render`: how the cave looks. None keeps the scenario's own.
+WaterOpt = Annotated[WaterType | None, typer.Option(help="water preset (default: clear)")]
+LightPower = Annotated[
+    float | None, typer.Option(min=0, help="lamp power; 0 turns the lamps off (default 20)")
+]
+Daylight = Annotated[
+    float | None, typer.Option(min=0, help="open-water brightness at exits (default 1)")
+]
+Particles = Annotated[
+    float | None, typer.Option(min=0, help="marine snow, particles per m³ (default 2)")
+]
+Noise = Annotated[float | None, typer.Option(min=0, help="sensor noise, 0 = none (default 1)")]
+DepthDropout = Annotated[
+    float | None,
+    typer.Option(min=0, help="drop depth where returned lamp light is below this (default 0)"),
+]
+DepthNoise = Annotated[
+    float | None, typer.Option(min=0, help="depth noise std at 10 m, metres (default 0)")
+]
+
+
+def _sensors(cave: Any, base: Any, **options: Any) -> Any:  # noqa: ANN401 - lazy imports
+    """``base`` SensorConfig with the scenario's [optics] table, then the CLI options."""
+    from cavenav.sensors.optics import optics_from_table
+
+    optics = optics_from_table(cave.optics, base.optics, where=f"{cave.name}: [optics]")
+    flags = {k: (v.value if isinstance(v, StrEnum) else v) for k, v in options.items()}
+    return replace(base, optics=optics_from_table(flags, optics, where="options"))
 
 
 # Options shared by `run --pilot vlm` and `ask`.
@@ -149,6 +189,13 @@ def run(
     frames: Annotated[bool, typer.Option(help="save RGB, depth PNG and EXR of every step")] = True,
     sounder: Annotated[Sounder, typer.Option(help="echo-sounder model")] = Sounder.camera,
     depth_max: Annotated[float, typer.Option(help="D_max of the depth PNG, metres")] = 20.0,
+    water: WaterOpt = None,
+    light_power: LightPower = None,
+    daylight: Daylight = None,
+    particles: Particles = None,
+    noise: Noise = None,
+    depth_dropout: DepthDropout = None,
+    depth_noise: DepthNoise = None,
     from_: Annotated[Path | None, typer.Option("--from", help="run folder to replay")] = None,
     backend: BackendOpt = Backend.openai,
     base_url: BaseUrl = None,
@@ -214,11 +261,18 @@ def run(
         flyer = GeometricPilot()
     with console.status(f"building {scenario} (seed {seed})"):
         cave = load_scenario(scenario, seed)
-    config = EpisodeConfig(
-        max_steps=steps,
-        save_frames=frames,
-        sensors=replace(SensorConfig(), sounder=sounder.value, depth_max_m=depth_max),
+    sensors = _sensors(
+        cave,
+        replace(SensorConfig(), sounder=sounder.value, depth_max_m=depth_max),
+        water=water,
+        light_power=light_power,
+        daylight=daylight,
+        particles=particles,
+        noise=noise,
+        depth_dropout=depth_dropout,
+        depth_noise_m=depth_noise,
     )
+    config = EpisodeConfig(max_steps=steps, save_frames=frames, sensors=sensors)
     run_dir = new_run_dir(out, cave.name, pilot, cave.seed)
     console.print(
         f"[bold]{cave.name}[/]: {cave.description or cave.mesh.name} "
@@ -249,6 +303,46 @@ def run(
     console.print(f"run folder: [bold]{run_dir}[/]", soft_wrap=True)
     for name in result.summary.get("plots", {}).values():
         console.print(f"plot:       {run_dir / name}", soft_wrap=True)
+
+
+@app.command()
+def render(
+    scenario: Annotated[str, typer.Argument(help="S1..S5, or the path of a scenario .toml file")],
+    water: WaterOpt = None,
+    seed: Annotated[int, typer.Option(help="seed of the procedural cave (S1..S5)")] = 0,
+    views: Annotated[int, typer.Option(min=1, max=24, help="poses along the passage")] = 6,
+    out: Annotated[
+        Path | None, typer.Option(help="PNG to write (default: render-SCENARIO-WATER.png)")
+    ] = None,
+    light_power: LightPower = None,
+    daylight: Daylight = None,
+    particles: Particles = None,
+    noise: Noise = None,
+    depth_max: Annotated[float, typer.Option(help="D_max of the depth PNG, metres")] = 20.0,
+) -> None:
+    """Write a contact sheet: colour and depth views from poses along the passage."""
+    from cavenav.episode.gallery import passage_poses, write_contact_sheet
+    from cavenav.sensors.rig import SensorConfig
+    from cavenav.world.scenarios import load_scenario
+
+    with console.status(f"building {scenario} (seed {seed})"):
+        cave = load_scenario(scenario, seed)
+    sensors = _sensors(
+        cave,
+        replace(SensorConfig(), depth_max_m=depth_max),
+        water=water,
+        light_power=light_power,
+        daylight=daylight,
+        particles=particles,
+        noise=noise,
+    )
+    water_name = sensors.optics.water if isinstance(sensors.optics.water, str) else "custom"
+    path = out or Path(f"render-{cave.name}-{water_name}.png")
+    with console.status(f"finding {views} poses along {cave.name}"):
+        poses = passage_poses(cave, views)
+    with console.status("rendering"):
+        write_contact_sheet(cave, path, sensors, poses=poses)
+    console.print(f"contact sheet: [bold]{path}[/]", soft_wrap=True)
 
 
 @app.command()

@@ -1,90 +1,250 @@
-"""Colour image formation from one ray cast: vehicle lights, water, rock albedo.
+"""Underwater image formation: the parameters, the water presets and the tone curve.
 
-A deliberately simple model, evaluated per pixel in linear light then tone-mapped:
+Per pixel, in linear light, for a ray from the camera that hits rock at path length r:
 
-    L = albedo * P * cos(theta) / r^2 * exp(-2 c r)      (lights beside the camera)
-      + albedo * A * exp(-c r)                           (faint ambient light)
-      + B * (1 - exp(-c r))                              (veiling light of the water)
+    L = rho * ( sum_k I_k spot_k(x) cos_k / d_k^2 * exp(-c d_k)     vehicle lamps
+                + D(face) )                                          daylight from exits
+          * exp(-c r)                                                 back to the camera
+        + B(pixel, r)                                                 backscatter veil
 
-with per-channel attenuation ``c`` (red lost first). Rays that leave the cave see open
-water. The per-pixel evaluation lives in `cavenav.sensors.kernels` (one compiled pass).
+with per-channel attenuation c = a + b (absorption + scattering; red is lost first),
+lamp k at distance d_k from the surface point, spot_k its cone fall-off and cos_k the
+incidence on the wall. D is the daylight a wall receives through the cave's openings
+(`cavenav.sensors.lighting` precomputes it per triangle, with one bounce), rho the rock
+albedo (seeded noise, sediment on floors, darker in crevices). B integrates the lamps'
+light scattered back toward the camera along the ray (a Henyey-Greenstein phase
+function); it depends only on the pixel and r, so it is tabulated once per camera.
+A ray that leaves the cave sees open water: daylight, brighter toward the surface, dimmed
+by the water between the camera and the cave's bounds. Marine snow adds lamp-lit specks,
+defocused near the lens. The camera then applies white balance, vignetting, sensor noise
+and a tone curve. Everything is seeded: the same seed and pose give the same image.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, fields, replace
 from functools import lru_cache
+from typing import Any, Literal
 
 import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
-from cavenav.world.mesh import CaveMesh
+from cavenav.errors import ConfigError
 
-__all__ = ["LUT_SCALE", "Optics", "rock_albedo", "tone_lut"]
+__all__ = [
+    "BLUEROV2_LAMPS",
+    "LUT_SCALE",
+    "WATER_TYPES",
+    "Lamp",
+    "Optics",
+    "Water",
+    "optics_from_table",
+    "optics_summary",
+    "tone_lut",
+]
+
+RGB = tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class Water:
+    """Inherent optical properties of the water, per colour channel (R, G, B), in 1/m.
+
+    Attributes:
+        absorption: a; pure water absorbs red strongly (about 0.3/m), blue hardly at all;
+            dissolved organic matter adds absorption in the blue.
+        scattering: b; particles scatter all colours about alike. It lights the veil
+            of backscatter in front of the camera.
+        phase_g: asymmetry of the Henyey-Greenstein phase function; natural waters
+            scatter mostly forward (0.8-0.95), so little light comes straight back.
+    """
+
+    absorption: RGB
+    scattering: RGB
+    phase_g: float = 0.92
+
+    @property
+    def attenuation(self) -> np.ndarray:
+        """(3,) float32 beam attenuation c = a + b."""
+        return (np.asarray(self.absorption) + np.asarray(self.scattering)).astype(np.float32)
+
+
+# Broad-band camera channels (R ~ 600-650 nm, G ~ 520-570 nm, B ~ 450-490 nm), after
+# pure-water absorption (Pope and Fry 1997) plus typical particle and organic loads.
+WATER_TYPES: dict[str, Water] = {
+    # Spring-fed karst (cenotes, Florida springs): visibility of tens of metres.
+    "clear": Water(absorption=(0.29, 0.060, 0.020), scattering=(0.010, 0.012, 0.015)),
+    # Open ocean, Jerlov type I-II.
+    "ocean": Water(absorption=(0.31, 0.065, 0.030), scattering=(0.040, 0.050, 0.060)),
+    # Coastal water: greener, walls beyond five metres fade into the lamps' haze.
+    "coastal": Water(absorption=(0.34, 0.085, 0.11), scattering=(0.065, 0.07, 0.075)),
+    # Silty water after rain or a careless fin kick: rock beyond 3 m is lost in the veil.
+    "turbid": Water(absorption=(0.40, 0.14, 0.22), scattering=(0.19, 0.20, 0.21)),
+}
+
+
+@dataclass(frozen=True)
+class Lamp:
+    """A spot lamp on the vehicle, in the camera frame (x right, y down, z forward).
+
+    Attributes:
+        position: metres from the camera's centre of projection.
+        axis: direction of the beam (normalised when used).
+        inner_deg, outer_deg: half-angles of the full-power core and of the edge of the
+            beam; the intensity falls off smoothly in between.
+        share: fraction of `Optics.light_power` this lamp emits.
+    """
+
+    position: RGB
+    axis: RGB = (0.0, 0.0, 1.0)
+    inner_deg: float = 25.0
+    outer_deg: float = 50.0
+    share: float = 0.5
+
+
+# Two lamps at the front corners of the frame, beside and a little above the camera, as
+# on a BlueROV2 with Lumen lights; toed out so that their beams cross the camera's view
+# only beyond half a metre, which keeps the backscatter down.
+BLUEROV2_LAMPS: tuple[Lamp, ...] = (
+    Lamp(position=(-0.21, -0.10, -0.05), axis=(-0.17, 0.0, 1.0)),
+    Lamp(position=(0.21, -0.10, -0.05), axis=(0.17, 0.0, 1.0)),
+)
 
 
 @dataclass(frozen=True)
 class Optics:
-    """Water and lighting parameters (linear RGB, per metre).
+    """Everything that shapes the colour image (and, optionally, degrades depth).
 
     Attributes:
-        attenuation: per-channel beam attenuation c in 1/m; coastal water loses red first.
-        light_power: strength of the vehicle's lights (radiance at 1 m on a white wall).
-        ambient: faint diffuse light inside the cave.
-        veil: colour of light scattered by the water toward the camera.
-        open_water: radiance seen along rays that leave the cave.
-        exposure: scales linear light before tone mapping.
-        white_balance_m: the camera's white balance cancels the water's colour for a
-            surface this far away (lit and seen through 2x this much water), as an ROV
-            camera's does; nearer rock looks warmer, farther rock fades to blue-green.
+        water: a preset name from `WATER_TYPES` or a `Water`.
+        light_power: total intensity of the lamps: radiance of a white wall 1 m in front
+            of them, before water. 0 turns them off.
+        lamps: where the lamps are and how they point.
+        daylight: radiance of open water seen horizontally through an exit, before the
+            water between the exit and the camera; 0 makes a cave with no daylight.
+        daylight_colour: its hue (sunlight filtered by the water column above).
+        particles: marine snow, particles per cubic metre (0: none).
+        noise: sensor noise, 1 = a typical ROV camera in low light, 0 = none.
+        vignetting: darkening of the image corners by the lens (0-1).
+        exposure: None (default) for auto-exposure: the gain brings the frame's mean
+            brightness to `exposure_key`, within `gain_range`, as an ROV camera does; a
+            number fixes the gain.
+        exposure_key: the auto-exposure's target, on the tone curve's input scale.
+        gain_range: the least and most gain the auto-exposure may use.
+        white_balance: strength of the camera's auto white balance (grey world): 0
+            keeps the sensor's raw colours, where distant rock turns blue-green; 1 makes
+            every frame's mean grey. Cameras correct part of the way.
+        rock_colour: mean reflectance of bare rock (limestone: warm grey).
+        sediment_colour: reflectance of silt on up-facing surfaces.
+        depth_dropout: raw depth reports no return (inf) where the lamps' returned green
+            radiance is below this, as an active depth sensor does on dark or distant
+            rock; 0 (default) keeps every pixel.
+        depth_noise_m: standard deviation of depth noise at 10 m, growing with the square
+            of depth as a stereo or time-of-flight camera's does; 0 (default) is exact.
     """
 
-    attenuation: tuple[float, float, float] = (0.22, 0.07, 0.06)
+    water: str | Water = "clear"
     light_power: float = 20.0
-    ambient: tuple[float, float, float] = (0.006, 0.010, 0.012)
-    veil: tuple[float, float, float] = (0.002, 0.010, 0.014)
-    open_water: tuple[float, float, float] = (0.05, 0.35, 0.40)
-    exposure: float = 1.6
-    white_balance_m: float = 2.0
+    lamps: tuple[Lamp, ...] = BLUEROV2_LAMPS
+    daylight: float = 1.0
+    daylight_colour: RGB = (0.10, 0.55, 0.60)
+    particles: float = 4.0
+    noise: float = 1.0
+    vignetting: float = 0.35
+    exposure: float | None = None
+    exposure_key: float = 0.25
+    gain_range: tuple[float, float] = (1.0, 40.0)
+    white_balance: float = 0.5
+    rock_colour: RGB = (0.40, 0.37, 0.33)
+    sediment_colour: RGB = (0.46, 0.40, 0.30)
+    depth_dropout: float = 0.0
+    depth_noise_m: float = 0.0
+
+    def __post_init__(self) -> None:
+        if isinstance(self.water, str) and self.water not in WATER_TYPES:
+            raise ConfigError(
+                f"unknown water type '{self.water}'; choose one of {', '.join(WATER_TYPES)}"
+            )
 
     @property
-    def gains(self) -> np.ndarray:
-        """(3,) float32 per-channel camera gains, green = 1."""
-        c = np.asarray(self.attenuation, np.float64)
-        gains = np.exp(2.0 * self.white_balance_m * (c - c[1]))
-        return gains.astype(np.float32)
+    def medium(self) -> Water:
+        return WATER_TYPES[self.water] if isinstance(self.water, str) else self.water
 
 
-def rock_albedo(mesh: CaveMesh, seed: int = 0) -> np.ndarray:
-    """(n_vertices, 3) float32 rock colour from seeded 3-D noise at each vertex.
+class _OpticsTable(BaseModel):
+    """The `[optics]` table of a scenario file, or the equivalent CLI options."""
 
-    Random phases of a few sinusoids per octave give a smooth, band-limited field that is
-    cheap to evaluate once per vertex; pixels interpolate it with barycentric weights.
+    model_config = ConfigDict(extra="forbid")
+    water: str | None = None
+    light_power: float | None = Field(None, ge=0)
+    daylight: float | None = Field(None, ge=0)
+    particles: float | None = Field(None, ge=0, le=200)
+    noise: float | None = Field(None, ge=0, le=20)
+    vignetting: float | None = Field(None, ge=0, le=1)
+    exposure: float | Literal["auto"] | None = None
+    white_balance: float | None = Field(None, ge=0, le=1)
+    depth_dropout: float | None = Field(None, ge=0)
+    depth_noise_m: float | None = Field(None, ge=0)
+
+    @field_validator("water")
+    @classmethod
+    def _known_water(cls, v: str | None) -> str | None:
+        if v is not None and v not in WATER_TYPES:
+            raise ValueError(f"unknown water type '{v}'; choose one of {', '.join(WATER_TYPES)}")
+        return v
+
+
+OPTICS_OPTIONS = tuple(_OpticsTable.model_fields)
+
+
+def optics_from_table(
+    table: Mapping[str, Any], base: Optics | None = None, where: str = "[optics]"
+) -> Optics:
+    """``base`` (default `Optics()`) with the fields a config table sets.
+
+    Unset (None) entries keep the base value, so scenario files and CLI flags can be
+    layered: `optics_from_table(cli_flags, optics_from_table(scenario.optics))`.
+
+    Raises:
+        ConfigError: an unknown key or a bad value, naming it.
     """
-    rng = np.random.default_rng(seed)
-    p = mesh.vertices.astype(np.float32)
-    field = np.zeros(len(p), np.float32)
-    for wavelength, weight in ((3.0, 0.5), (1.1, 0.3), (0.45, 0.2)):
-        for _ in range(3):
-            k = rng.normal(size=3).astype(np.float32)
-            k *= 2 * np.pi / wavelength / np.linalg.norm(k)
-            field += weight * np.sin(p @ k + rng.uniform(0, 2 * np.pi)) / 1.7
-    grey = 0.36 + 0.22 * field  # rock reflectance around 0.15-0.6
-    tint = np.array([1.0, 0.93, 0.82], np.float32)  # warm limestone
-    return np.clip(grey[:, None] * tint, 0.05, 0.9).astype(np.float32)
+    try:
+        model = _OpticsTable.model_validate(dict(table))
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        key = ".".join(str(p) for p in first["loc"]) or "(table)"
+        raise ConfigError(f"{where}: '{key}': {first['msg']}") from None
+    changes = {k: v for k, v in model.model_dump().items() if v is not None}
+    if changes.get("exposure") == "auto":
+        changes["exposure"] = None
+    return replace(base or Optics(), **changes)
 
 
-LUT_SIZE = 65536
-LUT_SCALE = LUT_SIZE / 16.0
+def optics_summary(optics: Optics) -> dict[str, Any]:
+    """The optics as plain JSON-ready values (for run folders and figure captions)."""
+    out = {f.name: getattr(optics, f.name) for f in fields(optics) if f.name != "lamps"}
+    if isinstance(optics.water, Water):
+        out["water"] = {"absorption": optics.water.absorption, "scattering": optics.water.scattering}
+    out["lamps"] = len(optics.lamps)
+    return out
+
+
+LUT_SIZE = 4096
+LUT_SCALE = LUT_SIZE / 4.0
 
 
 @lru_cache(maxsize=8)
 def tone_lut(exposure: float) -> np.ndarray:
-    """(65536,) uint8 map from linear radiance in [0, 16) to tone-mapped sRGB.
+    """(4096,) uint8 map from sqrt(linear radiance) in [0, 4) to tone-mapped sRGB.
 
-    One table lookup replaces an exp, a power and a branch per channel and pixel; 65536
-    steps keep the darkest tones within about one 8-bit level. Index: radiance * LUT_SCALE.
+    A Reinhard curve ``kL / (1 + kL)`` keeps detail from the lamp-lit wall at arm's
+    length down to rock ten metres off, with a soft shoulder instead of clipping. Indexing by
+    the square root spends the table's steps on the dark tones, where sRGB is steep: a
+    4 KB table that stays in the L1 cache, within one 8-bit level everywhere.
+    Index: sqrt(radiance) * LUT_SCALE.
     """
-    radiance = np.arange(LUT_SIZE, dtype=np.float64) / LUT_SCALE
-    mapped = 1.0 - np.exp(-exposure * radiance)  # soft shoulder instead of clipping
+    radiance = ((np.arange(LUT_SIZE, dtype=np.float64) + 0.5) / LUT_SCALE) ** 2
+    mapped = exposure * radiance / (1.0 + exposure * radiance)
     srgb = np.where(mapped <= 0.0031308, 12.92 * mapped, 1.055 * mapped ** (1 / 2.4) - 0.055)
     return (np.clip(srgb, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)

@@ -6,22 +6,25 @@ shaded from the same hits); the two echo sounders are tiny extra casts.
 
 from __future__ import annotations
 
+import hashlib
 import math
+import struct
 from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
 
 from cavenav.sensors.camera import CameraIntrinsics, camera_to_world, look_frame
-from cavenav.sensors.kernels import fill_rays, shade_frame
-from cavenav.sensors.optics import LUT_SCALE, Optics, rock_albedo, tone_lut
+from cavenav.sensors.kernels import develop, fill_rays, shade_frame, splat_particles
+from cavenav.sensors.lighting import backscatter_table, lamp_arrays, surface_table
+from cavenav.sensors.optics import LUT_SCALE, Optics, tone_lut
 from cavenav.types import Observation, Pose
 from cavenav.world.raycast import RayCaster
 
-__all__ = ["SensorConfig", "SensorRig"]
+__all__ = ["Frame", "SensorConfig", "SensorRig"]
 
 _UP = np.array([0.0, 0.0, 1.0])
-_SEDIMENT = np.array([0.46, 0.40, 0.30], np.float32)
+PARTICLE_REACH_M = 5.0
 
 
 @dataclass(frozen=True)
@@ -42,8 +45,8 @@ class SensorConfig:
         sounder_pixels: resolution of the emulating depth cameras; the minimum of a
             32x24 image is as good as a full frame's for a smooth ceiling and costs nothing.
         sounder_max_range_m: reading when nothing is in range.
-        optics: water and light parameters of the colour image.
-        albedo_seed: seeds the rock colour field.
+        optics: water, lamps, daylight, rock, particles and camera of the colour image.
+        seed: seeds the rock colours, the marine snow and the sensor noise.
     """
 
     camera: CameraIntrinsics = field(default_factory=CameraIntrinsics)
@@ -55,7 +58,51 @@ class SensorConfig:
     sounder_pixels: tuple[int, int] = (32, 24)
     sounder_max_range_m: float = 50.0
     optics: Optics = field(default_factory=Optics)
-    albedo_seed: int = 0
+    seed: int = 0
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One forward frame: what the cameras deliver, plus the light that made it.
+
+    Attributes:
+        depth_m: (H, W) float32 planar depth in metres, inf where nothing is in range.
+        depth_png: (H, W) uint8 normalised depth, dark = near.
+        rgb: (H, W, 3) uint8 colour image.
+        radiance: (H, W, 3) float32 linear radiance arriving at the lens, before white
+            balance, vignetting, noise and tone curve (for tests and for users who want
+            to develop the image themselves).
+        particles: marine-snow specks drawn.
+    """
+
+    depth_m: np.ndarray
+    depth_png: np.ndarray
+    rgb: np.ndarray
+    radiance: np.ndarray
+    particles: int
+
+
+def camera_response(mean: np.ndarray, optics: Optics) -> tuple[np.ndarray, float]:
+    """White-balance gains (3,) and exposure gain for a frame whose mean colour is ``mean``.
+
+    Grey-world auto white balance, part of the way (`Optics.white_balance`), then the
+    exposure that brings mean luminance to `Optics.exposure_key` within the gain range.
+    """
+    mean = np.maximum(mean.astype(np.float64), 1e-9)
+    luminance = float(mean @ (0.25, 0.5, 0.25))
+    gains = np.clip((luminance / mean) ** optics.white_balance, 0.25, 4.0)
+    gain = optics.exposure
+    if gain is None:
+        low, high = optics.gain_range
+        balanced = float((mean * gains) @ (0.25, 0.5, 0.25))
+        gain = min(max(optics.exposure_key / balanced, low), high)
+    return gains.astype(np.float32), float(gain)
+
+
+def _frame_key(seed: int, pose: Pose) -> np.uint64:
+    """A 64-bit key for the noise of one frame: the seed and the pose's exact bits."""
+    data = struct.pack("<q4d", seed, pose.x, pose.y, pose.z, pose.psi)
+    return np.uint64(int.from_bytes(hashlib.blake2b(data, digest_size=8).digest(), "little"))
 
 
 def _beam_directions(cone_deg: float, rings: int = 3, per_ring: int = 8) -> np.ndarray:
@@ -93,49 +140,72 @@ class SensorRig:
         else:
             self._sounder_dirs = _beam_directions(cfg.sounder_fov_deg)
             self._sounder_planar = False
-        albedo = rock_albedo(caster.mesh, cfg.albedo_seed)
-        # One colour per triangle (mean of its corners): one gather per pixel when shading.
-        self._face_albedo = albedo[caster.mesh.faces].mean(axis=1).astype(np.float32)
+        optics = cfg.optics
+        self._surface = surface_table(caster, optics, cfg.seed)
+        self._backscatter = backscatter_table(cfg.camera, optics)
+        self._lamps = lamp_arrays(optics)
+        self._attenuation = optics.medium.attenuation
+        self._sky = (optics.daylight * np.asarray(optics.daylight_colour)).astype(np.float32)
+        self._bounds = caster.mesh.bounds.astype(np.float32)
+        self._lut = tone_lut(1.0)
 
     def camera_position(self, pose: Pose) -> np.ndarray:
         return pose.position + self.config.camera_offset_m * pose.forward
 
-    def forward_frame(self, pose: Pose) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Planar depth (H, W) float32 metres, its PNG (H, W) uint8 and colour (H, W, 3) uint8."""
+    def render(self, pose: Pose) -> Frame:
+        """Cast the forward frame at ``pose`` and form its depth and colour images."""
         cfg = self.config
         optics = cfg.optics
+        camera = cfg.camera
         rot = camera_to_world(pose).astype(np.float32)
+        origin = self.camera_position(pose).astype(np.float32)
         # Write origins and directions straight into the (n, 6) ray buffer Open3D reads.
         rays = self._rays
-        fill_rays(self._pixel_dirs, rot, self.camera_position(pose).astype(np.float32), rays)
-        dirs = rays[:, 3:]
+        fill_rays(self._pixel_dirs, rot, origin, rays)
         raw = self.caster.cast_raw_rays(rays)
+        depth = raw["t_hit"]
         n = len(rays)
-        rgb = np.empty((n, 3), np.uint8)
+        lamps = self._lamps
+        lamp_pos = (origin + lamps.position @ rot.T).astype(np.float32)
+        lamp_axis = (lamps.axis @ rot.T).astype(np.float32)
+        radiance = np.zeros((n, 3), np.float32)
+        particles = 0
+        if optics.particles > 0 and optics.light_power > 0:
+            particles = splat_particles(
+                origin, rot, lamp_pos, lamp_axis, lamps.power, lamps.cos_inner,
+                lamps.cos_outer, self._attenuation, optics.particles, cfg.seed,
+                PARTICLE_REACH_M, camera.focal_px, camera.width, camera.height, depth, radiance,
+            )  # fmt: skip
         depth_png = np.empty(n, np.uint8)
-        shade_frame(
-            raw["t_hit"],
-            raw["primitive_ids"],
-            raw["primitive_normals"],
-            dirs,
-            self._ray_length,
-            self._face_albedo,
-            _SEDIMENT,
-            np.asarray(optics.attenuation, np.float32),
-            optics.light_power,
-            np.asarray(optics.ambient, np.float32),
-            np.asarray(optics.veil, np.float32),
-            np.asarray(optics.open_water, np.float32),
-            optics.gains,
-            tone_lut(optics.exposure),
-            LUT_SCALE,
-            cfg.depth_min_m,
-            cfg.depth_max_m,
-            rgb,
-            depth_png,
+        table = self._backscatter
+        key = _frame_key(cfg.seed, pose)
+        mean = shade_frame(
+            depth, raw["primitive_ids"], raw["primitive_normals"], rays[:, 3:],
+            self._ray_length, origin, self._surface, lamp_pos, lamp_axis, lamps.power,
+            lamps.cos_inner, lamps.cos_outer, self._attenuation, table.values, table.block,
+            table.far, self._sky, self._bounds, optics.vignetting, key,
+            cfg.depth_min_m, cfg.depth_max_m, optics.depth_dropout, optics.depth_noise_m,
+            camera.width, radiance, depth_png,
+        )  # fmt: skip
+        gains, gain = camera_response(np.asarray(mean), optics)
+        rgb = np.empty((n, 3), np.uint8)
+        develop(
+            radiance, self._ray_length, gains, optics.vignetting, optics.noise, gain,
+            key, self._lut, LUT_SCALE, rgb,
+        )  # fmt: skip
+        shape = (camera.height, camera.width)
+        return Frame(
+            depth.reshape(shape),
+            depth_png.reshape(shape),
+            rgb.reshape(*shape, 3),
+            radiance.reshape(*shape, 3),
+            particles,
         )
-        shape = (cfg.camera.height, cfg.camera.width)
-        return raw["t_hit"].reshape(shape), depth_png.reshape(shape), rgb.reshape(*shape, 3)
+
+    def forward_frame(self, pose: Pose) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Planar depth (H, W) float32 metres, its PNG (H, W) uint8 and colour (H, W, 3) uint8."""
+        frame = self.render(pose)
+        return frame.depth_m, frame.depth_png, frame.rgb
 
     def echo_sounders(self, pose: Pose) -> tuple[float, float]:
         """(d_top, d_bottom) in metres from the vehicle's centre."""

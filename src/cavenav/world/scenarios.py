@@ -8,10 +8,10 @@ from __future__ import annotations
 
 import math
 import tomllib
-from collections.abc import Callable
-from dataclasses import dataclass
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
@@ -71,6 +71,7 @@ class Scenario:
     exits: tuple[ExitPortal, ...]
     description: str = ""
     seed: int | None = None
+    optics: Mapping[str, Any] = field(default_factory=dict)  # the file's [optics] table
 
     def exited(self, position: np.ndarray) -> bool:
         """Whether ``position`` lies past any exit portal."""
@@ -345,6 +346,9 @@ class _ScenarioFileModel(BaseModel):
     up_axis: Literal["x", "y", "z"] | None = None
     start: _StartModel
     exit: _ExitModel | list[_ExitModel] = Field(description="one portal or a list of them")
+    optics: dict[str, Any] = Field(
+        default_factory=dict, description="water and light; see cavenav.sensors.optics"
+    )
 
 
 def load_scenario_file(path: str | Path) -> Scenario:
@@ -363,6 +367,9 @@ def load_scenario_file(path: str | Path) -> Scenario:
         point = [0.0, -10.0, 2.0]
         normal = [0.0, -1.0, 0.0]   # pointing out of the cave
         radius = 3.0
+        [optics]                    # optional: how the cave looks
+        water = "coastal"           # clear, ocean, coastal, turbid
+        daylight = 0.5              # open-water brightness at the exits
 
     Raises:
         ConfigError: unreadable TOML or invalid fields, naming the field.
@@ -389,7 +396,9 @@ def load_scenario_file(path: str | Path) -> Scenario:
     if not portals:
         raise ConfigError(f"{path}: give at least one [[exit]]")
     exits = tuple(ExitPortal(p.point, p.normal, p.radius) for p in portals)
-    return Scenario(model.name or path.stem, mesh, start, exits, model.description)
+    return Scenario(
+        model.name or path.stem, mesh, start, exits, model.description, optics=model.optics
+    )
 
 
 def load_scenario(name_or_path: str, seed: int = 0) -> Scenario:

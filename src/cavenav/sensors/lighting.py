@@ -1,0 +1,261 @@
+"""What can be computed once per cave or per camera, so that a frame only looks it up.
+
+- `surface_table`: per triangle and per side, the rock's albedo (seeded 3-D noise,
+  sediment on up-facing floors, darker in crevices) and the daylight it receives through
+  the cave's openings. Both come from one batch of cosine-weighted rays cast from every
+  triangle: rays that stay within a short radius measure how enclosed (crevice-like) the
+  surface is; rays that leave the cave gather open-water light attenuated over their
+  path to the cave's bounds; rays that hit another lit wall add one bounce. The side of a
+  triangle that a camera sees is decided per pixel, so meshes of any winding work.
+- `backscatter_table`: the lamps' light scattered back into each pixel by the water
+  between the camera and depth r. Lamps and camera move together, so in the camera frame
+  this depends only on the pixel and r; it is tabulated on a coarse pixel grid and a
+  square-root depth grid and interpolated per pixel.
+
+See `cavenav.sensors.optics` for the image-formation model.
+"""
+
+from __future__ import annotations
+
+import math
+import weakref
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+
+from cavenav.sensors.camera import CameraIntrinsics
+from cavenav.sensors.kernels import integrate_backscatter
+from cavenav.sensors.optics import Optics
+from cavenav.world.mesh import CaveMesh
+from cavenav.world.raycast import RayCaster
+
+__all__ = [
+    "BackscatterTable",
+    "LampArrays",
+    "backscatter_table",
+    "lamp_arrays",
+    "open_water_radiance",
+    "rock_albedo",
+    "surface_table",
+]
+
+ALBEDO, DAYLIGHT = slice(0, 3), slice(3, 6)  # columns of the surface table
+CREVICE_RADIUS_M = 0.6  # rays hitting rock closer than this count as enclosed
+
+
+def rock_albedo(mesh: CaveMesh, seed: int = 0, colour=(0.40, 0.37, 0.33)) -> np.ndarray:
+    """(n_vertices, 3) float32 rock reflectance from seeded 3-D noise at each vertex.
+
+    Random phases of a few sinusoids per octave give a smooth, band-limited field that is
+    cheap to evaluate once per vertex; mottling from metres down to a few decimetres.
+    """
+    rng = np.random.default_rng(seed)
+    p = mesh.vertices.astype(np.float32)
+    field = np.zeros(len(p), np.float32)
+    for wavelength, weight in ((3.0, 0.45), (1.1, 0.3), (0.45, 0.25)):
+        for _ in range(3):
+            k = rng.normal(size=3).astype(np.float32)
+            k *= 2 * np.pi / wavelength / np.linalg.norm(k)
+            field += weight * np.sin(p @ k + rng.uniform(0, 2 * np.pi)) / 1.7
+    # Bands of darker and lighter strata, as in bedded limestone.
+    strata = 0.08 * np.sin(p[:, 2] * 2 * np.pi / rng.uniform(0.6, 1.4) + rng.uniform(0, 6.3))
+    grey = 1.0 + 0.55 * field + strata
+    return np.clip(grey[:, None] * np.asarray(colour, np.float32), 0.03, 0.9).astype(np.float32)
+
+
+def open_water_radiance(directions: np.ndarray, optics: Optics) -> np.ndarray:
+    """(n, 3) radiance of open water seen along unit ``directions`` (n, 3), at the exit.
+
+    Brightest looking up toward the surface, dim looking down into the deep.
+    """
+    up = np.clip(directions[:, 2], -1.0, 1.0)
+    shape = 0.1 + 0.9 * ((1.0 + up) / 2.0) ** 2.5
+    colour = optics.daylight * np.asarray(optics.daylight_colour, np.float32)
+    return (shape[:, None] * colour).astype(np.float32)
+
+
+def _exit_distance(origins: np.ndarray, directions: np.ndarray, bounds: np.ndarray) -> np.ndarray:
+    """(n,) path length from each origin along its unit direction to the box ``bounds``."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        far = np.where(directions > 0, bounds[1], bounds[0])
+        t = (far - origins) / directions
+    t = np.where(np.isfinite(t), t, np.inf)
+    return np.maximum(t.min(axis=1), 0.0)
+
+
+def _hemisphere(n: int) -> np.ndarray:
+    """(n, 3) cosine-weighted directions around +z (a Fibonacci spiral on the disc)."""
+    i = np.arange(n) + 0.5
+    r = np.sqrt(i / n)
+    phi = i * math.pi * (3.0 - math.sqrt(5.0))
+    return np.stack([r * np.cos(phi), r * np.sin(phi), np.sqrt(1.0 - r * r)], axis=1)
+
+
+# One table per mesh and set of parameters; meshes are immutable, rigs are many.
+_SURFACE_CACHE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def surface_table(
+    caster: RayCaster, optics: Optics, seed: int = 0, rays: int = 32
+) -> np.ndarray:
+    """(m, 2, 6) float32: per triangle and side (0: along its normal, 1: against it),
+    columns 0-2 the albedo and 3-5 the daylight D (radiance = albedo * D).
+
+    About 0.3 s per 100,000 triangles on 2 cores; cached per mesh and parameters.
+    """
+    mesh = caster.mesh
+    water = optics.medium
+    key = (seed, rays, optics.rock_colour, optics.sediment_colour, optics.daylight,
+           optics.daylight_colour, water.absorption, water.scattering)  # fmt: skip
+    cached = _SURFACE_CACHE.setdefault(mesh, {})
+    if key not in cached:
+        cached[key] = _surface_table(caster, optics, seed, rays)
+    return cached[key]
+
+
+def _surface_table(caster: RayCaster, optics: Optics, seed: int, n_rays: int) -> np.ndarray:
+    mesh = caster.mesh
+    rng = np.random.default_rng([seed, 7])
+    tri = mesh.vertices[mesh.faces]  # (m, 3, 3)
+    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
+    centre = tri.mean(axis=1)
+    m = len(mesh.faces)
+    c = optics.medium.attenuation.astype(np.float64)
+    bounds = mesh.bounds + np.array([[-1e-3], [1e-3]])
+    local = _hemisphere(n_rays)
+
+    albedo = rock_albedo(mesh, seed, optics.rock_colour)[mesh.faces].mean(axis=1)
+    table = np.zeros((m, 2, 6), np.float32)
+    hits = np.empty((2, m, n_rays), np.int64)  # triangle each ray hits (-1: none)
+    hit_side = np.empty((2, m, n_rays), np.int8)
+    hit_dist = np.empty((2, m, n_rays), np.float32)
+    for side, sign in enumerate((1.0, -1.0)):
+        n = sign * normal
+        # A random tangent frame per triangle, so the fixed ray pattern leaves no streaks.
+        helper = rng.normal(size=(m, 3))
+        t1 = np.cross(n, helper)
+        t1 /= np.maximum(np.linalg.norm(t1, axis=1, keepdims=True), 1e-12)
+        t2 = np.cross(n, t1)
+        chunk = max(1, 1_000_000 // n_rays)
+        enclosed = np.empty(m)
+        direct = np.empty((m, 3))
+        for start in range(0, m, chunk):
+            sl = slice(start, min(start + chunk, m))
+            dirs = (
+                local[None, :, 0:1] * t1[sl, None]
+                + local[None, :, 1:2] * t2[sl, None]
+                + local[None, :, 2:3] * n[sl, None]
+            )  # (k, rays, 3)
+            origins = np.broadcast_to((centre[sl] + 0.01 * n[sl])[:, None], dirs.shape)
+            flat_o, flat_d = origins.reshape(-1, 3), dirs.reshape(-1, 3)
+            rays = np.ascontiguousarray(np.concatenate([flat_o, flat_d], axis=1), np.float32)
+            out = caster.cast_raw_rays(rays)
+            t = out["t_hit"].astype(np.float64)
+            ids = out["primitive_ids"].astype(np.int64)
+            escaped = ids == 0xFFFFFFFF
+            k = sl.stop - sl.start
+            enclosed[sl] = (t < CREVICE_RADIUS_M).reshape(k, n_rays).mean(axis=1)
+            r_exit = _exit_distance(flat_o, flat_d, bounds)
+            sky = open_water_radiance(flat_d, optics) * np.exp(-np.outer(r_exit, c))
+            sky[~escaped] = 0.0
+            direct[sl] = sky.reshape(k, n_rays, 3).mean(axis=1)
+            hit_normal = out["primitive_normals"].astype(np.float64)
+            # A ray arrives on the side of the hit triangle whose normal faces against it.
+            facing = np.einsum("ij,ij->i", hit_normal, flat_d) > 0
+            hits[side, sl] = np.where(escaped, -1, ids).reshape(k, n_rays)
+            hit_side[side, sl] = facing.reshape(k, n_rays)
+            hit_dist[side, sl] = np.where(escaped, 0.0, t).reshape(k, n_rays)
+        up = np.clip((n[:, 2] - 0.55) * 3.0, 0.0, 1.0)[:, None]  # silt settles on floors
+        rho = albedo + up * (np.asarray(optics.sediment_colour) - albedo)
+        rho *= (1.0 - 0.75 * enclosed**1.5)[:, None]  # crevices: light trapped, rock darker
+        table[:, side, ALBEDO] = rho
+        table[:, side, DAYLIGHT] = direct
+    # One bounce: light from directly lit walls reaches walls around the corner.
+    bounce = np.zeros((2, m, 3))
+    radiance = table[..., ALBEDO] * table[..., DAYLIGHT]  # (m, 2, 3) leaving each side
+    for side in range(2):
+        ids, sides, dist = hits[side], hit_side[side], hit_dist[side]
+        valid = ids >= 0
+        leaving = radiance[np.where(valid, ids, 0), sides]  # (m, rays, 3)
+        leaving *= np.exp(-dist[..., None] * c) * valid[..., None]
+        bounce[side] = leaving.mean(axis=1)
+    table[..., DAYLIGHT] += bounce.transpose(1, 0, 2)
+    return table
+
+
+@dataclass(frozen=True)
+class LampArrays:
+    """The lamps as arrays for the kernels, in the camera frame."""
+
+    position: np.ndarray  # (k, 3) float32
+    axis: np.ndarray  # (k, 3) float32 unit
+    power: np.ndarray  # (k,) float32
+    cos_inner: np.ndarray  # (k,) float32
+    cos_outer: np.ndarray  # (k,) float32
+
+
+def lamp_arrays(optics: Optics) -> LampArrays:
+    lamps = optics.lamps
+    axis = np.array([lamp.axis for lamp in lamps], np.float64).reshape(-1, 3)
+    axis /= np.maximum(np.linalg.norm(axis, axis=1, keepdims=True), 1e-12)
+    return LampArrays(
+        position=np.array([lamp.position for lamp in lamps], np.float32).reshape(-1, 3),
+        axis=axis.astype(np.float32),
+        power=np.array([optics.light_power * lamp.share for lamp in lamps], np.float32),
+        cos_inner=np.cos(np.radians([lamp.inner_deg for lamp in lamps])).astype(np.float32),
+        cos_outer=np.cos(np.radians([lamp.outer_deg for lamp in lamps])).astype(np.float32),
+    )
+
+
+@dataclass(frozen=True)
+class BackscatterTable:
+    """Backscatter radiance B(pixel, planar depth), cumulative along each ray.
+
+    values[gy, gx, j] is B at planar depth far * (j / bins)^2 for the block of pixels
+    [gy * block, (gy + 1) * block) x [gx * block, (gx + 1) * block), integrated through
+    its centre; beyond `far` the veil no longer grows. The veil changes by well under 1%
+    from one block to the next, so a pixel takes its block's value.
+    """
+
+    values: np.ndarray  # (H / block, W / block, bins + 1, 3) float32
+    block: int
+    bins: int
+    far: float
+
+
+@lru_cache(maxsize=16)
+def backscatter_table(
+    camera: CameraIntrinsics, optics: Optics, block: int = 8, bins: int = 32, far: float = 40.0
+) -> BackscatterTable:
+    """Integrate the lamps' backscatter for a pixel grid every ``block`` pixels.
+
+    The integral runs in 8 sub-steps per depth bin (about 0.2 s for 640x480, cached).
+    """
+    gx = (np.arange(-(-camera.width // block), dtype=np.float32) + 0.5) * block
+    gy = (np.arange(-(-camera.height // block), dtype=np.float32) + 0.5) * block
+    xx, yy = np.meshgrid(
+        (gx - 0.5 * camera.width) / camera.focal_px, (gy - 0.5 * camera.height) / camera.focal_px
+    )
+    dirs = np.stack([xx, yy, np.ones_like(xx)], axis=-1).reshape(-1, 3).astype(np.float32)
+    lamps = lamp_arrays(optics)
+    water = optics.medium
+    out = np.zeros((len(dirs), bins + 1, 3), np.float32)
+    integrate_backscatter(
+        dirs,
+        lamps.position,
+        lamps.axis,
+        lamps.power,
+        lamps.cos_inner,
+        lamps.cos_outer,
+        np.asarray(water.scattering, np.float32),
+        water.attenuation,
+        water.phase_g,
+        far,
+        bins,
+        8,
+        out,
+    )
+    return BackscatterTable(out.reshape(len(gy), len(gx), bins + 1, 3), block, bins, far)
+
