@@ -44,3 +44,50 @@ def test_bad_input_is_one_line_on_stderr_not_a_traceback(tmp_path: Path) -> None
         assert done.returncode == 2
         assert "Traceback" not in done.stderr
         assert done.stderr.startswith("error:") and done.stderr.count("\n") == 1, done.stderr
+
+
+EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
+
+
+def test_render_writes_a_contact_sheet_of_views_along_the_passage(tmp_path: Path) -> None:
+    sheet = tmp_path / "sheet.png"
+    scenario = str(EXAMPLES / "osrf_cave_straight.toml")
+    done = cavenav("render", scenario, "--water", "turbid", "--views", "4", "--out", str(sheet))
+    assert done.returncode == 0, done.stderr
+    assert str(sheet) in done.stdout
+    from PIL import Image
+
+    with Image.open(sheet) as image:
+        width, height = image.size
+    assert width >= 1000 and height >= 400  # two rows of colour + depth pairs
+
+
+def test_a_scenario_files_optics_table_sets_the_water_and_flags_override_it(
+    tmp_path: Path,
+) -> None:
+    source = (EXAMPLES / "osrf_cave_straight.toml").read_text()
+    mesh = (EXAMPLES / "meshes" / "cave_straight_20m.dae").resolve()
+    scenario = tmp_path / "murky.toml"
+    scenario.write_text(
+        source.replace("meshes/cave_straight_20m.dae", str(mesh))
+        + '\n[optics]\nwater = "coastal"\nparticles = 0.5\n'
+    )
+
+    def optics_of(*flags: str) -> dict:
+        out = tmp_path / f"runs{len(flags)}"
+        done = cavenav(
+            "run", str(scenario), "--steps", "1", "--no-frames", "--out", str(out), *flags
+        )
+        assert done.returncode == 0, done.stderr
+        (run_dir,) = out.iterdir()
+        return json.loads((run_dir / "summary.json").read_text())["config"]["sensors"]["optics"]
+
+    from_file = optics_of()
+    assert from_file["water"] == "coastal" and from_file["particles"] == 0.5
+    overridden = optics_of("--water", "turbid")
+    assert overridden["water"] == "turbid" and overridden["particles"] == 0.5
+
+    scenario.write_text(scenario.read_text() + "fog = 3\n")
+    done = cavenav("run", str(scenario), "--steps", "1")
+    assert done.returncode == 2
+    assert "[optics]: 'fog'" in done.stderr and done.stderr.count("\n") == 1

@@ -21,8 +21,11 @@ import numpy as np
 numba.config.THREADING_LAYER_PRIORITY = ["omp", "workqueue", "tbb"]  # type: ignore[attr-defined]
 
 __all__ = [
+    "bounce_light",
     "develop",
     "fill_rays",
+    "gather_sky",
+    "hemisphere_rays",
     "integrate_backscatter",
     "mix",
     "shade_frame",
@@ -82,6 +85,13 @@ def _spot(wx, wy, wz, d, axis, cos_inner, cos_outer) -> float:  # noqa: ANN001
 
 
 @numba.njit(inline="always")
+def _sky_shape(up: float) -> float:
+    """Open water's brightness along a direction whose vertical component is ``up``:
+    brightest toward the surface, a tenth of that looking into the deep."""
+    return 0.1 + 0.9 * ((1.0 + up) * 0.5) ** 2.5
+
+
+@numba.njit(inline="always")
 def _leave(o: float, e: float, lo: float, hi: float) -> float:
     """Path length from o along unit component e to the slab [lo, hi] (inf if parallel)."""
     if e > 1e-9:
@@ -125,7 +135,7 @@ def integrate_backscatter(
                 wx = s * ux - lamp_pos[k, 0]
                 wy = s * uy - lamp_pos[k, 1]
                 wz = s * uz - lamp_pos[k, 2]
-                d = math.sqrt(wx * wx + wy * wy + wz * wz)
+                d = max(math.sqrt(wx * wx + wy * wy + wz * wz), 1e-3)
                 spot = _spot(wx, wy, wz, d, lamp_axis[k], cos_inner[k], cos_outer[k])
                 if spot <= 0.0:
                     continue
@@ -134,8 +144,8 @@ def integrate_backscatter(
                 # light_power is the radiance of a white wall at 1 m: intensity / pi.
                 intensity = math.pi * lamp_power[k] * spot * phase / (d * d)
                 for c in range(3):
-                    here[c] += scattering[c] * intensity * math.exp(
-                        -attenuation[c] * (d + s * length)
+                    here[c] += (
+                        scattering[c] * intensity * math.exp(-attenuation[c] * (d + s * length))
                     )
             if m > 0:
                 for c in range(3):
@@ -186,7 +196,7 @@ def splat_particles(
                 h = mix(h ^ np.uint64(cy + (1 << 20)))
                 h = mix(h ^ np.uint64(cz + (1 << 20)))
                 count = whole + (1 if float(h >> np.uint64(11)) * 2.0**-53 < extra else 0)
-                for p in range(count):
+                for _ in range(count):
                     h = mix(h + _GOLDEN)
                     qx = cx + float(h & np.uint64(0x1FFFFF)) * 2.0**-21
                     qy = cy + float((h >> np.uint64(21)) & np.uint64(0x1FFFFF)) * 2.0**-21
@@ -309,7 +319,7 @@ def shade_frame(
                 r_exit = min(_leave(origin[0], ex, bounds[0, 0], bounds[1, 0]),
                              _leave(origin[1], ey, bounds[0, 1], bounds[1, 1]),
                              _leave(origin[2], ez, bounds[0, 2], bounds[1, 2]))  # fmt: skip
-                shape = 0.1 + 0.9 * ((1.0 + ez) * 0.5) ** 2.5
+                shape = _sky_shape(ez)
                 l0 += sky[0] * shape * math.exp(-c0 * r_exit)
                 l1 += sky[1] * shape * math.exp(-c1 * r_exit)
                 l2 += sky[2] * shape * math.exp(-c2 * r_exit)
@@ -379,6 +389,14 @@ def _lens(length: float, vignetting: float) -> float:
     return 1.0 - vignetting * (1.0 - cos2 * cos2)
 
 
+@numba.njit(inline="always")
+def _lut_index(value: float, lut_scale: float, last: int) -> int:
+    """Tone-curve table index of a linear value; NaN and negatives map to black."""
+    if not value > 0.0:
+        return 0
+    return min(int(math.sqrt(min(value, 1e6)) * lut_scale), last)
+
+
 @numba.njit(parallel=True, fastmath=_FAST, cache=True)
 def develop(
     radiance: np.ndarray,  # (n, 3) float32 linear radiance at the lens
@@ -411,9 +429,112 @@ def develop(
             v0 += math.sqrt(read_sigma2 + shot * abs(v0)) * _triangular(h, 0)
             v1 += math.sqrt(read_sigma2 + shot * abs(v1)) * _triangular(h, 20)
             v2 += math.sqrt(read_sigma2 + shot * abs(v2)) * _triangular(h, 40)
-        rgb[i, 0] = lut[min(int(math.sqrt(max(v0 * gain, 0.0)) * lut_scale), last)]
-        rgb[i, 1] = lut[min(int(math.sqrt(max(v1 * gain, 0.0)) * lut_scale), last)]
-        rgb[i, 2] = lut[min(int(math.sqrt(max(v2 * gain, 0.0)) * lut_scale), last)]
+        rgb[i, 0] = lut[_lut_index(v0 * gain, lut_scale, last)]
+        rgb[i, 1] = lut[_lut_index(v1 * gain, lut_scale, last)]
+        rgb[i, 2] = lut[_lut_index(v2 * gain, lut_scale, last)]
+
+
+@numba.njit(parallel=True, fastmath=_FAST, cache=True)
+def hemisphere_rays(
+    centre: np.ndarray,  # (k, 3) ray origins before the offset
+    normal: np.ndarray,  # (k, 3) unit: the hemisphere's pole
+    tangent: np.ndarray,  # (k, 3) unit, perpendicular to normal: orients the pattern
+    pattern: np.ndarray,  # (r, 3) directions around +z
+    offset: float,  # origins move this far along the normal, off the surface
+    rays: np.ndarray,  # (k * r, 6) float32 out
+) -> None:
+    """The pattern of directions turned onto each (normal, tangent) frame."""
+    r = pattern.shape[0]
+    for f in numba.prange(centre.shape[0]):
+        nx, ny, nz = normal[f, 0], normal[f, 1], normal[f, 2]
+        ax, ay, az = tangent[f, 0], tangent[f, 1], tangent[f, 2]
+        bx, by, bz = ny * az - nz * ay, nz * ax - nx * az, nx * ay - ny * ax
+        for j in range(r):
+            u, v, w = pattern[j, 0], pattern[j, 1], pattern[j, 2]
+            i = f * r + j
+            rays[i, 0] = centre[f, 0] + offset * nx
+            rays[i, 1] = centre[f, 1] + offset * ny
+            rays[i, 2] = centre[f, 2] + offset * nz
+            rays[i, 3] = u * ax + v * bx + w * nx
+            rays[i, 4] = u * ay + v * by + w * ny
+            rays[i, 5] = u * az + v * bz + w * nz
+
+
+@numba.njit(parallel=True, fastmath=_FAST, cache=True)
+def gather_sky(
+    rays: np.ndarray,  # (k * r, 6) float32 as from hemisphere_rays
+    t: np.ndarray,  # (k * r,) float32 hit distance (unit directions)
+    ids: np.ndarray,  # (k * r,) uint32 hit triangle
+    hit_normals: np.ndarray,  # (k * r, 3) float32
+    bounds: np.ndarray,  # (2, 3) the cave's box
+    attenuation: np.ndarray,  # (3,)
+    sky: np.ndarray,  # (3,) open-water radiance looking straight up
+    crevice_radius: float,
+    enclosed: np.ndarray,  # (k,) out: fraction of rays hitting rock within the radius
+    direct: np.ndarray,  # (k, 3) out: mean open-water radiance over the rays
+    hit_face: np.ndarray,  # (k, r) int64 out: triangle each ray hits, -1 if none
+    hit_side: np.ndarray,  # (k, r) int8 out: side of that triangle the ray reaches
+    hit_dist: np.ndarray,  # (k, r) float32 out
+) -> None:
+    """Per origin: how enclosed it is, and the daylight reaching it straight from open water.
+
+    With cosine-weighted directions, the mean radiance over the rays is the irradiance
+    divided by pi, which is what a Lambertian surface's radiance needs.
+    """
+    r = hit_face.shape[1]
+    for f in numba.prange(hit_face.shape[0]):
+        near = 0
+        d0 = d1 = d2 = 0.0
+        for j in range(r):
+            i = f * r + j
+            if ids[i] == _NO_HIT:
+                ex, ey, ez = rays[i, 3], rays[i, 4], rays[i, 5]
+                r_exit = min(_leave(rays[i, 0], ex, bounds[0, 0], bounds[1, 0]),
+                             _leave(rays[i, 1], ey, bounds[0, 1], bounds[1, 1]),
+                             _leave(rays[i, 2], ez, bounds[0, 2], bounds[1, 2]))  # fmt: skip
+                shape = _sky_shape(ez)
+                d0 += sky[0] * shape * math.exp(-attenuation[0] * r_exit)
+                d1 += sky[1] * shape * math.exp(-attenuation[1] * r_exit)
+                d2 += sky[2] * shape * math.exp(-attenuation[2] * r_exit)
+                hit_face[f, j] = -1
+                hit_side[f, j] = 0
+                hit_dist[f, j] = 0.0
+            else:
+                near += t[i] < crevice_radius
+                hit_face[f, j] = ids[i]
+                facing = (
+                    hit_normals[i, 0] * rays[i, 3]
+                    + hit_normals[i, 1] * rays[i, 4]
+                    + hit_normals[i, 2] * rays[i, 5]
+                )
+                hit_side[f, j] = 1 if facing > 0.0 else 0  # the ray meets the back side
+                hit_dist[f, j] = t[i]
+        enclosed[f] = near / r
+        direct[f, 0], direct[f, 1], direct[f, 2] = d0 / r, d1 / r, d2 / r
+
+
+@numba.njit(parallel=True, fastmath=_FAST, cache=True)
+def bounce_light(
+    hit_face: np.ndarray,  # (k, r) int64, -1 where the ray escaped
+    hit_side: np.ndarray,  # (k, r) int8
+    hit_dist: np.ndarray,  # (k, r) float32
+    leaving: np.ndarray,  # (m, 2, 3) radiance leaving each side of each triangle
+    attenuation: np.ndarray,  # (3,)
+    out: np.ndarray,  # (k, 3) out: mean radiance arriving along the rays
+) -> None:
+    """One bounce: the light other walls send back along each hemisphere ray."""
+    r = hit_face.shape[1]
+    for f in numba.prange(hit_face.shape[0]):
+        b0 = b1 = b2 = 0.0
+        for j in range(r):
+            face = hit_face[f, j]
+            if face < 0:
+                continue
+            side, dist = hit_side[f, j], hit_dist[f, j]
+            b0 += leaving[face, side, 0] * math.exp(-attenuation[0] * dist)
+            b1 += leaving[face, side, 1] * math.exp(-attenuation[1] * dist)
+            b2 += leaving[face, side, 2] * math.exp(-attenuation[2] * dist)
+        out[f, 0], out[f, 1], out[f, 2] = b0 / r, b1 / r, b2 / r
 
 
 @numba.njit(parallel=True, fastmath=_FAST, cache=True)

@@ -17,15 +17,21 @@ See `cavenav.sensors.optics` for the image-formation model.
 
 from __future__ import annotations
 
+import hashlib
 import math
-import weakref
+from collections import OrderedDict
 from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
 
 from cavenav.sensors.camera import CameraIntrinsics
-from cavenav.sensors.kernels import integrate_backscatter
+from cavenav.sensors.kernels import (
+    bounce_light,
+    gather_sky,
+    hemisphere_rays,
+    integrate_backscatter,
+)
 from cavenav.sensors.optics import Optics
 from cavenav.world.mesh import CaveMesh
 from cavenav.world.raycast import RayCaster
@@ -35,7 +41,6 @@ __all__ = [
     "LampArrays",
     "backscatter_table",
     "lamp_arrays",
-    "open_water_radiance",
     "rock_albedo",
     "surface_table",
 ]
@@ -64,26 +69,6 @@ def rock_albedo(mesh: CaveMesh, seed: int = 0, colour=(0.40, 0.37, 0.33)) -> np.
     return np.clip(grey[:, None] * np.asarray(colour, np.float32), 0.03, 0.9).astype(np.float32)
 
 
-def open_water_radiance(directions: np.ndarray, optics: Optics) -> np.ndarray:
-    """(n, 3) radiance of open water seen along unit ``directions`` (n, 3), at the exit.
-
-    Brightest looking up toward the surface, dim looking down into the deep.
-    """
-    up = np.clip(directions[:, 2], -1.0, 1.0)
-    shape = 0.1 + 0.9 * ((1.0 + up) / 2.0) ** 2.5
-    colour = optics.daylight * np.asarray(optics.daylight_colour, np.float32)
-    return (shape[:, None] * colour).astype(np.float32)
-
-
-def _exit_distance(origins: np.ndarray, directions: np.ndarray, bounds: np.ndarray) -> np.ndarray:
-    """(n,) path length from each origin along its unit direction to the box ``bounds``."""
-    with np.errstate(divide="ignore", invalid="ignore"):
-        far = np.where(directions > 0, bounds[1], bounds[0])
-        t = (far - origins) / directions
-    t = np.where(np.isfinite(t), t, np.inf)
-    return np.maximum(t.min(axis=1), 0.0)
-
-
 def _hemisphere(n: int) -> np.ndarray:
     """(n, 3) cosine-weighted directions around +z (a Fibonacci spiral on the disc)."""
     i = np.arange(n) + 0.5
@@ -92,26 +77,30 @@ def _hemisphere(n: int) -> np.ndarray:
     return np.stack([r * np.cos(phi), r * np.sin(phi), np.sqrt(1.0 - r * r)], axis=1)
 
 
-# One table per mesh and set of parameters; meshes are immutable, rigs are many.
-_SURFACE_CACHE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+# Recent tables by mesh content and parameters: rigs are many, caves few.
+_SURFACE_CACHE: OrderedDict[tuple, np.ndarray] = OrderedDict()
+_SURFACE_CACHE_SIZE = 6
 
 
-def surface_table(
-    caster: RayCaster, optics: Optics, seed: int = 0, rays: int = 32
-) -> np.ndarray:
+def surface_table(caster: RayCaster, optics: Optics, seed: int = 0, rays: int = 32) -> np.ndarray:
     """(m, 2, 6) float32: per triangle and side (0: along its normal, 1: against it),
     columns 0-2 the albedo and 3-5 the daylight D (radiance = albedo * D).
 
-    About 0.3 s per 100,000 triangles on 2 cores; cached per mesh and parameters.
+    About 1 s per 100,000 triangles on 2 cores; cached per mesh and parameters.
     """
     mesh = caster.mesh
     water = optics.medium
-    key = (seed, rays, optics.rock_colour, optics.sediment_colour, optics.daylight,
-           optics.daylight_colour, water.absorption, water.scattering)  # fmt: skip
-    cached = _SURFACE_CACHE.setdefault(mesh, {})
-    if key not in cached:
-        cached[key] = _surface_table(caster, optics, seed, rays)
-    return cached[key]
+    digest = hashlib.blake2b(mesh.vertices.tobytes(), digest_size=16)
+    digest.update(mesh.faces.tobytes())
+    key = (digest.hexdigest(), seed, rays, optics.rock_colour, optics.sediment_colour,
+           optics.daylight, optics.daylight_colour, water.absorption, water.scattering)  # fmt: skip
+    if key in _SURFACE_CACHE:
+        _SURFACE_CACHE.move_to_end(key)
+    else:
+        _SURFACE_CACHE[key] = _surface_table(caster, optics, seed, rays)
+        while len(_SURFACE_CACHE) > _SURFACE_CACHE_SIZE:
+            _SURFACE_CACHE.popitem(last=False)
+    return _SURFACE_CACHE[key]
 
 
 def _surface_table(caster: RayCaster, optics: Optics, seed: int, n_rays: int) -> np.ndarray:
@@ -122,66 +111,46 @@ def _surface_table(caster: RayCaster, optics: Optics, seed: int, n_rays: int) ->
     normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
     centre = tri.mean(axis=1)
     m = len(mesh.faces)
-    c = optics.medium.attenuation.astype(np.float64)
-    bounds = mesh.bounds + np.array([[-1e-3], [1e-3]])
-    local = _hemisphere(n_rays)
-
+    c = optics.medium.attenuation
+    bounds = (mesh.bounds + np.array([[-1e-3], [1e-3]])).astype(np.float32)
+    sky = (optics.daylight * np.asarray(optics.daylight_colour)).astype(np.float32)
+    pattern = _hemisphere(n_rays)
     albedo = rock_albedo(mesh, seed, optics.rock_colour)[mesh.faces].mean(axis=1)
+
     table = np.zeros((m, 2, 6), np.float32)
-    hits = np.empty((2, m, n_rays), np.int64)  # triangle each ray hits (-1: none)
+    hit_face = np.empty((2, m, n_rays), np.int64)
     hit_side = np.empty((2, m, n_rays), np.int8)
     hit_dist = np.empty((2, m, n_rays), np.float32)
+    enclosed = np.empty(m)
+    direct = np.empty((m, 3))
+    chunk = max(1, 1_000_000 // n_rays)
+    rays = np.empty((chunk * n_rays, 6), np.float32)
     for side, sign in enumerate((1.0, -1.0)):
         n = sign * normal
         # A random tangent frame per triangle, so the fixed ray pattern leaves no streaks.
-        helper = rng.normal(size=(m, 3))
-        t1 = np.cross(n, helper)
-        t1 /= np.maximum(np.linalg.norm(t1, axis=1, keepdims=True), 1e-12)
-        t2 = np.cross(n, t1)
-        chunk = max(1, 1_000_000 // n_rays)
-        enclosed = np.empty(m)
-        direct = np.empty((m, 3))
+        tangent = np.cross(n, rng.normal(size=(m, 3)))
+        tangent /= np.maximum(np.linalg.norm(tangent, axis=1, keepdims=True), 1e-12)
         for start in range(0, m, chunk):
             sl = slice(start, min(start + chunk, m))
-            dirs = (
-                local[None, :, 0:1] * t1[sl, None]
-                + local[None, :, 1:2] * t2[sl, None]
-                + local[None, :, 2:3] * n[sl, None]
-            )  # (k, rays, 3)
-            origins = np.broadcast_to((centre[sl] + 0.01 * n[sl])[:, None], dirs.shape)
-            flat_o, flat_d = origins.reshape(-1, 3), dirs.reshape(-1, 3)
-            rays = np.ascontiguousarray(np.concatenate([flat_o, flat_d], axis=1), np.float32)
-            out = caster.cast_raw_rays(rays)
-            t = out["t_hit"].astype(np.float64)
-            ids = out["primitive_ids"].astype(np.int64)
-            escaped = ids == 0xFFFFFFFF
-            k = sl.stop - sl.start
-            enclosed[sl] = (t < CREVICE_RADIUS_M).reshape(k, n_rays).mean(axis=1)
-            r_exit = _exit_distance(flat_o, flat_d, bounds)
-            sky = open_water_radiance(flat_d, optics) * np.exp(-np.outer(r_exit, c))
-            sky[~escaped] = 0.0
-            direct[sl] = sky.reshape(k, n_rays, 3).mean(axis=1)
-            hit_normal = out["primitive_normals"].astype(np.float64)
-            # A ray arrives on the side of the hit triangle whose normal faces against it.
-            facing = np.einsum("ij,ij->i", hit_normal, flat_d) > 0
-            hits[side, sl] = np.where(escaped, -1, ids).reshape(k, n_rays)
-            hit_side[side, sl] = facing.reshape(k, n_rays)
-            hit_dist[side, sl] = np.where(escaped, 0.0, t).reshape(k, n_rays)
+            batch = rays[: (sl.stop - start) * n_rays]
+            hemisphere_rays(centre[sl], n[sl], tangent[sl], pattern, 0.01, batch)
+            out = caster.cast_raw_rays(batch)
+            gather_sky(
+                batch, out["t_hit"], out["primitive_ids"], out["primitive_normals"], bounds,
+                c, sky, CREVICE_RADIUS_M, enclosed[sl], direct[sl], hit_face[side, sl],
+                hit_side[side, sl], hit_dist[side, sl],
+            )  # fmt: skip
         up = np.clip((n[:, 2] - 0.55) * 3.0, 0.0, 1.0)[:, None]  # silt settles on floors
         rho = albedo + up * (np.asarray(optics.sediment_colour) - albedo)
         rho *= (1.0 - 0.75 * enclosed**1.5)[:, None]  # crevices: light trapped, rock darker
         table[:, side, ALBEDO] = rho
         table[:, side, DAYLIGHT] = direct
     # One bounce: light from directly lit walls reaches walls around the corner.
-    bounce = np.zeros((2, m, 3))
-    radiance = table[..., ALBEDO] * table[..., DAYLIGHT]  # (m, 2, 3) leaving each side
+    leaving = np.ascontiguousarray(table[..., ALBEDO] * table[..., DAYLIGHT])
+    bounce = np.empty((m, 3), np.float32)
     for side in range(2):
-        ids, sides, dist = hits[side], hit_side[side], hit_dist[side]
-        valid = ids >= 0
-        leaving = radiance[np.where(valid, ids, 0), sides]  # (m, rays, 3)
-        leaving *= np.exp(-dist[..., None] * c) * valid[..., None]
-        bounce[side] = leaving.mean(axis=1)
-    table[..., DAYLIGHT] += bounce.transpose(1, 0, 2)
+        bounce_light(hit_face[side], hit_side[side], hit_dist[side], leaving, c, bounce)
+        table[:, side, DAYLIGHT] += bounce
     return table
 
 
@@ -258,4 +227,3 @@ def backscatter_table(
         out,
     )
     return BackscatterTable(out.reshape(len(gy), len(gx), bins + 1, 3), block, bins, far)
-

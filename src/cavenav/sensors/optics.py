@@ -23,7 +23,7 @@ and a tone curve. Everything is seeded: the same seed and pose give the same ima
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, replace
 from functools import lru_cache
 from typing import Any, Literal
 
@@ -40,7 +40,6 @@ __all__ = [
     "Optics",
     "Water",
     "optics_from_table",
-    "optics_summary",
     "tone_lut",
 ]
 
@@ -219,15 +218,6 @@ def optics_from_table(
     if changes.get("exposure") == "auto":
         changes["exposure"] = None
     return replace(base or Optics(), **changes)
-
-
-def optics_summary(optics: Optics) -> dict[str, Any]:
-    """The optics as plain JSON-ready values (for run folders and figure captions)."""
-    out = {f.name: getattr(optics, f.name) for f in fields(optics) if f.name != "lamps"}
-    if isinstance(optics.water, Water):
-        out["water"] = {"absorption": optics.water.absorption, "scattering": optics.water.scattering}
-    out["lamps"] = len(optics.lamps)
-    return out
 
 
 LUT_SIZE = 4096

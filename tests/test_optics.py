@@ -1,0 +1,298 @@
+"""The colour image obeys the physics of light under water (SPEC section 2, issue 4).
+
+Scenes are built by hand so the answers are known: a flat wall straight ahead at a
+chosen distance, and a tube open at one end onto daylight. Physical claims are checked on
+the linear radiance at the lens (`Frame.radiance`), before the camera's own processing.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import trimesh
+from cavenav.errors import ConfigError
+from cavenav.sensors.camera import CameraIntrinsics
+from cavenav.sensors.lighting import backscatter_table, surface_table
+from cavenav.sensors.optics import WATER_TYPES, Lamp, Optics, optics_from_table
+from cavenav.sensors.rig import Frame, SensorConfig, SensorRig
+from cavenav.types import Pose
+from cavenav.world.mesh import CaveMesh, make_mesh
+from cavenav.world.raycast import RayCaster
+
+HEAD_MINUS_Y = Pose(0.0, 0.0, 0.0, 0.0)
+CENTRE = (240, 320)  # pixel on the optical axis
+# Lamps, water and rock only: no daylight, specks or noise unless a test asks for them.
+BARE = Optics(daylight=0.0, particles=0.0, noise=0.0)
+
+
+def box(extents: tuple[float, float, float], centre: tuple[float, float, float]) -> CaveMesh:
+    solid = trimesh.creation.box(extents=extents)
+    return make_mesh(solid.vertices + np.asarray(centre), solid.faces, "box")
+
+
+def wall_ahead(distance: float) -> CaveMesh:
+    """A 40 m box whose -y wall faces the camera ``distance`` metres ahead of the lens."""
+    camera_y = -0.2  # SensorConfig.camera_offset_m ahead of the vehicle, heading -y
+    return box((40.0, 40.0, 40.0), (0.0, camera_y - distance + 20.0, 0.0))
+
+
+def open_tube(length: float = 20.0, radius: float = 2.5, segments: int = 48) -> CaveMesh:
+    """A round passage along y, closed at +y, open at -y onto open water."""
+    ys = np.arange(length / 2, -length / 2 - 1e-9, -0.5)
+    angles = np.linspace(0.0, 2 * np.pi, segments, endpoint=False)
+    rings = [
+        np.column_stack([radius * np.cos(angles), np.full(segments, y), radius * np.sin(angles)])
+        for y in ys
+    ]
+    vertices = np.vstack([*rings, [[0.0, length / 2, 0.0]]])
+    faces = []
+    for k in range(len(ys) - 1):
+        for j in range(segments):
+            a, b = k * segments + j, k * segments + (j + 1) % segments
+            faces += [[a, b, a + segments], [b, b + segments, a + segments]]
+    cap = len(vertices) - 1
+    faces += [[cap, (j + 1) % segments, j] for j in range(segments)]
+    return make_mesh(vertices, np.array(faces), "open-tube")
+
+
+def water_side(tube: CaveMesh) -> np.ndarray:
+    """(m,) 0 where a tube triangle's normal points into the passage, else 1."""
+    tri = tube.vertices[tube.faces]
+    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    inward = -tri.mean(axis=1) * np.array([1.0, 0.0, 1.0])  # toward the y axis
+    return (np.einsum("ij,ij->i", normal, inward) < 0).astype(int)
+
+
+def render(mesh: CaveMesh, optics: Optics = BARE, pose: Pose = HEAD_MINUS_Y, **cfg) -> Frame:
+    return SensorRig(RayCaster(mesh), SensorConfig(optics=optics, **cfg)).render(pose)
+
+
+def centre_radiance(distance: float, optics: Optics = BARE) -> np.ndarray:
+    return render(wall_ahead(distance), optics).radiance[CENTRE].astype(np.float64)
+
+
+# ------------------------------------------------------------------ attenuation
+
+
+def test_a_wall_twice_as_far_is_darker_in_every_channel():
+    near, far = centre_radiance(2.0), centre_radiance(4.0)
+    assert np.all(far < near)
+    assert np.all(far < near / 4)  # inverse square alone gives 1/4; the water takes more
+
+
+def test_attenuation_grows_with_distance_and_is_strongest_in_red():
+    distances = [1.5, 3.0, 6.0]
+    radiance = np.array([centre_radiance(d) for d in distances])
+    red_over_green = radiance[:, 0] / radiance[:, 1]
+    assert np.all(np.diff(red_over_green) < 0)  # rock turns blue-green with distance
+    loss = radiance[-1] / radiance[0]  # what each channel keeps from 1.5 m to 6 m
+    assert loss[0] < loss[1] and loss[0] < loss[2]
+
+
+@pytest.mark.parametrize("water", list(WATER_TYPES))
+def test_every_water_type_loses_red_first(water: str):
+    c = WATER_TYPES[water].attenuation
+    assert c[0] > c[1] and c[0] > c[2]
+
+
+# ------------------------------------------------------------------ backscatter
+
+
+def test_backscatter_rises_with_turbidity():
+    black_rock = replace(BARE, rock_colour=(0.0, 0.0, 0.0), sediment_colour=(0.0, 0.0, 0.0))
+    veil = [
+        centre_radiance(8.0, replace(black_rock, water=water))[1]
+        for water in ("clear", "ocean", "coastal", "turbid")
+    ]
+    assert veil[0] > 0.0
+    assert np.all(np.diff(veil) > 0)
+
+
+def test_backscatter_grows_along_the_ray_and_levels_off():
+    table = backscatter_table(CameraIntrinsics(), Optics(water="coastal"))
+    centre = table.values[table.values.shape[0] // 2, table.values.shape[1] // 2, :, 1]
+    assert centre[0] == 0.0
+    assert np.all(np.diff(centre) >= 0)
+    knots = table.far * (np.arange(table.bins + 1) / table.bins) ** 2
+    assert np.interp(10.0, knots, centre) > 0.95 * centre[-1]  # the lamps' beams fade out
+
+
+def test_offset_lamps_leave_the_water_next_to_the_lens_dark():
+    # Beams from lamps beside the camera cross its view only some way out.
+    table = backscatter_table(CameraIntrinsics(), Optics(water="turbid"))
+    centre = table.values[table.values.shape[0] // 2, table.values.shape[1] // 2, :, 1]
+    knots = table.far * (np.arange(table.bins + 1) / table.bins) ** 2
+    assert np.interp(0.15, knots, centre) < 0.01 * centre[-1]
+
+
+# ------------------------------------------------------------------ lamps and daylight
+
+
+def test_a_lamp_lights_only_its_cone():
+    narrow = replace(
+        BARE, lamps=(Lamp(position=(0.0, 0.0, 0.0), inner_deg=5.0, outer_deg=8.0, share=1.0),)
+    )
+    frame = render(wall_ahead(3.0), narrow)
+    green = frame.radiance[..., 1]
+    assert green[CENTRE] > 0.0
+    assert green[240, 620] == 0.0  # 25 degrees off the axis: outside the beam
+
+
+def test_turning_the_lamps_off_in_a_closed_cave_leaves_darkness():
+    frame = render(wall_ahead(3.0), replace(BARE, light_power=0.0, daylight=1.0, particles=5.0))
+    assert frame.radiance.max() == 0.0
+    assert frame.rgb.max() == 0
+
+
+def test_with_the_lamps_off_only_the_exit_daylight_remains():
+    tube = open_tube()
+    dark = replace(BARE, light_power=0.0, daylight=1.0)
+    facing_exit = render(tube, dark, Pose(0.0, -4.0, 0.0, 0.0))
+    exit_pixels = ~np.isfinite(facing_exit.depth_m)
+    assert exit_pixels[CENTRE]
+    walls = facing_exit.radiance[~exit_pixels]
+    assert facing_exit.radiance[exit_pixels, 1].min() > 0.0
+    assert walls[:, 1].max() > 0.0  # rock near the opening is lit by it
+    # Bright blue-green water, not red.
+    water = facing_exit.radiance[CENTRE]
+    assert water[1] > water[0] and water[2] > water[0]
+    facing_back = render(tube, dark, Pose(0.0, 6.0, 0.0, np.pi))
+    assert facing_back.radiance[..., 1].mean() < 0.02 * facing_exit.radiance[..., 1].mean()
+    no_daylight = render(tube, replace(dark, daylight=0.0), Pose(0.0, -4.0, 0.0, 0.0))
+    assert no_daylight.radiance.max() == 0.0
+
+
+def test_walls_near_an_opening_receive_more_daylight_than_walls_deep_inside():
+    tube = open_tube()
+    table = surface_table(RayCaster(tube), Optics())
+    centres = tube.vertices[tube.faces].mean(axis=1)
+    daylight = table[np.arange(len(centres)), water_side(tube), 4]
+    wall = np.hypot(centres[:, 0], centres[:, 2]) > 2.0  # not the end cap
+    near_exit = daylight[wall & (centres[:, 1] < -8.0)]
+    deep = daylight[wall & (centres[:, 1] > 6.0)]
+    assert near_exit.mean() > 20 * deep.mean()
+
+
+def test_the_exit_is_brighter_the_closer_it_is():
+    tube = open_tube(length=40.0)
+    dark = replace(BARE, light_power=0.0, daylight=1.0)
+    near = render(tube, dark, Pose(0.0, -14.0, 0.0, 0.0)).radiance[CENTRE]
+    far = render(tube, dark, Pose(0.0, 10.0, 0.0, 0.0)).radiance[CENTRE]
+    assert np.all(far < near)
+
+
+# ------------------------------------------------------------------ rock, snow, camera
+
+
+def test_floors_carry_sediment_and_crevices_are_darker():
+    tube = open_tube()
+    table = surface_table(RayCaster(tube), Optics(sediment_colour=(0.5, 0.4, 0.25)))
+    centres = tube.vertices[tube.faces].mean(axis=1)
+    floor = (centres[:, 2] < -2.3) & (np.abs(centres[:, 1]) < 8.0)
+    albedo = table[floor, water_side(tube)[floor], :3].mean(axis=0)
+    assert albedo[0] > albedo[2] * 1.4  # silt is yellow-brown
+    small = box((4.0, 4.0, 4.0), (0.0, 0.0, 0.0))
+    corner = surface_table(RayCaster(small), Optics())  # every face of a small box meets others
+    open_wall = surface_table(RayCaster(wall_ahead(3.0)), Optics())
+    assert corner[:, :, :3].mean() < open_wall[:, :, :3].mean()
+
+
+def test_marine_snow_adds_lamp_lit_specks_fixed_in_the_world():
+    mesh = wall_ahead(6.0)
+    clean = render(mesh, BARE)
+    snowy = render(mesh, replace(BARE, particles=30.0))
+    assert snowy.particles > 10
+    brighter = snowy.radiance[..., 1] > clean.radiance[..., 1] * 1.05
+    assert 0 < brighter.mean() < 0.2
+    again = render(mesh, replace(BARE, particles=30.0))
+    assert np.array_equal(snowy.radiance, again.radiance)
+
+
+def test_the_same_seed_gives_the_same_image_bit_for_bit():
+    mesh = wall_ahead(4.0)
+    busy = Optics(particles=5.0, noise=1.0)
+    first = render(mesh, busy, seed=3)
+    second = render(mesh, busy, seed=3)
+    assert np.array_equal(first.rgb, second.rgb)
+    assert np.array_equal(first.radiance, second.radiance)
+    other = render(mesh, busy, seed=4)
+    assert not np.array_equal(first.rgb, other.rgb)
+
+
+def test_sensor_noise_is_zero_mean_and_can_be_switched_off():
+    mesh = wall_ahead(4.0)
+    quiet = render(mesh, replace(BARE, exposure=4.0))
+    noisy = render(mesh, replace(BARE, exposure=4.0, noise=1.0))
+    assert np.array_equal(quiet.radiance, noisy.radiance)  # noise is in the camera
+    diff = noisy.rgb.astype(float) - quiet.rgb.astype(float)
+    assert diff.std() > 0.5
+    assert abs(diff.mean()) < 0.5
+
+
+def test_vignetting_darkens_the_corners():
+    mesh = wall_ahead(3.0)
+    flat = replace(
+        BARE,
+        lamps=(Lamp(position=(0.0, 0.0, 0.0), inner_deg=80.0, outer_deg=89.0, share=1.0),),
+        exposure=4.0,
+    )
+    plain = render(mesh, replace(flat, vignetting=0.0)).rgb[..., 1].astype(int)
+    vignetted = render(mesh, replace(flat, vignetting=0.8)).rgb[..., 1].astype(int)
+    assert vignetted[CENTRE] == plain[CENTRE]
+    assert vignetted[5, 5] < plain[5, 5]
+
+
+def test_auto_exposure_keeps_a_dim_scene_visible():
+    far = render(wall_ahead(9.0), BARE).rgb[..., 1]
+    near = render(wall_ahead(2.0), BARE).rgb[..., 1]
+    assert 60 < np.median(far) < 200 and 60 < np.median(near) < 200
+
+
+# ------------------------------------------------------------------ depth degradation
+
+
+def test_depth_is_exact_unless_degradation_is_asked_for():
+    mesh = wall_ahead(5.0)
+    frame = render(mesh, Optics(water="turbid"))
+    assert frame.depth_m[CENTRE] == pytest.approx(5.0, abs=1e-3)
+
+
+def test_depth_drops_out_where_too_little_lamp_light_returns():
+    dim = Optics(water="turbid", depth_dropout=0.002, noise=0.0, particles=0.0, daylight=0.0)
+    assert np.isinf(render(wall_ahead(9.0), dim).depth_m[CENTRE])
+    assert render(wall_ahead(2.0), dim).depth_m[CENTRE] == pytest.approx(2.0, abs=1e-3)
+    assert render(wall_ahead(9.0), dim).depth_png[CENTRE] == 255  # no return reads as far
+
+
+def test_depth_noise_grows_with_distance():
+    noisy = replace(BARE, depth_noise_m=0.1)
+    spread = []
+    for distance in (2.0, 8.0):
+        depth = render(wall_ahead(distance), noisy).depth_m[200:280, 280:360]
+        planar_truth = distance  # the wall is perpendicular to the optical axis
+        spread.append(float(np.std(depth - planar_truth)))
+    assert spread[0] < spread[1]
+    assert spread[1] == pytest.approx(0.1 * 0.64, rel=0.2)  # 0.1 m at 10 m, times (8/10)^2
+
+
+# ------------------------------------------------------------------ configuration
+
+
+def test_optics_tables_layer_and_reject_unknown_keys():
+    scenario_table = optics_from_table({"water": "coastal", "particles": 1.0})
+    layered = optics_from_table({"particles": 8.0, "noise": None}, scenario_table)
+    assert layered.water == "coastal" and layered.particles == 8.0
+    with pytest.raises(ConfigError, match="'fog'"):
+        optics_from_table({"fog": 1.0})
+    with pytest.raises(ConfigError, match="unknown water type 'swamp'"):
+        optics_from_table({"water": "swamp"})
+    with pytest.raises(ConfigError, match="'light_power'"):
+        optics_from_table({"light_power": -1})
+    assert optics_from_table({"exposure": "auto"}, Optics(exposure=3.0)).exposure is None
+
+
+def test_unknown_water_in_code_is_a_config_error():
+    with pytest.raises(ConfigError, match="choose one of clear, ocean, coastal, turbid"):
+        Optics(water="swamp")
