@@ -12,6 +12,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 import trimesh
+
 from cavenav.errors import ConfigError
 from cavenav.sensors.camera import CameraIntrinsics
 from cavenav.sensors.lighting import backscatter_table, surface_table

@@ -41,7 +41,7 @@ class GalleryView:
 
 
 def passage_poses(
-    scenario: Scenario, count: int = 6, max_steps: int = 150, before_exit_m: float = 4.0
+    scenario: Scenario, count: int = 6, max_steps: int = 150, before_exit_m: float = 7.0
 ) -> list[tuple[Pose, float]]:
     """``count`` poses evenly spaced along the geometric pilot's path, with their distances.
 

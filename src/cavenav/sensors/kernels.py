@@ -92,6 +92,54 @@ def _sky_shape(up: float) -> float:
 
 
 @numba.njit(inline="always")
+def _smooth_normal(nx, ny, nz, u, v, corners, vertex_normals):  # noqa: ANN001, ANN202
+    """(smoothed, normal): vertex normals interpolated at (u, v), on face normal n's side.
+
+    Falls back to the face normal where the corners disagree (a crease, or a mesh whose
+    winding flips), so smoothing never turns a wall away from the light it faces.
+    """
+    w = 1.0 - u - v
+    a, b, c = corners[0], corners[1], corners[2]
+    sx = w * vertex_normals[a, 0] + u * vertex_normals[b, 0] + v * vertex_normals[c, 0]
+    sy = w * vertex_normals[a, 1] + u * vertex_normals[b, 1] + v * vertex_normals[c, 1]
+    sz = w * vertex_normals[a, 2] + u * vertex_normals[b, 2] + v * vertex_normals[c, 2]
+    length = math.sqrt(sx * sx + sy * sy + sz * sz)
+    along = (sx * nx + sy * ny + sz * nz) / max(length, 1e-12)
+    if abs(along) < 0.5:
+        return False, nx, ny, nz
+    scale = 1.0 / length if along > 0 else -1.0 / length
+    return True, sx * scale, sy * scale, sz * scale
+
+
+GRAIN_VOXEL_M = 0.06  # texel of the rock-grain texture
+_INV_GRAIN = 1.0 / GRAIN_VOXEL_M
+
+
+@numba.njit(inline="always")
+def _texture(field: np.ndarray, x: float, y: float, z: float) -> float:
+    """Trilinear sample of a tileable (g, g, g) texture (g a power of two) at world (x, y, z).
+
+    Coordinates are shifted positive so that truncation is floor, and wrapped with a bit
+    mask: no floor calls, no modulo branches in the hottest loop.
+    """
+    mask = field.shape[0] - 1
+    u = x * _INV_GRAIN + 65536.0
+    v = y * _INV_GRAIN + 65536.0
+    w = z * _INV_GRAIN + 65536.0
+    iu, iv, iw = int(u), int(v), int(w)
+    au, av, aw = u - iu, v - iv, w - iw
+    i0, j0, k0 = iu & mask, iv & mask, iw & mask
+    i1, j1, k1 = (iu + 1) & mask, (iv + 1) & mask, (iw + 1) & mask
+    c00 = field[i0, j0, k0] + aw * (field[i0, j0, k1] - field[i0, j0, k0])
+    c01 = field[i0, j1, k0] + aw * (field[i0, j1, k1] - field[i0, j1, k0])
+    c10 = field[i1, j0, k0] + aw * (field[i1, j0, k1] - field[i1, j0, k0])
+    c11 = field[i1, j1, k0] + aw * (field[i1, j1, k1] - field[i1, j1, k0])
+    c0 = c00 + av * (c01 - c00)
+    c1 = c10 + av * (c11 - c10)
+    return c0 + au * (c1 - c0)
+
+
+@numba.njit(inline="always")
 def _leave(o: float, e: float, lo: float, hi: float) -> float:
     """Path length from o along unit component e to the slab [lo, hi] (inf if parallel)."""
     if e > 1e-9:
@@ -256,10 +304,15 @@ def shade_frame(
     t: np.ndarray,  # (n,) float32 planar depth, inf where no hit; degraded in place
     triangle: np.ndarray,  # (n,) uint32 hit triangle, 0xFFFFFFFF where no hit
     normals: np.ndarray,  # (n, 3) float32 triangle normals
+    uvs: np.ndarray,  # (n, 2) float32 barycentric coordinates of each hit
+    faces: np.ndarray,  # (m, 3) int32 vertex indices
+    vertex_normals: np.ndarray,  # (v, 3) float32, for smooth shading
     directions: np.ndarray,  # (n, 3) float32 world ray directions, unit optical component
     ray_length: np.ndarray,  # (n,) float32 length of each direction (1 / cos off-axis)
     origin: np.ndarray,  # (3,) camera position, world
     surface: np.ndarray,  # (m, 2, 6) float32 albedo and daylight per triangle side
+    surface_at: np.ndarray,  # (v, 2, 6) float32 the same, averaged at each vertex
+    grain_field: np.ndarray,  # (g, g, g) float32 tileable rock-grain texture, see _texture
     lamp_pos: np.ndarray,  # (k, 3) world
     lamp_axis: np.ndarray,  # (k, 3) world, unit
     lamp_power: np.ndarray,
@@ -333,6 +386,23 @@ def shade_frame(
                 if nx * dx + ny * dy + nz * dz > 0.0:  # the camera sees the triangle's back
                     side = 1
                     nx, ny, nz = -nx, -ny, -nz
+                corners = faces[tri]
+                u, v = uvs[i, 0], uvs[i, 1]
+                w = 1.0 - u - v
+                smooth, nx, ny, nz = _smooth_normal(nx, ny, nz, u, v, corners, vertex_normals)
+                if smooth:  # surface properties, too, blend smoothly across the triangle
+                    ra = surface_at[corners[0], side]
+                    rb = surface_at[corners[1], side]
+                    rc = surface_at[corners[2], side]
+                    r0 = w * ra[0] + u * rb[0] + v * rc[0]
+                    r1 = w * ra[1] + u * rb[1] + v * rc[1]
+                    r2 = w * ra[2] + u * rb[2] + v * rc[2]
+                    r3 = w * ra[3] + u * rb[3] + v * rc[3]
+                    r4 = w * ra[4] + u * rb[4] + v * rc[4]
+                    r5 = w * ra[5] + u * rb[5] + v * rc[5]
+                else:
+                    rho = surface[tri, side]
+                    r0, r1, r2, r3, r4, r5 = rho[0], rho[1], rho[2], rho[3], rho[4], rho[5]
                 e0 = e1 = e2 = 0.0
                 for k in range(n_lamps):
                     wx = lamp_pos[k, 0] - hx
@@ -355,11 +425,11 @@ def shade_frame(
                     e1 += e * (1.0 - x1 + 0.5 * x1 * x1)
                     e2 += e * (1.0 - x2 + 0.5 * x2 * x2)
                 t0, t1, t2 = math.exp(-c0 * r), math.exp(-c1 * r), math.exp(-c2 * r)
-                rho = surface[tri, side]
-                l0 += rho[0] * (e0 * t0 + rho[3]) * t0
-                l1 += rho[1] * (e1 * t1 + rho[4]) * t1
-                l2 += rho[2] * (e2 * t2 + rho[5]) * t2
-                if depth_dropout > 0.0 and rho[1] * e1 * t1 * t1 < depth_dropout:
+                grain = 1.0 + _texture(grain_field, hx, hy, hz)
+                l0 += grain * r0 * (e0 * t0 + r3) * t0
+                l1 += grain * r1 * (e1 * t1 + r4) * t1
+                l2 += grain * r2 * (e2 * t2 + r5) * t2
+                if depth_dropout > 0.0 and r1 * e1 * t1 * t1 < depth_dropout:
                     depth = np.inf  # too little of the lamps' light came back
                     t[i] = depth
                 elif depth_noise > 0.0:

@@ -24,6 +24,7 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
+from scipy.ndimage import gaussian_filter
 
 from cavenav.sensors.camera import CameraIntrinsics
 from cavenav.sensors.kernels import (
@@ -39,10 +40,13 @@ from cavenav.world.raycast import RayCaster
 __all__ = [
     "BackscatterTable",
     "LampArrays",
+    "at_vertices",
     "backscatter_table",
     "lamp_arrays",
     "rock_albedo",
+    "rock_grain",
     "surface_table",
+    "vertex_normals",
 ]
 
 ALBEDO, DAYLIGHT = slice(0, 3), slice(3, 6)  # columns of the surface table
@@ -67,6 +71,52 @@ def rock_albedo(mesh: CaveMesh, seed: int = 0, colour=(0.40, 0.37, 0.33)) -> np.
     strata = 0.08 * np.sin(p[:, 2] * 2 * np.pi / rng.uniform(0.6, 1.4) + rng.uniform(0, 6.3))
     grey = 1.0 + 0.55 * field + strata
     return np.clip(grey[:, None] * np.asarray(colour, np.float32), 0.03, 0.9).astype(np.float32)
+
+
+def rock_grain(seed: int = 0, size: int = 64, strength: float = 0.5) -> np.ndarray:
+    """(size,)*3 float32 tileable texture of relative albedo changes, mean 0.
+
+    Sampled per pixel at the hit point (`kernels.GRAIN_VOXEL_M` per texel, so a 3.8 m
+    tile): the centimetre-scale grain, pits and streaks of rock that no triangle mesh
+    carries, at one trilinear lookup per pixel. Two octaves of smoothed white noise,
+    wrapped so the tile repeats without seams, plus a faint layering along z.
+    """
+    rng = np.random.default_rng([seed, 11])
+    fine = gaussian_filter(rng.normal(size=(size,) * 3), sigma=1.0, mode="wrap")
+    coarse = gaussian_filter(rng.normal(size=(size,) * 3), sigma=3.0, mode="wrap")
+    field = fine / fine.std() + 0.6 * coarse / coarse.std()
+    field /= np.abs(field).max()
+    return (strength * field).astype(np.float32)
+
+
+def at_vertices(mesh: CaveMesh, per_face: np.ndarray) -> np.ndarray:
+    """(n_vertices, ...) float32 area-weighted mean of a per-face array over each vertex's
+    faces, for smooth interpolation across triangles."""
+    tri = mesh.vertices[mesh.faces]
+    area = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    shape = (-1, *([1] * (per_face.ndim - 1)))
+    total = np.zeros((len(mesh.vertices), *per_face.shape[1:]))
+    weight = np.zeros(len(mesh.vertices))
+    for corner in range(3):
+        np.add.at(total, mesh.faces[:, corner], per_face * area.reshape(shape))
+        np.add.at(weight, mesh.faces[:, corner], area)
+    return (total / np.maximum(weight, 1e-12).reshape(shape)).astype(np.float32)
+
+
+def vertex_normals(mesh: CaveMesh) -> np.ndarray:
+    """(n_vertices, 3) float32 unit normals: the area-weighted mean of the faces around.
+
+    Shading with these interpolated across each triangle hides the facets of coarse
+    meshes. Where neighbouring faces disagree in winding they cancel, and the renderer
+    falls back to the face normal.
+    """
+    tri = mesh.vertices[mesh.faces]
+    area_normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # |.| = 2 area
+    normals = np.zeros_like(mesh.vertices)
+    for corner in range(3):
+        np.add.at(normals, mesh.faces[:, corner], area_normal)
+    length = np.linalg.norm(normals, axis=1, keepdims=True)
+    return (normals / np.maximum(length, 1e-12)).astype(np.float32)
 
 
 def _hemisphere(n: int) -> np.ndarray:

@@ -154,7 +154,7 @@ class Optics:
     exposure: float | None = None
     exposure_key: float = 0.25
     gain_range: tuple[float, float] = (1.0, 40.0)
-    white_balance: float = 0.5
+    white_balance: float = 0.4
     rock_colour: RGB = (0.40, 0.37, 0.33)
     sediment_colour: RGB = (0.46, 0.40, 0.30)
     depth_dropout: float = 0.0

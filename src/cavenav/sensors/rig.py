@@ -16,7 +16,14 @@ import numpy as np
 
 from cavenav.sensors.camera import CameraIntrinsics, camera_to_world, look_frame
 from cavenav.sensors.kernels import develop, fill_rays, shade_frame, splat_particles
-from cavenav.sensors.lighting import backscatter_table, lamp_arrays, surface_table
+from cavenav.sensors.lighting import (
+    at_vertices,
+    backscatter_table,
+    lamp_arrays,
+    rock_grain,
+    surface_table,
+    vertex_normals,
+)
 from cavenav.sensors.optics import LUT_SCALE, Optics, tone_lut
 from cavenav.types import Observation, Pose
 from cavenav.world.raycast import RayCaster
@@ -142,6 +149,11 @@ class SensorRig:
             self._sounder_planar = False
         optics = cfg.optics
         self._surface = surface_table(caster, optics, cfg.seed)
+        self._grain = rock_grain(cfg.seed)
+        mesh = caster.mesh
+        self._faces = mesh.faces.astype(np.int32)
+        self._vertex_normals = vertex_normals(mesh)
+        self._surface_at = at_vertices(mesh, self._surface)
         self._backscatter = backscatter_table(cfg.camera, optics)
         self._lamps = lamp_arrays(optics)
         self._attenuation = optics.medium.attenuation
@@ -180,8 +192,10 @@ class SensorRig:
         table = self._backscatter
         key = _frame_key(cfg.seed, pose)
         mean = shade_frame(
-            depth, raw["primitive_ids"], raw["primitive_normals"], rays[:, 3:],
-            self._ray_length, origin, self._surface, lamp_pos, lamp_axis, lamps.power,
+            depth, raw["primitive_ids"], raw["primitive_normals"], raw["primitive_uvs"],
+            self._faces, self._vertex_normals, rays[:, 3:],
+            self._ray_length, origin, self._surface, self._surface_at, self._grain, lamp_pos,
+            lamp_axis, lamps.power,
             lamps.cos_inner, lamps.cos_outer, self._attenuation, table.values, table.block,
             table.far, self._sky, self._bounds, optics.vignetting, key,
             cfg.depth_min_m, cfg.depth_max_m, optics.depth_dropout, optics.depth_noise_m,

@@ -53,11 +53,13 @@ class RayCaster:
         """Cast a C-contiguous (n, 6) float32 array of (origin, direction) rows as is.
 
         The renderer's fast path: no copies, and Open3D's outputs come back unconverted
-        as flat numpy arrays: ``t_hit``, ``primitive_normals`` and ``primitive_ids``
-        (uint32, 0xFFFFFFFF where a ray escapes).
+        as flat numpy arrays: ``t_hit``, ``primitive_normals``, ``primitive_ids``
+        (uint32, 0xFFFFFFFF where a ray escapes) and ``primitive_uvs`` (barycentric
+        (u, v) of the hit: point = (1 - u - v) a + u b + v c).
         """
         out = self._scene.cast_rays(self._o3d.core.Tensor.from_numpy(rays))
-        return {k: out[k].numpy() for k in ("t_hit", "primitive_ids", "primitive_normals")}
+        keys = ("t_hit", "primitive_ids", "primitive_normals", "primitive_uvs")
+        return {k: out[k].numpy() for k in keys}
 
     def first_hit(self, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
         """(...) float32 ray parameter of the first hit only; cheaper than `cast`."""
