@@ -4,9 +4,14 @@ For each of S1-S5 (seed 0), at poses along the geometric pilot's own trajectory,
 the median time of:
 
 - bare cast:  Open3D's `cast_rays` of the 640x480 forward frame (rays prepared in advance)
-- full step:  everything the loop pays per step: forward RGB + raw depth + depth PNG, both
-              echo sounders, the clearance query and the swept collision check of the move
+- full step:  everything the loop pays per step: forward RGB with the underwater optics
+              (lamps, backscatter, daylight, rock, marine snow, camera) + raw depth + depth
+              PNG, both echo sounders, the clearance query and the swept collision check
 - ratio:      full step / bare cast (target: at most 1.5)
+- set-up:     building the rig once per cave: the per-triangle light table (rays from
+              every triangle) and the backscatter table, cold (not cached)
+
+The two timings alternate at each pose, so that a busy machine slows both alike.
 
 Run: make bench   (or: python benchmarks/sensor_step.py [--poses N] [--repeats N])
 """
@@ -22,25 +27,24 @@ import numpy as np
 from cavenav.kinematics import apply
 from cavenav.pilots.geometric import GeometricPilot
 from cavenav.sensors.camera import camera_to_world
-from cavenav.sensors.rig import SensorRig
+from cavenav.sensors.rig import SensorConfig, SensorRig
 from cavenav.world.collision import VehicleBody, clearance, swept_collision
 from cavenav.world.raycast import RayCaster
 from cavenav.world.scenarios import SCENARIOS, load_scenario
 
 
-def _median_ms(fn, repeats: int) -> float:
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return 1e3 * statistics.median(times)
+def _ms(fn) -> float:  # noqa: ANN001
+    start = time.perf_counter()
+    fn()
+    return 1e3 * (time.perf_counter() - start)
 
 
-def bench(name: str, poses: int, repeats: int) -> tuple[float, float]:
+def bench(name: str, poses: int, repeats: int) -> tuple[float, float, float]:
     scenario = load_scenario(name, seed=0)
     caster = RayCaster(scenario.mesh)
-    rig = SensorRig(caster)
+    start = time.perf_counter()
+    rig = SensorRig(caster, SensorConfig(seed=poses))  # a seed no earlier rig used: cold
+    setup = time.perf_counter() - start
     body = VehicleBody()
     pilot = GeometricPilot()
     pose = scenario.start
@@ -53,16 +57,17 @@ def bench(name: str, poses: int, repeats: int) -> tuple[float, float]:
             rig.config.camera.directions.reshape(-1, 3) @ camera_to_world(pose).astype(np.float32).T
         )
         rays, _ = caster._rays(rig.camera_position(pose), dirs)
-        bare.append(_median_ms(lambda rays=rays: caster._scene.cast_rays(rays), repeats))
 
         def step(pose=pose, nxt=nxt) -> None:
             rig.observe(pose)
             gap = clearance(caster, pose)
             swept_collision(caster, body, pose, nxt, gap)
 
-        full.append(_median_ms(step, repeats))
+        for _ in range(repeats):
+            bare.append(_ms(lambda rays=rays: caster._scene.cast_rays(rays)))
+            full.append(_ms(step))
         pose = nxt
-    return statistics.median(bare), statistics.median(full)
+    return statistics.median(bare), statistics.median(full), setup
 
 
 def main() -> None:
@@ -73,14 +78,18 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=5, help="timings per pose")
     args = parser.parse_args()
     print(
-        f"{'scenario':<9} {'triangles':>9} {'bare cast ms':>13} {'full step ms':>13} {'ratio':>6}"
+        f"{'scenario':<9} {'triangles':>9} {'bare cast ms':>13} {'full step ms':>13} "
+        f"{'ratio':>6} {'set-up s':>9}"
     )
     ratios = []
     for name in SCENARIOS:
-        bare, full = bench(name, args.poses, args.repeats)
+        bare, full, setup = bench(name, args.poses, args.repeats)
         triangles = load_scenario(name, seed=0).mesh.triangle_count
         ratios.append(full / bare)
-        print(f"{name:<9} {triangles:>9,} {bare:>13.1f} {full:>13.1f} {full / bare:>6.2f}")
+        print(
+            f"{name:<9} {triangles:>9,} {bare:>13.1f} {full:>13.1f} {full / bare:>6.2f} "
+            f"{setup:>9.2f}"
+        )
     print(f"median ratio {statistics.median(ratios):.2f} (target <= 1.5)")
 
 

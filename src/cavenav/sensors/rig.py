@@ -180,14 +180,10 @@ class SensorRig:
         lamps = self._lamps
         lamp_pos = (origin + lamps.position @ rot.T).astype(np.float32)
         lamp_axis = (lamps.axis @ rot.T).astype(np.float32)
-        radiance = np.zeros((n, 3), np.float32)
-        particles = 0
-        if optics.particles > 0 and optics.light_power > 0:
-            particles = splat_particles(
-                origin, rot, lamp_pos, lamp_axis, lamps.power, lamps.cos_inner,
-                lamps.cos_outer, self._attenuation, optics.particles, cfg.seed,
-                PARTICLE_REACH_M, camera.focal_px, camera.width, camera.height, depth, radiance,
-            )  # fmt: skip
+        # Degraded depth is written in place; the specks need the true surfaces behind them.
+        degraded = optics.depth_dropout > 0 or optics.depth_noise_m > 0
+        surfaces = depth.copy() if degraded else depth
+        radiance = np.empty((n, 3), np.float32)
         depth_png = np.empty(n, np.uint8)
         table = self._backscatter
         key = _frame_key(cfg.seed, pose)
@@ -201,6 +197,14 @@ class SensorRig:
             cfg.depth_min_m, cfg.depth_max_m, optics.depth_dropout, optics.depth_noise_m,
             camera.width, radiance, depth_png,
         )  # fmt: skip
+        particles = 0
+        if optics.particles > 0 and optics.light_power > 0:
+            particles = splat_particles(
+                origin, rot, lamp_pos, lamp_axis, lamps.power, lamps.cos_inner,
+                lamps.cos_outer, self._attenuation, optics.particles, cfg.seed,
+                PARTICLE_REACH_M, camera.focal_px, camera.width, camera.height, surfaces,
+                radiance,
+            )  # fmt: skip
         gains, gain = camera_response(np.asarray(mean), optics)
         rgb = np.empty((n, 3), np.uint8)
         develop(
