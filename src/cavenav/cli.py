@@ -337,8 +337,7 @@ def render(
         particles=particles,
         noise=noise,
     )
-    water_name = sensors.optics.water if isinstance(sensors.optics.water, str) else "custom"
-    path = out or Path(f"render-{cave.name}-{water_name}.png")
+    path = out or Path(f"render-{cave.name}-{sensors.optics.water_name}.png")
     with console.status(f"finding {views} poses along {cave.name}"):
         poses = passage_poses(cave, views)
     with console.status("rendering"):

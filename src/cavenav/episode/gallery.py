@@ -19,7 +19,6 @@ import numpy as np  # noqa: E402
 
 from cavenav.episode.loop import EpisodeConfig, run_episode  # noqa: E402
 from cavenav.pilots.geometric import GeometricPilot  # noqa: E402
-from cavenav.sensors.optics import Water  # noqa: E402
 from cavenav.sensors.rig import SensorConfig, SensorRig  # noqa: E402
 from cavenav.types import Pose  # noqa: E402
 from cavenav.world.raycast import RayCaster  # noqa: E402
@@ -70,11 +69,6 @@ def render_views(
     return views
 
 
-def _water_label(sensors: SensorConfig) -> str:
-    water = sensors.optics.water
-    return "custom water" if isinstance(water, Water) else f"{water} water"
-
-
 def write_contact_sheet(
     scenario: Scenario,
     path: str | Path,
@@ -110,7 +104,7 @@ def write_contact_sheet(
         depth_ax.set_title(f"depth (0-{sensors.depth_max_m:g} m)", fontsize=8, loc="left")
     optics = sensors.optics
     fig.suptitle(
-        f"{scenario.name} · {_water_label(sensors)} · lamps {optics.light_power:g} · "
+        f"{scenario.name} · {optics.water_name} water · lamps {optics.light_power:g} · "
         f"daylight {optics.daylight:g} · marine snow {optics.particles:g}/m³ · "
         f"seed {sensors.seed}",
         fontsize=10,

@@ -42,6 +42,7 @@ __all__ = [
     "LampArrays",
     "at_vertices",
     "backscatter_table",
+    "face_normals",
     "lamp_arrays",
     "rock_albedo",
     "rock_grain",
@@ -89,11 +90,18 @@ def rock_grain(seed: int = 0, size: int = 64, strength: float = 0.5) -> np.ndarr
     return (strength * field).astype(np.float32)
 
 
+def face_normals(mesh: CaveMesh) -> tuple[np.ndarray, np.ndarray]:
+    """(m, 3) unit normals (by winding) and (m,) areas of the triangles."""
+    tri = mesh.vertices[mesh.faces]
+    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    double_area = np.linalg.norm(normal, axis=1)
+    return normal / np.maximum(double_area, 1e-12)[:, None], 0.5 * double_area
+
+
 def at_vertices(mesh: CaveMesh, per_face: np.ndarray) -> np.ndarray:
     """(n_vertices, ...) float32 area-weighted mean of a per-face array over each vertex's
     faces, for smooth interpolation across triangles."""
-    tri = mesh.vertices[mesh.faces]
-    area = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    _, area = face_normals(mesh)
     shape = (-1, *([1] * (per_face.ndim - 1)))
     total = np.zeros((len(mesh.vertices), *per_face.shape[1:]))
     weight = np.zeros(len(mesh.vertices))
@@ -110,11 +118,7 @@ def vertex_normals(mesh: CaveMesh) -> np.ndarray:
     meshes. Where neighbouring faces disagree in winding they cancel, and the renderer
     falls back to the face normal.
     """
-    tri = mesh.vertices[mesh.faces]
-    area_normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # |.| = 2 area
-    normals = np.zeros_like(mesh.vertices)
-    for corner in range(3):
-        np.add.at(normals, mesh.faces[:, corner], area_normal)
+    normals = at_vertices(mesh, face_normals(mesh)[0])
     length = np.linalg.norm(normals, axis=1, keepdims=True)
     return (normals / np.maximum(length, 1e-12)).astype(np.float32)
 
@@ -156,14 +160,12 @@ def surface_table(caster: RayCaster, optics: Optics, seed: int = 0, rays: int = 
 def _surface_table(caster: RayCaster, optics: Optics, seed: int, n_rays: int) -> np.ndarray:
     mesh = caster.mesh
     rng = np.random.default_rng([seed, 7])
-    tri = mesh.vertices[mesh.faces]  # (m, 3, 3)
-    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
-    centre = tri.mean(axis=1)
+    normal, _ = face_normals(mesh)
+    centre = mesh.vertices[mesh.faces].mean(axis=1)
     m = len(mesh.faces)
     c = optics.medium.attenuation
     bounds = (mesh.bounds + np.array([[-1e-3], [1e-3]])).astype(np.float32)
-    sky = (optics.daylight * np.asarray(optics.daylight_colour)).astype(np.float32)
+    sky = optics.sky
     pattern = _hemisphere(n_rays)
     albedo = rock_albedo(mesh, seed, optics.rock_colour)[mesh.faces].mean(axis=1)
 

@@ -167,6 +167,16 @@ class Optics:
             )
 
     @property
+    def water_name(self) -> str:
+        """The preset's name, or "custom" for a `Water` given by its coefficients."""
+        return self.water if isinstance(self.water, str) else "custom"
+
+    @property
+    def sky(self) -> np.ndarray:
+        """(3,) float32 radiance of open water looking straight up through an exit."""
+        return (self.daylight * np.asarray(self.daylight_colour)).astype(np.float32)
+
+    @property
     def medium(self) -> Water:
         return WATER_TYPES[self.water] if isinstance(self.water, str) else self.water
 

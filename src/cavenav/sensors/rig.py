@@ -157,7 +157,6 @@ class SensorRig:
         self._backscatter = backscatter_table(cfg.camera, optics)
         self._lamps = lamp_arrays(optics)
         self._attenuation = optics.medium.attenuation
-        self._sky = (optics.daylight * np.asarray(optics.daylight_colour)).astype(np.float32)
         self._bounds = caster.mesh.bounds.astype(np.float32)
         self._lut = tone_lut(1.0)
 
@@ -193,7 +192,7 @@ class SensorRig:
             self._ray_length, origin, self._surface, self._surface_at, self._grain, lamp_pos,
             lamp_axis, lamps.power,
             lamps.cos_inner, lamps.cos_outer, self._attenuation, table.values, table.block,
-            table.far, self._sky, self._bounds, optics.vignetting, key,
+            table.far, optics.sky, self._bounds, optics.vignetting, key,
             cfg.depth_min_m, cfg.depth_max_m, optics.depth_dropout, optics.depth_noise_m,
             camera.width, radiance, depth_png,
         )  # fmt: skip
