@@ -109,7 +109,8 @@ def write_contact_sheet(
         f"seed {sensors.seed}",
         fontsize=10,
     )
-    fig.tight_layout(pad=0.4)
+    title_in = 0.35  # inches kept free above the views for the title
+    fig.tight_layout(pad=0.4, rect=(0, 0, 1, 1 - title_in / fig.get_figheight()))
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=100)
