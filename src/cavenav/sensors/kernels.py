@@ -13,22 +13,34 @@ for the same seed and pose.
 from __future__ import annotations
 
 import math
+import os
 
-import numba
-import numpy as np
+# Between kernels numba's OpenMP workers must sleep, not spin: spinning, they take the
+# cores from Open3D's ray cast (its own TBB threads) that runs next. Measured on 2 cores:
+# the forward cast inside the sensor step went from 34 to 28 ms. Read by libgomp when
+# numba first loads it, so it is set before any kernel runs; a user's setting wins.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import numba  # noqa: E402
+import numpy as np  # noqa: E402
+from llvmlite import ir  # noqa: E402
+from numba.core import types  # noqa: E402
+from numba.extending import intrinsic  # noqa: E402
+
+from cavenav.sensors.optics import TONE_FLOOR, TONE_SHIFT  # noqa: E402
 
 # OpenMP, else numba's own work queue; never TBB, whose old system builds only warn.
 numba.config.THREADING_LAYER_PRIORITY = ["omp", "workqueue", "tbb"]  # type: ignore[attr-defined]
 
 __all__ = [
     "bounce_light",
-    "develop",
     "fill_rays",
     "gather_sky",
     "hemisphere_rays",
     "integrate_backscatter",
     "mix",
     "shade_frame",
+    "shade_grid",
     "splat_particles",
 ]
 
@@ -37,7 +49,7 @@ _M1 = np.uint64(0xBF58476D1CE4E5B9)
 _M2 = np.uint64(0x94D049BB133111EB)
 _GOLDEN = np.uint64(0x9E3779B97F4A7C15)
 _INV_4PI = 1.0 / (4.0 * math.pi)
-SHARE = 4  # shade_frame shares smooth light within blocks of SHARE x SHARE pixels
+SHARE = 4  # shade_grid shades every SHARE-th pixel and row; shade_frame interpolates
 # Fast-math without "no infinities": rays that escape carry t = inf.
 _FAST = {"nsz", "arcp", "contract", "afn", "reassoc"}
 
@@ -64,12 +76,22 @@ def _gauss(h: np.uint64) -> float:
 
 
 @numba.njit(inline="always")
-def _triangular(h: np.uint64, shift: int) -> float:
-    """A triangular deviate with unit variance from two 10-bit fields of ``h``."""
-    mask = np.uint64(0x3FF)
-    a = float((h >> np.uint64(shift)) & mask)
-    b = float((h >> np.uint64(shift + 10)) & mask)
-    return ((a + b) / 1023.0 - 1.0) * 2.4494897
+def _uniform(h: np.uint64, shift: int) -> float:
+    """A uniform deviate with zero mean and unit variance from 21 bits of ``h``."""
+    bits = np.int64(h >> np.uint64(shift)) & 0x1FFFFF  # signed: one instruction to float
+    return float(bits) * (3.4641016 / 2097152.0) - 1.7320508
+
+
+@intrinsic
+def _float_bits(typingctx, value):  # noqa: ANN001, ANN202
+    """The IEEE-754 bit pattern of a float32, as an int32."""
+    if value != types.float32:
+        return None
+
+    def codegen(context, builder, signature, args):  # noqa: ANN001, ANN202
+        return builder.bitcast(args[0], ir.IntType(32))
+
+    return types.int32(types.float32), codegen
 
 
 @numba.njit(inline="always")
@@ -86,17 +108,21 @@ def _spot(wx, wy, wz, d, axis, cos_inner, cos_outer) -> float:  # noqa: ANN001
 
 
 @numba.njit(inline="always")
-def _veil(table: np.ndarray, depth: float, far: float) -> tuple[float, float, float]:
-    """Backscatter in front of depth ``depth`` from a (bins + 1, 3) column of the table,
-    linear over its square-root-spaced depths."""
-    bins = table.shape[0] - 1
+def _veil(table: np.ndarray, row: int, col: int, depth: float, far: float):  # noqa: ANN202
+    """Backscatter in front of depth ``depth`` from column (row, col) of a (h, w, bins + 1,
+    3) table, linear over its square-root-spaced depths.
+
+    Indexes the table directly: a view of the column would cost an atomic reference
+    count per pixel, contended between threads.
+    """
+    bins = table.shape[2] - 1
     q = math.sqrt(min(depth, far) / far) * bins
     j = min(int(q), bins - 1)
     f = q - j
     return (
-        table[j, 0] + f * (table[j + 1, 0] - table[j, 0]),
-        table[j, 1] + f * (table[j + 1, 1] - table[j, 1]),
-        table[j, 2] + f * (table[j + 1, 2] - table[j, 2]),
+        table[row, col, j, 0] + f * (table[row, col, j + 1, 0] - table[row, col, j, 0]),
+        table[row, col, j, 1] + f * (table[row, col, j + 1, 1] - table[row, col, j, 1]),
+        table[row, col, j, 2] + f * (table[row, col, j + 1, 2] - table[row, col, j, 2]),
     )
 
 
@@ -108,14 +134,13 @@ def _sky_shape(up: float) -> float:
 
 
 @numba.njit(inline="always")
-def _smooth_normal(nx, ny, nz, u, v, corners, vertex_normals):  # noqa: ANN001, ANN202
+def _smooth_normal(nx, ny, nz, u, v, a, b, c, vertex_normals):  # noqa: ANN001, ANN202
     """(smoothed, normal): vertex normals interpolated at (u, v), on face normal n's side.
 
     Falls back to the face normal where the corners disagree (a crease, or a mesh whose
     winding flips), so smoothing never turns a wall away from the light it faces.
     """
     w = 1.0 - u - v
-    a, b, c = corners[0], corners[1], corners[2]
     sx = w * vertex_normals[a, 0] + u * vertex_normals[b, 0] + v * vertex_normals[c, 0]
     sy = w * vertex_normals[a, 1] + u * vertex_normals[b, 1] + v * vertex_normals[c, 1]
     sz = w * vertex_normals[a, 2] + u * vertex_normals[b, 2] + v * vertex_normals[c, 2]
@@ -238,9 +263,13 @@ def splat_particles(
     width: int,
     height: int,
     t: np.ndarray,  # (n,) planar depth of the scene, for occlusion
-    radiance: np.ndarray,  # (n, 3) float32, added to
+    specks: np.ndarray,  # (n, 3) float32 radiance, added to
+    speck_blocks: np.ndarray,  # (ceil(H / SHARE), ceil(W / SHARE)) uint8: set where added
 ) -> int:
-    """Add lamp-lit marine snow to ``radiance``; returns the number of specks drawn.
+    """Add lamp-lit marine snow to ``specks``; returns the number of specks drawn.
+
+    Drawn before the frame is shaded, so that `shade_frame` adds them in its one pass;
+    ``speck_blocks`` marks the blocks of SHARE x SHARE pixels it needs to look at.
 
     Particles are fixed in the world (one hashed set per 1 m cell), so they show parallax
     as the vehicle moves. Near the lens they are out of focus: wide, faint discs.
@@ -307,8 +336,9 @@ def splat_particles(
                             if weight <= 0.0:
                                 continue
                             any_pixel = True
+                            speck_blocks[py // SHARE, px // SHARE] = 1
                             for c in range(3):
-                                radiance[i, c] += (
+                                specks[i, c] += (
                                     amplitude * weight * lit[c] * math.exp(-attenuation[c] * path)
                                 )
                     drawn += any_pixel
@@ -356,23 +386,22 @@ def _surface_light(
     if nx * dx + ny * dy + nz * dz > 0.0:  # the camera sees the triangle's back
         side = 1
         nx, ny, nz = -nx, -ny, -nz
-    corners = faces[tri]
+    # Scalars only: views (faces[tri], surface[tri, side]) would cost atomic reference
+    # counts in this hottest of paths.
+    a, b, c = faces[tri, 0], faces[tri, 1], faces[tri, 2]
     u, v = uvs[i, 0], uvs[i, 1]
     w = 1.0 - u - v
-    smooth, nx, ny, nz = _smooth_normal(nx, ny, nz, u, v, corners, vertex_normals)
+    smooth, nx, ny, nz = _smooth_normal(nx, ny, nz, u, v, a, b, c, vertex_normals)
     if smooth:  # surface properties, too, blend smoothly across the triangle
-        ra = surface_at[corners[0], side]
-        rb = surface_at[corners[1], side]
-        rc = surface_at[corners[2], side]
-        r0 = w * ra[0] + u * rb[0] + v * rc[0]
-        r1 = w * ra[1] + u * rb[1] + v * rc[1]
-        r2 = w * ra[2] + u * rb[2] + v * rc[2]
-        r3 = w * ra[3] + u * rb[3] + v * rc[3]
-        r4 = w * ra[4] + u * rb[4] + v * rc[4]
-        r5 = w * ra[5] + u * rb[5] + v * rc[5]
+        r0 = w * surface_at[a, side, 0] + u * surface_at[b, side, 0] + v * surface_at[c, side, 0]
+        r1 = w * surface_at[a, side, 1] + u * surface_at[b, side, 1] + v * surface_at[c, side, 1]
+        r2 = w * surface_at[a, side, 2] + u * surface_at[b, side, 2] + v * surface_at[c, side, 2]
+        r3 = w * surface_at[a, side, 3] + u * surface_at[b, side, 3] + v * surface_at[c, side, 3]
+        r4 = w * surface_at[a, side, 4] + u * surface_at[b, side, 4] + v * surface_at[c, side, 4]
+        r5 = w * surface_at[a, side, 5] + u * surface_at[b, side, 5] + v * surface_at[c, side, 5]
     else:
-        rho = surface[tri, side]
-        r0, r1, r2, r3, r4, r5 = rho[0], rho[1], rho[2], rho[3], rho[4], rho[5]
+        r0, r1, r2 = surface[tri, side, 0], surface[tri, side, 1], surface[tri, side, 2]
+        r3, r4, r5 = surface[tri, side, 3], surface[tri, side, 4], surface[tri, side, 5]
     e0 = e1 = e2 = 0.0
     for k in range(lamp_pos.shape[0]):
         wx = lamp_pos[k, 0] - hx
@@ -402,121 +431,38 @@ def _surface_light(
     )
 
 
-@numba.njit(parallel=True, fastmath=_FAST, cache=True)
-def shade_frame(
-    t: np.ndarray,  # (n,) float32 planar depth, inf where no hit; degraded in place
-    triangle: np.ndarray,  # (n,) uint32 hit triangle, 0xFFFFFFFF where no hit
-    normals: np.ndarray,  # (n, 3) float32 triangle normals
-    uvs: np.ndarray,  # (n, 2) float32 barycentric coordinates of each hit
-    faces: np.ndarray,  # (m, 3) int32 vertex indices
-    vertex_normals: np.ndarray,  # (v, 3) float32, for smooth shading
-    directions: np.ndarray,  # (n, 3) float32 world ray directions, unit optical component
-    ray_length: np.ndarray,  # (n,) float32 length of each direction (1 / cos off-axis)
-    origin: np.ndarray,  # (3,) camera position, world
-    surface: np.ndarray,  # (m, 2, 6) float32 albedo and daylight per triangle side
-    surface_at: np.ndarray,  # (v, 2, 6) float32 the same, averaged at each vertex
-    grain_field: np.ndarray,  # (g, g, g) float32 tileable rock-grain texture, see _texture
-    lamp_pos: np.ndarray,  # (k, 3) world
-    lamp_axis: np.ndarray,  # (k, 3) world, unit
-    lamp_power: np.ndarray,
-    cos_inner: np.ndarray,
-    cos_outer: np.ndarray,
-    attenuation: np.ndarray,  # (3,) 1/m
-    backscatter: np.ndarray,  # (H / block, W / block, bins + 1, 3) see BackscatterTable
-    block: int,
-    far: float,
-    sky: np.ndarray,  # (3,) open-water radiance looking straight up
-    bounds: np.ndarray,  # (2, 3) the cave's box: rays leave the cave there
-    vignetting: float,
-    frame_key: np.uint64,
-    d_min: float,
-    d_max: float,
-    depth_dropout: float,
-    depth_noise: float,
-    width: int,
-    radiance: np.ndarray,  # (n, 3) float32 out: radiance at the lens
-    depth_png: np.ndarray,  # (n,) uint8 out
-) -> tuple[float, float, float]:
-    """Shade every pixel and normalise its depth; returns the frame's mean colour.
+@numba.njit(inline="always")
+def _rock(i, depth, origin, dx, dy, dz, length, cast, scene, lamps, c0, c1, c2):  # noqa: ANN001, ANN202
+    """`_surface_light` of the rock hit by pixel i, times the rock grain at the hit."""
+    _, triangle, normals, uvs = cast
+    faces, vertex_normals, surface, surface_at, grain_field = scene
+    lamp_pos, lamp_axis, lamp_power, cos_outer, cone_scale = lamps
+    hx = origin[0] + depth * dx
+    hy = origin[1] + depth * dy
+    hz = origin[2] + depth * dz
+    k0, k1, k2, lamp_return = _surface_light(
+        i, triangle[i], depth * length, hx, hy, hz, dx, dy, dz,
+        normals[i, 0], normals[i, 1], normals[i, 2], uvs, faces, vertex_normals, surface,
+        surface_at, lamp_pos, lamp_axis, lamp_power, cos_outer, cone_scale, c0, c1, c2,
+    )  # fmt: skip
+    grain = 1.0 + _texture(grain_field, hx, hy, hz)
+    return grain * k0, grain * k1, grain * k2, lamp_return
 
-    The mean (R, G, B) at the sensor, over one pixel in 64, is what a camera meters for
-    its auto white balance and auto exposure (see `develop`).
 
-    Cost is what the 1.5x budget allows, hence the blocks of `SHARE` x `SHARE` pixels.
-    """
-    sum0 = sum1 = sum2 = 0.0
-    samples = 0
-    c0, c1, c2 = attenuation[0], attenuation[1], attenuation[2]
-    cone_scale = 1.0 / (cos_inner - cos_outer)
-    height = t.shape[0] // width
-    for band in numba.prange((height + SHARE - 1) // SHARE):
-        for col0 in range(0, width, SHARE):
-            # The smooth part of the light (lamps, albedo, daylight, attenuation, grain) is
-            # shared by the pixels of a block that see the same smooth surface: a few
-            # millimetres apart at arm's length, they differ by less than a grey level. One at
-            # another depth or facing another way (an edge, a crease) gets its own, and so
-            # does the veil in front of it; depth and open water stay per pixel.
-            shared_depth = -1.0
-            snx = sny = snz = 0.0
-            k0 = k1 = k2 = lamp_return = v0 = v1 = v2 = 0.0
-            for sub in range(SHARE * SHARE):
-                row = band * SHARE + sub // SHARE
-                col = col0 + sub % SHARE
-                if row >= height or col >= width:
-                    continue
-                i = row * width + col
-                depth = t[i]
-                tri = triangle[i]
-                length = ray_length[i]
-                dx, dy, dz = directions[i, 0], directions[i, 1], directions[i, 2]
-                if tri == _NO_HIT:
-                    l0, l1, l2 = _veil(backscatter[row // block, col // block], depth, far)
-                    # Open water beyond the cave, dimmed by the water up to the cave's bounds.
-                    ex, ey, ez = dx / length, dy / length, dz / length
-                    r_exit = min(_leave(origin[0], ex, bounds[0, 0], bounds[1, 0]),
-                                 _leave(origin[1], ey, bounds[0, 1], bounds[1, 1]),
-                                 _leave(origin[2], ez, bounds[0, 2], bounds[1, 2]))  # fmt: skip
-                    shape = _sky_shape(ez)
-                    l0 += sky[0] * shape * math.exp(-c0 * r_exit)
-                    l1 += sky[1] * shape * math.exp(-c1 * r_exit)
-                    l2 += sky[2] * shape * math.exp(-c2 * r_exit)
-                else:
-                    hx = origin[0] + depth * dx
-                    hy = origin[1] + depth * dy
-                    hz = origin[2] + depth * dz
-                    nx, ny, nz = normals[i, 0], normals[i, 1], normals[i, 2]
-                    if (
-                        abs(depth - shared_depth) > 0.02 * depth
-                        or nx * snx + ny * sny + nz * snz < 0.985
-                    ):
-                        shared_depth, snx, sny, snz = depth, nx, ny, nz
-                        v0, v1, v2 = _veil(backscatter[row // block, col // block], depth, far)
-                        k0, k1, k2, lamp_return = _surface_light(
-                            i, tri, depth * length, hx, hy, hz, dx, dy, dz, nx, ny, nz, uvs,
-                            faces, vertex_normals, surface, surface_at, lamp_pos, lamp_axis,
-                            lamp_power, cos_outer, cone_scale, c0, c1, c2,
-                        )  # fmt: skip
-                        grain = 1.0 + _texture(grain_field, hx, hy, hz)
-                        k0, k1, k2 = grain * k0, grain * k1, grain * k2
-                    l0, l1, l2 = v0 + k0, v1 + k1, v2 + k2
-                    if depth_dropout > 0.0 and lamp_return < depth_dropout:
-                        depth = np.inf  # too little of the lamps' light came back
-                        t[i] = depth
-                    elif depth_noise > 0.0:
-                        h = mix(frame_key ^ np.uint64(t.shape[0] + i))
-                        depth = max(depth + depth_noise * (depth / 10.0) ** 2 * _gauss(h), 0.0)
-                        t[i] = depth
-                norm = (min(depth, d_max) - d_min) / (d_max - d_min)
-                depth_png[i] = np.uint8(min(max(norm, 0.0), 1.0) * 255.0 + 0.5)
-                radiance[i, 0], radiance[i, 1], radiance[i, 2] = l0, l1, l2
-                if (row & 7) == 4 and (col & 7) == 4:
-                    lens = _lens(length, vignetting)
-                    sum0 += l0 * lens
-                    sum1 += l1 * lens
-                    sum2 += l2 * lens
-                    samples += 1
-    samples = max(samples, 1)
-    return sum0 / samples, sum1 / samples, sum2 / samples
+@numba.njit(inline="always")
+def _open_water(origin, dx, dy, dz, length, sky, bounds, c0, c1, c2):  # noqa: ANN001, ANN202
+    """Open water beyond the cave along a ray that escapes it, dimmed by the water up to
+    the cave's bounding box."""
+    ex, ey, ez = dx / length, dy / length, dz / length
+    r_exit = min(_leave(origin[0], ex, bounds[0, 0], bounds[1, 0]),
+                 _leave(origin[1], ey, bounds[0, 1], bounds[1, 1]),
+                 _leave(origin[2], ez, bounds[0, 2], bounds[1, 2]))  # fmt: skip
+    shape = _sky_shape(ez)
+    return (
+        sky[0] * shape * math.exp(-c0 * r_exit),
+        sky[1] * shape * math.exp(-c1 * r_exit),
+        sky[2] * shape * math.exp(-c2 * r_exit),
+    )
 
 
 @numba.njit(inline="always")
@@ -527,50 +473,252 @@ def _lens(length: float, vignetting: float) -> float:
 
 
 @numba.njit(inline="always")
-def _lut_index(value: float, lut_scale: float, last: int) -> int:
-    """Tone-curve table index of a linear value; NaN and negatives map to black."""
-    if not value > 0.0:
-        return 0
-    return min(int(math.sqrt(min(value, 1e6)) * lut_scale), last)
+def _tone(lut: np.ndarray, value: float) -> np.uint8:
+    """The tone curve (see `optics.tone_lut`) at a linear value; NaN and negatives are black.
+
+    Indexed by the float's own bits: no square root or logarithm per channel.
+    """
+    bits = np.int64(_float_bits(np.float32(value if value > 0.0 else 0.0)))  # type: ignore[call-arg]
+    return lut[min(max((bits >> TONE_SHIFT) - TONE_FLOOR, 0), lut.shape[0] - 1)]
+
+
+@numba.njit(inline="always")
+def _own_light(i, row, col, cast, rays, scene, lamps, water):  # noqa: ANN001, ANN202
+    """Radiance reaching the lens along pixel i's ray, before marine snow:
+    (R, G, B, green lamp light returned by the rock, 0 for open water)."""
+    t, triangle, _, _ = cast
+    directions, ray_length, origin = rays
+    attenuation, backscatter, block, far, sky, bounds = water
+    c0, c1, c2 = attenuation[0], attenuation[1], attenuation[2]
+    depth = t[i]
+    length = ray_length[i]
+    dx, dy, dz = directions[i, 0], directions[i, 1], directions[i, 2]
+    v0, v1, v2 = _veil(backscatter, row // block, col // block, depth, far)
+    if triangle[i] == _NO_HIT:
+        o0, o1, o2 = _open_water(origin, dx, dy, dz, length, sky, bounds, c0, c1, c2)
+        lamp_return = 0.0
+    else:
+        o0, o1, o2, lamp_return = _rock(
+            i, depth, origin, dx, dy, dz, length, cast, scene, lamps, c0, c1, c2
+        )
+    return v0 + o0, v1 + o1, v2 + o2, lamp_return
 
 
 @numba.njit(parallel=True, fastmath=_FAST, cache=True)
-def develop(
-    radiance: np.ndarray,  # (n, 3) float32 linear radiance at the lens
-    ray_length: np.ndarray,  # (n,) float32 (1 / cos off-axis), for vignetting
-    gains: np.ndarray,  # (3,) white balance
+def shade_grid(
+    cast: tuple,  # (t, triangle, normals, uvs) as in shade_frame
+    rays: tuple,  # (directions, ray_length, origin) as in shade_frame
+    scene: tuple,  # (faces, vertex_normals, surface, surface_at, grain_field)
+    lamps: tuple,  # (position, axis, power, cos_inner, cos_outer) world frame
+    water: tuple,  # (attenuation, backscatter, block, far, sky, bounds)
+    specks: np.ndarray,  # (n, 3) float32 marine snow, see splat_particles
+    speck_blocks: np.ndarray,  # (ceil(H / SHARE), ceil(W / SHARE)) uint8
     vignetting: float,
-    noise: float,
-    gain: float,  # exposure: sensor signal to tone-curve input
-    frame_key: np.uint64,
-    lut: np.ndarray,  # (k,) uint8 tone curve indexed by sqrt(value) * lut_scale
-    lut_scale: float,
-    rgb: np.ndarray,  # (n, 3) uint8 out
-) -> None:
-    """The camera: white balance, lens vignetting, sensor noise, exposure, tone curve.
+    width: int,
+    grid: np.ndarray,  # (H', W', 8) float32 out, H' = ceil(H / SHARE) + 1, likewise W'
+    grid_triangle: np.ndarray,  # (H', W') uint32 out: the triangle hit at each point
+) -> tuple[float, float, float]:
+    """Shade the pixels of every SHARE-th row and column (and the last ones) into ``grid``;
+    returns the frame's mean colour at the sensor over them.
 
-    Noise is added to the sensor signal before the exposure gain, so a dark frame that
-    the auto-exposure brightens shows its noise, as a real camera's does.
+    Per grid point: 1 / depth (-1 where the ray escapes), the hit triangle's normal, the
+    radiance reaching the lens (RGB: rock with its grain, and the veil in front of it)
+    and the green lamp light the rock returns. `shade_frame` interpolates between these
+    wherever a pixel lies on the same smooth surface as the four around it. The mean is
+    what the camera meters for its auto white balance and exposure before the frame is
+    developed.
     """
-    last = lut.shape[0] - 1
-    read_sigma2 = (0.0005 * noise) ** 2
-    shot = 0.001 * noise
-    for i in numba.prange(radiance.shape[0]):
-        lens = _lens(ray_length[i], vignetting)
-        v0 = radiance[i, 0] * gains[0] * lens
-        v1 = radiance[i, 1] * gains[1] * lens
-        v2 = radiance[i, 2] * gains[2] * lens
-        if noise > 0.0:
-            # Read noise plus shot noise of the pixel's mean level; three triangular
-            # deviates (unit variance) from one 64-bit hash.
-            h = mix(frame_key ^ np.uint64(i))
-            sigma = math.sqrt(read_sigma2 + shot * abs(v0 + v1 + v2) * (1.0 / 3.0))
-            v0 += sigma * _triangular(h, 0)
-            v1 += sigma * _triangular(h, 20)
-            v2 += sigma * _triangular(h, 40)
-        rgb[i, 0] = lut[_lut_index(v0 * gain, lut_scale, last)]
-        rgb[i, 1] = lut[_lut_index(v1 * gain, lut_scale, last)]
-        rgb[i, 2] = lut[_lut_index(v2 * gain, lut_scale, last)]
+    t, triangle, normals, _ = cast
+    ray_length = rays[1]
+    lamps = (lamps[0], lamps[1], lamps[2], lamps[4], 1.0 / (lamps[3] - lamps[4]))
+    height = t.shape[0] // width
+    sum0 = sum1 = sum2 = 0.0
+    for a in numba.prange(grid.shape[0]):
+        row = min(a * SHARE, height - 1)
+        for b in range(grid.shape[1]):
+            col = min(b * SHARE, width - 1)
+            i = row * width + col
+            l0, l1, l2, lamp_return = _own_light(i, row, col, cast, rays, scene, lamps, water)
+            grid_triangle[a, b] = triangle[i]
+            if triangle[i] == _NO_HIT:
+                grid[a, b, 0] = -1.0
+            else:
+                grid[a, b, 0] = 1.0 / t[i]
+                grid[a, b, 1] = normals[i, 0]
+                grid[a, b, 2] = normals[i, 1]
+                grid[a, b, 3] = normals[i, 2]
+                grid[a, b, 4], grid[a, b, 5], grid[a, b, 6] = l0, l1, l2
+                grid[a, b, 7] = lamp_return
+            if speck_blocks[row // SHARE, col // SHARE]:
+                l0, l1, l2 = l0 + specks[i, 0], l1 + specks[i, 1], l2 + specks[i, 2]
+            lens = _lens(ray_length[i], vignetting)
+            sum0 += l0 * lens
+            sum1 += l1 * lens
+            sum2 += l2 * lens
+    count = grid.shape[0] * grid.shape[1]
+    return sum0 / count, sum1 / count, sum2 / count
+
+
+SAME_FACING = 0.9  # cosine of the largest angle between normals of one smooth surface
+
+
+@numba.njit(inline="always")
+def _smooth_cell(grid, a, b) -> bool:  # noqa: ANN001
+    """Whether the four grid points (a, b) to (a + 1, b + 1) are rock facing one way."""
+    if grid[a, b, 0] <= 0.0:
+        return False
+    nx, ny, nz = grid[a, b, 1], grid[a, b, 2], grid[a, b, 3]
+    for p, q in ((a, b + 1), (a + 1, b), (a + 1, b + 1)):
+        if grid[p, q, 0] <= 0.0:
+            return False
+        if grid[p, q, 1] * nx + grid[p, q, 2] * ny + grid[p, q, 3] * nz < SAME_FACING:
+            return False
+    return True
+
+
+@numba.njit(inline="always")
+def _blend(grid, a, b, k, w00, w01, w10, w11) -> float:  # noqa: ANN001
+    """Bilinear interpolation of channel k between grid points (a, b) and (a + 1, b + 1)."""
+    return (
+        w00 * grid[a, b, k]
+        + w01 * grid[a, b + 1, k]
+        + w10 * grid[a + 1, b, k]
+        + w11 * grid[a + 1, b + 1, k]
+    )
+
+
+@numba.njit(inline="always")
+def _finish(i, l0, l1, l2, lamp_return, hit, row, col, t, ray_length, specks, speck_blocks, camera, depth_range, radiance, rgb, depth_png):  # fmt: skip  # noqa: ANN001, E501
+    """Everything after the light of pixel i is known: depth degradation, the depth PNG,
+    marine snow, and the camera: white balance, lens vignetting, sensor noise, exposure,
+    tone curve.
+
+    Noise is added to the sensor signal before the exposure gain, so a dark frame that the
+    auto exposure brightens shows its noise, as a real camera's does.
+    """
+    gains, gain, vignetting, noise, frame_key, lut = camera
+    d_min, d_max, depth_dropout, depth_noise = depth_range
+    depth = t[i]
+    if hit:
+        if depth_dropout > 0.0 and lamp_return < depth_dropout:
+            depth = np.inf  # too little of the lamps' light came back
+            t[i] = depth
+        elif depth_noise > 0.0:
+            h = mix(frame_key ^ np.uint64(t.shape[0] + i))
+            depth = max(depth + depth_noise * (depth / 10.0) ** 2 * _gauss(h), 0.0)
+            t[i] = depth
+    norm = (min(depth, d_max) - d_min) / (d_max - d_min)
+    depth_png[i] = np.uint8(min(max(norm, 0.0), 1.0) * 255.0 + 0.5)
+    if speck_blocks[row // SHARE, col // SHARE]:
+        l0, l1, l2 = l0 + specks[i, 0], l1 + specks[i, 1], l2 + specks[i, 2]
+        specks[i, 0] = specks[i, 1] = specks[i, 2] = 0.0
+    if radiance.shape[0]:
+        radiance[i, 0], radiance[i, 1], radiance[i, 2] = l0, l1, l2
+    lens = _lens(ray_length[i], vignetting)
+    v0, v1, v2 = l0 * gains[0] * lens, l1 * gains[1] * lens, l2 * gains[2] * lens
+    if noise > 0.0:
+        # Read noise plus shot noise of the pixel's mean level; three deviates from one
+        # 64-bit hash.
+        h = mix(frame_key ^ np.uint64(i))
+        sigma = math.sqrt((0.0005 * noise) ** 2 + 0.001 * noise * abs(v0 + v1 + v2) / 3.0)
+        v0 += sigma * _uniform(h, 0)
+        v1 += sigma * _uniform(h, 21)
+        v2 += sigma * _uniform(h, 42)
+    rgb[i, 0] = _tone(lut, v0 * gain)
+    rgb[i, 1] = _tone(lut, v1 * gain)
+    rgb[i, 2] = _tone(lut, v2 * gain)
+
+
+@numba.njit(parallel=True, fastmath=_FAST, cache=True)
+def shade_frame(
+    cast: tuple,  # (t, triangle, normals, uvs): the forward cast, see below
+    rays: tuple,  # (directions, ray_length, origin), see below
+    scene: tuple,  # (faces, vertex_normals, surface, surface_at, grain_field)
+    lamps: tuple,  # (position, axis, power, cos_inner, cos_outer) world frame
+    water: tuple,  # (attenuation, backscatter, block, far, sky, bounds)
+    grid: np.ndarray,  # from shade_grid
+    grid_triangle: np.ndarray,  # from shade_grid
+    specks: np.ndarray,  # (n, 3) float32 marine snow; zeroed here as it is read
+    speck_blocks: np.ndarray,  # (ceil(H / SHARE), ceil(W / SHARE)) uint8
+    camera: tuple,  # (gains, gain, vignetting, noise, frame_key, tone-curve lut)
+    depth_range: tuple,  # (d_min, d_max, depth_dropout, depth_noise)
+    width: int,
+    radiance: np.ndarray,  # (n, 3) float32 out: radiance at the lens; (0, 3): not wanted
+    rgb: np.ndarray,  # (n, 3) uint8 out: the developed colour image
+    depth_png: np.ndarray,  # (n,) uint8 out
+) -> None:
+    """Shade every pixel, develop it through the camera and normalise its depth.
+
+    The forward cast: t (n,) float32 planar depth, inf where no hit, degraded in place;
+    triangle (n,) uint32 hit triangle, 0xFFFFFFFF where no hit; normals (n, 3) float32
+    triangle normals; uvs (n, 2) float32 barycentric coordinates of each hit. Rays:
+    directions (n, 3) float32 world, unit optical component; ray_length (n,) their
+    lengths (1 / cos off-axis); origin (3,) the camera.
+
+    The radiance of rock and veil is interpolated from `shade_grid`'s four points around
+    a pixel where they and the pixel see one smooth surface: rock at all four, normals
+    within 25 degrees (`SAME_FACING`; smooth shading makes the light continuous across
+    such creases), and 1 / depth, which is linear across the image of a plane, within 2%
+    of the interpolation. The other pixels (silhouettes, sharp edges, open water) are
+    shaded on their own, in a second loop per row that keeps the first one lean. Depth,
+    marine snow and noise are always per pixel.
+    """
+    t, triangle, normals, _ = cast
+    ray_length = rays[1]
+    own_lamps = (lamps[0], lamps[1], lamps[2], lamps[4], 1.0 / (lamps[3] - lamps[4]))
+    height = t.shape[0] // width
+    for row in numba.prange(height):
+        a = row // SHARE
+        top = a * SHARE
+        fy = (row - top) / max(min(top + SHARE, height - 1) - top, 1)
+        b = left = 0
+        t00 = t01 = t10 = t11 = _NO_HIT
+        smooth_cell = False
+        pending = np.empty(width, np.int64)
+        count = 0
+        for col in range(width):
+            if col % SHARE == 0:  # entering the cell between grid columns b and b + 1
+                b = col // SHARE
+                left = col
+                smooth_cell = _smooth_cell(grid, a, b)
+                t00, t01 = grid_triangle[a, b], grid_triangle[a, b + 1]
+                t10, t11 = grid_triangle[a + 1, b], grid_triangle[a + 1, b + 1]
+            i = row * width + col
+            tri = triangle[i]
+            if smooth_cell and tri != _NO_HIT:
+                inverse = 1.0 / t[i]
+                fx = (col - left) / max(min(left + SHARE, width - 1) - left, 1)
+                w00, w01 = (1.0 - fx) * (1.0 - fy), fx * (1.0 - fy)
+                w10, w11 = (1.0 - fx) * fy, fx * fy
+                if (
+                    # On a corner's own triangle, or facing as the corners do: the normals
+                    # (12 bytes a pixel) are read only where the triangles change.
+                    (
+                        tri in (t00, t01, t10, t11)
+                        or normals[i, 0] * grid[a, b, 1] + normals[i, 1] * grid[a, b, 2]
+                        + normals[i, 2] * grid[a, b, 3] >= SAME_FACING
+                    )
+                    and abs(_blend(grid, a, b, 0, w00, w01, w10, w11) - inverse) <= 0.02 * inverse
+                ):  # fmt: skip
+                    _finish(
+                        i, _blend(grid, a, b, 4, w00, w01, w10, w11),
+                        _blend(grid, a, b, 5, w00, w01, w10, w11),
+                        _blend(grid, a, b, 6, w00, w01, w10, w11),
+                        _blend(grid, a, b, 7, w00, w01, w10, w11), True, row, col, t,
+                        ray_length, specks, speck_blocks, camera, depth_range, radiance, rgb,
+                        depth_png,
+                    )  # fmt: skip
+                    continue
+            pending[count] = col
+            count += 1
+        for k in range(count):
+            col = pending[k]
+            i = row * width + col
+            l0, l1, l2, lamp_return = _own_light(i, row, col, cast, rays, scene, own_lamps, water)
+            _finish(
+                i, l0, l1, l2, lamp_return, triangle[i] != _NO_HIT, row, col, t, ray_length,
+                specks, speck_blocks, camera, depth_range, radiance, rgb, depth_png,
+            )  # fmt: skip
 
 
 @numba.njit(parallel=True, fastmath=_FAST, cache=True)

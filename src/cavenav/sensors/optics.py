@@ -34,7 +34,8 @@ from cavenav.errors import ConfigError
 
 __all__ = [
     "BLUEROV2_LAMPS",
-    "LUT_SCALE",
+    "TONE_FLOOR",
+    "TONE_SHIFT",
     "WATER_TYPES",
     "Lamp",
     "Optics",
@@ -230,21 +231,27 @@ def optics_from_table(
     return replace(base or Optics(), **changes)
 
 
-LUT_SIZE = 4096
-LUT_SCALE = LUT_SIZE / 4.0
+# The tone curve is tabulated over the bits of a float32: bits >> TONE_SHIFT keep the
+# exponent and 10 mantissa bits, steps of 0.1% at every brightness.
+TONE_SHIFT = 13
+TONE_FLOOR = int(np.float32(2.0**-16).view(np.int32)) >> TONE_SHIFT  # darker is black
+_TONE_CEIL = int(np.float32(256.0).view(np.int32)) >> TONE_SHIFT  # brighter is white
 
 
 @lru_cache(maxsize=8)
 def tone_lut(exposure: float) -> np.ndarray:
-    """(4096,) uint8 map from sqrt(linear radiance) in [0, 4) to tone-mapped sRGB.
+    """(24576,) uint8 map from linear radiance in [2^-16, 256) to tone-mapped sRGB.
 
     A Reinhard curve ``kL / (1 + kL)`` keeps detail from the lamp-lit wall at arm's
-    length down to rock ten metres off, with a soft shoulder instead of clipping. Indexing by
-    the square root spends the table's steps on the dark tones, where sRGB is steep: a
-    4 KB table that stays in the L1 cache, within one 8-bit level everywhere.
-    Index: sqrt(radiance) * LUT_SCALE.
+    length down to rock ten metres off, with a soft shoulder instead of clipping.
+    Index: (float32 bits of the radiance >> TONE_SHIFT) - TONE_FLOOR, so that the
+    table's steps are relative (0.1%), fine in the dark tones where sRGB is steep, and
+    a lookup needs no square root: 24 KB, within half an 8-bit level everywhere.
     """
-    radiance = ((np.arange(LUT_SIZE, dtype=np.float64) + 0.5) / LUT_SCALE) ** 2
+    index = np.arange(TONE_FLOOR, _TONE_CEIL, dtype=np.int64)
+    middle = (index << TONE_SHIFT) | (1 << (TONE_SHIFT - 1))  # each step's central float
+    radiance = middle.astype(np.int32).view(np.float32).astype(np.float64)
+    radiance[0] = 0.0  # the first step also holds everything darker
     mapped = exposure * radiance / (1.0 + exposure * radiance)
     srgb = np.where(mapped <= 0.0031308, 12.92 * mapped, 1.055 * mapped ** (1 / 2.4) - 0.055)
     return (np.clip(srgb, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)

@@ -15,7 +15,7 @@ from typing import Literal
 import numpy as np
 
 from cavenav.sensors.camera import CameraIntrinsics, camera_to_world, look_frame
-from cavenav.sensors.kernels import develop, fill_rays, shade_frame, splat_particles
+from cavenav.sensors.kernels import SHARE, fill_rays, shade_frame, shade_grid, splat_particles
 from cavenav.sensors.lighting import (
     at_vertices,
     backscatter_table,
@@ -24,7 +24,7 @@ from cavenav.sensors.lighting import (
     surface_table,
     vertex_normals,
 )
-from cavenav.sensors.optics import LUT_SCALE, Optics, tone_lut
+from cavenav.sensors.optics import Optics, tone_lut
 from cavenav.types import Observation, Pose
 from cavenav.world.raycast import RayCaster
 
@@ -78,14 +78,15 @@ class Frame:
         rgb: (H, W, 3) uint8 colour image.
         radiance: (H, W, 3) float32 linear radiance arriving at the lens, before white
             balance, vignetting, noise and tone curve (for tests and for users who want
-            to develop the image themselves).
+            to develop the image themselves); None unless asked for, as writing it
+            costs a tenth of the frame's shading.
         particles: marine-snow specks drawn.
     """
 
     depth_m: np.ndarray
     depth_png: np.ndarray
     rgb: np.ndarray
-    radiance: np.ndarray
+    radiance: np.ndarray | None
     particles: int
 
 
@@ -159,12 +160,19 @@ class SensorRig:
         self._attenuation = optics.medium.attenuation
         self._bounds = caster.mesh.bounds.astype(np.float32)
         self._lut = tone_lut(1.0)
+        # Work buffers of the shading passes, reused every frame (see kernels.shade_frame).
+        blocks = (-(-cfg.camera.height // SHARE), -(-cfg.camera.width // SHARE))
+        self._grid = np.empty((blocks[0] + 1, blocks[1] + 1, 8), np.float32)
+        self._grid_triangle = np.empty((blocks[0] + 1, blocks[1] + 1), np.uint32)
+        self._specks = np.zeros((len(self._pixel_dirs), 3), np.float32)
+        self._speck_blocks = np.zeros(blocks, np.uint8)
 
     def camera_position(self, pose: Pose) -> np.ndarray:
         return pose.position + self.config.camera_offset_m * pose.forward
 
-    def render(self, pose: Pose) -> Frame:
-        """Cast the forward frame at ``pose`` and form its depth and colour images."""
+    def render(self, pose: Pose, *, radiance: bool = False) -> Frame:
+        """Cast the forward frame at ``pose`` and form its depth and colour images, and
+        the linear radiance they were developed from if ``radiance``."""
         cfg = self.config
         optics = cfg.optics
         camera = cfg.camera
@@ -179,43 +187,46 @@ class SensorRig:
         lamps = self._lamps
         lamp_pos = (origin + lamps.position @ rot.T).astype(np.float32)
         lamp_axis = (lamps.axis @ rot.T).astype(np.float32)
-        # Degraded depth is written in place; the specks need the true surfaces behind them.
-        degraded = optics.depth_dropout > 0 or optics.depth_noise_m > 0
-        surfaces = depth.copy() if degraded else depth
-        radiance = np.empty((n, 3), np.float32)
-        depth_png = np.empty(n, np.uint8)
-        table = self._backscatter
-        key = _frame_key(cfg.seed, pose)
-        mean = shade_frame(
-            depth, raw["primitive_ids"], raw["primitive_normals"], raw["primitive_uvs"],
-            self._faces, self._vertex_normals, rays[:, 3:],
-            self._ray_length, origin, self._surface, self._surface_at, self._grain, lamp_pos,
-            lamp_axis, lamps.power,
-            lamps.cos_inner, lamps.cos_outer, self._attenuation, table.values, table.block,
-            table.far, optics.sky, self._bounds, optics.vignetting, key,
-            cfg.depth_min_m, cfg.depth_max_m, optics.depth_dropout, optics.depth_noise_m,
-            camera.width, radiance, depth_png,
-        )  # fmt: skip
+        lamp_tuple = (lamp_pos, lamp_axis, lamps.power, lamps.cos_inner, lamps.cos_outer)
         particles = 0
         if optics.particles > 0 and optics.light_power > 0:
+            # Before shading: the specks need the true surfaces behind them, which a
+            # degraded depth image no longer has.
             particles = splat_particles(
                 origin, rot, lamp_pos, lamp_axis, lamps.power, lamps.cos_inner,
                 lamps.cos_outer, self._attenuation, optics.particles, cfg.seed,
-                PARTICLE_REACH_M, camera.focal_px, camera.width, camera.height, surfaces,
-                radiance,
+                PARTICLE_REACH_M, camera.focal_px, camera.width, camera.height, depth,
+                self._specks, self._speck_blocks,
             )  # fmt: skip
-        gains, gain = camera_response(np.asarray(mean), optics)
-        rgb = np.empty((n, 3), np.uint8)
-        develop(
-            radiance, self._ray_length, gains, optics.vignetting, optics.noise, gain,
-            key, self._lut, LUT_SCALE, rgb,
+        cast = (depth, raw["primitive_ids"], raw["primitive_normals"], raw["primitive_uvs"])
+        ray_tuple = (rays[:, 3:], self._ray_length, origin)
+        scene = (self._faces, self._vertex_normals, self._surface, self._surface_at, self._grain)
+        table = self._backscatter
+        water = (self._attenuation, table.values, table.block, table.far, optics.sky, self._bounds)
+        mean = shade_grid(
+            cast, ray_tuple, scene, lamp_tuple, water, self._specks, self._speck_blocks,
+            optics.vignetting, camera.width, self._grid, self._grid_triangle,
         )  # fmt: skip
+        gains, gain = camera_response(np.asarray(mean), optics)
+        key = _frame_key(cfg.seed, pose)
+        develop = (gains, gain, optics.vignetting, optics.noise, key, self._lut)
+        depth_range = (cfg.depth_min_m, cfg.depth_max_m, optics.depth_dropout, optics.depth_noise_m)
+        light = np.empty((n if radiance else 0, 3), np.float32)
+        rgb = np.empty((n, 3), np.uint8)
+        depth_png = np.empty(n, np.uint8)
+        shade_frame(
+            cast, ray_tuple, scene, lamp_tuple, water, self._grid, self._grid_triangle,
+            self._specks, self._speck_blocks, develop, depth_range, camera.width, light, rgb,
+            depth_png,
+        )  # fmt: skip
+        if particles:
+            self._speck_blocks[:] = 0  # shade_frame has zeroed the specks it read
         shape = (camera.height, camera.width)
         return Frame(
             depth.reshape(shape),
             depth_png.reshape(shape),
             rgb.reshape(*shape, 3),
-            radiance.reshape(*shape, 3),
+            light.reshape(*shape, 3) if radiance else None,
             particles,
         )
 
