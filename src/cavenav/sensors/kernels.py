@@ -1,9 +1,12 @@
 """Per-pixel kernels compiled with numba: everything after the ray cast.
 
 The sensor step must cost little more than its ray cast (target: 1.5x). In numpy each
-formula is a separate pass over 307,200 pixels with its temporaries; here one parallel
-loop reads each hit once, shades it, develops it through the camera and writes the
-colour and the depth PNG directly. The model is described in `cavenav.sensors.optics`.
+formula is a separate pass over 307,200 pixels with its temporaries; here a frame takes
+two parallel passes. `shade_grid` shades every fourth pixel of every fourth row in full
+and meters the frame for the camera; `shade_frame` then reads each hit once, takes the
+smooth part of its light from the grid (or shades it in full at edges), develops it
+through the camera and writes the colour and the depth PNG directly. The model is
+described in `cavenav.sensors.optics`.
 
 Random numbers come from a counter-based hash (splitmix64) of a key and an index, so
 every pixel and particle draws its own numbers in any thread order: bit-identical images
@@ -607,8 +610,8 @@ def _finish(i, l0, l1, l2, lamp_return, hit, row, col, t, ray_length, specks, sp
             h = mix(frame_key ^ np.uint64(t.shape[0] + i))
             depth = max(depth + depth_noise * (depth / 10.0) ** 2 * _gauss(h), 0.0)
             t[i] = depth
-    norm = (min(depth, d_max) - d_min) / (d_max - d_min)
-    depth_png[i] = np.uint8(min(max(norm, 0.0), 1.0) * 255.0 + 0.5)
+    level = (min(depth, d_max) - d_min) * (255.0 / (d_max - d_min))  # hoisted out of the loop
+    depth_png[i] = np.uint8(min(max(level, 0.0), 255.0) + 0.5)
     if speck_blocks[row // SHARE, col // SHARE]:
         l0, l1, l2 = l0 + specks[i, 0], l1 + specks[i, 1], l2 + specks[i, 2]
         specks[i, 0] = specks[i, 1] = specks[i, 2] = 0.0
@@ -672,6 +675,7 @@ def shade_frame(
         top = a * SHARE
         fy = (row - top) / max(min(top + SHARE, height - 1) - top, 1)
         b = left = 0
+        across = 1.0
         t00 = t01 = t10 = t11 = _NO_HIT
         smooth_cell = False
         pending = np.empty(width, np.int64)
@@ -680,6 +684,7 @@ def shade_frame(
             if col % SHARE == 0:  # entering the cell between grid columns b and b + 1
                 b = col // SHARE
                 left = col
+                across = 1.0 / max(min(left + SHARE, width - 1) - left, 1)
                 smooth_cell = _smooth_cell(grid, a, b)
                 t00, t01 = grid_triangle[a, b], grid_triangle[a, b + 1]
                 t10, t11 = grid_triangle[a + 1, b], grid_triangle[a + 1, b + 1]
@@ -687,7 +692,7 @@ def shade_frame(
             tri = triangle[i]
             if smooth_cell and tri != _NO_HIT:
                 inverse = 1.0 / t[i]
-                fx = (col - left) / max(min(left + SHARE, width - 1) - left, 1)
+                fx = (col - left) * across
                 w00, w01 = (1.0 - fx) * (1.0 - fy), fx * (1.0 - fy)
                 w10, w11 = (1.0 - fx) * fy, fx * fy
                 if (

@@ -1,7 +1,7 @@
-"""The sensor rig: renders one Observation for a pose from a single main ray cast.
+"""The sensor rig: renders one Observation for a pose from a single ray cast.
 
 Forward colour and depth share one 640x480 cast (depth is the ray parameter, colour is
-shaded from the same hits); the two echo sounders are tiny extra casts.
+shaded from the same hits); the two echo sounders' few rays ride along in the same call.
 """
 
 from __future__ import annotations
@@ -136,7 +136,6 @@ class SensorRig:
         cfg = self.config
         self._pixel_dirs = cfg.camera.directions.reshape(-1, 3)
         self._ray_length = np.linalg.norm(self._pixel_dirs, axis=1)  # rotation-invariant
-        self._rays = np.empty((len(self._pixel_dirs), 6), np.float32)
         if cfg.sounder == "camera":
             w, h = cfg.sounder_pixels
             focal_mm = (
@@ -148,6 +147,13 @@ class SensorRig:
         else:
             self._sounder_dirs = _beam_directions(cfg.sounder_fov_deg)
             self._sounder_planar = False
+        # A beam sounder reads ranges, a camera planar depths: t times the direction's length.
+        lengths = np.linalg.norm(self._sounder_dirs, axis=1)
+        scale = np.ones_like(lengths) if self._sounder_planar else lengths
+        self._sounder_scale = np.tile(scale, 2)  # up, then down
+        # One ray buffer for the forward frame and, behind it, both sounders: an
+        # observation is a single cast.
+        self._rays = np.empty((len(self._pixel_dirs) + 2 * len(lengths), 6), np.float32)
         optics = cfg.optics
         self._surface = surface_table(caster, optics, cfg.seed)
         self._grain = rock_grain(cfg.seed)
@@ -173,22 +179,46 @@ class SensorRig:
     def render(self, pose: Pose, *, radiance: bool = False) -> Frame:
         """Cast the forward frame at ``pose`` and form its depth and colour images, and
         the linear radiance they were developed from if ``radiance``."""
+        return self._render(pose, radiance)[0]
+
+    def _sounder_rays(self, pose: Pose, out: np.ndarray) -> None:
+        """Write the up- and the down-looking sounder's rays into ``out`` (2k, 6)."""
+        k = len(self._sounder_dirs)
+        for j, sign in enumerate((1.0, -1.0)):
+            # An up- (down-) looking camera: optical axis +-z, image x along the vehicle's right.
+            rot = look_frame(sign * _UP, pose.right if sign > 0 else -pose.right)
+            out[j * k : (j + 1) * k, :3] = pose.position
+            out[j * k : (j + 1) * k, 3:] = self._sounder_dirs @ rot.T
+
+    def _readings(self, t: np.ndarray) -> tuple[float, float]:
+        """(d_top, d_bottom) from the ray parameters of `_sounder_rays`."""
+        up, down = (t * self._sounder_scale).reshape(2, -1).min(axis=1)
+        limit = self.config.sounder_max_range_m
+        return float(min(up, limit)), float(min(down, limit))
+
+    def _render(self, pose: Pose, radiance: bool) -> tuple[Frame, tuple[float, float]]:
+        """The forward frame and the sounders' (d_top, d_bottom), from one cast."""
         cfg = self.config
         optics = cfg.optics
         camera = cfg.camera
         rot = camera_to_world(pose).astype(np.float32)
         origin = self.camera_position(pose).astype(np.float32)
-        # Write origins and directions straight into the (n, 6) ray buffer Open3D reads.
+        # Write origins and directions straight into the ray buffer Open3D reads.
+        n = len(self._pixel_dirs)
         rays = self._rays
         fill_rays(self._pixel_dirs, rot, origin, rays)
+        self._sounder_rays(pose, rays[n:])  # 0.5% more rays, one call fewer
         raw = self.caster.cast_raw_rays(rays)
-        depth = raw["t_hit"]
-        n = len(rays)
+        readings = self._readings(raw["t_hit"][n:])
+        depth = raw["t_hit"][:n]
         lamps = self._lamps
         lamp_pos = (origin + lamps.position @ rot.T).astype(np.float32)
         lamp_axis = (lamps.axis @ rot.T).astype(np.float32)
         lamp_tuple = (lamp_pos, lamp_axis, lamps.power, lamps.cos_inner, lamps.cos_outer)
         particles = 0
+        if self._speck_blocks.any():  # a render interrupted after drawing its specks
+            self._specks[:] = 0.0
+            self._speck_blocks[:] = 0
         if optics.particles > 0 and optics.light_power > 0:
             # Before shading: the specks need the true surfaces behind them, which a
             # degraded depth image no longer has.
@@ -198,8 +228,13 @@ class SensorRig:
                 PARTICLE_REACH_M, camera.focal_px, camera.width, camera.height, depth,
                 self._specks, self._speck_blocks,
             )  # fmt: skip
-        cast = (depth, raw["primitive_ids"], raw["primitive_normals"], raw["primitive_uvs"])
-        ray_tuple = (rays[:, 3:], self._ray_length, origin)
+        cast = (
+            depth,
+            raw["primitive_ids"][:n],
+            raw["primitive_normals"][:n],
+            raw["primitive_uvs"][:n],
+        )
+        ray_tuple = (rays[:n, 3:], self._ray_length, origin)
         scene = (self._faces, self._vertex_normals, self._surface, self._surface_at, self._grain)
         table = self._backscatter
         water = (self._attenuation, table.values, table.block, table.far, optics.sky, self._bounds)
@@ -222,13 +257,14 @@ class SensorRig:
         if particles:
             self._speck_blocks[:] = 0  # shade_frame has zeroed the specks it read
         shape = (camera.height, camera.width)
-        return Frame(
+        frame = Frame(
             depth.reshape(shape),
             depth_png.reshape(shape),
             rgb.reshape(*shape, 3),
             light.reshape(*shape, 3) if radiance else None,
             particles,
         )
+        return frame, readings
 
     def forward_frame(self, pose: Pose) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Planar depth (H, W) float32 metres, its PNG (H, W) uint8 and colour (H, W, 3) uint8."""
@@ -237,26 +273,18 @@ class SensorRig:
 
     def echo_sounders(self, pose: Pose) -> tuple[float, float]:
         """(d_top, d_bottom) in metres from the vehicle's centre."""
-        readings = []
-        for sign in (1.0, -1.0):
-            # An up- (down-) looking camera: optical axis +-z, image x along the vehicle's right.
-            rot = look_frame(sign * _UP, pose.right if sign > 0 else -pose.right)
-            dirs = self._sounder_dirs @ rot.T
-            t = self.caster.first_hit(pose.position, dirs)
-            if not self._sounder_planar:
-                t = t * np.linalg.norm(dirs, axis=1)
-            readings.append(float(min(np.min(t), self.config.sounder_max_range_m)))
-        return readings[0], readings[1]
+        rays = np.empty((2 * len(self._sounder_dirs), 6), np.float32)
+        self._sounder_rays(pose, rays)
+        return self._readings(self.caster.cast_raw_rays(rays)["t_hit"])
 
     def observe(self, pose: Pose, step: int = 0) -> Observation:
-        """Render everything a pilot sees at ``pose``."""
+        """Render everything a pilot sees at ``pose``, from one ray cast."""
         cfg = self.config
-        depth, depth_png, rgb = self.forward_frame(pose)
-        d_top, d_bottom = self.echo_sounders(pose)
+        frame, (d_top, d_bottom) = self._render(pose, radiance=False)
         return Observation(
-            rgb=rgb,
-            depth_m=depth,
-            depth_png=depth_png,
+            rgb=frame.rgb,
+            depth_m=frame.depth_m,
+            depth_png=frame.depth_png,
             d_top=d_top,
             d_bottom=d_bottom,
             depth_range=(cfg.depth_min_m, cfg.depth_max_m),
