@@ -591,15 +591,9 @@ def _blend(grid, a, b, k, w00, w01, w10, w11) -> float:  # noqa: ANN001
 
 
 @numba.njit(inline="always")
-def _finish(i, l0, l1, l2, lamp_return, hit, row, col, t, ray_length, specks, speck_blocks, camera, depth_range, radiance, rgb, depth_png):  # fmt: skip  # noqa: ANN001, E501
-    """Everything after the light of pixel i is known: depth degradation, the depth PNG,
-    marine snow, and the camera: white balance, lens vignetting, sensor noise, exposure,
-    tone curve.
-
-    Noise is added to the sensor signal before the exposure gain, so a dark frame that the
-    auto exposure brightens shows its noise, as a real camera's does.
-    """
-    gains, gain, vignetting, noise, frame_key, lut = camera
+def _finish(i, l0, l1, l2, lamp_return, hit, col, t, frame_key, depth_range, row_light, depth_png):  # fmt: skip  # noqa: ANN001, E501
+    """Pixel i's depth degradation and depth PNG, once its light is known; the light goes
+    to ``row_light`` for the camera."""
     d_min, d_max, depth_dropout, depth_noise = depth_range
     depth = t[i]
     if hit:
@@ -610,26 +604,47 @@ def _finish(i, l0, l1, l2, lamp_return, hit, row, col, t, ray_length, specks, sp
             h = mix(frame_key ^ np.uint64(t.shape[0] + i))
             depth = max(depth + depth_noise * (depth / 10.0) ** 2 * _gauss(h), 0.0)
             t[i] = depth
-    level = (min(depth, d_max) - d_min) * (255.0 / (d_max - d_min))  # hoisted out of the loop
+    level = (min(depth, d_max) - d_min) * (255.0 / (d_max - d_min))
     depth_png[i] = np.uint8(min(max(level, 0.0), 255.0) + 0.5)
-    if speck_blocks[row // SHARE, col // SHARE]:
-        l0, l1, l2 = l0 + specks[i, 0], l1 + specks[i, 1], l2 + specks[i, 2]
-        specks[i, 0] = specks[i, 1] = specks[i, 2] = 0.0
+    row_light[col, 0], row_light[col, 1], row_light[col, 2] = l0, l1, l2
+
+
+@numba.njit(inline="always")
+def _develop_row(row, width, row_light, ray_length, specks, speck_blocks, camera, radiance, rgb):  # fmt: skip  # noqa: ANN001, E501
+    """Marine snow and the camera over one row's light: white balance, lens vignetting,
+    sensor noise, exposure, tone curve.
+
+    Noise is added to the sensor signal before the exposure gain, so a dark frame that the
+    auto exposure brightens shows its noise, as a real camera's does.
+    """
+    gains, gain, vignetting, noise, frame_key, lut = camera
+    read2 = (0.0005 * noise) ** 2
+    shot = 0.001 * noise / 3.0
+    start = row * width
+    for b in range(speck_blocks.shape[1]):
+        if speck_blocks[row // SHARE, b]:
+            for col in range(b * SHARE, min(b * SHARE + SHARE, width)):
+                for c in range(3):
+                    row_light[col, c] += specks[start + col, c]
+                    specks[start + col, c] = 0.0
     if radiance.shape[0]:
-        radiance[i, 0], radiance[i, 1], radiance[i, 2] = l0, l1, l2
-    lens = _lens(ray_length[i], vignetting)
-    v0, v1, v2 = l0 * gains[0] * lens, l1 * gains[1] * lens, l2 * gains[2] * lens
-    if noise > 0.0:
-        # Read noise plus shot noise of the pixel's mean level; three deviates from one
-        # 64-bit hash.
-        h = mix(frame_key ^ np.uint64(i))
-        sigma = math.sqrt((0.0005 * noise) ** 2 + 0.001 * noise * abs(v0 + v1 + v2) / 3.0)
-        v0 += sigma * _uniform(h, 0)
-        v1 += sigma * _uniform(h, 21)
-        v2 += sigma * _uniform(h, 42)
-    rgb[i, 0] = _tone(lut, v0 * gain)
-    rgb[i, 1] = _tone(lut, v1 * gain)
-    rgb[i, 2] = _tone(lut, v2 * gain)
+        radiance[start : start + width] = row_light
+    for col in range(width):
+        i = start + col
+        l0, l1, l2 = row_light[col, 0], row_light[col, 1], row_light[col, 2]
+        lens = _lens(ray_length[i], vignetting)
+        v0, v1, v2 = l0 * gains[0] * lens, l1 * gains[1] * lens, l2 * gains[2] * lens
+        if noise > 0.0:
+            # Read noise plus shot noise of the pixel's mean level; three deviates from
+            # one 64-bit hash.
+            h = mix(frame_key ^ np.uint64(i))
+            sigma = math.sqrt(read2 + shot * abs(v0 + v1 + v2))
+            v0 += sigma * _uniform(h, 0)
+            v1 += sigma * _uniform(h, 21)
+            v2 += sigma * _uniform(h, 42)
+        rgb[i, 0] = _tone(lut, v0 * gain)
+        rgb[i, 1] = _tone(lut, v1 * gain)
+        rgb[i, 2] = _tone(lut, v2 * gain)
 
 
 @numba.njit(parallel=True, fastmath=_FAST, cache=True)
@@ -663,11 +678,13 @@ def shade_frame(
     within 25 degrees (`SAME_FACING`; smooth shading makes the light continuous across
     such creases), and 1 / depth, which is linear across the image of a plane, within 2%
     of the interpolation. The other pixels (silhouettes, sharp edges, open water) are
-    shaded on their own, in a second loop per row that keeps the first one lean. Depth,
-    marine snow and noise are always per pixel.
+    shaded on their own, in a second loop per row that keeps the first one lean; a third
+    adds the marine snow and develops the row's light, still in L1, through the camera.
+    Depth, marine snow and noise are always per pixel.
     """
     t, triangle, normals, _ = cast
     ray_length = rays[1]
+    frame_key = camera[4]
     own_lamps = (lamps[0], lamps[1], lamps[2], lamps[4], 1.0 / (lamps[3] - lamps[4]))
     height = t.shape[0] // width
     for row in numba.prange(height):
@@ -679,6 +696,7 @@ def shade_frame(
         t00 = t01 = t10 = t11 = _NO_HIT
         smooth_cell = False
         pending = np.empty(width, np.int64)
+        row_light = np.empty((width, 3), np.float32)
         count = 0
         for col in range(width):
             if col % SHARE == 0:  # entering the cell between grid columns b and b + 1
@@ -709,9 +727,8 @@ def shade_frame(
                         i, _blend(grid, a, b, 4, w00, w01, w10, w11),
                         _blend(grid, a, b, 5, w00, w01, w10, w11),
                         _blend(grid, a, b, 6, w00, w01, w10, w11),
-                        _blend(grid, a, b, 7, w00, w01, w10, w11), True, row, col, t,
-                        ray_length, specks, speck_blocks, camera, depth_range, radiance, rgb,
-                        depth_png,
+                        _blend(grid, a, b, 7, w00, w01, w10, w11), True, col, t, frame_key,
+                        depth_range, row_light, depth_png,
                     )  # fmt: skip
                     continue
             pending[count] = col
@@ -721,9 +738,10 @@ def shade_frame(
             i = row * width + col
             l0, l1, l2, lamp_return = _own_light(i, row, col, cast, rays, scene, own_lamps, water)
             _finish(
-                i, l0, l1, l2, lamp_return, triangle[i] != _NO_HIT, row, col, t, ray_length,
-                specks, speck_blocks, camera, depth_range, radiance, rgb, depth_png,
+                i, l0, l1, l2, lamp_return, triangle[i] != _NO_HIT, col, t, frame_key,
+                depth_range, row_light, depth_png,
             )  # fmt: skip
+        _develop_row(row, width, row_light, ray_length, specks, speck_blocks, camera, radiance, rgb)
 
 
 @numba.njit(parallel=True, fastmath=_FAST, cache=True)
