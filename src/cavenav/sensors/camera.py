@@ -56,7 +56,10 @@ def look_frame(forward: np.ndarray, right: np.ndarray) -> np.ndarray:
     """(3, 3) rotation whose columns are the camera's x (right), y (down), z (forward)."""
     f = np.asarray(forward, np.float64) / np.linalg.norm(forward)
     r = np.asarray(right, np.float64) / np.linalg.norm(right)
-    down = np.cross(f, r)  # z x x = y in a right-handed camera frame
+    # z x x = y in a right-handed camera frame (written out: np.cross costs 20x on 3-vectors)
+    down = np.array(
+        [f[1] * r[2] - f[2] * r[1], f[2] * r[0] - f[0] * r[2], f[0] * r[1] - f[1] * r[0]]
+    )
     return np.stack([r, down, f], axis=1)
 
 

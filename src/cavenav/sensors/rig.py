@@ -147,6 +147,15 @@ class SensorRig:
         else:
             self._sounder_dirs = _beam_directions(cfg.sounder_fov_deg)
             self._sounder_planar = False
+        # Both sounders' directions at heading 0: an up- (down-) looking camera, optical
+        # axis +-z, image x along the vehicle's right. Each pose turns them about z.
+        level = Pose(0.0, 0.0, 0.0, 0.0)
+        self._sounder_level = np.concatenate(
+            [
+                self._sounder_dirs @ look_frame(_UP, level.right).T,
+                self._sounder_dirs @ look_frame(-_UP, -level.right).T,
+            ]
+        )
         # A beam sounder reads ranges, a camera planar depths: t times the direction's length.
         lengths = np.linalg.norm(self._sounder_dirs, axis=1)
         scale = np.ones_like(lengths) if self._sounder_planar else lengths
@@ -182,13 +191,10 @@ class SensorRig:
         return self._render(pose, radiance)[0]
 
     def _sounder_rays(self, pose: Pose, out: np.ndarray) -> None:
-        """Write the up- and the down-looking sounder's rays into ``out`` (2k, 6)."""
-        k = len(self._sounder_dirs)
-        for j, sign in enumerate((1.0, -1.0)):
-            # An up- (down-) looking camera: optical axis +-z, image x along the vehicle's right.
-            rot = look_frame(sign * _UP, pose.right if sign > 0 else -pose.right)
-            out[j * k : (j + 1) * k, :3] = pose.position
-            out[j * k : (j + 1) * k, 3:] = self._sounder_dirs @ rot.T
+        """Write the up- and then the down-looking sounder's rays into ``out`` (2k, 6)."""
+        c, s = math.cos(pose.psi), math.sin(pose.psi)
+        out[:, :3] = pose.position
+        out[:, 3:] = self._sounder_level @ np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
 
     def _readings(self, t: np.ndarray) -> tuple[float, float]:
         """(d_top, d_bottom) from the ray parameters of `_sounder_rays`."""
