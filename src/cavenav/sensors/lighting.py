@@ -77,9 +77,9 @@ def rock_albedo(mesh: CaveMesh, seed: int = 0, colour=(0.40, 0.37, 0.33)) -> np.
 def rock_grain(seed: int = 0, size: int = 64, strength: float = 0.5) -> np.ndarray:
     """(size,)*3 float32 tileable texture of relative albedo changes, mean 0.
 
-    Sampled per pixel at the hit point (`kernels.GRAIN_VOXEL_M` per texel, so a 3.8 m
-    tile): the centimetre-scale grain, pits and streaks of rock that no triangle mesh
-    carries, at one trilinear lookup per pixel. Two octaves of smoothed white noise,
+    Sampled at the hit points the renderer shades in full (`kernels.GRAIN_VOXEL_M` per
+    texel, so a 3.8 m tile): the centimetre-scale grain, pits and streaks of rock that no
+    triangle mesh carries, at one trilinear lookup each. Two octaves of smoothed white noise,
     wrapped so the tile repeats without seams, plus a faint layering along z.
     """
     rng = np.random.default_rng([seed, 11])
