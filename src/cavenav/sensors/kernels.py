@@ -156,15 +156,25 @@ def _smooth_normal(nx, ny, nz, u, v, a, b, c, vertex_normals):  # noqa: ANN001, 
 
 
 GRAIN_VOXEL_M = 0.06  # texel of the rock-grain texture
+GRAIN_STEP = 0.5 / 127.0  # relative albedo change per unit of the int8 texture
 _INV_GRAIN = 1.0 / GRAIN_VOXEL_M
 
 
 @numba.njit(inline="always")
+def _lerp(a, b, f: float) -> float:  # noqa: ANN001
+    """a + f (b - a), in floating point whatever the type of a and b."""
+    low = float(a)
+    return low + f * (float(b) - low)
+
+
+@numba.njit(inline="always")
 def _texture(field: np.ndarray, x: float, y: float, z: float) -> float:
-    """Trilinear sample of a tileable (g, g, g) texture (g a power of two) at world (x, y, z).
+    """Trilinear sample of a tileable (g, g, g) int8 texture (g a power of two) at world
+    (x, y, z), in the texture's units.
 
     Coordinates are shifted positive so that truncation is floor, and wrapped with a bit
-    mask: no floor calls, no modulo branches in the hottest loop.
+    mask: no floor calls, no modulo branches in the hottest loop. One byte a texel keeps
+    a 64^3 texture (256 KB) in the L2 cache: a quarter of float32's cache misses.
     """
     mask = field.shape[0] - 1
     u = x * _INV_GRAIN + 65536.0
@@ -174,10 +184,10 @@ def _texture(field: np.ndarray, x: float, y: float, z: float) -> float:
     au, av, aw = u - iu, v - iv, w - iw
     i0, j0, k0 = iu & mask, iv & mask, iw & mask
     i1, j1, k1 = (iu + 1) & mask, (iv + 1) & mask, (iw + 1) & mask
-    c00 = field[i0, j0, k0] + aw * (field[i0, j0, k1] - field[i0, j0, k0])
-    c01 = field[i0, j1, k0] + aw * (field[i0, j1, k1] - field[i0, j1, k0])
-    c10 = field[i1, j0, k0] + aw * (field[i1, j0, k1] - field[i1, j0, k0])
-    c11 = field[i1, j1, k0] + aw * (field[i1, j1, k1] - field[i1, j1, k0])
+    c00 = _lerp(field[i0, j0, k0], field[i0, j0, k1], aw)
+    c01 = _lerp(field[i0, j1, k0], field[i0, j1, k1], aw)
+    c10 = _lerp(field[i1, j0, k0], field[i1, j0, k1], aw)
+    c11 = _lerp(field[i1, j1, k0], field[i1, j1, k1], aw)
     c0 = c00 + av * (c01 - c00)
     c1 = c10 + av * (c11 - c10)
     return c0 + au * (c1 - c0)
@@ -448,7 +458,7 @@ def _rock(i, depth, origin, dx, dy, dz, length, cast, scene, lamps, c0, c1, c2):
         normals[i, 0], normals[i, 1], normals[i, 2], uvs, faces, vertex_normals, surface,
         surface_at, lamp_pos, lamp_axis, lamp_power, cos_outer, cone_scale, c0, c1, c2,
     )  # fmt: skip
-    grain = 1.0 + _texture(grain_field, hx, hy, hz)
+    grain = 1.0 + GRAIN_STEP * _texture(grain_field, hx, hy, hz)
     return grain * k0, grain * k1, grain * k2, lamp_return
 
 

@@ -28,6 +28,7 @@ from scipy.ndimage import gaussian_filter
 
 from cavenav.sensors.camera import CameraIntrinsics
 from cavenav.sensors.kernels import (
+    GRAIN_STEP,
     bounce_light,
     gather_sky,
     hemisphere_rays,
@@ -75,19 +76,20 @@ def rock_albedo(mesh: CaveMesh, seed: int = 0, colour=(0.40, 0.37, 0.33)) -> np.
 
 
 def rock_grain(seed: int = 0, size: int = 64, strength: float = 0.5) -> np.ndarray:
-    """(size,)*3 float32 tileable texture of relative albedo changes, mean 0.
+    """(size,)*3 int8 tileable texture of relative albedo changes in units of
+    `kernels.GRAIN_STEP`, mean 0, at most ``strength`` (0.5 at most) either way.
 
     Sampled at the hit points the renderer shades in full (`kernels.GRAIN_VOXEL_M` per
     texel, so a 3.8 m tile): the centimetre-scale grain, pits and streaks of rock that no
-    triangle mesh carries, at one trilinear lookup each. Two octaves of smoothed white noise,
-    wrapped so the tile repeats without seams, plus a faint layering along z.
+    triangle mesh carries, at one trilinear lookup each. Two octaves of smoothed white
+    noise, wrapped so the tile repeats without seams.
     """
     rng = np.random.default_rng([seed, 11])
     fine = gaussian_filter(rng.normal(size=(size,) * 3), sigma=1.0, mode="wrap")
     coarse = gaussian_filter(rng.normal(size=(size,) * 3), sigma=3.0, mode="wrap")
     field = fine / fine.std() + 0.6 * coarse / coarse.std()
-    field /= np.abs(field).max()
-    return (strength * field).astype(np.float32)
+    field *= min(strength, 127 * GRAIN_STEP) / np.abs(field).max()
+    return np.round(field / GRAIN_STEP).astype(np.int8)
 
 
 def face_normals(mesh: CaveMesh) -> tuple[np.ndarray, np.ndarray]:

@@ -78,8 +78,8 @@ class Frame:
         rgb: (H, W, 3) uint8 colour image.
         radiance: (H, W, 3) float32 linear radiance arriving at the lens, before white
             balance, vignetting, noise and tone curve (for tests and for users who want
-            to develop the image themselves); None unless asked for, as writing it
-            costs a tenth of the frame's shading.
+            to develop the image themselves); None unless asked for, to spare every
+            step the memory traffic.
         particles: marine-snow specks drawn.
     """
 
