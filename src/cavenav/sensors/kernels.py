@@ -517,6 +517,13 @@ def _own_light(i, row, col, cast, rays, scene, lamps, water):  # noqa: ANN001, A
     return v0 + o0, v1 + o1, v2 + o2, lamp_return
 
 
+@numba.njit(inline="always")
+def _cone_scaled(lamps):  # noqa: ANN001, ANN202
+    """(position, axis, power, cos_inner, cos_outer) to what `_surface_light` reads:
+    (position, axis, power, cos_outer, 1 / (cos_inner - cos_outer))."""
+    return lamps[0], lamps[1], lamps[2], lamps[4], 1.0 / (lamps[3] - lamps[4])
+
+
 @numba.njit(parallel=True, fastmath=_FAST, cache=True)
 def shade_grid(
     cast: tuple,  # (t, triangle, normals, uvs) as in shade_frame
@@ -543,7 +550,7 @@ def shade_grid(
     """
     t, triangle, normals, _ = cast
     ray_length = rays[1]
-    lamps = (lamps[0], lamps[1], lamps[2], lamps[4], 1.0 / (lamps[3] - lamps[4]))
+    lamps = _cone_scaled(lamps)
     height = t.shape[0] // width
     sum0 = sum1 = sum2 = 0.0
     for a in numba.prange(grid.shape[0]):
@@ -695,7 +702,7 @@ def shade_frame(
     t, triangle, normals, _ = cast
     ray_length = rays[1]
     frame_key = camera[4]
-    own_lamps = (lamps[0], lamps[1], lamps[2], lamps[4], 1.0 / (lamps[3] - lamps[4]))
+    own_lamps = _cone_scaled(lamps)
     height = t.shape[0] // width
     for row in numba.prange(height):
         a = row // SHARE
