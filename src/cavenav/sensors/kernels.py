@@ -463,13 +463,12 @@ def _rock(i, depth, origin, dx, dy, dz, length, cast, scene, lamps, c0, c1, c2):
 
 
 @numba.njit(inline="always")
-def _open_water(origin, dx, dy, dz, length, sky, bounds, c0, c1, c2):  # noqa: ANN001, ANN202
-    """Open water beyond the cave along a ray that escapes it, dimmed by the water up to
-    the cave's bounding box."""
-    ex, ey, ez = dx / length, dy / length, dz / length
-    r_exit = min(_leave(origin[0], ex, bounds[0, 0], bounds[1, 0]),
-                 _leave(origin[1], ey, bounds[0, 1], bounds[1, 1]),
-                 _leave(origin[2], ez, bounds[0, 2], bounds[1, 2]))  # fmt: skip
+def _open_water(ox, oy, oz, ex, ey, ez, sky, bounds, c0, c1, c2):  # noqa: ANN001, ANN202
+    """Open water beyond the cave along a ray from (ox, oy, oz) in unit direction
+    (ex, ey, ez) that escapes it, dimmed by the water up to the cave's bounding box."""
+    r_exit = min(_leave(ox, ex, bounds[0, 0], bounds[1, 0]),
+                 _leave(oy, ey, bounds[0, 1], bounds[1, 1]),
+                 _leave(oz, ez, bounds[0, 2], bounds[1, 2]))  # fmt: skip
     shape = _sky_shape(ez)
     return (
         sky[0] * shape * math.exp(-c0 * r_exit),
@@ -508,7 +507,10 @@ def _own_light(i, row, col, cast, rays, scene, lamps, water):  # noqa: ANN001, A
     dx, dy, dz = directions[i, 0], directions[i, 1], directions[i, 2]
     v0, v1, v2 = _veil(backscatter, row // block, col // block, depth, far)
     if triangle[i] == _NO_HIT:
-        o0, o1, o2 = _open_water(origin, dx, dy, dz, length, sky, bounds, c0, c1, c2)
+        o0, o1, o2 = _open_water(
+            origin[0], origin[1], origin[2], dx / length, dy / length, dz / length,
+            sky, bounds, c0, c1, c2,
+        )  # fmt: skip
         lamp_return = 0.0
     else:
         o0, o1, o2, lamp_return = _rock(
@@ -815,14 +817,11 @@ def gather_sky(
         for j in range(r):
             i = f * r + j
             if ids[i] == _NO_HIT:
-                ex, ey, ez = rays[i, 3], rays[i, 4], rays[i, 5]
-                r_exit = min(_leave(rays[i, 0], ex, bounds[0, 0], bounds[1, 0]),
-                             _leave(rays[i, 1], ey, bounds[0, 1], bounds[1, 1]),
-                             _leave(rays[i, 2], ez, bounds[0, 2], bounds[1, 2]))  # fmt: skip
-                shape = _sky_shape(ez)
-                d0 += sky[0] * shape * math.exp(-attenuation[0] * r_exit)
-                d1 += sky[1] * shape * math.exp(-attenuation[1] * r_exit)
-                d2 += sky[2] * shape * math.exp(-attenuation[2] * r_exit)
+                o0, o1, o2 = _open_water(
+                    rays[i, 0], rays[i, 1], rays[i, 2], rays[i, 3], rays[i, 4], rays[i, 5],
+                    sky, bounds, attenuation[0], attenuation[1], attenuation[2],
+                )  # fmt: skip
+                d0, d1, d2 = d0 + o0, d1 + o1, d2 + o2
                 hit_face[f, j] = -1
                 hit_side[f, j] = 0
                 hit_dist[f, j] = 0.0
