@@ -28,6 +28,9 @@ def synthetic(
         depth_png=normalise_depth(depth),
         d_top=d_top,
         d_bottom=d_bottom,
+        depth_range=(0.0, 20.0),
+        hfov_deg=53.13,
+        camera_offset_m=0.2,
     )
 
 

@@ -14,7 +14,7 @@ from cavenav.actions import ActionSpace
 from cavenav.errors import ActionError, ConfigError
 from cavenav.pilots.prompt import PromptConfig, render_repair, render_system
 from cavenav.pilots.reply import parse_reply
-from cavenav.types import Action
+from cavenav.types import Action, Rules
 
 
 def test_the_prompt_has_the_four_parts_and_the_reply_format() -> None:
@@ -44,11 +44,13 @@ def test_every_number_in_the_prompt_comes_from_the_configuration() -> None:
     space = ActionSpace(
         forward_m=(0.0, 0.25, 0.75), yaw_deg=(0.0, 12.0), vertical_range_m=(0.2, 1.5)
     )
+    rules = Rules(standoff_m=3.0, no_forward_within_m=2.5, slow_forward_m=(0.1, 0.3))
     text = render_system(
-        PromptConfig(space=space, standoff_m=3.0, no_forward_within_m=2.5, depth_max_m=30.0)
+        PromptConfig(space=space, rules=rules), depth_range=(0.5, 30.0), hfov_deg=70
     )
     assert "0.25, 0.75 m" in text and "12 degrees" in text and "from 0.2 to 1.5 m" in text
-    assert "3 m from walls" in text and "within 2.5 m" in text and "30 m or more" in text
+    assert "3 m from walls" in text and "within 2.5 m" in text and "at most 0.1-0.3 m" in text
+    assert "30 m or more" in text and "0.5 + g / 255" in text and "70.0 degrees wide" in text
     assert "90" not in text.split("# The action")[1]  # the default yaw set is gone
 
 

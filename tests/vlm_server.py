@@ -115,8 +115,16 @@ class FakeVLM:
             current = next(t for t in reversed(texts) if t.startswith("Current observation"))
             top, bottom = (float(v) for v in re.findall(r"= ([-\d.]+) m", current)[:2])
             depth = _decode(images[-1], "L")
+            # The server's "model" reads the images with the simulator's camera.
             obs = Observation(
-                _decode(images[-2], "RGB"), depth.astype(np.float32), depth, top, bottom
+                _decode(images[-2], "RGB"),
+                depth.astype(np.float32),
+                depth,
+                top,
+                bottom,
+                depth_range=(0.0, 20.0),
+                hfov_deg=53.13,
+                camera_offset_m=0.2,
             )
             decision = self._pilot.decide(obs)
             self._last_answer = (decision.action, decision.justification)

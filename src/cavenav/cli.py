@@ -21,6 +21,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.table import Table
 
 from cavenav.errors import CavenavError
+from cavenav.sensors.depth import DEPTH_RANGE_M
 
 app = typer.Typer(
     add_completion=False,
@@ -30,7 +31,7 @@ app = typer.Typer(
 console = Console()
 errors = Console(stderr=True, soft_wrap=True)
 
-PILOTS = ("geometric", "vlm", "replay")
+PILOTS = ("geometric", "vlm", "replay", "random")
 
 
 class Sounder(StrEnum):
@@ -84,6 +85,8 @@ def _sensors(cave: Any, base: Any, **options: Any) -> Any:  # noqa: ANN401 - laz
     return replace(base, optics=optics_from_table(flags, optics, where="options"))
 
 
+DepthMax = Annotated[float, typer.Option(help="D_max of the depth PNG, metres")]
+
 # Options shared by `run --pilot vlm` and `ask`.
 BaseUrl = Annotated[
     str | None,
@@ -127,7 +130,6 @@ def _vlm_pilot(
     price: str | None,
     cache: Path | None,
     device: str,
-    depth_max: float = 20.0,
 ):  # noqa: ANN202 - VLMPilot
     from cavenav.pilots.backends import (
         CachedBackend,
@@ -174,9 +176,7 @@ def _vlm_pilot(
                 f"--price must be 'input,output' in USD per million tokens, got '{price}'"
             ) from None
         prices = (price_in, price_out)
-    prompt = PromptConfig(
-        history=history, system_file=prompt_file, structured=structured, depth_max_m=depth_max
-    )
+    prompt = PromptConfig(history=history, system_file=prompt_file, structured=structured)
     return VLMPilot(engine, prompt, max_requeries=requeries, detail=detail, price_per_mtok=prices)
 
 
@@ -188,8 +188,11 @@ def run(
     out: Annotated[Path, typer.Option(help="folder that receives the run folder")] = Path("runs"),
     steps: Annotated[int, typer.Option(min=1, help="step budget")] = 150,
     frames: Annotated[bool, typer.Option(help="save RGB, depth PNG and EXR of every step")] = True,
+    shield: Annotated[
+        bool, typer.Option(help="safety shield between pilot and vehicle (cavenav.shield)")
+    ] = False,
     sounder: Annotated[Sounder, typer.Option(help="echo-sounder model")] = Sounder.camera,
-    depth_max: Annotated[float, typer.Option(help="D_max of the depth PNG, metres")] = 20.0,
+    depth_max: DepthMax = DEPTH_RANGE_M[1],
     water: WaterOpt = None,
     light_power: LightPower = None,
     daylight: Daylight = None,
@@ -254,8 +257,11 @@ def run(
             price=price,
             cache=cache,
             device=device,
-            depth_max=depth_max,
         )
+    elif pilot == "random":
+        from cavenav.pilots.random_pilot import RandomPilot
+
+        flyer = RandomPilot(seed)
     else:
         from cavenav.pilots.geometric import GeometricPilot
 
@@ -273,7 +279,7 @@ def run(
         depth_dropout=depth_dropout,
         depth_noise_m=depth_noise,
     )
-    config = EpisodeConfig(max_steps=steps, save_frames=frames, sensors=sensors)
+    config = EpisodeConfig(max_steps=steps, save_frames=frames, shield=shield, sensors=sensors)
     run_dir = new_run_dir(out, cave.name, pilot, cave.seed)
     console.print(
         f"[bold]{cave.name}[/]: {cave.description or cave.mesh.name} "
@@ -319,7 +325,7 @@ def render(
     daylight: Daylight = None,
     particles: Particles = None,
     noise: Noise = None,
-    depth_max: Annotated[float, typer.Option(help="D_max of the depth PNG, metres")] = 20.0,
+    depth_max: DepthMax = DEPTH_RANGE_M[1],
 ) -> None:
     """Write a contact sheet: colour and depth views from poses along the passage."""
     from cavenav.episode.gallery import passage_poses, write_contact_sheet
@@ -377,6 +383,9 @@ def ask(
         except (OSError, UnidentifiedImageError) as exc:
             raise CavenavError(f"cannot read image {path}: {exc}") from None
 
+    from cavenav.sensors.camera import CameraIntrinsics
+    from cavenav.sensors.depth import DEPTH_RANGE_M
+
     rgb = read(image, "RGB")
     depth_png = read(depth, "L") if depth else np.full(rgb.shape[:2], 255, np.uint8)
     pilot = _vlm_pilot(
@@ -404,6 +413,8 @@ def ask(
         depth_png=depth_png,
         d_top=nan if top is None else top,
         d_bottom=nan if bottom is None else bottom,
+        depth_range=DEPTH_RANGE_M,
+        hfov_deg=CameraIntrinsics().hfov_deg,
     )
     decision = pilot.decide(observation)
     console.rule("reasoning")
@@ -435,6 +446,10 @@ def _print_summary(summary: dict) -> None:
         ("sensing per step", f"{summary['mean_sense_ms']} ms"),
         ("pilot per step", f"{summary['mean_pilot_ms']} ms"),
     ]
+    if summary.get("shield"):
+        rows.append(("shield interventions", summary["shield_interventions"]))
+    if summary.get("invalid_actions"):
+        rows.append(("invalid actions (held)", summary["invalid_actions"]))
     usage = summary.get("usage")
     if usage:
         rows += [

@@ -46,12 +46,15 @@ class PilotFailure(CavenavError):
     """The pilot could not produce a valid action; the episode ends as `pilot_failure`.
 
     Attributes:
-        exchanges: the requests and replies of the failed step, kept for the record.
+        exchanges: the requests and replies of the failed step (plain JSON records, as
+            in `Decision.exchanges`), kept for the record.
+        usage: what the failed step cost (a `cavenav.types.Usage`), counted like any other.
     """
 
-    def __init__(self, message: str, exchanges: tuple = ()):
+    def __init__(self, message: str, exchanges: tuple = (), usage: object | None = None):
         super().__init__(message)
         self.exchanges = exchanges
+        self.usage = usage
 
 
 class DependencyError(CavenavError, ImportError):

@@ -1,4 +1,6 @@
-"""The plain values that flow around the loop: pose, action, observation, decision.
+"""The plain values that flow around the loop: pose, action, observation, decision, usage,
+and the two sets of numbers every layer must agree on: the vehicle's size and the
+strategy's distances.
 
 This module is a leaf: it imports nothing from cavenav, so every layer can use it.
 
@@ -10,11 +12,23 @@ above, i.e. to the left.
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
+from functools import cached_property
+from typing import Any
 
 import numpy as np
 
-__all__ = ["Action", "Decision", "Observation", "Pose"]
+__all__ = [
+    "DEFAULT_RULES",
+    "Action",
+    "Decision",
+    "Observation",
+    "Pose",
+    "Rules",
+    "Usage",
+    "VehicleBody",
+]
 
 
 @dataclass(frozen=True)
@@ -83,8 +97,60 @@ class Action:
 
 
 @dataclass(frozen=True)
+class Rules:
+    """The strategy's distances (SPEC section 3), set once here.
+
+    The prompt states them, the geometric pilot and the safety shield enforce them, and
+    the metrics count the steps below the standoff, all from one `Rules` value.
+
+    Attributes:
+        standoff_m: desired distance to walls, ceiling and floor.
+        no_forward_within_m: an obstacle ahead closer than this forbids forward motion.
+        slow_forward_m: the forward range allowed inside the standoff; its upper end
+            is the largest forward step there.
+    """
+
+    standoff_m: float = 2.0
+    no_forward_within_m: float = 1.5
+    slow_forward_m: tuple[float, float] = (0.1, 0.2)
+
+
+DEFAULT_RULES = Rules()
+
+
+@dataclass(frozen=True)
+class VehicleBody:
+    """A box the size of a BlueROV2: 0.46 m long, 0.34 m wide, 0.25 m high."""
+
+    length: float = 0.46
+    width: float = 0.34
+    height: float = 0.25
+
+    @property
+    def bounding_radius(self) -> float:
+        """Radius of the sphere around the box: farther than this from walls is always safe."""
+        return 0.5 * math.sqrt(self.length**2 + self.width**2 + self.height**2)
+
+    @cached_property
+    def hull_points(self) -> np.ndarray:
+        """(27, 3) body-frame points (forward, right, up): corners, edge and face centres."""
+        h = np.array([self.length, self.width, self.height]) / 2.0
+        g = np.array(np.meshgrid([-1, 0, 1], [-1, 0, 1], [-1, 0, 1], indexing="ij"))
+        return g.reshape(3, -1).T * h
+
+    def world_points(self, pose: Pose) -> np.ndarray:
+        """(27, 3) hull points in world coordinates at ``pose``."""
+        rot = np.stack([pose.forward, pose.right, np.array([0.0, 0.0, 1.0])], axis=1)
+        return pose.position + self.hull_points @ rot.T
+
+
+@dataclass(frozen=True)
 class Observation:
     """What a pilot may see at one step; never the mesh, never the pose.
+
+    Besides the images it carries what a real vehicle's calibration says about them
+    (depth range, field of view, where the camera sits), so every reader interprets
+    them with the numbers of the camera that took them.
 
     Attributes:
         rgb: (H, W, 3) uint8 forward colour image.
@@ -93,7 +159,12 @@ class Observation:
         d_top: range to the ceiling from the upward echo sounder, metres.
         d_bottom: range to the floor from the downward echo sounder, metres.
         depth_range: (D_min, D_max) in metres used for ``depth_png``.
+        hfov_deg: horizontal field of view of both forward images, degrees.
+        camera_offset_m: how far ahead of the vehicle's centre the camera sits.
         step: index of the step at which this was observed.
+        previous_action: the action the vehicle executed since the previous
+            observation (after any safety shield), as its own command log knows it;
+            None at the start of an episode or when the source does not say.
     """
 
     rgb: np.ndarray
@@ -101,21 +172,84 @@ class Observation:
     depth_png: np.ndarray
     d_top: float
     d_bottom: float
-    depth_range: tuple[float, float] = (0.0, 20.0)
+    depth_range: tuple[float, float]
+    hfov_deg: float
+    camera_offset_m: float = 0.0
     step: int = 0
+    previous_action: Action | None = None
+
+
+@dataclass(frozen=True)
+class Usage:
+    """What one step of a model pilot cost: tokens, time, re-queries, retries, money.
+
+    Pilots without a model report none. Totals are taken with `Usage.total`, the one
+    place where usage is summed.
+
+    Attributes:
+        prompt_tokens, completion_tokens: token counts over every request of the step.
+        latency_s: time spent waiting for the model, seconds.
+        requeries: replies rejected and asked again.
+        transport_retries: requests repeated after transport faults.
+        cached: every reply came from the reply cache.
+        cost_usd: estimated cost, when prices were given.
+    """
+
+    prompt_tokens: int = 0
+    completion_tokens: int = 0
+    latency_s: float = 0.0
+    requeries: int = 0
+    transport_retries: int = 0
+    cached: bool = False
+    cost_usd: float | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        """The per-step record written to steps.jsonl under ``vlm``."""
+        return {
+            "prompt_tokens": self.prompt_tokens,
+            "completion_tokens": self.completion_tokens,
+            "latency_s": round(self.latency_s, 4),
+            "requeries": self.requeries,
+            "transport_retries": self.transport_retries,
+            "cached": self.cached,
+            "cost_usd": self.cost_usd,
+        }
+
+    @staticmethod
+    def total(steps: Iterable[Usage]) -> dict[str, Any] | None:
+        """Episode totals (summary.json's ``usage``); None for pilots without a model."""
+        steps = list(steps)
+        if not steps:
+            return None
+        costs = [s.cost_usd for s in steps if s.cost_usd is not None]
+        return {
+            "model_steps": len(steps),
+            "prompt_tokens": sum(s.prompt_tokens for s in steps),
+            "completion_tokens": sum(s.completion_tokens for s in steps),
+            "requeries": sum(s.requeries for s in steps),
+            "transport_retries": sum(s.transport_retries for s in steps),
+            "mean_latency_s": round(sum(s.latency_s for s in steps) / len(steps), 4),
+            "cost_usd": round(sum(costs), 6) if costs else None,
+        }
 
 
 @dataclass(frozen=True)
 class Decision:
     """A pilot's answer: the action, its string form, the justification and the raw text.
 
-    ``raw`` keeps the complete reply (reasoning included) so a run can be audited;
-    ``extra`` holds per-step accounting (tokens, latency) that goes into steps.jsonl.
+    Attributes:
+        raw: the complete reply (reasoning included), so a run can be audited.
+        usage: what the step cost a model pilot; None for pilots without a model.
+        exchanges: the model requests and replies behind the decision, as plain JSON
+            records (``messages`` with image data URLs, ``reply``, ``rejected``, ...);
+            the run folder stores them without knowing any backend.
+        extra: other per-step fields a pilot wants in steps.jsonl.
     """
 
     action: Action
     action_text: str
     justification: str
     raw: str = ""
+    usage: Usage | None = None
+    exchanges: tuple[Mapping[str, Any], ...] = ()
     extra: dict[str, object] = field(default_factory=dict)
-    exchanges: tuple = ()  # model requests and replies behind this decision, if any

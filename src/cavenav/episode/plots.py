@@ -8,8 +8,9 @@ so undulating and bending caves read the same way.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import Any
 
 import matplotlib
 
@@ -19,11 +20,9 @@ import numpy as np  # noqa: E402
 from matplotlib.collections import LineCollection  # noqa: E402
 from matplotlib.colors import Normalize  # noqa: E402
 
+from cavenav.types import Pose  # noqa: E402
 from cavenav.world.raycast import RayCaster  # noqa: E402
 from cavenav.world.scenarios import Scenario  # noqa: E402
-
-if TYPE_CHECKING:
-    from cavenav.episode.loop import EpisodeResult
 
 __all__ = ["plot_episode"]
 
@@ -42,8 +41,7 @@ def _coloured_path(ax: plt.Axes, x: np.ndarray, y: np.ndarray, c: np.ndarray, no
     return lines
 
 
-def _title(result: EpisodeResult) -> str:
-    s = result.summary
+def _title(s: dict[str, Any]) -> str:
     return (
         f"{s['scenario']} · {s['pilot']} · seed {'-' if s['seed'] is None else s['seed']} · "
         f"{s['termination']} after "
@@ -60,14 +58,24 @@ def _finish(fig: plt.Figure, ax: plt.Axes, lines, scenario: Scenario, path: Path
 
 
 def plot_episode(
-    result: EpisodeResult, scenario: Scenario, caster: RayCaster, out_dir: Path
+    summary: dict[str, Any],
+    poses: Sequence[Pose],
+    clearances: Sequence[float],
+    scenario: Scenario,
+    caster: RayCaster,
+    out_dir: Path,
 ) -> dict[str, str]:
-    """Write topdown.png and side.png into ``out_dir``; returns their file names."""
-    p = np.array([pose.position for pose in result.poses])
-    c = np.asarray(result.clearances)
+    """Write topdown.png and side.png into ``out_dir``; returns their file names.
+
+    Args:
+        summary: the episode's summary (title, collision pose).
+        poses, clearances: the trajectory as recorded, one clearance per pose.
+    """
+    p = np.array([pose.position for pose in poses])
+    c = np.asarray(clearances)
     norm = Normalize(vmin=0.0, vmax=max(3.0, float(c.max())))
     mesh = scenario.mesh
-    collision = result.summary.get("collision_pose")
+    collision = summary.get("collision_pose")
 
     # ---- top-down
     fig, ax = plt.subplots(figsize=(8, 8))
@@ -111,7 +119,7 @@ def plot_episode(
     ax.set_aspect("equal")
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
-    ax.set_title(_title(result), fontsize=9)
+    ax.set_title(_title(summary), fontsize=9)
     ax.legend(loc="upper left", fontsize=8, framealpha=0.9)
     _finish(fig, ax, lines, scenario, out_dir / "topdown.png")
 
@@ -142,7 +150,7 @@ def plot_episode(
     ax.set_xlabel("distance along the path (m)")
     ax.set_ylabel("z (m)")
     ax.set_title(
-        _title(result) + " · ceiling and floor straight above and below the path", fontsize=9
+        _title(summary) + " · ceiling and floor straight above and below the path", fontsize=9
     )
     ax.legend(loc="upper right", fontsize=8, ncols=4)
     _finish(fig, ax, lines, scenario, out_dir / "side.png")

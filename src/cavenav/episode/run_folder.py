@@ -17,15 +17,20 @@ import hashlib
 import json
 import os
 import re
+from collections.abc import Mapping, Sequence
 from datetime import datetime
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from PIL import Image
 
 from cavenav.sensors.depth import write_exr
 from cavenav.types import Observation
+
+if TYPE_CHECKING:
+    from cavenav.episode.record import EpisodeLog
+    from cavenav.world.raycast import RayCaster
 
 __all__ = ["RunFolder", "new_run_dir"]
 
@@ -105,33 +110,29 @@ class RunFolder:
             path.write_bytes(raw)
         return name
 
-    def record_exchanges(self, step: int, exchanges: tuple, model: str = "") -> None:
+    def record(
+        self, step: dict[str, Any], obs: Observation, exchanges: Sequence[Mapping[str, Any]]
+    ) -> None:
+        """Write one step: its frames, its model exchanges, then its line in steps.jsonl."""
+        step["frames"] = self.write_frames(step["step"], obs)
+        if exchanges:
+            self.record_exchanges(step["step"], exchanges)
+        self.append_step(step)
+
+    def record_exchanges(self, step: int, exchanges: Sequence[Mapping[str, Any]]) -> None:
         """Append every model request and raw reply of a step to exchanges.jsonl.
 
-        Images are replaced by references to images/, stored once; the request carries
-        no credentials (keys live in the backend's HTTP headers, never in messages).
+        ``exchanges`` are the pilot's plain records (`Decision.exchanges`). Images are
+        replaced by references to images/, stored once; the request carries no
+        credentials (keys live in the backend's HTTP headers, never in messages).
         """
-        from cavenav.pilots.backends import request_hash
-
         with open(self.path / "exchanges.jsonl", "a", encoding="utf-8") as out:
             for attempt, exchange in enumerate(exchanges):
-                completion = exchange.completion
                 record = {
                     "step": step,
                     "attempt": attempt,
-                    "request_sha256": request_hash(
-                        completion.model or model, exchange.messages, {}
-                    ),
-                    "messages": [self._strip_images(m) for m in exchange.messages],
-                    "reply": completion.text,
-                    "rejected": exchange.error,
-                    "model": completion.model or model,
-                    "prompt_tokens": completion.prompt_tokens,
-                    "completion_tokens": completion.completion_tokens,
-                    "latency_s": round(completion.latency_s, 4),
-                    "transport_retries": completion.retries,
-                    "transport_errors": list(completion.errors),
-                    "cached": completion.cached,
+                    **exchange,
+                    "messages": [self._strip_images(m) for m in exchange["messages"]],
                 }
                 out.write(json.dumps(record) + "\n")
 
@@ -152,6 +153,21 @@ class RunFolder:
         tmp = self.path / f".{name}.tmp"
         tmp.write_text(json.dumps(_finite(data), indent=2, default=_json_default) + "\n")
         os.replace(tmp, self.path / name)
+
+    def finish(
+        self, summary: dict[str, Any], log: EpisodeLog, caster: RayCaster, plots: bool
+    ) -> None:
+        """Draw the plots from what was recorded (if ``plots``), write the final summary."""
+        try:
+            if plots:
+                from cavenav.episode.plots import plot_episode
+
+                summary["plots"] = plot_episode(
+                    summary, log.poses, log.clearances, log.scenario, caster, self.path
+                )
+        finally:
+            self.write_json("summary.json", summary)
+            self._steps.close()
 
     def close(self) -> None:
         self._steps.close()

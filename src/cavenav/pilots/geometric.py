@@ -19,14 +19,15 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy import ndimage
 
 from cavenav.actions import DEFAULT_SPACE, ActionSpace, format_action
 from cavenav.sensors.depth import denormalise_depth
-from cavenav.types import Action, Decision, Observation
+from cavenav.shield import Shield, ShieldConfig, clearance_of_move
+from cavenav.types import DEFAULT_RULES, Action, Decision, Observation, Rules, VehicleBody
 
 __all__ = ["GeometricPilot", "GeometricPilotConfig"]
 
@@ -38,38 +39,34 @@ _ELEVATIONS = np.arange(-18.0, 18.01, 3.0)
 
 @dataclass(frozen=True)
 class GeometricPilotConfig:
-    """Numbers of the strategy; the first three are the prompt's (SPEC section 3).
+    """Numbers of the strategy; the rules are the prompt's (SPEC section 3).
+
+    The field of view, the depth range and where the camera sits come with each
+    observation, as a real camera's calibration would.
 
     Attributes:
-        standoff_m: desired distance to walls, ceiling and floor.
-        no_forward_within_m: obstacle range ahead under which no forward motion is allowed.
-        slow_forward_m: largest forward step while closer than the standoff.
+        rules: standoff, no-forward distance and the forward step inside the standoff.
         corridor_half_width_m: half-width of the corridor tested along a bearing: the
             vehicle's half-width (0.17 m) plus a margin for rough walls.
         corridor_half_height_m: the same vertically (half-height 0.125 m plus margin).
         open_range_m: a bearing free this far counts as the passage's continuation.
-        fov_deg: horizontal field of view of the depth image (SPEC: 53.13).
         history: number of previous observations kept (K in SPEC section 3).
         stride: use every n-th pixel of the depth image; 5 keeps 128x96 points.
         memory_frames: how many recent depth images the pilot remembers as points, moved
-            by its own commanded actions, to know the walls beside it that are out of view.
-        camera_offset_m: where the camera sits ahead of the vehicle's centre.
-        body_radius_m: half-diagonal of the vehicle's box (BlueROV2: 0.31 m).
+            by the actions the vehicle executed, to know the walls beside it that are out
+            of view (the safety shield's memory: one piece of code serves both).
+        body: the vehicle, whose half-diagonal every move keeps from remembered surfaces.
         margin_m: extra distance every move keeps from remembered surfaces.
     """
 
-    standoff_m: float = 2.0
-    no_forward_within_m: float = 1.5
-    slow_forward_m: float = 0.2
+    rules: Rules = DEFAULT_RULES
     corridor_half_width_m: float = 0.6
     corridor_half_height_m: float = 0.5
     open_range_m: float = 8.0
-    fov_deg: float = 2 * math.degrees(math.atan(0.5))
     history: int = 2
     stride: int = 5
     memory_frames: int = 8
-    camera_offset_m: float = 0.2
-    body_radius_m: float = 0.31
+    body: VehicleBody = field(default_factory=VehicleBody)
     margin_m: float = 0.3
 
 
@@ -102,7 +99,15 @@ class GeometricPilot:
         self.space = space
         self._actions: deque[Action] = deque(maxlen=max(self.config.history, 1))
         self._turning_in_place = 0.0  # degrees turned since the last forward motion
-        self._memory: list[np.ndarray] = []  # recent surface points, current body frame
+        self.shield = Shield(
+            ShieldConfig(
+                rules=self.config.rules,
+                body=self.config.body,
+                margin_m=self.config.margin_m,
+                memory_frames=self.config.memory_frames,
+            ),
+            space,
+        )
         bearings, elevations = np.meshgrid(_BEARINGS, _ELEVATIONS, indexing="ij")
         b, e = np.radians(bearings.ravel()), np.radians(elevations.ravel())
         # (k, 3) unit directions in (forward, left, up) for every (bearing, elevation).
@@ -111,14 +116,15 @@ class GeometricPilot:
     def reset(self) -> None:
         self._actions.clear()
         self._turning_in_place = 0.0
-        self._memory = []
+        self.shield.reset()
 
     # ------------------------------------------------------------------ perception
     def _measure(self, obs: Observation) -> _Scene:
         cfg = self.config
         depth = denormalise_depth(obs.depth_png[:: cfg.stride, :: cfg.stride], *obs.depth_range)
         h, w = obs.depth_png.shape
-        focal = 0.5 * w / math.tan(math.radians(cfg.fov_deg) / 2)
+        half_view = obs.hfov_deg / 2
+        focal = 0.5 * w / math.tan(math.radians(half_view))
         v, u = np.mgrid[0 : h : cfg.stride, 0 : w : cfg.stride].astype(np.float32) + 0.5
         forward = depth
         left = -(u - 0.5 * w) / focal * depth
@@ -135,22 +141,10 @@ class GeometricPilot:
         free = np.where(blocking, along, d_max).min(axis=0, initial=d_max)
         free = free.reshape(len(_BEARINGS), len(_ELEVATIONS))
         # Remember what was seen: surfaces beside the vehicle are out of view now but were
-        # in view a few steps ago. Points are kept in the body frame (forward, left, up
-        # from the vehicle's centre) and moved by each action the pilot itself commanded.
-        keep = surface[::2, ::2] & (depth[::2, ::2] < 10.0)
-        seen = np.stack(
-            [
-                forward[::2, ::2][keep] + cfg.camera_offset_m,
-                left[::2, ::2][keep],
-                up[::2, ::2][keep],
-            ],
-            axis=1,
-        )
-        if self._actions:
-            self._memory = [_move_points(pts, self._actions[-1]) for pts in self._memory]
-        self._memory.append(seen.astype(np.float32))
-        self._memory = self._memory[-cfg.memory_frames :]
-        cloud = np.concatenate(self._memory)
+        # in view a few steps ago. The shield's memory keeps them in the body frame
+        # (forward, left, up from the vehicle's centre), moved by each executed action.
+        self.shield.observe(obs, commanded=self._actions[-1] if self._actions else None)
+        cloud = self.shield.memory.cloud
         # "At the vehicle's height" follows the passage's slope, so that a ceiling or floor
         # ahead of a descent or a climb is not mistaken for a side wall.
         bearing, elevation = self._target(free)
@@ -161,7 +155,7 @@ class GeometricPilot:
         )
         beside = at_height & (cloud[:, 0] > -1.5) & (cloud[:, 0] < 8.0)
         beside &= ~((np.abs(cloud[:, 1]) < radius) & (cloud[:, 0] > 1.0))  # ahead, not beside
-        span = 8.0 * math.tan(math.radians(cfg.fov_deg) / 2)  # an unseen wall is at least this far
+        span = 8.0 * math.tan(math.radians(half_view))  # an unseen wall is at least this far
 
         def wall_offsets(window: np.ndarray) -> tuple[float, float]:
             # The 5th percentile: the wall, not the single most protruding knob of rock.
@@ -226,15 +220,16 @@ class GeometricPilot:
         j = int(np.argmin(np.abs(_ELEVATIONS - elevation)))
         return float(free[i, j])
 
-    def _choose_yaw(self, free: np.ndarray, bearing: float, elevation: float) -> float:
+    def _choose_yaw(
+        self, free: np.ndarray, bearing: float, elevation: float, half_view: float
+    ) -> float:
         """The admissible yaw nearest ``bearing`` whose corridor is open; else the nearest."""
-        half_view = self.config.fov_deg / 2
         options = sorted(
             (y for a in self.space.yaw_deg for y in {a, -a} if abs(y) <= half_view),
             key=lambda y: abs(y - bearing),
         )
         for yaw in options[:3]:
-            if self._free_along(free, yaw, elevation) >= 2 * self.config.no_forward_within_m:
+            if self._free_along(free, yaw, elevation) >= 2 * self.config.rules.no_forward_within_m:
                 return float(yaw)
         return float(options[0])
 
@@ -243,7 +238,7 @@ class GeometricPilot:
 
         Returns the action to take and, if it had to be changed, why.
         """
-        margin = self.config.body_radius_m + self.config.margin_m
+        margin = self.config.body.bounding_radius + self.config.margin_m
         candidates = [action]
         if action.right:
             candidates.append(replace(action, right=0.0))
@@ -252,7 +247,7 @@ class GeometricPilot:
                 candidates.append(replace(action, right=0.0, forward=forward))
         candidates.append(replace(action, right=0.0, forward=0.0, up=0.0))
         for k, candidate in enumerate(candidates):
-            if _clearance_of_move(cloud, candidate) >= margin:
+            if clearance_of_move(cloud, candidate) >= margin:
                 return candidate, "" if k == 0 else (
                     f"the move would pass within {margin:.2f} m of a remembered surface, "
                     f"so it becomes '{format_action(candidate)}'"
@@ -260,13 +255,14 @@ class GeometricPilot:
         return candidates[-1], "boxed in: turning in place only"
 
     def decide(self, observation: Observation) -> Decision:
-        cfg = self.config
+        cfg, rules = self.config, self.config.rules
+        half_view = observation.hfov_deg / 2
         scene = self._measure(observation)
         d_top, d_bottom = observation.d_top, observation.d_bottom
 
         best = float(scene.free.max())
         elevation = 0.0
-        if best < max(cfg.no_forward_within_m + 1.0, 0.35 * cfg.open_range_m):
+        if best < max(rules.no_forward_within_m + 1.0, 0.35 * cfg.open_range_m):
             # Nothing in view reaches far: turn 45 degrees toward the roomier side. Keep
             # turning the way the last blocked turn went (no dithering), but never more
             # than half a circle in place, which would reverse the direction of travel.
@@ -281,7 +277,7 @@ class GeometricPilot:
             situation = f"no direction in view stays free beyond {best:.1f} m"
         else:
             bearing, elevation = scene.target
-            yaw = self._choose_yaw(scene.free, bearing, elevation)
+            yaw = self._choose_yaw(scene.free, bearing, elevation, half_view)
             target_free = self._free_along(scene.free, yaw, elevation)
             situation = (
                 f"the passage continues {best:.1f} m toward {_bearing_words(bearing, elevation)}"
@@ -289,17 +285,18 @@ class GeometricPilot:
 
         # The standoff counts walls beside the next metres of path: they will be beside us.
         nearest = min(d_top, d_bottom, scene.nearest_m, scene.ahead_m, scene.beside_m)
-        if target_free < cfg.no_forward_within_m or abs(yaw) > cfg.fov_deg / 2:
+        if target_free < rules.no_forward_within_m or abs(yaw) > half_view:
             forward = 0.0
             constraint = (
-                f"obstacle within {cfg.no_forward_within_m} m ahead: no forward motion"
-                if target_free < cfg.no_forward_within_m
+                f"obstacle within {rules.no_forward_within_m} m ahead: no forward motion"
+                if target_free < rules.no_forward_within_m
                 else "the new heading lies outside the view: turn first, no forward motion"
             )
-        elif nearest < cfg.standoff_m:
-            forward = cfg.slow_forward_m if target_free > 3.0 else 0.1
+        elif nearest < rules.standoff_m:
+            slowest, slow = rules.slow_forward_m
+            forward = slow if target_free > 3.0 else slowest
             constraint = (
-                f"nearest surface {nearest:.1f} m is inside the {cfg.standoff_m} m standoff: "
+                f"nearest surface {nearest:.1f} m is inside the {rules.standoff_m} m standoff: "
                 f"forward capped at {forward} m"
             )
         elif abs(yaw) >= 15:
@@ -308,7 +305,7 @@ class GeometricPilot:
             constraint = "turning into a bend whose inner wall is out of view: forward 0.5 m"
         else:
             forward = 1.0 if target_free > 6.0 else 0.5
-            constraint = f"all clearances above the {cfg.standoff_m} m standoff"
+            constraint = f"all clearances above the {rules.standoff_m} m standoff"
 
         # Vertical: centre between ceiling and floor, and follow the passage's slope.
         up = 0.5 * (d_top - d_bottom) + math.tan(math.radians(elevation)) * forward
@@ -320,11 +317,11 @@ class GeometricPilot:
         near_side = "left" if scene.left_offset_m < scene.right_offset_m else "right"
         near_offset = min(scene.left_offset_m, scene.right_offset_m)
         gap = abs(scene.left_offset_m - scene.right_offset_m)
-        if near_offset < cfg.standoff_m and gap > 0.6 and abs(yaw) <= 20:
+        if near_offset < rules.standoff_m and gap > 0.6 and abs(yaw) <= 20:
             magnitude = 0.5 if gap > 2.0 else 0.2 if gap > 1.0 else 0.1
             right = magnitude if near_side == "left" else -magnitude
         # Below the standoff, forward motion must come with a turn or a shift.
-        if forward > 0 and nearest < cfg.standoff_m and not (yaw or right or up):
+        if forward > 0 and nearest < rules.standoff_m and not (yaw or right or up):
             right = 0.1 if scene.right_room_m >= scene.left_room_m else -0.1
         if not (forward or right or up or yaw):  # never idle: look for a way on
             yaw = 20.0 if scene.left_room_m >= scene.right_room_m else -20.0
@@ -348,37 +345,6 @@ class GeometricPilot:
         return Decision(
             action=action, action_text=text, justification=justification, raw=justification
         )
-
-
-def _move_points(points: np.ndarray, action: Action) -> np.ndarray:
-    """Body-frame points (forward, left, up) after the vehicle executes ``action``.
-
-    The vehicle turns by dpsi (left positive), then translates by (df, -dr, dz) in its new
-    frame (SPEC section 5); fixed points therefore turn by -dpsi and shift back.
-    """
-    a = math.radians(-action.yaw_deg)
-    rot = np.array(
-        [[math.cos(a), -math.sin(a), 0.0], [math.sin(a), math.cos(a), 0.0], [0.0, 0.0, 1.0]],
-        np.float32,
-    )
-    shift = np.array([action.forward, -action.right, action.up], np.float32)
-    return points @ rot.T - shift
-
-
-def _clearance_of_move(cloud: np.ndarray, action: Action) -> float:
-    """Smallest distance from remembered points to the straight move of the centre."""
-    if not len(cloud):
-        return math.inf
-    a = math.radians(-action.yaw_deg)
-    rot = np.array(
-        [[math.cos(a), -math.sin(a), 0.0], [math.sin(a), math.cos(a), 0.0], [0.0, 0.0, 1.0]],
-        np.float32,
-    )
-    pts = cloud @ rot.T  # in the frame after the turn, before the translation
-    move = np.array([action.forward, -action.right, action.up], np.float32)
-    length2 = float(move @ move)
-    t = np.clip(pts @ move / length2, 0.0, 1.0) if length2 > 0 else np.zeros(len(pts), np.float32)
-    return float(np.linalg.norm(pts - t[:, None] * move, axis=1).min())
 
 
 def _bearing_words(bearing: float, elevation: float) -> str:

@@ -1,9 +1,10 @@
 """The system prompt of SPEC section 3, rendered from text files and the configuration.
 
-Every number in the prompt (standoff, forward caps, admissible sets, depth range) comes
-from `PromptConfig`, the same object the reply parser validates against, so the prompt
-and the parser cannot drift apart. Users may supply their own template file; it is
-rendered with the same fields (see `PromptConfig.fields`).
+Every number in the prompt comes from where it is set once: the admissible sets from the
+`ActionSpace` the reply parser validates against, the standoff and forward caps from
+`Rules` (which the shield and the geometric pilot enforce), and the depth range and
+field of view from the observations the prompt is sent with. Users may supply their own
+template file; it is rendered with the same fields (see `PromptConfig.fields`).
 """
 
 from __future__ import annotations
@@ -14,6 +15,9 @@ from pathlib import Path
 
 from cavenav.actions import DEFAULT_SPACE, ActionSpace
 from cavenav.errors import ConfigError
+from cavenav.sensors.camera import CameraIntrinsics
+from cavenav.sensors.depth import DEPTH_RANGE_M
+from cavenav.types import DEFAULT_RULES, Rules
 
 __all__ = ["STRUCTURED_SCHEMA", "PromptConfig", "render_repair", "render_system"]
 
@@ -24,30 +28,30 @@ class PromptConfig:
 
     Attributes:
         space: admissible magnitudes (shared with the parser).
-        standoff_m: desired distance to every surface.
-        slow_forward_m: forward range allowed inside the standoff (SPEC: 0.1-0.2 m).
-        no_forward_within_m: obstacle range ahead below which forward motion is forbidden.
-        depth_min_m, depth_max_m: the depth PNG's range, explained to the model.
-        hfov_deg: horizontal field of view of both forward images.
+        rules: standoff, forward caps inside it, and the no-forward distance.
         history: number of earlier observations sent (K; 0 allowed).
         system_file: a user's own system-prompt template instead of the packaged one.
         structured: ask for a JSON object with fixed keys (for servers with JSON schemas).
     """
 
     space: ActionSpace = field(default_factory=lambda: DEFAULT_SPACE)
-    standoff_m: float = 2.0
-    slow_forward_m: tuple[float, float] = (0.1, 0.2)
-    no_forward_within_m: float = 1.5
-    depth_min_m: float = 0.0
-    depth_max_m: float = 20.0
-    hfov_deg: float = 53.13
+    rules: Rules = DEFAULT_RULES
     history: int = 2
     system_file: Path | None = None
     structured: bool = False
 
-    def fields(self) -> dict[str, str]:
-        """The values a template may use, as text."""
-        space = self.space
+    def fields(
+        self, depth_range: tuple[float, float] = DEPTH_RANGE_M, hfov_deg: float | None = None
+    ) -> dict[str, str]:
+        """The values a template may use, as text.
+
+        Args:
+            depth_range: (D_min, D_max) of the depth images sent, metres.
+            hfov_deg: their horizontal field of view (default: SPEC section 2's camera).
+        """
+        space, rules = self.space, self.rules
+        if hfov_deg is None:
+            hfov_deg = CameraIntrinsics().hfov_deg
 
         def listing(values: tuple[float, ...]) -> str:
             return ", ".join(_num(v) for v in values if v)
@@ -59,13 +63,13 @@ class PromptConfig:
             else "No earlier observations: decide from the current one alone."
         )
         return {
-            "depth_min_m": _num(self.depth_min_m),
-            "depth_max_m": _num(self.depth_max_m),
-            "hfov_deg": f"{self.hfov_deg:.1f}",
+            "depth_min_m": _num(depth_range[0]),
+            "depth_max_m": _num(depth_range[1]),
+            "hfov_deg": f"{hfov_deg:.1f}",
             "history_text": history,
-            "standoff_m": _num(self.standoff_m),
-            "slow_forward_text": "-".join(_num(v) for v in self.slow_forward_m),
-            "no_forward_within_m": _num(self.no_forward_within_m),
+            "standoff_m": _num(rules.standoff_m),
+            "slow_forward_text": "-".join(_num(v) for v in rules.slow_forward_m),
+            "no_forward_within_m": _num(rules.no_forward_within_m),
             "forward_m": listing(space.forward_m),
             "lateral_m": listing(space.lateral_m),
             "yaw_deg": listing(space.yaw_deg),
@@ -82,25 +86,35 @@ def _template(name: str) -> str:
     return resources.files("cavenav.pilots").joinpath("prompts", name).read_text(encoding="utf-8")
 
 
-def _render(template: str, config: PromptConfig, source: str, **extra: str) -> str:
+def _render(template: str, fields: dict[str, str], source: str) -> str:
     try:
-        return template.format(**config.fields(), **extra)
+        return template.format(**fields)
     except (KeyError, IndexError, ValueError) as exc:
         raise ConfigError(
             f"prompt template {source}: cannot fill {exc}; available fields: "
-            f"{', '.join(sorted(config.fields()))} (write literal braces as {{{{ and }}}})"
+            f"{', '.join(sorted(fields))} (write literal braces as {{{{ and }}}})"
         ) from None
 
 
-def render_system(config: PromptConfig) -> str:
-    """The full system prompt (mission, inputs, strategy, chain of thought, reply format)."""
+def render_system(
+    config: PromptConfig,
+    depth_range: tuple[float, float] = DEPTH_RANGE_M,
+    hfov_deg: float | None = None,
+) -> str:
+    """The full system prompt (mission, inputs, strategy, chain of thought, reply format).
+
+    Args:
+        depth_range, hfov_deg: those of the images the prompt is sent with (the VLM
+            pilot passes each observation's own).
+    """
+    fields = config.fields(depth_range, hfov_deg)
     if config.system_file is not None:
         path = Path(config.system_file)
         if not path.is_file():
             raise ConfigError(f"prompt file not found: {path}")
-        text = _render(path.read_text(encoding="utf-8"), config, str(path))
+        text = _render(path.read_text(encoding="utf-8"), fields, str(path))
     else:
-        text = _render(_template("system.md"), config, "system.md")
+        text = _render(_template("system.md"), fields, "system.md")
     if config.structured:
         text += "\n\n" + _template("structured.md")
     return text
@@ -108,7 +122,7 @@ def render_system(config: PromptConfig) -> str:
 
 def render_repair(config: PromptConfig, reason: str) -> str:
     """The message that re-queries the model after an unusable reply, with the reason."""
-    return _render(_template("repair.md"), config, "repair.md", reason=reason)
+    return _render(_template("repair.md"), {**config.fields(), "reason": reason}, "repair.md")
 
 
 # The fixed-key JSON schema of structured-output mode: OpenAI strict schemas cannot express

@@ -13,17 +13,18 @@ from __future__ import annotations
 import base64
 import io
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
 from PIL import Image
 
+from cavenav.actions import format_action
 from cavenav.errors import ActionError, BackendAuthError, BackendError, PilotFailure
-from cavenav.pilots.backends import Backend, Completion, Message
+from cavenav.pilots.backends import Backend, Completion, Message, request_hash
 from cavenav.pilots.prompt import STRUCTURED_SCHEMA, PromptConfig, render_repair, render_system
 from cavenav.pilots.reply import parse_reply
-from cavenav.types import Decision, Observation
+from cavenav.types import Decision, Observation, Usage
 
 __all__ = ["EncodedObservation", "Exchange", "VLMPilot", "build_messages", "png_data_url"]
 
@@ -53,6 +54,24 @@ class Exchange:
     messages: list[Message]
     completion: Completion
     error: str | None = None  # why the reply was rejected, if it was
+
+    def to_record(self, model: str) -> dict[str, Any]:
+        """A plain JSON record: the episode layer stores it without knowing any backend."""
+        completion = self.completion
+        name = completion.model or model
+        return {
+            "request_sha256": request_hash(name, self.messages, {}),
+            "messages": self.messages,
+            "reply": completion.text,
+            "rejected": self.error,
+            "model": name,
+            "prompt_tokens": completion.prompt_tokens,
+            "completion_tokens": completion.completion_tokens,
+            "latency_s": round(completion.latency_s, 4),
+            "transport_retries": completion.retries,
+            "transport_errors": list(completion.errors),
+            "cached": completion.cached,
+        }
 
 
 def _image(url: str, detail: str | None) -> dict[str, Any]:
@@ -122,7 +141,9 @@ class VLMPilot:
         self.detail = detail
         self.price_per_mtok = price_per_mtok
         self.name = f"vlm:{backend.model}"
-        self._system = render_system(self.prompt)
+        # Rendered once now so a broken template fails before the first step, then for
+        # each new camera (depth range, field of view) the observations come from.
+        self._system = {None: render_system(self.prompt)}
         self._history: deque[EncodedObservation] = deque(maxlen=max(self.prompt.history, 0) or None)
         if self.prompt.history == 0:
             self._history = deque(maxlen=0)
@@ -138,6 +159,12 @@ class VLMPilot:
         price_in, price_out = self.price_per_mtok
         return (prompt_tokens * price_in + completion_tokens * price_out) / 1e6
 
+    def _system_for(self, observation: Observation) -> str:
+        key = (observation.depth_range, observation.hfov_deg)
+        if key not in self._system:
+            self._system[key] = render_system(self.prompt, *key)
+        return self._system[key]
+
     def decide(self, observation: Observation) -> Decision:
         current = EncodedObservation(
             png_data_url(observation.rgb),
@@ -145,17 +172,22 @@ class VLMPilot:
             observation.d_top,
             observation.d_bottom,
         )
-        messages = build_messages(self._system, current, list(self._history), self.detail)
+        if self._history and observation.previous_action is not None:
+            # The action actually executed (a shield may have replaced the proposal).
+            last = self._history[-1]
+            self._history[-1] = replace(last, action=format_action(observation.previous_action))
+        system = self._system_for(observation)
+        messages = build_messages(system, current, list(self._history), self.detail)
         schema = STRUCTURED_SCHEMA if self.prompt.structured else None
         exchanges: list[Exchange] = []
         reason = ""
-        for attempt in range(self.max_requeries + 1):
+        for _ in range(self.max_requeries + 1):
             try:
                 completion = self.backend.complete(messages, schema)
             except BackendAuthError:
                 raise
             except BackendError as exc:
-                raise PilotFailure(f"backend failed: {exc}", tuple(exchanges)) from None
+                raise self._failure(f"backend failed: {exc}", exchanges) from None
             try:
                 parsed = parse_reply(completion.text, self.prompt.space)
             except ActionError as exc:
@@ -181,23 +213,32 @@ class VLMPilot:
                 action_text=parsed.action_text,
                 justification=parsed.justification,
                 raw=completion.text,
-                extra={"vlm": self._usage(exchanges, attempt)},
-                exchanges=tuple(exchanges),
+                usage=self._usage(exchanges),
+                exchanges=self._records(exchanges),
             )
-        raise PilotFailure(
+        raise self._failure(
             f"no usable reply after {self.max_requeries + 1} attempts; last problem: {reason}",
-            tuple(exchanges),
+            exchanges,
         )
 
-    def _usage(self, exchanges: list[Exchange], requeries: int) -> dict[str, Any]:
+    def _records(self, exchanges: list[Exchange]) -> tuple[dict[str, Any], ...]:
+        return tuple(e.to_record(self.backend.model) for e in exchanges)
+
+    def _failure(self, message: str, exchanges: list[Exchange]) -> PilotFailure:
+        """The episode-ending failure, carrying the failed step's records and cost."""
+        usage = self._usage(exchanges) if exchanges else None
+        return PilotFailure(message, self._records(exchanges), usage)
+
+    def _usage(self, exchanges: list[Exchange]) -> Usage:
+        """What the step's requests cost; each request after the first was a re-query."""
         prompt_tokens = sum(e.completion.prompt_tokens for e in exchanges)
         completion_tokens = sum(e.completion.completion_tokens for e in exchanges)
-        return {
-            "prompt_tokens": prompt_tokens,
-            "completion_tokens": completion_tokens,
-            "latency_s": round(sum(e.completion.latency_s for e in exchanges), 4),
-            "requeries": requeries,
-            "transport_retries": sum(e.completion.retries for e in exchanges),
-            "cached": all(e.completion.cached for e in exchanges),
-            "cost_usd": self._cost(prompt_tokens, completion_tokens),
-        }
+        return Usage(
+            prompt_tokens=prompt_tokens,
+            completion_tokens=completion_tokens,
+            latency_s=sum(e.completion.latency_s for e in exchanges),
+            requeries=max(len(exchanges) - 1, 0),
+            transport_retries=sum(e.completion.retries for e in exchanges),
+            cached=all(e.completion.cached for e in exchanges),
+            cost_usd=self._cost(prompt_tokens, completion_tokens),
+        )

@@ -10,10 +10,15 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["denormalise_depth", "normalise_depth", "read_exr", "write_exr"]
+__all__ = ["DEPTH_RANGE_M", "denormalise_depth", "normalise_depth", "read_exr", "write_exr"]
+
+# (D_min, D_max) of SPEC section 2, metres: the one default every layer reads.
+DEPTH_RANGE_M = (0.0, 20.0)
 
 
-def normalise_depth(depth_m: np.ndarray, d_min: float = 0.0, d_max: float = 20.0) -> np.ndarray:
+def normalise_depth(
+    depth_m: np.ndarray, d_min: float = DEPTH_RANGE_M[0], d_max: float = DEPTH_RANGE_M[1]
+) -> np.ndarray:
     """(H, W) float metres (``inf`` = no hit) -> (H, W) uint8, 0 at D_min, 255 at D_max."""
     if not d_max > d_min:
         raise ValueError(f"D_max ({d_max}) must exceed D_min ({d_min})")
@@ -21,7 +26,9 @@ def normalise_depth(depth_m: np.ndarray, d_min: float = 0.0, d_max: float = 20.0
     return np.round(np.clip(norm, 0.0, 1.0) * 255.0).astype(np.uint8)
 
 
-def denormalise_depth(depth_png: np.ndarray, d_min: float = 0.0, d_max: float = 20.0) -> np.ndarray:
+def denormalise_depth(
+    depth_png: np.ndarray, d_min: float = DEPTH_RANGE_M[0], d_max: float = DEPTH_RANGE_M[1]
+) -> np.ndarray:
     """Inverse of `normalise_depth` up to 8-bit quantisation: (H, W) uint8 -> float32 metres."""
     return (d_min + depth_png.astype(np.float32) / 255.0 * (d_max - d_min)).astype(np.float32)
 

@@ -15,6 +15,7 @@ from typing import Literal
 import numpy as np
 
 from cavenav.sensors.camera import CameraIntrinsics, camera_to_world, look_frame
+from cavenav.sensors.depth import DEPTH_RANGE_M
 from cavenav.sensors.kernels import SHARE, fill_rays, shade_frame, shade_grid, splat_particles
 from cavenav.sensors.lighting import (
     at_vertices,
@@ -53,12 +54,13 @@ class SensorConfig:
             32x24 image is as good as a full frame's for a smooth ceiling and costs nothing.
         sounder_max_range_m: reading when nothing is in range.
         optics: water, lamps, daylight, rock, particles and camera of the colour image.
-        seed: seeds the rock colours, the marine snow and the sensor noise.
+        seed: seeds the rock colours, the marine snow and, unless an observation is
+            given a seed of its own, the sensor noise.
     """
 
     camera: CameraIntrinsics = field(default_factory=CameraIntrinsics)
-    depth_min_m: float = 0.0
-    depth_max_m: float = 20.0
+    depth_min_m: float = DEPTH_RANGE_M[0]
+    depth_max_m: float = DEPTH_RANGE_M[1]
     camera_offset_m: float = 0.2
     sounder: Literal["camera", "beam"] = "camera"
     sounder_fov_deg: float = 25.0
@@ -185,10 +187,10 @@ class SensorRig:
     def camera_position(self, pose: Pose) -> np.ndarray:
         return pose.position + self.config.camera_offset_m * pose.forward
 
-    def render(self, pose: Pose, *, radiance: bool = False) -> Frame:
+    def render(self, pose: Pose, *, radiance: bool = False, noise_seed: int | None = None) -> Frame:
         """Cast the forward frame at ``pose`` and form its depth and colour images, and
         the linear radiance they were developed from if ``radiance``."""
-        return self._render(pose, radiance)[0]
+        return self._render(pose, radiance, noise_seed)[0]
 
     def _sounder_rays(self, pose: Pose, out: np.ndarray) -> None:
         """Write the up- and then the down-looking sounder's rays into ``out`` (2k, 6)."""
@@ -202,7 +204,9 @@ class SensorRig:
         limit = self.config.sounder_max_range_m
         return float(min(up, limit)), float(min(down, limit))
 
-    def _render(self, pose: Pose, radiance: bool) -> tuple[Frame, tuple[float, float]]:
+    def _render(
+        self, pose: Pose, radiance: bool, noise_seed: int | None = None
+    ) -> tuple[Frame, tuple[float, float]]:
         """The forward frame and the sounders' (d_top, d_bottom), from one cast."""
         cfg = self.config
         optics = cfg.optics
@@ -249,7 +253,7 @@ class SensorRig:
             optics.vignetting, camera.width, self._grid, self._grid_triangle,
         )  # fmt: skip
         gains, gain = camera_response(np.asarray(mean), optics)
-        key = _frame_key(cfg.seed, pose)
+        key = _frame_key(cfg.seed if noise_seed is None else noise_seed, pose)
         develop = (gains, gain, optics.vignetting, optics.noise, key, self._lut)
         depth_range = (cfg.depth_min_m, cfg.depth_max_m, optics.depth_dropout, optics.depth_noise_m)
         light = np.empty((n if radiance else 0, 3), np.float32)
@@ -283,10 +287,15 @@ class SensorRig:
         self._sounder_rays(pose, rays)
         return self._readings(self.caster.cast_raw_rays(rays)["t_hit"])
 
-    def observe(self, pose: Pose, step: int = 0) -> Observation:
-        """Render everything a pilot sees at ``pose``, from one ray cast."""
+    def observe(self, pose: Pose, step: int = 0, noise_seed: int | None = None) -> Observation:
+        """Render everything a pilot sees at ``pose``, from one ray cast.
+
+        Args:
+            noise_seed: seeds this observation's sensor noise (an episode's own draw);
+                None uses the configuration's seed.
+        """
         cfg = self.config
-        frame, (d_top, d_bottom) = self._render(pose, radiance=False)
+        frame, (d_top, d_bottom) = self._render(pose, radiance=False, noise_seed=noise_seed)
         return Observation(
             rgb=frame.rgb,
             depth_m=frame.depth_m,
@@ -294,5 +303,7 @@ class SensorRig:
             d_top=d_top,
             d_bottom=d_bottom,
             depth_range=(cfg.depth_min_m, cfg.depth_max_m),
+            hfov_deg=cfg.camera.hfov_deg,
+            camera_offset_m=cfg.camera_offset_m,
             step=step,
         )

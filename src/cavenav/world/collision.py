@@ -1,4 +1,4 @@
-"""Vehicle body, clearance and swept collision.
+"""Clearance and swept collision of the vehicle body.
 
 One command can move the vehicle more than 2 m, so checking only the end pose would let
 it tunnel through a thin wall. The kinematics turn in place and then translate in a
@@ -10,41 +10,13 @@ point along the translation.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
-from functools import cached_property
 
 import numpy as np
 
-from cavenav.types import Pose
+from cavenav.types import Pose, VehicleBody  # the body is a plain value shared by every layer
 from cavenav.world.raycast import RayCaster
 
 __all__ = ["VehicleBody", "clearance", "swept_collision"]
-
-
-@dataclass(frozen=True)
-class VehicleBody:
-    """A box the size of a BlueROV2: 0.46 m long, 0.34 m wide, 0.25 m high."""
-
-    length: float = 0.46
-    width: float = 0.34
-    height: float = 0.25
-
-    @property
-    def bounding_radius(self) -> float:
-        """Radius of the sphere around the box: farther than this from walls is always safe."""
-        return 0.5 * math.sqrt(self.length**2 + self.width**2 + self.height**2)
-
-    @cached_property
-    def hull_points(self) -> np.ndarray:
-        """(27, 3) body-frame points (forward, right, up): corners, edge and face centres."""
-        h = np.array([self.length, self.width, self.height]) / 2.0
-        g = np.array(np.meshgrid([-1, 0, 1], [-1, 0, 1], [-1, 0, 1], indexing="ij"))
-        return g.reshape(3, -1).T * h
-
-    def world_points(self, pose: Pose) -> np.ndarray:
-        """(27, 3) hull points in world coordinates at ``pose``."""
-        rot = np.stack([pose.forward, pose.right, np.array([0.0, 0.0, 1.0])], axis=1)
-        return pose.position + self.hull_points @ rot.T
 
 
 def clearance(caster: RayCaster, pose: Pose) -> float:

@@ -63,7 +63,12 @@ class ExitPortal:
 
 @dataclass(frozen=True, eq=False)
 class Scenario:
-    """A cave to fly: mesh (metres, z up), start pose and one or more exit portals."""
+    """A cave to fly: mesh (metres, z up), start pose and one or more exit portals.
+
+    Attributes:
+        centreline: (n, 3) points along the passage from the start to the exit, where
+            known (procedural caves); progress is then measured along it.
+    """
 
     name: str
     mesh: CaveMesh
@@ -72,6 +77,7 @@ class Scenario:
     description: str = ""
     seed: int | None = None
     optics: Mapping[str, Any] = field(default_factory=dict)  # the file's [optics] table
+    centreline: np.ndarray | None = None
 
     def exited(self, position: np.ndarray) -> bool:
         """Whether ``position`` lies past any exit portal."""
@@ -80,6 +86,41 @@ class Scenario:
     def exit_distance(self, position: np.ndarray) -> float:
         """Distance still to go before the nearest exit plane (negative once past it)."""
         return min(portal.distance(position) for portal in self.exits)
+
+    def progress(self, position: np.ndarray) -> float:
+        """Metres made good from the start toward the exit.
+
+        Along the centre line where there is one (the arc length of the nearest point on
+        it), so a bend counts what was flown around it; otherwise how much nearer the
+        nearest exit plane is than from the start.
+        """
+        if self.centreline is None:
+            return self.exit_distance(self.start.position) - self.exit_distance(position)
+        return _arc_length_at(self.centreline, np.asarray(position, np.float64)) - (
+            _arc_length_at(self.centreline, self.start.position)
+        )
+
+    @property
+    def passage_length_m(self) -> float:
+        """Progress needed to reach the exit: the centre line's length, or the start's
+        distance to the nearest exit plane."""
+        if self.centreline is None:
+            return self.exit_distance(self.start.position)
+        return float(np.linalg.norm(np.diff(self.centreline, axis=0), axis=1).sum()) - (
+            _arc_length_at(self.centreline, self.start.position)
+        )
+
+
+def _arc_length_at(polyline: np.ndarray, point: np.ndarray) -> float:
+    """Arc length along ``polyline`` (n, 3) of its point nearest ``point`` (3,)."""
+    a, b = polyline[:-1], polyline[1:]
+    seg = b - a
+    length2 = np.maximum((seg**2).sum(axis=1), 1e-12)
+    t = np.clip(((point - a) * seg).sum(axis=1) / length2, 0.0, 1.0)
+    gap = np.linalg.norm(a + t[:, None] * seg - point, axis=1)
+    k = int(np.argmin(gap))
+    lengths = np.sqrt(length2)
+    return float(lengths[:k].sum() + t[k] * lengths[k])
 
 
 # ------------------------------------------------------------------ procedural S1-S5
@@ -311,7 +352,10 @@ def procedural_scenario(name: str, seed: int = 0) -> Scenario:
         radius=float(max(spec.half_width.max(), spec.half_height.max()) + 1.5),
     )
     mesh = build_cave(spec, name=f"{key}-seed{seed}")
-    return Scenario(key, mesh, layout.start, (exit_,), layout.description, seed)
+    centreline = spec.centreline[: spec.exit_index + 1]
+    return Scenario(
+        key, mesh, layout.start, (exit_,), layout.description, seed, centreline=centreline
+    )
 
 
 # ------------------------------------------------------------------ scenario files

@@ -1,0 +1,340 @@
+"""The Gymnasium environment: the one place where a pose is sensed, moved and checked.
+
+Every driver steps the vehicle through `CaveNavEnv`: the episode loop behind
+`cavenav run`, reinforcement-learning code, evaluation sweeps and the safety shield
+(`cavenav.wrappers.SafetyShield`). It is registered as ``cavenav/CaveNav-v0`` on
+``import cavenav`` with a budget of 150 steps (Gymnasium's ``TimeLimit`` truncation)::
+
+    import cavenav, gymnasium
+    env = gymnasium.make("cavenav/CaveNav-v0", scenario="S3")
+    obs, info = env.reset(seed=0)
+    obs, reward, terminated, truncated, info = env.step("forward 0.5 m, turn left 15 deg")
+"""
+
+from __future__ import annotations
+
+import math
+import string
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any, Literal
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+
+from cavenav.actions import DEFAULT_SPACE, ActionSpace, format_action, parse_action
+from cavenav.errors import ActionError, ConfigError
+from cavenav.kinematics import apply
+from cavenav.sensors.rig import SensorConfig, SensorRig
+from cavenav.types import DEFAULT_RULES, Action, Observation, Pose, Rules, VehicleBody
+from cavenav.world.collision import clearance, swept_collision
+from cavenav.world.raycast import RayCaster
+from cavenav.world.scenarios import SCENARIOS, Scenario, load_scenario, validate_start
+
+__all__ = ["ACTION_CHARSET", "TRAINING_SEEDS", "CaveNavEnv", "snap_action"]
+
+# Every character the action grammar needs: words of both cases, numbers, units, signs.
+ACTION_CHARSET = string.ascii_letters + string.digits + " .,-+°"
+# Cave seeds drawn for training when no seed is fixed; seeds from here up are held out.
+TRAINING_SEEDS = 1000
+
+
+def snap_action(vector: np.ndarray, space: ActionSpace = DEFAULT_SPACE) -> Action:
+    """The admissible action nearest ``vector`` = (df, dr, dz, dpsi in degrees).
+
+    df, dr and dpsi go to the nearest signed value of their sets. dz is continuous but
+    not near zero: a magnitude below half the smallest vertical move (0.05 m by default)
+    becomes 0, any other is clipped to the vertical range (0.1-2.0 m) and rounded to
+    the centimetre.
+
+    Raises:
+        ActionError: when a component is not a finite number.
+    """
+    v = np.asarray(vector, np.float64).reshape(-1)
+    if v.shape != (4,) or not np.isfinite(v).all():
+        raise ActionError(f"an action vector is 4 finite numbers (df, dr, dz, dpsi), got {v}")
+
+    def nearest(value: float, magnitudes: tuple[float, ...]) -> float:
+        signed = [s * m for m in magnitudes for s in (1.0, -1.0)]
+        return float(min(signed, key=lambda c: (abs(c - value), abs(c)))) + 0.0
+
+    lo, hi = space.vertical_range_m
+    dz = 0.0 if abs(v[2]) < lo / 2 else math.copysign(round(min(max(abs(v[2]), lo), hi), 2), v[2])
+    return Action(
+        forward=nearest(v[0], space.forward_m),
+        right=nearest(v[1], space.lateral_m),
+        up=dz,
+        yaw_deg=nearest(v[3], space.yaw_deg),
+    )
+
+
+@dataclass(frozen=True)
+class _World:
+    """One cave ready to fly: scenario, ray caster and sensor rig."""
+
+    key: tuple[str, int | None]
+    scenario: Scenario
+    caster: RayCaster
+    rig: SensorRig
+
+
+class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
+    """Fly a BlueROV2-sized vehicle through a cave, one action string at a time.
+
+    Observation (a ``Dict``): ``rgb`` (H, W, 3) uint8 forward colour image; ``depth``
+    (H, W) uint8 normalised depth, dark near, as a VLM sees it; ``depth_m`` (H, W)
+    float32 planar depth in metres, D_max where nothing is nearer; ``d_top`` and
+    ``d_bottom`` float32 arrays of shape () from the echo sounders, bounded by their
+    range. The same observation, typed as a pilot receives it, is `observation`.
+
+    Action: an action string of the grammar in `cavenav.actions` (``spaces.Text`` over
+    `ACTION_CHARSET`), or with ``action_format="vector"`` a ``Box`` of (df, dr, dz, dpsi
+    in degrees) snapped to the admissible sets by `snap_action`. An unparseable or
+    inadmissible action does not raise: the vehicle holds, ``info["invalid_action"]``
+    says why, and the step counts toward the budget.
+
+    Episode: ``terminated`` when the vehicle passes an exit portal or touches a surface
+    (the whole swept move is checked; after a collision the vehicle stays at its last
+    safe pose); ``truncated`` only through Gymnasium's ``TimeLimit`` (150 steps when
+    made with ``gymnasium.make``).
+
+    Reward: metres made good toward the exit during the step, measured along the
+    passage's centre line where the cave has one (procedural caves) and otherwise as the
+    decrease of the distance to the nearest exit plane; minus ``collision_penalty`` on a
+    collision. Turning in place earns nothing; backing up costs what it loses.
+
+    Info: ``pose`` (x, y, z, yaw_deg), ``clearance_m`` (exact distance to the nearest
+    surface), ``collision``, ``exit``, ``action`` (the action executed, canonical),
+    ``invalid_action`` (the reason, or None), ``progress_m`` (made good since the
+    start), ``collision_pose`` and ``scenario``/``cave_seed``. Timings stay out of
+    ``info``, which must be deterministic; they are in `timings_ms`.
+
+    Reset options (for that reset only): ``scenario`` (S1..S5, a scenario file's path,
+    or a `Scenario`), ``cave_seed`` (which cave of a procedural family). Seeds are drawn
+    from ``self.np_random``: the sensor noise of the episode, and the cave itself when
+    the environment was made with ``cave_seed=None`` (seeds below `TRAINING_SEEDS`).
+    """
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 4}
+
+    def __init__(
+        self,
+        scenario: str | Path | Scenario = "S1",
+        *,
+        cave_seed: int | None = 0,
+        sensors: SensorConfig | None = None,
+        body: VehicleBody | None = None,
+        rules: Rules = DEFAULT_RULES,
+        space: ActionSpace = DEFAULT_SPACE,
+        action_format: Literal["text", "vector"] = "text",
+        collision_penalty: float = 10.0,
+        render_mode: str | None = None,
+    ):
+        """
+        Args:
+            scenario: the cave flown after a reset without a ``scenario`` option.
+            cave_seed: which cave of a procedural family; None draws one per reset.
+            sensors: camera, sounders and optics (default: SPEC section 2).
+            body: the vehicle's size, for the swept collision check.
+            rules: the strategy's distances (for the shield and the metrics of drivers).
+            space: admissible magnitudes.
+            action_format: "text" (action strings) or "vector" (four numbers).
+            collision_penalty: subtracted from the reward on a collision.
+            render_mode: None or "rgb_array" (the forward colour image).
+        """
+        if render_mode not in (None, "rgb_array"):
+            raise ConfigError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
+        if action_format not in ("text", "vector"):
+            raise ConfigError(f"action_format must be 'text' or 'vector', got {action_format!r}")
+        self.render_mode = render_mode
+        self.sensors = sensors or SensorConfig()
+        self.body = body or VehicleBody()
+        self.rules = rules
+        self.space = space
+        self.action_format = action_format
+        self.collision_penalty = collision_penalty
+        self._default_scenario = scenario
+        self._default_cave_seed = cave_seed
+        self._world: _World | None = None
+
+        camera, d_max = self.sensors.camera, float(self.sensors.depth_max_m)
+        sounder = float(self.sensors.sounder_max_range_m)
+        image = (camera.height, camera.width)
+        self.observation_space = spaces.Dict(
+            {
+                "rgb": spaces.Box(0, 255, (*image, 3), np.uint8),
+                "depth": spaces.Box(0, 255, image, np.uint8),
+                "depth_m": spaces.Box(0.0, d_max, image, np.float32),
+                "d_top": spaces.Box(0.0, sounder, (), np.float32),
+                "d_bottom": spaces.Box(0.0, sounder, (), np.float32),
+            }
+        )
+        if action_format == "text":
+            self.action_space: spaces.Space = spaces.Text(300, charset=ACTION_CHARSET)
+        else:
+            high = np.array(
+                [
+                    max(space.forward_m),
+                    max(space.lateral_m),
+                    space.vertical_range_m[1],
+                    max(space.yaw_deg),
+                ],
+                np.float32,
+            )
+            self.action_space = spaces.Box(-high, high, dtype=np.float32)
+
+        self.pose: Pose | None = None
+        self.observation: Observation | None = None
+        self.timings_ms: dict[str, float] = {}
+        self._clearance = math.inf
+        self._progress = 0.0
+        self._steps = 0
+        self._ended = False
+        self._noise_seed = 0
+
+    # ------------------------------------------------------------------ the cave
+    @property
+    def scenario(self) -> Scenario:
+        """The cave of the current episode (loaded by the first reset)."""
+        if self._world is None:
+            raise gym.error.ResetNeeded("Call reset before using the environment.")
+        return self._world.scenario
+
+    @property
+    def caster(self) -> RayCaster:
+        """Geometry queries on the current cave, for drivers that plot it (never pilots)."""
+        if self._world is None:
+            raise gym.error.ResetNeeded("Call reset before using the environment.")
+        return self._world.caster
+
+    def _load(self, scenario: str | Path | Scenario, cave_seed: int | None) -> _World:
+        """The world for ``scenario``, built only when it is not the current one."""
+        if isinstance(scenario, Scenario):
+            key: tuple[str, int | None] = (f"object:{id(scenario)}", scenario.seed)
+        else:
+            name = str(scenario)
+            procedural = name.upper() in SCENARIOS
+            if procedural and cave_seed is None:
+                cave_seed = int(self.np_random.integers(TRAINING_SEEDS))
+            key = (name.upper() if procedural else name, cave_seed if procedural else None)
+        if self._world is not None and self._world.key == key:
+            return self._world
+        cave = scenario if isinstance(scenario, Scenario) else load_scenario(key[0], key[1] or 0)
+        caster = RayCaster(cave.mesh)
+        validate_start(cave, caster, self.body)
+        self._world = None  # free the previous cave's tables before building the next
+        return _World(key, cave, caster, SensorRig(caster, self.sensors))
+
+    # ------------------------------------------------------------------ the API
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        super().reset(seed=seed)
+        options = dict(options or {})
+        unknown = set(options) - {"scenario", "cave_seed"}
+        if unknown:
+            raise ConfigError(
+                f"unknown reset option(s) {', '.join(sorted(unknown))}; "
+                "the options are 'scenario' and 'cave_seed'"
+            )
+        self._world = self._load(
+            options.get("scenario", self._default_scenario),
+            options.get("cave_seed", self._default_cave_seed),
+        )
+        self._noise_seed = int(self.np_random.integers(2**31))
+        self.pose = self.scenario.start
+        self._clearance = clearance(self.caster, self.pose)
+        self._progress = self.scenario.progress(self.pose.position)
+        self._steps = 0
+        self._ended = False
+        started = time.perf_counter()
+        self.observation = self._world.rig.observe(self.pose, 0, self._noise_seed)
+        self.timings_ms = {"sense": 1e3 * (time.perf_counter() - started)}
+        return self._observation_dict(), self._info(Action(), None, None)
+
+    def step(
+        self, action: str | np.ndarray | Action
+    ) -> tuple[dict[str, np.ndarray], float, bool, bool, dict[str, Any]]:
+        if self._world is None or self.pose is None:
+            raise gym.error.ResetNeeded("Call reset before using step method.")
+        if self._ended:
+            raise gym.error.ResetNeeded(
+                "The episode has ended (exit or collision): call reset before step."
+            )
+        started = time.perf_counter()
+        command, invalid = self.command(action)
+        start = self.pose
+        moved = apply(start, command)
+        hit = swept_collision(self.caster, self.body, start, moved, self._clearance)
+        collision_pose = moved if hit else None
+        if not hit:
+            self.pose = moved
+            self._clearance = clearance(self.caster, moved)
+        exited = not hit and self.scenario.exited(self.pose.position)
+        progress = self.scenario.progress(self.pose.position)
+        reward = progress - self._progress - (self.collision_penalty if hit else 0.0)
+        self._progress = progress
+        self._steps += 1
+        self._ended = hit or exited
+        sensed = time.perf_counter()
+        observation = self._world.rig.observe(self.pose, self._steps, self._noise_seed)
+        self.observation = replace(observation, previous_action=command)
+        self.timings_ms = {
+            "physics": 1e3 * (sensed - started),
+            "sense": 1e3 * (time.perf_counter() - sensed),
+        }
+        info = self._info(command, invalid, collision_pose)
+        return self._observation_dict(), float(reward), self._ended, False, info
+
+    def render(self) -> np.ndarray | None:
+        """The forward colour image (H, W, 3) uint8 with ``render_mode="rgb_array"``."""
+        if self.render_mode != "rgb_array" or self.observation is None:
+            return None
+        return self.observation.rgb.copy()
+
+    # ------------------------------------------------------------------ helpers
+    def command(self, action: str | np.ndarray | Action) -> tuple[Action, str | None]:
+        """The action ``action`` asks for and, when it is not admissible, why (then hold).
+
+        Accepts what `step` accepts: an action string, an action vector (with
+        ``action_format="vector"``) or an `Action`.
+        """
+        try:
+            if isinstance(action, Action):
+                return self.space.validate(action), None
+            if self.action_format == "vector" and not isinstance(action, str):
+                return snap_action(action, self.space), None
+            return parse_action(action, self.space), None
+        except ActionError as exc:
+            return Action(), str(exc)
+
+    def _observation_dict(self) -> dict[str, np.ndarray]:
+        obs, cfg = self.observation, self.sensors
+        assert obs is not None
+        limit = np.float32(cfg.sounder_max_range_m)
+        return {
+            "rgb": obs.rgb,
+            "depth": obs.depth_png,
+            "depth_m": np.minimum(obs.depth_m, np.float32(cfg.depth_max_m)),
+            "d_top": np.array(min(obs.d_top, limit), np.float32),
+            "d_bottom": np.array(min(obs.d_bottom, limit), np.float32),
+        }
+
+    def _info(
+        self, executed: Action, invalid: str | None, collision_pose: Pose | None
+    ) -> dict[str, Any]:
+        assert self.pose is not None and self._world is not None
+        return {
+            "pose": self.pose.to_dict(),
+            "clearance_m": float(self._clearance),
+            "collision": collision_pose is not None,
+            "exit": self._ended and collision_pose is None,
+            "action": format_action(executed),
+            "invalid_action": invalid,
+            "progress_m": float(self._progress),
+            "collision_pose": collision_pose.to_dict() if collision_pose else None,
+            "scenario": self.scenario.name,
+            "cave_seed": self._world.key[1],
+        }

@@ -1,0 +1,172 @@
+"""What an episode recorded, step by step, and the summary it adds up to.
+
+The driver hands each step's observation, decision and environment info to an
+`EpisodeLog`; the log turns them into the steps.jsonl records and the summary.json
+fields (SPEC section 7), so the run folder, the progress bar and the plots all read the
+same values.
+"""
+
+from __future__ import annotations
+
+import platform
+import time
+from dataclasses import asdict
+from datetime import UTC, datetime
+from typing import Any
+
+from cavenav import __version__
+from cavenav.actions import parse_action, to_twist
+from cavenav.episode.metrics import path_length, summarise_clearance
+from cavenav.errors import PilotFailure
+from cavenav.types import Decision, Observation, Pose, Rules, Usage
+from cavenav.world.scenarios import Scenario
+
+__all__ = ["TERMINATIONS", "EpisodeLog"]
+
+TERMINATIONS = ("exit", "collision", "budget", "pilot_failure")
+_TWIST_KEYS = ("linear_x", "linear_y", "linear_z", "angular_z")
+
+
+class EpisodeLog:
+    """The trajectory, the per-step records and the episode's ending, as they happen."""
+
+    def __init__(
+        self,
+        scenario: Scenario,
+        pilot: str,
+        rules: Rules,
+        shielded: bool,
+        start: Pose,
+        start_clearance: float,
+        config: Any,
+    ):
+        self.scenario = scenario
+        self.pilot = pilot
+        self.rules = rules
+        self.shielded = shielded
+        self.poses = [start]
+        self.clearances = [start_clearance]
+        self.steps: list[dict[str, Any]] = []
+        self.usage: list[Usage] = []
+        self.termination: str | None = None
+        self.failure: str | None = None
+        self.collision_pose: dict[str, float] | None = None
+        self.progress_m = 0.0
+        self._started = time.perf_counter()
+        self._meta = {
+            "cavenav_version": __version__,
+            "python": platform.python_version(),
+            "started_at": datetime.now(UTC).isoformat(timespec="seconds"),
+            "scenario_description": scenario.description,
+            "mesh": scenario.mesh.name,
+            "triangles": scenario.mesh.triangle_count,
+            "start_pose": scenario.start.to_dict(),
+            "exits": [asdict(portal) for portal in scenario.exits],
+            "config": asdict(config),
+        }
+
+    def _begin(self, observation: Observation) -> dict[str, Any]:
+        return {
+            "step": len(self.steps),
+            "pose": self.poses[-1].to_dict(),
+            "clearance_m": round(self.clearances[-1], 4),
+            "d_top_m": round(observation.d_top, 4),
+            "d_bottom_m": round(observation.d_bottom, 4),
+        }
+
+    def stepped(
+        self,
+        observation: Observation,
+        decision: Decision,
+        info: dict[str, Any],
+        pose: Pose,
+        truncated: bool,
+        timing_ms: dict[str, float],
+    ) -> dict[str, Any]:
+        """Record a step the environment executed; ``pose`` is where it left the vehicle."""
+        record = self._begin(observation)
+        executed = info["action"]  # after any shield; "hold" for an inadmissible action
+        if info["collision"]:
+            self.collision_pose = info["collision_pose"]
+            self.termination = "collision"
+        else:
+            self.poses.append(pose)
+            self.clearances.append(info["clearance_m"])
+            if info["exit"]:
+                self.termination = "exit"
+        if self.termination is None and truncated:
+            self.termination = "budget"
+        self.progress_m = info["progress_m"]
+        twist = to_twist(parse_action(executed))
+        record.update(
+            action=executed,
+            justification=decision.justification,
+            twist=dict(zip(_TWIST_KEYS, twist, strict=True)),
+            next_pose=info["collision_pose"] or info["pose"],
+            collision=info["collision"],
+            progress_m=round(self.progress_m, 4),
+            **decision.extra,
+        )
+        if info.get("shield"):
+            record["shield"] = info["shield"]
+        if info["invalid_action"]:
+            record["invalid_action"] = info["invalid_action"]
+            record["proposed"] = decision.action_text
+        if decision.usage is not None:
+            self.usage.append(decision.usage)
+            record["vlm"] = decision.usage.to_dict()
+        record["timing_ms"] = {k: round(v, 2) for k, v in timing_ms.items()}
+        self.steps.append(record)
+        return record
+
+    def pilot_failed(
+        self, observation: Observation, failure: PilotFailure, timing_ms: dict[str, float]
+    ) -> dict[str, Any]:
+        """Record the step at which the pilot gave up; the episode ends there."""
+        record = self._begin(observation)
+        self.termination, self.failure = "pilot_failure", str(failure)
+        if isinstance(failure.usage, Usage):
+            self.usage.append(failure.usage)
+            record["vlm"] = failure.usage.to_dict()
+        record.update(action=None, failure=self.failure)
+        record["timing_ms"] = {k: round(v, 2) for k, v in timing_ms.items()}
+        self.steps.append(record)
+        return record
+
+    def summary(self, status: str) -> dict[str, Any]:
+        """summary.json: ``status`` is running, finished, interrupted or crashed."""
+        end = self.poses[-1].position
+        interventions = sum(1 for s in self.steps if s.get("shield"))
+        return {
+            "scenario": self.scenario.name,
+            "pilot": self.pilot,
+            "seed": self.scenario.seed,
+            "status": status,
+            "success": self.termination == "exit",
+            "termination": self.termination,
+            "terminated": self.termination in ("exit", "collision", "pilot_failure"),
+            "truncated": self.termination == "budget",
+            "collisions": int(self.collision_pose is not None),
+            "shield": self.shielded,
+            "shield_interventions": interventions,
+            "invalid_actions": sum(1 for s in self.steps if s.get("invalid_action")),
+            "steps": len(self.steps),
+            "path_length_m": round(path_length(self.poses), 4),
+            "progress_m": round(self.progress_m, 4),
+            "passage_length_m": round(self.scenario.passage_length_m, 4),
+            **summarise_clearance(self.clearances, self.rules.standoff_m),
+            "final_pose": self.poses[-1].to_dict(),
+            "collision_pose": self.collision_pose,
+            "exit_distance_m": round(self.scenario.exit_distance(end), 4),
+            "failure": self.failure,
+            "wall_time_s": round(time.perf_counter() - self._started, 3),
+            "mean_sense_ms": _mean_timing(self.steps, "sense"),
+            "mean_pilot_ms": _mean_timing(self.steps, "pilot"),
+            "usage": Usage.total(self.usage),
+            **self._meta,
+        }
+
+
+def _mean_timing(steps: list[dict[str, Any]], key: str) -> float | None:
+    values = [s["timing_ms"][key] for s in steps if key in s["timing_ms"]]
+    return round(sum(values) / len(values), 2) if values else None

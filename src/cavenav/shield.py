@@ -1,0 +1,444 @@
+"""The safety shield: judge a proposed action from what a real vehicle has, nothing more.
+
+The shield sees the current depth image, the echo sounders and its own memory of the
+last few depth images, each placed by dead reckoning on the actions the vehicle executed
+(never the mesh, never the true pose), so the same code can stand between a pilot and
+a real BlueROV2. It enforces, with the numbers of `Rules` (SPEC section 3):
+
+1. No forward motion when an obstacle ahead of the new heading is closer than
+   ``no_forward_within_m`` (measured from the camera, as the depth image is).
+2. Inside the standoff, forward motion of at most ``slow_forward_m[1]`` and only together
+   with a turn or a lateral or vertical shift.
+3. No move passes within the body's radius plus a margin of a surface it has seen (or,
+   already closer than that, comes any closer to one).
+4. No move enters space that was never seen free: every point along the straight move,
+   and the body's leading edge beyond its end, must lie in the view of a remembered depth
+   image in front of the surface there, in the sounders' column, or inside the body.
+
+A move that breaks a rule is replaced by the nearest action that keeps them all: its
+translations shrunk toward zero (inside the standoff also a 0.1 m shift away from the
+nearest surface), its turn kept or shrunk; "hold" when nothing else is safe.
+
+Body frame throughout: (forward, left, up) in metres from the vehicle's centre.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from cavenav.actions import DEFAULT_SPACE, ActionSpace, format_action
+from cavenav.sensors.depth import denormalise_depth
+from cavenav.types import DEFAULT_RULES, Action, Observation, Rules, VehicleBody
+
+__all__ = ["DepthMemory", "SeenFrame", "Shield", "ShieldConfig", "Verdict", "move_points"]
+
+
+def _yaw_matrix(yaw_deg: float) -> np.ndarray:
+    a = math.radians(yaw_deg)
+    return np.array(
+        [[math.cos(a), -math.sin(a), 0.0], [math.sin(a), math.cos(a), 0.0], [0.0, 0.0, 1.0]],
+        np.float32,
+    )
+
+
+def move_points(points: np.ndarray, action: Action) -> np.ndarray:
+    """(n, 3) body-frame points as seen after the vehicle executes ``action``.
+
+    The vehicle turns by dpsi (left positive), then translates by (df, -dr, dz) in its new
+    frame (SPEC section 5); fixed points therefore turn by -dpsi and shift back.
+    """
+    shift = np.array([action.forward, -action.right, action.up], np.float32)
+    return points @ _yaw_matrix(-action.yaw_deg).T - shift
+
+
+def translation(action: Action) -> np.ndarray:
+    """(3,) the straight move of ``action`` in the body frame before it (after its turn)."""
+    move = np.array([action.forward, -action.right, action.up], np.float32)
+    return _yaw_matrix(action.yaw_deg) @ move
+
+
+def clearance_of_move(cloud: np.ndarray, action: Action) -> float:
+    """Smallest distance from the points ``cloud`` (n, 3) to the straight move of the centre."""
+    if not len(cloud):
+        return math.inf
+    pts = cloud @ _yaw_matrix(-action.yaw_deg).T  # in the frame after the turn
+    move = np.array([action.forward, -action.right, action.up], np.float32)
+    length2 = float(move @ move)
+    t = np.clip(pts @ move / length2, 0.0, 1.0) if length2 > 0 else np.zeros(len(pts), np.float32)
+    return float(np.linalg.norm(pts - t[:, None] * move, axis=1).min())
+
+
+@dataclass(frozen=True)
+class SeenFrame:
+    """One remembered depth image and where its camera was, in the current body frame.
+
+    Attributes:
+        points: (n, 3) float32 surface points it saw (closer than the memory's range).
+        depth: (h, w) float32 planar depth in blocks of ``stride`` pixels, each block's
+            nearest value, then the nearest of its 3x3 neighbours: a conservative map of
+            the free space in view; D_max where nothing is in range.
+        origin: (3,) float32 camera position.
+        yaw_deg: the camera's heading relative to the current heading, left positive.
+        focal_px: focal length in pixels of the full image.
+        stride: pixels per block of ``depth``.
+        width, height: size of the full image in pixels.
+    """
+
+    points: np.ndarray
+    depth: np.ndarray
+    origin: np.ndarray
+    yaw_deg: float
+    focal_px: float
+    stride: int
+    width: int
+    height: int
+
+    def moved(self, action: Action) -> SeenFrame:
+        return replace(
+            self,
+            points=move_points(self.points, action),
+            origin=move_points(self.origin[None], action)[0],
+            yaw_deg=self.yaw_deg - action.yaw_deg,
+        )
+
+    def sees_free(self, points: np.ndarray, margin_m: float) -> np.ndarray:
+        """(n,) whether each body-frame point lies in view, ``margin_m`` before the surface."""
+        rel = points - self.origin
+        a = math.radians(self.yaw_deg)
+        ahead = rel[:, 0] * math.cos(a) + rel[:, 1] * math.sin(a)
+        left = -rel[:, 0] * math.sin(a) + rel[:, 1] * math.cos(a)
+        safe_ahead = np.maximum(ahead, 1e-3)
+        col = np.floor((0.5 * self.width - self.focal_px * left / safe_ahead) / self.stride)
+        row = np.floor((0.5 * self.height - self.focal_px * rel[:, 2] / safe_ahead) / self.stride)
+        h, w = self.depth.shape
+        inside = (ahead > 0.05) & (col >= 0) & (col < w) & (row >= 0) & (row < h)
+        free = np.zeros(len(points), bool)
+        r, c = row[inside].astype(np.intp), col[inside].astype(np.intp)
+        free[inside] = ahead[inside] + margin_m <= self.depth[r, c]
+        return free
+
+
+class DepthMemory:
+    """The last few depth images, placed by the actions the vehicle executed.
+
+    A plain structure that any pilot, the shield or a prompt can read: `cloud` holds the
+    surfaces seen (for clearance), `seen_free` tells known free space from the unknown.
+    """
+
+    def __init__(self, frames: int = 8, stride: int = 10, max_range_m: float = 10.0):
+        """
+        Args:
+            frames: depth images kept, the current one included.
+            stride: every n-th pixel becomes a remembered surface point; free space is
+                kept in blocks of n x n pixels.
+            max_range_m: surfaces farther than this are not remembered as points.
+        """
+        self.frames_kept = frames
+        self.stride = stride
+        self.max_range_m = max_range_m
+        self.frames: list[SeenFrame] = []
+
+    def reset(self) -> None:
+        self.frames = []
+
+    def update(self, observation: Observation, moved_by: Action | None) -> None:
+        """Move the remembered frames by ``moved_by`` and add ``observation``'s depth."""
+        if moved_by is not None:
+            self.frames = [frame.moved(moved_by) for frame in self.frames]
+        self.frames.append(self._frame(observation))
+        self.frames = self.frames[-self.frames_kept :]
+
+    def _frame(self, obs: Observation) -> SeenFrame:
+        s = self.stride
+        h, w = obs.depth_png.shape
+        d_max = obs.depth_range[1]
+        focal = 0.5 * w / math.tan(math.radians(obs.hfov_deg) / 2)
+        # Surface points at every s-th pixel, as the geometric pilot has always kept them.
+        depth = denormalise_depth(obs.depth_png[::s, ::s], *obs.depth_range)
+        v, u = np.mgrid[0:h:s, 0:w:s].astype(np.float32) + 0.5
+        keep = (depth < 0.995 * d_max) & (depth < self.max_range_m)
+        points = np.stack(
+            [
+                depth[keep] + obs.camera_offset_m,
+                (-(u - 0.5 * w) / focal * depth)[keep],
+                (-(v - 0.5 * h) / focal * depth)[keep],
+            ],
+            axis=1,
+        ).astype(np.float32)
+        # Free space: the nearest depth in each block and its neighbours.
+        blocks = obs.depth_png[: h // s * s, : w // s * s].reshape(h // s, s, w // s, s)
+        nearest = blocks.min(axis=(1, 3))
+        padded = np.pad(nearest, 1, mode="edge")
+        nearest = np.min(
+            [padded[i : i + h // s, j : j + w // s] for i in range(3) for j in range(3)], axis=0
+        )
+        return SeenFrame(
+            points=points,
+            depth=denormalise_depth(nearest, *obs.depth_range),
+            origin=np.array([obs.camera_offset_m, 0.0, 0.0], np.float32),
+            yaw_deg=0.0,
+            focal_px=focal,
+            stride=s,
+            width=w,
+            height=h,
+        )
+
+    @property
+    def cloud(self) -> np.ndarray:
+        """(n, 3) float32 every remembered surface point, current body frame."""
+        if not self.frames:
+            return np.empty((0, 3), np.float32)
+        return np.concatenate([frame.points for frame in self.frames])
+
+    def seen_free(self, points: np.ndarray, margin_m: float) -> np.ndarray:
+        """(n,) whether some remembered depth image saw each point free, with a margin."""
+        free = np.zeros(len(points), bool)
+        for frame in reversed(self.frames):
+            todo = ~free
+            if not todo.any():
+                break
+            free[todo] = frame.sees_free(points[todo], margin_m)
+        return free
+
+
+@dataclass(frozen=True)
+class ShieldConfig:
+    """Numbers of the shield.
+
+    Attributes:
+        rules: the strategy's distances (standoff, no forward within).
+        body: the vehicle; its bounding radius is the body's extent in every direction.
+        margin_m: distance kept beyond the body from every surface seen, and in front of
+            the surface for space to count as seen free.
+        memory_frames: depth images remembered, the current one included.
+        sample_m: spacing of the points checked along a move.
+    """
+
+    rules: Rules = DEFAULT_RULES
+    body: VehicleBody = field(default_factory=VehicleBody)
+    margin_m: float = 0.3
+    memory_frames: int = 8
+    sample_m: float = 0.1
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """The shield's answer: the action to execute and, if it differs, why."""
+
+    proposed: Action
+    action: Action
+    reason: str = ""
+
+    @property
+    def intervened(self) -> bool:
+        return self.action != self.proposed
+
+    def to_dict(self) -> dict[str, str]:
+        """The record written to steps.jsonl under ``shield``."""
+        return {
+            "proposed": format_action(self.proposed),
+            "replacement": format_action(self.action),
+            "reason": self.reason,
+        }
+
+
+class Shield:
+    """Judges proposed actions; see the module docstring for the rules."""
+
+    def __init__(self, config: ShieldConfig | None = None, space: ActionSpace = DEFAULT_SPACE):
+        self.config = config or ShieldConfig()
+        self.space = space
+        self.memory = DepthMemory(frames=self.config.memory_frames)
+        self._observation: Observation | None = None
+        self._last: Action | None = None
+
+    def reset(self) -> None:
+        self.memory.reset()
+        self._observation = None
+        self._last = None
+
+    def observe(self, observation: Observation, commanded: Action | None = None) -> None:
+        """Take in a new observation; the memory moves by the action executed before it.
+
+        Args:
+            commanded: the action last commanded, assumed executed when the observation
+                does not say (default: the last action this shield judged).
+        """
+        moved_by = observation.previous_action
+        if moved_by is None and self.memory.frames:
+            moved_by = commanded or self._last
+        self.memory.update(observation, moved_by)
+        self._observation = observation
+
+    def judge(self, proposed: Action) -> Verdict:
+        """The nearest action to ``proposed`` that keeps every rule (hold if none does)."""
+        if self._observation is None:
+            raise RuntimeError("Shield.judge needs an observation first: call observe()")
+        situation = _Situation.of(self._observation, self.memory, self.config)
+        reason = self._violation(proposed, situation)
+        if not reason:
+            verdict = Verdict(proposed, proposed)
+        else:
+            for candidate in self._candidates(proposed, situation):
+                if not self._violation(candidate, situation):
+                    verdict = Verdict(proposed, candidate, reason)
+                    break
+            else:
+                verdict = Verdict(proposed, Action(), reason + "; nothing else is safe: hold")
+        self._last = verdict.action
+        return verdict
+
+    # ------------------------------------------------------------------ rules
+    def _violation(self, action: Action, s: _Situation) -> str:
+        """Why ``action`` breaks a rule in situation ``s``; "" when it keeps them all."""
+        cfg, rules = self.config, self.config.rules
+        if action.is_hold:
+            return ""
+        if action.yaw_deg and s.nearest_surface_m < s.radius + 0.05:
+            return f"a surface {s.nearest_surface_m:.2f} m away leaves no room to turn"
+        if action.forward > 0:
+            ahead = s.free_ahead(action.yaw_deg)
+            if ahead < rules.no_forward_within_m:
+                return (
+                    f"obstacle {ahead:.1f} m ahead, within {rules.no_forward_within_m:g} m: "
+                    "no forward motion"
+                )
+            if s.nearest_m < rules.standoff_m:
+                slow = rules.slow_forward_m[1]
+                if action.forward > slow + 1e-9:
+                    return (
+                        f"nearest surface {s.nearest_m:.1f} m is inside the "
+                        f"{rules.standoff_m:g} m standoff: forward at most {slow:g} m"
+                    )
+                if not (action.yaw_deg or action.right or action.up):
+                    return "inside the standoff, forward motion must come with a turn or a shift"
+        move = translation(action)
+        length = float(np.linalg.norm(move))
+        if length == 0.0:
+            return ""
+        required = min(s.radius + cfg.margin_m, s.nearest_surface_m)
+        if clearance_of_move(s.cloud, action) < required - 1e-6:
+            return f"the move would pass within {required:.2f} m of a surface seen"
+        # The centre's path and the body's leading edge beyond its end must be seen free.
+        along = np.arange(cfg.sample_m, length + s.radius + 1e-6, cfg.sample_m)
+        points = (along[:, None] / length) * move
+        unknown = np.linalg.norm(points, axis=1) > s.radius
+        if unknown.any():
+            pts = points[unknown]
+            known = self.memory.seen_free(pts, cfg.margin_m) | s.in_sounder_column(pts)
+            if not known.all():
+                where = pts[int(np.argmin(known))]
+                return (
+                    "the move would enter space never seen free "
+                    f"({_describe(where)} of the vehicle)"
+                )
+        return ""
+
+    def _candidates(self, proposed: Action, s: _Situation) -> list[Action]:
+        """Admissible actions near ``proposed``, nearest first (hold excluded)."""
+        space = self.space
+
+        def toward_zero(value: float, allowed: tuple[float, ...]) -> list[float]:
+            return [math.copysign(a, value) for a in allowed if a <= abs(value) + 1e-9]
+
+        forwards = toward_zero(proposed.forward, space.forward_m)
+        rights = toward_zero(proposed.right, space.lateral_m)
+        yaws = toward_zero(proposed.yaw_deg, space.yaw_deg)
+        lo = space.vertical_range_m[0]
+        ups = {proposed.up, 0.0}
+        if abs(proposed.up) >= 2 * lo:
+            ups |= {round(proposed.up / 2, 2), math.copysign(lo, proposed.up)}
+        if s.nearest_m < self.config.rules.standoff_m and s.away_right:
+            rights.append(s.away_right)  # the shift the standoff asks for
+        options = {
+            Action(f, r, u, y)
+            for f, r, u, y in itertools.product(forwards, rights, ups, yaws)
+            if space.is_valid(Action(f, r, u, y))
+        }
+        options.discard(proposed)
+        options.discard(Action())
+
+        def distance(a: Action) -> float:
+            return (
+                abs(a.forward - proposed.forward)
+                + abs(a.right - proposed.right)
+                + abs(a.up - proposed.up)
+                + abs(a.yaw_deg - proposed.yaw_deg) / 45.0
+            )
+
+        return sorted(options, key=lambda a: (distance(a), format_action(a)))
+
+
+@dataclass(frozen=True)
+class _Situation:
+    """What the shield measured for one observation (body frame, metres)."""
+
+    cloud: np.ndarray  # remembered surface points within reach of any move
+    radius: float  # the body's bounding radius
+    nearest_surface_m: float  # nearest remembered surface point
+    nearest_m: float  # the same, or the ceiling or floor if nearer
+    away_right: float  # a 0.1 m lateral shift away from the nearest surface (0: none)
+    d_top: float
+    d_bottom: float
+    camera_offset_m: float
+    corridor_m: float  # half-width of the corridor an obstacle "ahead" lies in
+    margin_m: float
+
+    @classmethod
+    def of(cls, obs: Observation, memory: DepthMemory, cfg: ShieldConfig) -> _Situation:
+        cloud = memory.cloud
+        distance = np.linalg.norm(cloud, axis=1)
+        nearest = int(np.argmin(distance)) if len(cloud) else -1
+        nearest_surface = float(distance[nearest]) if nearest >= 0 else math.inf
+        away = 0.0
+        if nearest >= 0 and nearest_surface < cfg.rules.standoff_m:
+            left = float(cloud[nearest, 1])
+            away = 0.1 if left > 0 else -0.1  # away from a wall on the left is to the right
+        # Moves reach at most ~2.3 m (1 m forward, 1 m sideways, 2 m up): farther points
+        # cannot come within the margin, and the forward check looks 1.5 m beyond.
+        reach = 2.3 + cfg.rules.no_forward_within_m + cfg.body.bounding_radius + cfg.margin_m
+        return cls(
+            cloud=cloud[distance < reach],
+            radius=cfg.body.bounding_radius,
+            nearest_surface_m=nearest_surface,
+            nearest_m=min(nearest_surface, obs.d_top, obs.d_bottom),
+            away_right=away,
+            d_top=obs.d_top,
+            d_bottom=obs.d_bottom,
+            camera_offset_m=obs.camera_offset_m,
+            corridor_m=cfg.body.width / 2 + cfg.margin_m,
+            margin_m=cfg.margin_m,
+        )
+
+    def free_ahead(self, yaw_deg: float) -> float:
+        """Distance from the camera to the nearest surface in the corridor of the new heading."""
+        if not len(self.cloud):
+            return math.inf
+        pts = self.cloud @ _yaw_matrix(-yaw_deg).T
+        along = pts[:, 0] - self.camera_offset_m
+        across = np.hypot(pts[:, 1], pts[:, 2])
+        blocking = (along > 0) & (across < self.corridor_m)
+        return float(along[blocking].min()) if blocking.any() else math.inf
+
+    def in_sounder_column(self, points: np.ndarray) -> np.ndarray:
+        """(n,) points straight above or below the centre, short of what the sounders read."""
+        beside = np.hypot(points[:, 0], points[:, 1]) <= 0.1
+        up = (points[:, 2] > 0) & (points[:, 2] + self.margin_m <= self.d_top)
+        down = (points[:, 2] < 0) & (-points[:, 2] + self.margin_m <= self.d_bottom)
+        return beside & (up | down)
+
+
+def _describe(point: np.ndarray) -> str:
+    f, left, u = (float(v) for v in point)
+    parts = []
+    if abs(f) >= 0.05:
+        parts.append(f"{abs(f):.1f} m {'ahead' if f > 0 else 'behind'}")
+    if abs(left) >= 0.05:
+        parts.append(f"{abs(left):.1f} m {'left' if left > 0 else 'right'}")
+    if abs(u) >= 0.05:
+        parts.append(f"{abs(u):.1f} m {'above' if u > 0 else 'below'}")
+    return ", ".join(parts) or "at the centre"
