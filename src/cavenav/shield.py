@@ -77,7 +77,9 @@ class SeenFrame:
     """One remembered depth image and where its camera was, in the current body frame.
 
     Attributes:
-        points: (n, 3) float32 surface points it saw (closer than the memory's range).
+        points: (n, 3) float32 surface points it saw (closer than the memory's range),
+            the ceiling and floor straight above and below where the sounders read them
+            included.
         depth: (h, w) float32 planar depth in blocks of ``stride`` pixels, each block's
             nearest value, then the nearest of its 3x3 neighbours: a conservative map of
             the free space in view; D_max where nothing is in range.
@@ -105,19 +107,32 @@ class SeenFrame:
             yaw_deg=self.yaw_deg - action.yaw_deg,
         )
 
-    def sees_free(self, points: np.ndarray, margin_m: float) -> np.ndarray:
-        """(n,) whether each body-frame point lies in view, ``margin_m`` before the surface."""
+    def sees_free(self, points: np.ndarray, margin_m: float, edge_m: float = 0.15) -> np.ndarray:
+        """(n,) whether each body-frame point lies in view, ``margin_m`` before the surface.
+
+        Args:
+            edge_m: points up to this far outside the view's edges count as in view,
+                at the depth of the nearest edge block: close to the camera the view is
+                narrow, and a wall just outside it shows in the edge pixels too.
+        """
         rel = points - self.origin
         a = math.radians(self.yaw_deg)
         ahead = rel[:, 0] * math.cos(a) + rel[:, 1] * math.sin(a)
         left = -rel[:, 0] * math.sin(a) + rel[:, 1] * math.cos(a)
+        up = rel[:, 2]
+        half_w, half_h = 0.5 * self.width / self.focal_px, 0.5 * self.height / self.focal_px
+        inside = (
+            (ahead > 0.05)
+            & (np.abs(left) <= ahead * half_w + edge_m)
+            & (np.abs(up) <= ahead * half_h + edge_m)
+        )
         safe_ahead = np.maximum(ahead, 1e-3)
-        col = np.floor((0.5 * self.width - self.focal_px * left / safe_ahead) / self.stride)
-        row = np.floor((0.5 * self.height - self.focal_px * rel[:, 2] / safe_ahead) / self.stride)
         h, w = self.depth.shape
-        inside = (ahead > 0.05) & (col >= 0) & (col < w) & (row >= 0) & (row < h)
+        col = np.floor((0.5 * self.width - self.focal_px * left / safe_ahead) / self.stride)
+        row = np.floor((0.5 * self.height - self.focal_px * up / safe_ahead) / self.stride)
+        r = np.clip(row[inside], 0, h - 1).astype(np.intp)
+        c = np.clip(col[inside], 0, w - 1).astype(np.intp)
         free = np.zeros(len(points), bool)
-        r, c = row[inside].astype(np.intp), col[inside].astype(np.intp)
         free[inside] = ahead[inside] + margin_m <= self.depth[r, c]
         return free
 
@@ -169,6 +184,8 @@ class DepthMemory:
             ],
             axis=1,
         ).astype(np.float32)
+        sounded = [(0.0, 0.0, z) for z in (obs.d_top, -obs.d_bottom) if abs(z) < self.max_range_m]
+        points = np.concatenate([points, np.array(sounded, np.float32).reshape(-1, 3)])
         # Free space: the nearest depth in each block and its neighbours.
         blocks = obs.depth_png[: h // s * s, : w // s * s].reshape(h // s, s, w // s, s)
         nearest = blocks.min(axis=(1, 3))
@@ -298,8 +315,8 @@ class Shield:
         cfg, rules = self.config, self.config.rules
         if action.is_hold:
             return ""
-        if action.yaw_deg and s.nearest_surface_m < s.radius + 0.05:
-            return f"a surface {s.nearest_surface_m:.2f} m away leaves no room to turn"
+        if action.yaw_deg and s.turn_room_m < s.turn_radius + 0.05:
+            return f"a surface {s.turn_room_m:.2f} m beside the centre leaves no room to turn"
         if action.forward > 0:
             ahead = s.free_ahead(action.yaw_deg)
             if ahead < rules.no_forward_within_m:
@@ -352,8 +369,9 @@ class Shield:
         ups = {proposed.up, 0.0}
         if abs(proposed.up) >= 2 * lo:
             ups |= {round(proposed.up / 2, 2), math.copysign(lo, proposed.up)}
-        if s.nearest_m < self.config.rules.standoff_m and s.away_right:
-            rights.append(s.away_right)  # the shift the standoff asks for
+        if s.nearest_m < self.config.rules.standoff_m:  # the shift the standoff asks for
+            rights.append(s.away.right)
+            ups.add(s.away.up)
         options = {
             Action(f, r, u, y)
             for f, r, u, y in itertools.product(forwards, rights, ups, yaws)
@@ -379,9 +397,11 @@ class _Situation:
 
     cloud: np.ndarray  # remembered surface points within reach of any move
     radius: float  # the body's bounding radius
+    turn_radius: float  # how far the body's corners reach when it turns in place
+    turn_room_m: float  # horizontal distance to the nearest surface at the body's height
     nearest_surface_m: float  # nearest remembered surface point
     nearest_m: float  # the same, or the ceiling or floor if nearer
-    away_right: float  # a 0.1 m lateral shift away from the nearest surface (0: none)
+    away: Action  # a 0.1 m lateral or vertical shift away from the nearest surface
     d_top: float
     d_bottom: float
     camera_offset_m: float
@@ -394,19 +414,27 @@ class _Situation:
         distance = np.linalg.norm(cloud, axis=1)
         nearest = int(np.argmin(distance)) if len(cloud) else -1
         nearest_surface = float(distance[nearest]) if nearest >= 0 else math.inf
-        away = 0.0
-        if nearest >= 0 and nearest_surface < cfg.rules.standoff_m:
-            left = float(cloud[nearest, 1])
-            away = 0.1 if left > 0 else -0.1  # away from a wall on the left is to the right
+        shift = 0.1
+        if min(obs.d_top, obs.d_bottom) < nearest_surface:
+            away = Action(up=-shift if obs.d_top < obs.d_bottom else shift)
+        elif nearest >= 0:  # away from a wall on the left is to the right
+            away = Action(right=shift if cloud[nearest, 1] > 0 else -shift)
+        else:
+            away = Action()
         # Moves reach at most ~2.3 m (1 m forward, 1 m sideways, 2 m up): farther points
         # cannot come within the margin, and the forward check looks 1.5 m beyond.
         reach = 2.3 + cfg.rules.no_forward_within_m + cfg.body.bounding_radius + cfg.margin_m
+        body = cfg.body
+        level = np.abs(cloud[:, 2]) <= body.height / 2 + 0.05
+        beside = np.hypot(cloud[level, 0], cloud[level, 1])
         return cls(
             cloud=cloud[distance < reach],
-            radius=cfg.body.bounding_radius,
+            radius=body.bounding_radius,
+            turn_radius=0.5 * math.hypot(body.length, body.width),
+            turn_room_m=float(beside.min()) if beside.size else math.inf,
             nearest_surface_m=nearest_surface,
             nearest_m=min(nearest_surface, obs.d_top, obs.d_bottom),
-            away_right=away,
+            away=away,
             d_top=obs.d_top,
             d_bottom=obs.d_bottom,
             camera_offset_m=obs.camera_offset_m,

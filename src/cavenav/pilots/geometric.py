@@ -13,20 +13,23 @@ the prompt's strategy (SPEC section 3), so it is the yardstick a VLM pilot must 
 3. Centre vertically between ceiling and floor, following the passage's slope ahead.
 4. Cap forward motion by the standoff rules: none within 1.5 m of an obstacle ahead,
    0.1-0.2 m (with a turn or a shift) below the 2.0 m standoff, otherwise 0.5-1.0 m.
+5. Pass the choice through the safety shield (`cavenav.shield`), the same code that
+   ``--shield`` puts between any pilot and the vehicle, whose memory of earlier depth
+   images also tells this pilot where the walls beside it are.
 """
 
 from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy import ndimage
 
 from cavenav.actions import DEFAULT_SPACE, ActionSpace, format_action
 from cavenav.sensors.depth import denormalise_depth
-from cavenav.shield import Shield, ShieldConfig, clearance_of_move
+from cavenav.shield import Shield, ShieldConfig
 from cavenav.types import DEFAULT_RULES, Action, Decision, Observation, Rules, VehicleBody
 
 __all__ = ["GeometricPilot", "GeometricPilotConfig"]
@@ -233,27 +236,6 @@ class GeometricPilot:
                 return float(yaw)
         return float(options[0])
 
-    def _keep_clear(self, action: Action, cloud: np.ndarray) -> tuple[Action, str]:
-        """Shrink ``action`` until its move keeps a margin from every remembered surface.
-
-        Returns the action to take and, if it had to be changed, why.
-        """
-        margin = self.config.body.bounding_radius + self.config.margin_m
-        candidates = [action]
-        if action.right:
-            candidates.append(replace(action, right=0.0))
-        for forward in (0.5, 0.2, 0.1, 0.0):
-            if forward < action.forward:
-                candidates.append(replace(action, right=0.0, forward=forward))
-        candidates.append(replace(action, right=0.0, forward=0.0, up=0.0))
-        for k, candidate in enumerate(candidates):
-            if clearance_of_move(cloud, candidate) >= margin:
-                return candidate, "" if k == 0 else (
-                    f"the move would pass within {margin:.2f} m of a remembered surface, "
-                    f"so it becomes '{format_action(candidate)}'"
-                )
-        return candidates[-1], "boxed in: turning in place only"
-
     def decide(self, observation: Observation) -> Decision:
         cfg, rules = self.config, self.config.rules
         half_view = observation.hfov_deg / 2
@@ -326,11 +308,10 @@ class GeometricPilot:
         if not (forward or right or up or yaw):  # never idle: look for a way on
             yaw = 20.0 if scene.left_room_m >= scene.right_room_m else -20.0
 
-        action, shielded = self._keep_clear(
-            Action(forward=forward, right=right, up=up, yaw_deg=yaw), scene.cloud
-        )
-        if shielded:
-            constraint += f"; {shielded}"
+        verdict = self.shield.judge(Action(forward=forward, right=right, up=up, yaw_deg=yaw))
+        action = verdict.action
+        if verdict.intervened:
+            constraint += f"; {verdict.reason}, so it becomes '{format_action(action)}'"
         action = self.space.validate(action)
         yaw, up, right = action.yaw_deg, action.up, action.right
         self._turning_in_place = (self._turning_in_place + yaw) if action.forward == 0 else 0.0

@@ -1,0 +1,113 @@
+"""The safety shield judges from what a real vehicle has: depth, sounders, its memory."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from cavenav.actions import parse_action
+from cavenav.episode.loop import EpisodeConfig, run_episode
+from cavenav.pilots.geometric import GeometricPilot
+from cavenav.pilots.random_pilot import RandomPilot
+from cavenav.sensors.depth import normalise_depth
+from cavenav.shield import DepthMemory, Shield, move_points
+from cavenav.types import Action, Observation
+from cavenav.world.scenarios import Scenario
+
+
+def seen(
+    depth_m: float | np.ndarray, d_top: float = 3.0, d_bottom: float = 3.0, **kw: object
+) -> Observation:
+    depth = np.broadcast_to(np.float32(depth_m), (480, 640)).astype(np.float32)
+    return Observation(
+        rgb=np.zeros((480, 640, 3), np.uint8),
+        depth_m=depth,
+        depth_png=normalise_depth(depth),
+        d_top=d_top,
+        d_bottom=d_bottom,
+        depth_range=(0.0, 20.0),
+        hfov_deg=53.13,
+        camera_offset_m=0.2,
+        **kw,
+    )
+
+
+def judged(action: str, *observations: Observation):
+    shield = Shield()
+    for obs in observations:
+        shield.observe(obs)
+    return shield.judge(parse_action(action))
+
+
+def test_a_safe_move_in_open_water_passes_untouched() -> None:
+    verdict = judged("forward 1 m, turn left 15 deg", seen(np.inf))
+    assert not verdict.intervened and verdict.reason == ""
+
+
+def test_no_forward_motion_toward_an_obstacle_within_1_5_m() -> None:
+    verdict = judged("forward 1 m, turn left 5 deg", seen(1.3, d_top=2.5, d_bottom=2.5))
+    assert verdict.intervened and verdict.action.forward <= 0
+    assert "within 1.5 m" in verdict.reason
+
+
+def test_inside_the_standoff_forward_is_slow_and_comes_with_a_shift() -> None:
+    verdict = judged("forward 1 m", seen(np.inf, d_top=1.2, d_bottom=4.0))  # ceiling near
+    assert verdict.action.forward == pytest.approx(0.2)
+    assert verdict.action.yaw_deg or verdict.action.right or verdict.action.up
+    assert "standoff" in verdict.reason
+
+
+def test_a_sideways_move_into_space_never_seen_is_refused() -> None:
+    verdict = judged("strafe right 1 m", seen(np.inf))  # nothing beside is in view yet
+    assert verdict.action == Action()
+    assert "never seen free" in verdict.reason and "right" in verdict.reason
+
+
+def test_space_seen_from_behind_becomes_known_after_moving_into_it() -> None:
+    # From 3 m back the camera saw the space beside where the vehicle now is.
+    first = seen(np.inf)
+    later = seen(np.inf, previous_action=Action(forward=1.0))
+    latest = seen(np.inf, previous_action=Action(forward=1.0))
+    verdict = judged("strafe right 0.5 m", first, later, latest)
+    assert not verdict.intervened, verdict.reason
+
+
+def test_an_ascent_is_bounded_by_the_upward_sounder() -> None:
+    assert not judged("ascend 1 m", seen(np.inf, d_top=3.0)).intervened
+    verdict = judged("ascend 2 m", seen(np.inf, d_top=2.0))
+    assert verdict.intervened and verdict.action.up < 2.0 - 0.3
+
+
+def test_the_memory_moves_remembered_surfaces_by_the_executed_action() -> None:
+    memory = DepthMemory()
+    memory.update(seen(5.0), None)
+    before = memory.cloud.copy()
+    memory.update(seen(np.inf), Action(forward=1.0, yaw_deg=90.0))
+    after = memory.cloud[: len(before)]  # the new frame adds its points behind
+    assert np.allclose(after, move_points(before, Action(forward=1.0, yaw_deg=90.0)), atol=1e-5)
+    # The wall 5.2 m ahead is, after turning left and moving 1 m, 5.2 m right and 1 m back.
+    ahead = np.argmin(np.abs(before[:, 1]) + np.abs(before[:, 2]) - before[:, 0])
+    assert np.allclose(before[ahead], (5.2, 0.0, 0.0), atol=0.05)
+    assert np.allclose(after[ahead], (-1.0, -5.2, 0.0), atol=0.05)
+
+
+def test_the_geometric_pilot_remembers_with_the_shields_memory() -> None:
+    pilot = GeometricPilot()
+    pilot.decide(seen(6.0))
+    assert isinstance(pilot.shield, Shield) and len(pilot.shield.memory.frames) == 1
+
+
+def test_the_random_pilot_under_the_shield_does_not_collide(room_scenario: Scenario) -> None:
+    config = EpisodeConfig(max_steps=60, save_frames=False, plots=False, shield=True)
+    result = run_episode(room_scenario, RandomPilot(seed=3), config)
+    assert result.summary["collisions"] == 0 and result.termination != "collision"
+    assert result.summary["shield_interventions"] > 0
+    shielded = [s for s in result.steps if "shield" in s]
+    assert len(shielded) == result.summary["shield_interventions"]
+    assert all(s["action"] == s["shield"]["replacement"] for s in shielded)
+
+
+def test_without_the_shield_the_random_pilot_collides(room_scenario: Scenario) -> None:
+    config = EpisodeConfig(max_steps=60, save_frames=False, plots=False)
+    result = run_episode(room_scenario, RandomPilot(seed=3), config)
+    assert result.termination == "collision" and result.summary["shield"] is False
