@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from cavenav.types import Pose
+from cavenav.sensors.depth import normalise_depth
+from cavenav.types import Observation, Pose
 from cavenav.world.mesh import CaveMesh, make_mesh
 from cavenav.world.scenarios import ExitPortal, Scenario
 
@@ -37,4 +38,22 @@ def room_scenario(room: CaveMesh) -> Scenario:
         start=Pose(0.0, 8.0, 0.0, 0.0),
         exits=(ExitPortal((0.0, -6.0, 0.0), (0.0, -1.0, 0.0), 3.0),),
         description="test corridor",
+    )
+
+
+def synthetic_observation(
+    depth_m: float | np.ndarray, d_top: float = 3.0, d_bottom: float = 3.0, **fields: object
+) -> Observation:
+    """A 640x480 observation with the simulator's camera, seeing ``depth_m`` everywhere."""
+    depth = np.broadcast_to(np.float32(depth_m), (480, 640)).astype(np.float32)
+    return Observation(
+        rgb=np.zeros((480, 640, 3), np.uint8),
+        depth_m=depth,
+        depth_png=normalise_depth(depth),
+        d_top=d_top,
+        d_bottom=d_bottom,
+        depth_range=(0.0, 20.0),
+        hfov_deg=53.13,
+        camera_offset_m=0.2,
+        **fields,
     )

@@ -91,3 +91,22 @@ def test_a_scenario_files_optics_table_sets_the_water_and_flags_override_it(
     done = cavenav("run", str(scenario), "--steps", "1")
     assert done.returncode == 2
     assert "[optics]: 'fog'" in done.stderr and done.stderr.count("\n") == 1
+
+
+def test_the_random_pilot_flies_behind_the_shield_and_its_interventions_are_recorded(
+    tmp_path: Path,
+) -> None:
+    scenario = str(EXAMPLES / "osrf_cave_straight.toml")
+    args = ("run", scenario, "--pilot", "random", "--shield", "--steps", "6", "--no-frames")
+    done = cavenav(*args, "--out", str(tmp_path))
+    assert done.returncode == 0, done.stderr
+    assert "shield interventions" in done.stdout
+    (run_dir,) = tmp_path.iterdir()
+    summary = json.loads((run_dir / "summary.json").read_text())
+    steps = [json.loads(line) for line in (run_dir / "steps.jsonl").read_text().splitlines()]
+    assert summary["pilot"] == "random" and summary["shield"] is True
+    assert summary["shield_interventions"] == sum("shield" in s for s in steps) > 0
+    for step in steps:
+        if "shield" in step:
+            assert step["action"] == step["shield"]["replacement"] != step["shield"]["proposed"]
+            assert step["shield"]["reason"]

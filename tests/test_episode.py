@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -11,7 +12,7 @@ from cavenav.actions import format_action
 from cavenav.episode.loop import EpisodeConfig, run_episode
 from cavenav.errors import PilotFailure
 from cavenav.sensors.depth import read_exr
-from cavenav.types import Action, Decision, Observation
+from cavenav.types import Action, Decision, Observation, Usage
 from cavenav.world.scenarios import Scenario
 
 SUMMARY_FIELDS = {
@@ -125,3 +126,34 @@ def test_an_interrupted_run_leaves_a_valid_partial_record(
     assert summary["steps"] == 3
     lines = (run_dir / "steps.jsonl").read_text().splitlines()
     assert [json.loads(line)["step"] for line in lines] == [0, 1, 2]
+
+
+class Costly:
+    """A stand-in model pilot: two answered steps, then a failure that still cost tokens."""
+
+    name = "costly"
+
+    def __init__(self) -> None:
+        self.calls = 0
+
+    def reset(self) -> None:
+        self.calls = 0
+
+    def decide(self, observation: Observation) -> Decision:
+        self.calls += 1
+        if self.calls > 2:
+            spent = Usage(prompt_tokens=300, completion_tokens=30, latency_s=3.0, requeries=3)
+            raise PilotFailure("no valid reply after 4 attempts", (), replace(spent, cost_usd=0.03))
+        usage = Usage(prompt_tokens=100, completion_tokens=10, latency_s=1.0, cost_usd=0.01)
+        return Decision(Action(forward=0.5), "forward 0.5 m", "costly", usage=usage)
+
+
+def test_usage_is_summed_once_and_a_failed_step_still_counts(room_scenario: Scenario) -> None:
+    result = run_episode(room_scenario, Costly(), FAST)
+    usage = result.summary["usage"]
+    assert result.termination == "pilot_failure"
+    assert usage["model_steps"] == 3 and usage["prompt_tokens"] == 500
+    assert usage["completion_tokens"] == 50 and usage["requeries"] == 3
+    assert usage["cost_usd"] == pytest.approx(0.05)
+    assert usage["mean_latency_s"] == pytest.approx(5 / 3, abs=1e-4)
+    assert [s["vlm"]["prompt_tokens"] for s in result.steps] == [100, 100, 300]

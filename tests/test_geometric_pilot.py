@@ -10,28 +10,12 @@ import pytest
 from cavenav.actions import DEFAULT_SPACE, parse_action
 from cavenav.pilots.base import Pilot
 from cavenav.pilots.geometric import GeometricPilot
-from cavenav.sensors.depth import normalise_depth
 from cavenav.sensors.rig import SensorRig
 from cavenav.types import Observation, Pose
 from cavenav.world.raycast import RayCaster
 
 from .conftest import box_room
-
-
-def synthetic(
-    depth_m: float | np.ndarray, d_top: float = 3.0, d_bottom: float = 3.0
-) -> Observation:
-    depth = np.broadcast_to(np.float32(depth_m), (480, 640)).astype(np.float32)
-    return Observation(
-        rgb=np.zeros((480, 640, 3), np.uint8),
-        depth_m=depth,
-        depth_png=normalise_depth(depth),
-        d_top=d_top,
-        d_bottom=d_bottom,
-        depth_range=(0.0, 20.0),
-        hfov_deg=53.13,
-        camera_offset_m=0.2,
-    )
+from .conftest import synthetic_observation as synthetic
 
 
 def observe(room_extents, pose: Pose) -> Observation:

@@ -9,27 +9,11 @@ from cavenav.actions import parse_action
 from cavenav.episode.loop import EpisodeConfig, run_episode
 from cavenav.pilots.geometric import GeometricPilot
 from cavenav.pilots.random_pilot import RandomPilot
-from cavenav.sensors.depth import normalise_depth
 from cavenav.shield import DepthMemory, Shield, move_points
 from cavenav.types import Action, Observation
 from cavenav.world.scenarios import Scenario
 
-
-def seen(
-    depth_m: float | np.ndarray, d_top: float = 3.0, d_bottom: float = 3.0, **kw: object
-) -> Observation:
-    depth = np.broadcast_to(np.float32(depth_m), (480, 640)).astype(np.float32)
-    return Observation(
-        rgb=np.zeros((480, 640, 3), np.uint8),
-        depth_m=depth,
-        depth_png=normalise_depth(depth),
-        d_top=d_top,
-        d_bottom=d_bottom,
-        depth_range=(0.0, 20.0),
-        hfov_deg=53.13,
-        camera_offset_m=0.2,
-        **kw,
-    )
+from .conftest import synthetic_observation as seen
 
 
 def judged(action: str, *observations: Observation):

@@ -184,7 +184,9 @@ def _vlm_pilot(
 def run(
     scenario: Annotated[str, typer.Argument(help="S1..S5, or the path of a scenario .toml file")],
     pilot: Annotated[str, typer.Option(help=f"pilot to fly: {', '.join(PILOTS)}")] = "geometric",
-    seed: Annotated[int, typer.Option(help="seed of the procedural cave (S1..S5)")] = 0,
+    seed: Annotated[
+        int, typer.Option(help="seed of the procedural cave (S1..S5) and of the random pilot")
+    ] = 0,
     out: Annotated[Path, typer.Option(help="folder that receives the run folder")] = Path("runs"),
     steps: Annotated[int, typer.Option(min=1, help="step budget")] = 150,
     frames: Annotated[bool, typer.Option(help="save RGB, depth PNG and EXR of every step")] = True,
@@ -384,7 +386,6 @@ def ask(
             raise CavenavError(f"cannot read image {path}: {exc}") from None
 
     from cavenav.sensors.camera import CameraIntrinsics
-    from cavenav.sensors.depth import DEPTH_RANGE_M
 
     rgb = read(image, "RGB")
     depth_png = read(depth, "L") if depth else np.full(rgb.shape[:2], 255, np.uint8)

@@ -278,16 +278,12 @@ class Shield:
         self._observation = None
         self._last = None
 
-    def observe(self, observation: Observation, commanded: Action | None = None) -> None:
-        """Take in a new observation; the memory moves by the action executed before it.
-
-        Args:
-            commanded: the action last commanded, assumed executed when the observation
-                does not say (default: the last action this shield judged).
-        """
+    def observe(self, observation: Observation) -> None:
+        """Take in a new observation; the memory moves by the action executed before it,
+        or, when the observation does not say, by the last action this shield judged."""
         moved_by = observation.previous_action
         if moved_by is None and self.memory.frames:
-            moved_by = commanded or self._last
+            moved_by = self._last
         self.memory.update(observation, moved_by)
         self._observation = observation
 

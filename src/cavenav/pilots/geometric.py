@@ -21,7 +21,6 @@ the prompt's strategy (SPEC section 3), so it is the yardstick a VLM pilot must 
 from __future__ import annotations
 
 import math
-from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -53,7 +52,6 @@ class GeometricPilotConfig:
             vehicle's half-width (0.17 m) plus a margin for rough walls.
         corridor_half_height_m: the same vertically (half-height 0.125 m plus margin).
         open_range_m: a bearing free this far counts as the passage's continuation.
-        history: number of previous observations kept (K in SPEC section 3).
         stride: use every n-th pixel of the depth image; 5 keeps 128x96 points.
         memory_frames: how many recent depth images the pilot remembers as points, moved
             by the actions the vehicle executed, to know the walls beside it that are out
@@ -66,7 +64,6 @@ class GeometricPilotConfig:
     corridor_half_width_m: float = 0.6
     corridor_half_height_m: float = 0.5
     open_range_m: float = 8.0
-    history: int = 2
     stride: int = 5
     memory_frames: int = 8
     body: VehicleBody = field(default_factory=VehicleBody)
@@ -100,7 +97,6 @@ class GeometricPilot:
     ):
         self.config = config or GeometricPilotConfig()
         self.space = space
-        self._actions: deque[Action] = deque(maxlen=max(self.config.history, 1))
         self._turning_in_place = 0.0  # degrees turned since the last forward motion
         self.shield = Shield(
             ShieldConfig(
@@ -117,7 +113,6 @@ class GeometricPilot:
         self._directions = np.stack([np.cos(e) * np.cos(b), np.cos(e) * np.sin(b), np.sin(e)], 1)
 
     def reset(self) -> None:
-        self._actions.clear()
         self._turning_in_place = 0.0
         self.shield.reset()
 
@@ -146,7 +141,7 @@ class GeometricPilot:
         # Remember what was seen: surfaces beside the vehicle are out of view now but were
         # in view a few steps ago. The shield's memory keeps them in the body frame
         # (forward, left, up from the vehicle's centre), moved by each executed action.
-        self.shield.observe(obs, commanded=self._actions[-1] if self._actions else None)
+        self.shield.observe(obs)  # moved by the action executed, else the one it judged
         cloud = self.shield.memory.cloud
         # "At the vehicle's height" follows the passage's slope, so that a ceiling or floor
         # ahead of a descent or a climb is not mistaken for a side wall.
@@ -315,7 +310,6 @@ class GeometricPilot:
         action = self.space.validate(action)
         yaw, up, right = action.yaw_deg, action.up, action.right
         self._turning_in_place = (self._turning_in_place + yaw) if action.forward == 0 else 0.0
-        self._actions.append(action)
         text = format_action(action)
         justification = (
             f"Situation: {situation}; free straight ahead {scene.ahead_m:.1f} m; ceiling "

@@ -187,10 +187,10 @@ class SensorRig:
     def camera_position(self, pose: Pose) -> np.ndarray:
         return pose.position + self.config.camera_offset_m * pose.forward
 
-    def render(self, pose: Pose, *, radiance: bool = False, noise_seed: int | None = None) -> Frame:
+    def render(self, pose: Pose, *, radiance: bool = False) -> Frame:
         """Cast the forward frame at ``pose`` and form its depth and colour images, and
         the linear radiance they were developed from if ``radiance``."""
-        return self._render(pose, radiance, noise_seed)[0]
+        return self._render(pose, radiance)[0]
 
     def _sounder_rays(self, pose: Pose, out: np.ndarray) -> None:
         """Write the up- and then the down-looking sounder's rays into ``out`` (2k, 6)."""
