@@ -19,7 +19,7 @@ EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 
 
 def test_check_env_passes_for_s1() -> None:
-    check_env(CaveNavEnv("S1", render_mode="rgb_array"))
+    check_env(gym.make("cavenav/CaveNav-v0", scenario="S1", render_mode="rgb_array").unwrapped)
 
 
 def test_check_env_passes_for_a_scenario_file_and_for_action_vectors() -> None:

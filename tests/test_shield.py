@@ -95,3 +95,14 @@ def test_without_the_shield_the_random_pilot_collides(room_scenario: Scenario) -
     config = EpisodeConfig(max_steps=60, save_frames=False, plots=False)
     result = run_episode(room_scenario, RandomPilot(seed=3), config)
     assert result.termination == "collision" and result.summary["shield"] is False
+
+
+def test_a_move_that_slants_down_keeps_clear_of_the_floor_the_sounder_reads() -> None:
+    # The space behind was seen on the way in; the floor 0.93 m below is taken as level,
+    # so backing up while descending 0.64 m would end 0.29 m above it.
+    step = Action(forward=1.0)
+    way_in = [seen(np.inf, previous_action=step) for _ in range(3)]
+    low_floor = seen(np.inf, d_bottom=0.93, previous_action=step)
+    verdict = judged("back 1 m, descend 0.64 m", *way_in, low_floor)
+    assert verdict.intervened and "floor" in verdict.reason, verdict.reason
+    assert verdict.action.up > -0.93 + 0.61

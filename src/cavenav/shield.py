@@ -10,7 +10,8 @@ a real BlueROV2. It enforces, with the numbers of `Rules` (SPEC section 3):
 2. Inside the standoff, forward motion of at most ``slow_forward_m[1]`` and only together
    with a turn or a lateral or vertical shift.
 3. No move passes within the body's radius plus a margin of a surface it has seen (or,
-   already closer than that, comes any closer to one).
+   already closer than that, comes any closer to one); the ceiling and floor the
+   sounders read count as level planes near the vehicle.
 4. No move enters space that was never seen free: every point along the straight move,
    and the body's leading edge beyond its end, must lie in the view of a remembered depth
    image in front of the surface there, in the sounders' column, or inside the body.
@@ -336,6 +337,10 @@ class Shield:
         required = min(s.radius + cfg.margin_m, s.nearest_surface_m)
         if clearance_of_move(s.cloud, action) < required - 1e-6:
             return f"the move would pass within {required:.2f} m of a surface seen"
+        for gap, rise, what in ((s.d_top, move[2], "ceiling"), (s.d_bottom, -move[2], "floor")):
+            keep = min(s.radius + cfg.margin_m, gap)
+            if rise > 0 and gap - rise < keep - 1e-6:
+                return f"the move would end within {keep:.2f} m of the {what} ({gap:.2f} m away)"
         # The centre's path and the body's leading edge beyond its end must be seen free.
         along = np.arange(cfg.sample_m, length + s.radius + 1e-6, cfg.sample_m)
         points = (along[:, None] / length) * move
