@@ -78,7 +78,7 @@ def test_the_memory_moves_remembered_surfaces_by_the_executed_action() -> None:
 def test_the_geometric_pilot_remembers_with_the_shields_memory() -> None:
     pilot = GeometricPilot()
     pilot.decide(seen(6.0))
-    assert isinstance(pilot.shield, Shield) and len(pilot.shield.memory.frames) == 1
+    assert isinstance(pilot.memory, DepthMemory) and len(pilot.memory.frames) == 1
 
 
 def test_the_random_pilot_under_the_shield_does_not_collide(room_scenario: Scenario) -> None:

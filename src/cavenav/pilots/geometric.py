@@ -13,22 +13,22 @@ the prompt's strategy (SPEC section 3), so it is the yardstick a VLM pilot must 
 3. Centre vertically between ceiling and floor, following the passage's slope ahead.
 4. Cap forward motion by the standoff rules: none within 1.5 m of an obstacle ahead,
    0.1-0.2 m (with a turn or a shift) below the 2.0 m standoff, otherwise 0.5-1.0 m.
-5. Pass the choice through the safety shield (`cavenav.shield`), the same code that
-   ``--shield`` puts between any pilot and the vehicle, whose memory of earlier depth
-   images also tells this pilot where the walls beside it are.
+5. Shrink the move until it keeps its half-diagonal plus a margin from every surface in
+   the safety shield's memory of recent depth images (`cavenav.shield`: the same memory
+   and the same move clearance that ``--shield`` judges any pilot with).
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy import ndimage
 
 from cavenav.actions import DEFAULT_SPACE, ActionSpace, format_action
 from cavenav.sensors.depth import denormalise_depth
-from cavenav.shield import Shield, ShieldConfig
+from cavenav.shield import DepthMemory, clearance_of_move
 from cavenav.types import DEFAULT_RULES, Action, Decision, Observation, Rules, VehicleBody
 
 __all__ = ["GeometricPilot", "GeometricPilotConfig"]
@@ -97,24 +97,18 @@ class GeometricPilot:
     ):
         self.config = config or GeometricPilotConfig()
         self.space = space
+        self._last: Action | None = None  # the action it chose last
         self._turning_in_place = 0.0  # degrees turned since the last forward motion
-        self.shield = Shield(
-            ShieldConfig(
-                rules=self.config.rules,
-                body=self.config.body,
-                margin_m=self.config.margin_m,
-                memory_frames=self.config.memory_frames,
-            ),
-            space,
-        )
+        self.memory = DepthMemory(frames=self.config.memory_frames)  # the shield's memory
         bearings, elevations = np.meshgrid(_BEARINGS, _ELEVATIONS, indexing="ij")
         b, e = np.radians(bearings.ravel()), np.radians(elevations.ravel())
         # (k, 3) unit directions in (forward, left, up) for every (bearing, elevation).
         self._directions = np.stack([np.cos(e) * np.cos(b), np.cos(e) * np.sin(b), np.sin(e)], 1)
 
     def reset(self) -> None:
+        self._last = None
         self._turning_in_place = 0.0
-        self.shield.reset()
+        self.memory.reset()
 
     # ------------------------------------------------------------------ perception
     def _measure(self, obs: Observation) -> _Scene:
@@ -139,10 +133,12 @@ class GeometricPilot:
         free = np.where(blocking, along, d_max).min(axis=0, initial=d_max)
         free = free.reshape(len(_BEARINGS), len(_ELEVATIONS))
         # Remember what was seen: surfaces beside the vehicle are out of view now but were
-        # in view a few steps ago. The shield's memory keeps them in the body frame
-        # (forward, left, up from the vehicle's centre), moved by each executed action.
-        self.shield.observe(obs)  # moved by the action executed, else the one it judged
-        cloud = self.shield.memory.cloud
+        # in view a few steps ago. The memory (the safety shield's) keeps them in the body
+        # frame (forward, left, up from the centre), moved by each executed action, or by
+        # the one chosen when the observation does not say.
+        moved_by = obs.previous_action if obs.previous_action is not None else self._last
+        self.memory.update(obs, moved_by)
+        cloud = self.memory.cloud
         # "At the vehicle's height" follows the passage's slope, so that a ceiling or floor
         # ahead of a descent or a climb is not mistaken for a side wall.
         bearing, elevation = self._target(free)
@@ -231,6 +227,27 @@ class GeometricPilot:
                 return float(yaw)
         return float(options[0])
 
+    def _keep_clear(self, action: Action, cloud: np.ndarray) -> tuple[Action, str]:
+        """Shrink ``action`` until its move keeps a margin from every remembered surface.
+
+        Returns the action to take and, if it had to be changed, why.
+        """
+        margin = self.config.body.bounding_radius + self.config.margin_m
+        candidates = [action]
+        if action.right:
+            candidates.append(replace(action, right=0.0))
+        for forward in (0.5, 0.2, 0.1, 0.0):
+            if forward < action.forward:
+                candidates.append(replace(action, right=0.0, forward=forward))
+        candidates.append(replace(action, right=0.0, forward=0.0, up=0.0))
+        for k, candidate in enumerate(candidates):
+            if clearance_of_move(cloud, candidate) >= margin:
+                return candidate, "" if k == 0 else (
+                    f"the move would pass within {margin:.2f} m of a remembered surface, "
+                    f"so it becomes '{format_action(candidate)}'"
+                )
+        return candidates[-1], "boxed in: turning in place only"
+
     def decide(self, observation: Observation) -> Decision:
         cfg, rules = self.config, self.config.rules
         half_view = observation.hfov_deg / 2
@@ -303,13 +320,15 @@ class GeometricPilot:
         if not (forward or right or up or yaw):  # never idle: look for a way on
             yaw = 20.0 if scene.left_room_m >= scene.right_room_m else -20.0
 
-        verdict = self.shield.judge(Action(forward=forward, right=right, up=up, yaw_deg=yaw))
-        action = verdict.action
-        if verdict.intervened:
-            constraint += f"; {verdict.reason}, so it becomes '{format_action(action)}'"
+        action, shielded = self._keep_clear(
+            Action(forward=forward, right=right, up=up, yaw_deg=yaw), scene.cloud
+        )
+        if shielded:
+            constraint += f"; {shielded}"
         action = self.space.validate(action)
         yaw, up, right = action.yaw_deg, action.up, action.right
         self._turning_in_place = (self._turning_in_place + yaw) if action.forward == 0 else 0.0
+        self._last = action
         text = format_action(action)
         justification = (
             f"Situation: {situation}; free straight ahead {scene.ahead_m:.1f} m; ceiling "
