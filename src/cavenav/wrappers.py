@@ -51,9 +51,9 @@ class SafetyShield(gym.Wrapper):
     def step(self, action: str | np.ndarray | Action) -> tuple[Any, float, bool, bool, dict]:
         proposed, invalid = self._base.command(action)
         verdict = None if invalid else self.shield.judge(proposed)
-        if verdict is not None and verdict.intervened:
-            self.interventions += 1
-            action = verdict.action
+        if verdict is not None:
+            action = verdict.action  # already parsed: the environment only validates it
+            self.interventions += verdict.intervened
         obs, reward, terminated, truncated, info = self.env.step(action)
         self.shield.observe(self._base.observation)
         info["shield"] = verdict.to_dict() if verdict is not None and verdict.intervened else None
