@@ -131,7 +131,10 @@ def run_episode(
                 timing["pilot"] = 1e3 * (time.perf_counter() - started)
                 _, _, _, truncated, info = env.step(decision.action_text)
                 timing["physics"] = vehicle.timings_ms["physics"]
-                record = log.stepped(observation, decision, info, vehicle.pose, truncated, timing)
+                executed = vehicle.observation.previous_action
+                record = log.stepped(
+                    observation, decision, info, executed, vehicle.pose, truncated, timing
+                )
                 exchanges = decision.exchanges
             if folder:
                 folder.record(record, observation, exchanges)

@@ -15,10 +15,10 @@ from datetime import UTC, datetime
 from typing import Any
 
 from cavenav import __version__
-from cavenav.actions import parse_action, to_twist
+from cavenav.actions import format_action, to_twist
 from cavenav.episode.metrics import path_length, summarise_clearance
 from cavenav.errors import PilotFailure
-from cavenav.types import Decision, Observation, Pose, Rules, Usage
+from cavenav.types import Action, Decision, Observation, Pose, Rules, Usage
 from cavenav.world.scenarios import Scenario
 
 __all__ = ["TERMINATIONS", "EpisodeLog"]
@@ -79,13 +79,18 @@ class EpisodeLog:
         observation: Observation,
         decision: Decision,
         info: dict[str, Any],
+        executed: Action,
         pose: Pose,
         truncated: bool,
         timing_ms: dict[str, float],
     ) -> dict[str, Any]:
-        """Record a step the environment executed; ``pose`` is where it left the vehicle."""
+        """Record a step the environment executed.
+
+        Args:
+            executed: the action carried out (after any shield; hold when inadmissible).
+            pose: where the step left the vehicle.
+        """
         record = self._begin(observation)
-        executed = info["action"]  # after any shield; "hold" for an inadmissible action
         if info["collision"]:
             self.collision_pose = info["collision_pose"]
             self.termination = "collision"
@@ -97,9 +102,9 @@ class EpisodeLog:
         if self.termination is None and truncated:
             self.termination = "budget"
         self.progress_m = info["progress_m"]
-        twist = to_twist(parse_action(executed))
+        twist = to_twist(executed)
         record.update(
-            action=executed,
+            action=format_action(executed),
             justification=decision.justification,
             twist=dict(zip(_TWIST_KEYS, twist, strict=True)),
             next_pose=info["collision_pose"] or info["pose"],

@@ -168,6 +168,3 @@ class RunFolder:
         finally:
             self.write_json("summary.json", summary)
             self._steps.close()
-
-    def close(self) -> None:
-        self._steps.close()
