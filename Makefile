@@ -21,7 +21,7 @@ $(STAMP): pyproject.toml
 	fi
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
-	$(BIN)/python -m pip install -q -e '.[test,transformers]'
+	$(BIN)/python -m pip install -q -e '.[test,transformers,ray]'
 	touch $(STAMP)
 
 demo: setup
@@ -32,6 +32,7 @@ test: setup
 
 bench: setup
 	$(BIN)/python benchmarks/sensor_step.py
+	$(BIN)/python benchmarks/sweep.py
 
 lint: setup
 	$(BIN)/ruff check src tests benchmarks

@@ -1,22 +1,33 @@
-"""Scenarios: seeded procedural caves S1-S5 and scenario files for user meshes."""
+"""Scenarios: seeded procedural caves S1-S5, their difficulty knobs, and scenario files."""
 
 from __future__ import annotations
 
+import inspect
+import json
+import math
 from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from cavenav.errors import ConfigError, MeshError, ScenarioError
 from cavenav.types import Pose
+from cavenav.world import scenarios as scenarios_module
 from cavenav.world.collision import VehicleBody, clearance
 from cavenav.world.procedural import resample
 from cavenav.world.raycast import RayCaster
 from cavenav.world.scenarios import (
+    HELD_OUT_SEEDS,
     SCENARIOS,
+    Difficulty,
     Scenario,
+    difficulty_table,
     load_scenario,
     load_scenario_file,
+    parse_difficulty,
+    procedural_scenario,
     validate_start,
 )
 
@@ -42,7 +53,7 @@ def test_another_seed_builds_another_cave() -> None:
 
 @pytest.mark.parametrize("name", list(SCENARIOS))
 def test_procedural_caves_have_the_promised_shape(name: str) -> None:
-    layout = SCENARIOS[name].build(np.random.default_rng([0, int(name[1:])]), 0)
+    layout = SCENARIOS[name].layout(0)
     spec = layout.spec
     start = int(np.argmin(np.linalg.norm(spec.centreline - layout.start.position, axis=1)))
     _, s = resample(spec.centreline[start : spec.exit_index + 1], 0.1)
@@ -57,7 +68,7 @@ def test_procedural_caves_have_the_promised_shape(name: str) -> None:
 
 
 def test_s3_starts_near_a_wall_at_the_height_of_the_frontal_obstacle() -> None:
-    layout = SCENARIOS["S3"].build(np.random.default_rng([0, 3]), 0)
+    layout = SCENARIOS["S3"].layout(0)
     frontal = layout.spec.boulders[0]
     assert layout.start.z == pytest.approx(frontal.centre[2])
     scenario = load_scenario("S3", seed=0)
@@ -139,3 +150,328 @@ def test_a_start_outside_an_open_tube_is_refused() -> None:
     beside = Scenario("x", scenario.mesh, Pose(6.0, 0.0, 2.0), scenario.exits)
     with pytest.raises(ScenarioError, match="outside"):
         validate_start(beside, RayCaster(scenario.mesh), VehicleBody())
+
+
+# ------------------------------------------------------------------ cave families
+
+ROOT = Path(__file__).resolve().parents[1]
+
+# `PassageSpec.digest` of each family's cave at seed 0, recorded before the difficulty
+# knobs existed: the plain families must go on building exactly these caves. (A deliberate
+# change of the generator bumps GENERATOR_VERSION, which changes them all: record anew.)
+REFERENCE_DIGESTS = {
+    "S1": "2af8d7d497375023",
+    "S2": "94fcd17f5fdd2500",
+    "S3": "aa69c66f725c9f19",
+    "S4": "77d1ab3d412c2bbc",
+    "S5": "702485e7b5725983",
+}
+
+# A value of each knob, in range and away from the default, for each family that has it.
+HARDER = {
+    "constriction_m": 2.4,
+    "undulation_m": 6.0,
+    "bend_deg": 60.0,
+    "obstacles": 4,
+    "obstacle_scale": 1.2,
+    "roughness_m": 0.45,
+}
+
+
+def _start_index(layout) -> int:
+    return int(np.argmin(np.linalg.norm(layout.spec.centreline - layout.start.position, axis=1)))
+
+
+def _narrowest_width(layout) -> float:
+    """Narrowest width of the passage's profile between the start and the exit, metres."""
+    return float(2 * layout.spec.half_width[_start_index(layout) : layout.spec.exit_index].min())
+
+
+@pytest.mark.parametrize("name", list(SCENARIOS))
+def test_the_default_difficulty_builds_the_reference_cave(name: str) -> None:
+    family = SCENARIOS[name]
+    spelled_out = Difficulty(**{knob: value.default for knob, value in family.knobs.items()})
+    for difficulty in (None, Difficulty(), spelled_out):
+        assert family.layout(0, difficulty).spec.digest() == REFERENCE_DIGESTS[name], difficulty
+
+
+@pytest.mark.parametrize(("name", "knob"), [(n, k) for n, f in SCENARIOS.items() for k in f.knobs])
+def test_every_knob_changes_the_cave_and_its_cache_key(name: str, knob: str) -> None:
+    harder = SCENARIOS[name].layout(0, Difficulty(**{knob: HARDER[knob]}))
+    assert harder.spec.digest() != REFERENCE_DIGESTS[name]
+
+
+@pytest.mark.parametrize(("name", "default"), [("S1", 3.6), ("S2", 3.8)])
+def test_constriction_m_is_the_width_of_the_narrowest_constriction(
+    name: str, default: float
+) -> None:
+    family = SCENARIOS[name]
+    for seed in (0, 3):
+        assert _narrowest_width(family.layout(seed)) == pytest.approx(default, abs=0.05)
+        for width in (1.5, 2.4, 5.0):
+            narrowed = family.layout(seed, Difficulty(constriction_m=width))
+            assert _narrowest_width(narrowed) == pytest.approx(width, abs=0.05)
+
+
+def test_undulation_m_is_the_peak_to_peak_height_of_the_passage() -> None:
+    for seed in (0, 5):
+        for height in (0.0, 4.0, 6.0):
+            layout = SCENARIOS["S2"].layout(seed, Difficulty(undulation_m=height))
+            z = layout.spec.centreline[_start_index(layout) : layout.spec.exit_index, 2]
+            # The portals are smoothed into straight ends, which shaves a little off a peak.
+            assert 0.95 * height <= np.ptp(z) <= height + 1e-9
+
+
+@pytest.mark.parametrize("bend", [30.0, 60.0, 90.0, 120.0, 150.0])
+def test_bend_deg_turns_the_second_leg_that_far_from_the_first(bend: float) -> None:
+    for seed in (0, 1):  # a bend to the right, then one to the left
+        layout = SCENARIOS["S4"].layout(seed, Difficulty(bend_deg=bend))
+        points, exit_index = layout.spec.centreline, layout.spec.exit_index
+        start = _start_index(layout)
+        first_leg = points[start + 8] - points[start]
+        second_leg = points[exit_index] - points[exit_index - 8]
+        first_leg, second_leg = (v / np.linalg.norm(v) for v in (first_leg, second_leg))
+        turn = math.degrees(math.acos(np.clip(first_leg @ second_leg, -1.0, 1.0)))
+        assert turn == pytest.approx(bend, abs=0.5)
+        assert layout.start.forward @ first_leg == pytest.approx(1.0), "start faces the leg"
+        assert abs(second_leg[0]) == pytest.approx(1.0), "the exit runs along an axis"
+        assert f"{bend:g}-degree" in layout.description
+
+
+def test_a_hairpin_keeps_its_closed_end_behind_the_exit_plane() -> None:
+    # The mesh grid is cut 1.5 m past the exit plane; a first leg reaching across that
+    # plane would be cut open there, a second way out of the cave.
+    for seed in (0, 1):
+        layout = SCENARIOS["S4"].layout(seed, Difficulty(bend_deg=150.0))
+        points, exit_index = layout.spec.centreline, layout.spec.exit_index
+        outward = np.sign(points[exit_index, 0] - points[exit_index - 1, 0])
+        behind = outward * (points[exit_index, 0] - points[0, 0])
+        assert behind >= 7.0
+        assert layout.spec.half_width.max() + 1.5 < behind
+
+
+@pytest.mark.parametrize(
+    ("name", "count"),
+    [("S3", 0), ("S3", 1), ("S3", 5), ("S3", 8), ("S5", 0), ("S5", 3), ("S5", 20)],
+)
+def test_obstacles_is_the_number_of_boulders_between_start_and_exit(name: str, count: int) -> None:
+    layout = SCENARIOS[name].layout(2, Difficulty(obstacles=count))
+    assert len(layout.spec.boulders) == count
+    points = layout.spec.centreline
+    for boulder in layout.spec.boulders:
+        nearest = int(np.argmin(np.linalg.norm(points - np.asarray(boulder.centre), axis=1)))
+        assert _start_index(layout) < nearest < layout.spec.exit_index
+
+
+def test_s3_boulders_alternate_frontal_and_lateral_along_the_passage() -> None:
+    layout = SCENARIOS["S3"].layout(0, Difficulty(obstacles=5))
+    x = np.array([b.centre[0] for b in layout.spec.boulders])
+    y = np.array([b.centre[1] for b in layout.spec.boulders])
+    assert np.all(np.diff(y) < 0), "each farther along -y than the one before"
+    frontal, lateral = x[0::2], x[1::2]
+    assert np.sign(frontal).tolist() == [np.sign(layout.start.x)] * 3, "in line with the start"
+    assert np.all(np.sign(lateral) == -np.sign(layout.start.x)), "from the other wall"
+
+
+@pytest.mark.parametrize("name", ["S3", "S5"])
+def test_obstacle_scale_grows_every_boulder_in_place(name: str) -> None:
+    plain = SCENARIOS[name].layout(4).spec.boulders
+    grown = SCENARIOS[name].layout(4, Difficulty(obstacle_scale=1.5)).spec.boulders
+    assert [b.centre for b in grown] == [b.centre for b in plain]
+    assert np.allclose([b.radii for b in grown], 1.5 * np.array([b.radii for b in plain]))
+
+
+@pytest.mark.parametrize("name", list(SCENARIOS))
+def test_roughness_m_is_the_wall_noise_of_every_family(name: str) -> None:
+    assert SCENARIOS[name].layout(0).spec.roughness == 0.3
+    assert SCENARIOS[name].layout(0, Difficulty(roughness_m=0.6)).spec.roughness == 0.6
+
+
+@pytest.mark.parametrize(
+    ("name", "knob", "owners"),
+    [("S1", "bend_deg", "S4"), ("S4", "obstacles", "S3, S5"), ("S3", "constriction_m", "S1, S2")],
+)
+def test_a_knob_the_family_lacks_is_refused_naming_who_has_it(
+    name: str, knob: str, owners: str
+) -> None:
+    with pytest.raises(ScenarioError) as info:
+        procedural_scenario(name, 0, Difficulty(**{knob: HARDER[knob]}))
+    message = str(info.value)
+    assert knob in message and name in message and f"belongs to {owners}" in message
+
+
+@pytest.mark.parametrize(
+    ("name", "knob", "value", "admitted"),
+    [
+        ("S1", "constriction_m", 0.8, "[1, 7]"),  # the vehicle would have no room
+        ("S2", "constriction_m", 7.0, "[1, 6.4]"),  # wider than the passage
+        ("S2", "undulation_m", 9.0, "[0, 8]"),
+        ("S3", "obstacles", -1, "[0, 8]"),
+        ("S5", "obstacles", 21, "[0, 20]"),
+        ("S3", "obstacle_scale", 0.0, "(0, 1.5]"),
+        ("S4", "bend_deg", 0.0, "(0, 150]"),
+        ("S4", "bend_deg", 170.0, "(0, 150]"),
+        ("S1", "roughness_m", -0.1, "[0, 1]"),
+    ],
+)
+def test_a_knob_out_of_range_is_refused_with_the_range(
+    name: str, knob: str, value: float, admitted: str
+) -> None:
+    with pytest.raises(ScenarioError, match=rf"{name}: {knob}=") as info:
+        procedural_scenario(name, 0, Difficulty(**{knob: value}))
+    assert admitted in str(info.value)
+
+
+@pytest.mark.parametrize(
+    ("knobs", "match"),
+    [
+        ({"obstacles": 2.5}, "obstacles must be a whole number"),
+        ({"constriction_m": "wide"}, "constriction_m must be a number"),
+        ({"bend_deg": float("nan")}, "bend_deg must be finite"),
+        ({"roughness_m": True}, "roughness_m must be a number"),
+    ],
+)
+def test_a_knob_of_the_wrong_type_is_refused(knobs: dict, match: str) -> None:
+    with pytest.raises(ScenarioError, match=match):
+        Difficulty(**knobs)
+
+
+def test_parse_difficulty_reads_the_command_line_form() -> None:
+    difficulty = parse_difficulty(["constriction_m=3.0", " obstacles = 4 "])
+    assert difficulty == Difficulty(constriction_m=3.0, obstacles=4)
+    # What summary.json records: the knobs set, a count as a whole number.
+    assert json.dumps(difficulty.to_dict()) == '{"constriction_m": 3.0, "obstacles": 4}'
+    assert parse_difficulty([]) == Difficulty() and Difficulty().to_dict() == {}
+
+
+_knob_values = st.builds(
+    Difficulty,
+    constriction_m=st.none() | st.floats(1.0, 7.0),
+    undulation_m=st.none() | st.floats(0.0, 8.0),
+    bend_deg=st.none() | st.floats(0.1, 150.0),
+    obstacles=st.none() | st.integers(0, 20),
+    obstacle_scale=st.none() | st.floats(0.01, 1.5),
+    roughness_m=st.none() | st.floats(0.0, 1.0),
+)
+
+
+@given(_knob_values)
+def test_parse_difficulty_round_trips_to_dict(difficulty: Difficulty) -> None:
+    items = [f"{knob}={value!r}" for knob, value in difficulty.to_dict().items()]
+    assert parse_difficulty(items) == difficulty
+    assert Difficulty.from_dict(json.loads(json.dumps(difficulty.to_dict()))) == difficulty
+
+
+@pytest.mark.parametrize(
+    ("items", "match"),
+    [
+        (["width=3"], "unknown difficulty knob 'width'; the knobs are constriction_m"),
+        (["constriction_m"], "KEY=VALUE"),
+        (["constriction_m="], "KEY=VALUE"),
+        (["obstacles=many"], "obstacles takes a whole number"),
+        (["obstacles=2.5"], "obstacles takes a whole number"),
+        (["constriction_m=wide"], "constriction_m takes a number"),
+        (["obstacles=2", "obstacles=3"], "given twice"),
+    ],
+)
+def test_bad_difficulty_items_are_one_line_config_errors(items: list[str], match: str) -> None:
+    with pytest.raises(ConfigError, match=match) as info:
+        parse_difficulty(items)
+    assert "\n" not in str(info.value)
+
+
+def test_a_harder_cave_is_recorded_and_cached_apart(monkeypatch, room) -> None:
+    built: list[tuple[str, str]] = []
+
+    def build_cave(spec, name):  # stands in for meshing, which takes seconds
+        built.append((name, spec.digest()))
+        return room
+
+    monkeypatch.setattr(scenarios_module, "build_cave", build_cave)
+    plain = procedural_scenario("S1", 3)
+    harder = procedural_scenario("S1", 3, Difficulty(constriction_m=2.4))
+    (plain_name, plain_digest), (harder_name, harder_digest) = built
+    assert plain_name == "S1-seed3", "the plain caves keep their names and cache files"
+    assert harder_name.startswith("S1-seed3-d") and harder_digest != plain_digest
+    assert plain.difficulty == Difficulty()
+    assert harder.difficulty == Difficulty(constriction_m=2.4)
+    assert "2.4 m" in harder.description
+
+
+def test_held_out_seeds_begin_where_the_training_seeds_end() -> None:
+    from cavenav.env import TRAINING_SEEDS
+
+    assert HELD_OUT_SEEDS.start == TRAINING_SEEDS
+    assert TRAINING_SEEDS - 1 not in HELD_OUT_SEEDS and 1234 in HELD_OUT_SEEDS
+
+
+def test_the_knob_table_in_the_docs_is_the_one_the_families_declare() -> None:
+    table = difficulty_table()
+    assert table in inspect.cleandoc(Difficulty.__doc__ or "")
+    assert table in (ROOT / "README.md").read_text()
+
+
+FAMILY_FILE = """
+name = "tight"
+family = "s1"
+[difficulty]
+constriction_m = 2.4
+[optics]
+water = "turbid"
+"""
+
+
+def test_a_family_file_builds_its_family_at_the_given_seed(
+    tmp_path: Path, monkeypatch, room
+) -> None:
+    monkeypatch.setattr(scenarios_module, "build_cave", lambda spec, name: room)
+    path = tmp_path / "tight.toml"
+    path.write_text(FAMILY_FILE)
+    cave = load_scenario(str(path), seed=7)
+    expected = SCENARIOS["S1"].layout(7, Difficulty(constriction_m=2.4))
+    assert (cave.name, cave.seed, cave.start) == ("tight", 7, expected.start)
+    assert cave.difficulty == Difficulty(constriction_m=2.4)
+    assert cave.description == expected.description  # the file gives none
+    assert cave.optics == {"water": "turbid"}
+    # Knobs from the command line override the file's.
+    other = load_scenario(str(path), 8, Difficulty(constriction_m=3.0, roughness_m=0.4))
+    assert other.seed == 8
+    assert other.difficulty == Difficulty(constriction_m=3.0, roughness_m=0.4)
+
+
+@pytest.mark.parametrize(
+    ("text", "match"),
+    [
+        ('family = "S1"\nmesh = "room.obj"', "either 'mesh' .* or 'family', not both"),
+        ('name = "nothing"', "give 'mesh' .* or 'family'"),
+        ('family = "S9"', "family.*unknown family 'S9'"),
+        ('family = "S1"\n[difficulty]\nwidth = 2.0', r"\[difficulty\].*'width'"),
+        ('family = "S1"\n[difficulty]\nbend_deg = 60.0', "bend_deg does not apply to S1"),
+        ('family = "S1"\n[difficulty]\nconstriction_m = 0.5', "constriction_m=0.5"),
+        ('family = "S1"\n[start]\nposition = [0.0, 0.0, 0.0]', "'start'"),
+    ],
+)
+def test_malformed_family_files_are_one_line_config_errors(
+    tmp_path: Path, text: str, match: str
+) -> None:
+    path = tmp_path / "family.toml"
+    path.write_text(text)
+    with pytest.raises(ConfigError, match=match) as info:
+        load_scenario_file(path)
+    assert "\n" not in str(info.value)
+
+
+def test_a_mesh_file_takes_no_difficulty(tmp_path: Path) -> None:
+    path = _write(tmp_path, VALID)
+    with pytest.raises(ScenarioError, match="no difficulty knobs"):
+        load_scenario_file(path, difficulty=Difficulty(roughness_m=0.5))
+    assert load_scenario_file(path, difficulty=Difficulty()).difficulty is None
+
+
+def test_the_shipped_hard_s1_file_flies_a_narrower_s1() -> None:
+    path = EXAMPLES / "hard_s1.toml"
+    assert path.read_text().startswith("# "), "the line `cavenav scenarios` shows"
+    cave = load_scenario(str(path), seed=0)
+    assert cave.difficulty == Difficulty(constriction_m=2.4, roughness_m=0.45)
+    assert cave.name == "hard-s1" and cave.mesh.name.startswith("S1-seed0-d")
+    validate_start(cave, RayCaster(cave.mesh), VehicleBody())

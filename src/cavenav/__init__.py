@@ -11,6 +11,11 @@ import os
 # sensing in `cavenav run S4` 70-74 ms a step with them, 47-48 ms without). Read when numpy
 # loads, so it is set before anything imports it; a user's own setting wins.
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+# $CAVENAV_THREADS caps the threads of the render kernels and ray casts (all cores when
+# unset): sweep workers run with one core each, so that N workers use N cores, not N**2
+# threads fighting over them.
+if os.environ.get("CAVENAV_THREADS"):
+    os.environ.setdefault("NUMBA_NUM_THREADS", os.environ["CAVENAV_THREADS"])
 
 import gymnasium  # noqa: E402
 

@@ -4,10 +4,15 @@ cavenav run S4                         fly S4 with the geometric pilot
 cavenav run examples/osrf_cave_L.toml  fly a user mesh described by a scenario file
 cavenav render S4 --water turbid       contact sheet of the views along the passage
 cavenav scenarios                      list what can be flown
+cavenav eval --seeds 0-19 --out DIR    a pilot over S1-S5 x 20 caves, resumable, with a report
+cavenav compare DIR_A DIR_B            two sweeps paired by cave (McNemar)
+cavenav report DIR                     the HTML report of a sweep or a run folder
+cavenav video RUN                      an MP4 of one episode
 """
 
 from __future__ import annotations
 
+import os
 import sys
 from dataclasses import replace
 from enum import StrEnum
@@ -17,7 +22,14 @@ from typing import Annotated, Any
 import typer
 from rich.console import Console
 from rich.markup import escape
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.progress import (
+    BarColumn,
+    MofNCompleteColumn,
+    Progress,
+    TextColumn,
+    TimeElapsedColumn,
+    TimeRemainingColumn,
+)
 from rich.table import Table
 
 from cavenav.errors import CavenavError
@@ -30,8 +42,6 @@ app = typer.Typer(
 )
 console = Console()
 errors = Console(stderr=True, soft_wrap=True)
-
-PILOTS = ("geometric", "vlm", "replay", "random")
 
 
 class Sounder(StrEnum):
@@ -76,16 +86,28 @@ DepthNoise = Annotated[
 ]
 
 
+def _optics_flags(**options: Any) -> dict[str, Any]:
+    """The optics flags that were given (None keeps the scenario's or the default)."""
+    return {
+        k: (v.value if isinstance(v, StrEnum) else v) for k, v in options.items() if v is not None
+    }
+
+
 def _sensors(cave: Any, base: Any, **options: Any) -> Any:  # noqa: ANN401 - lazy imports
     """``base`` SensorConfig with the scenario's [optics] table, then the CLI options."""
-    from cavenav.sensors.optics import optics_from_table
-
-    optics = optics_from_table(cave.optics, base.optics, where=f"{cave.name}: [optics]")
-    flags = {k: (v.value if isinstance(v, StrEnum) else v) for k, v in options.items()}
-    return replace(base, optics=optics_from_table(flags, optics, where="options"))
+    return base.with_optics(cave.optics, where=f"{cave.name}: [optics]").with_optics(
+        _optics_flags(**options), where="options"
+    )
 
 
 DepthMax = Annotated[float, typer.Option(help="D_max of the depth PNG, metres")]
+DifficultyOpt = Annotated[
+    list[str] | None,
+    typer.Option(
+        help="a difficulty knob of the cave family, KEY=VALUE (repeat for more), "
+        "e.g. constriction_m=2.5; see the README's cave families"
+    ),
+]
 
 # Options shared by `run --pilot vlm` and `ask`.
 BaseUrl = Annotated[
@@ -112,78 +134,27 @@ Cache = Annotated[Path | None, typer.Option(help="reply cache folder (keyed by r
 Device = Annotated[str, typer.Option(help="transformers device: auto, cpu, cuda")]
 
 
-def _vlm_pilot(
-    *,
-    backend: Backend,
-    base_url: str | None,
-    model: str | None,
-    api_key_env: str,
-    timeout: float,
-    retries: int,
-    temperature: float,
-    max_tokens: int,
-    detail: str | None,
-    requeries: int,
-    history: int,
-    prompt_file: Path | None,
-    structured: bool,
-    price: str | None,
-    cache: Path | None,
-    device: str,
-):  # noqa: ANN202 - VLMPilot
-    from cavenav.pilots.backends import (
-        CachedBackend,
-        OpenAIBackend,
-        OpenAIConfig,
-        TransformersBackend,
-        TransformersConfig,
-    )
-    from cavenav.pilots.prompt import PromptConfig
-    from cavenav.pilots.vlm import VLMPilot
+def _vlm_options(flags: dict[str, Any], **overrides: Any) -> Any:  # noqa: ANN401
+    """`VLMOptions` from a command's flags (its ``locals()``): the flags share its names."""
+    from dataclasses import fields
 
-    if not model:
-        raise CavenavError(
-            "the VLM pilot needs --model (a model name, or a folder for transformers)"
-        )
-    engine: Any
-    if backend is Backend.openai:
-        engine = OpenAIBackend(
-            OpenAIConfig(
-                model=model,
-                base_url=base_url,
-                api_key_env=api_key_env,
-                timeout_s=timeout,
-                max_retries=retries,
-                temperature=temperature,
-                max_tokens=max_tokens,
-                detail=detail or "auto",
-            )
-        )
-    else:
-        engine = TransformersBackend(
-            TransformersConfig(
-                model=model, device=device, max_new_tokens=max_tokens, temperature=temperature
-            )
-        )
-    if cache is not None:
-        engine = CachedBackend(engine, cache)
-    prices = None
-    if price:
-        try:
-            price_in, price_out = (float(v) for v in price.split(","))
-        except ValueError:
-            raise CavenavError(
-                f"--price must be 'input,output' in USD per million tokens, got '{price}'"
-            ) from None
-        prices = (price_in, price_out)
-    prompt = PromptConfig(history=history, system_file=prompt_file, structured=structured)
-    return VLMPilot(engine, prompt, max_requeries=requeries, detail=detail, price_per_mtok=prices)
+    from cavenav.pilots.factory import VLMOptions
+
+    values = {f.name: flags[f.name] for f in fields(VLMOptions) if f.name in flags}
+    values.update(overrides)
+    plain = {
+        k: v.value if isinstance(v, StrEnum) else str(v) if isinstance(v, Path) else v
+        for k, v in values.items()
+    }
+    return VLMOptions(**plain)
 
 
 @app.command()
 def run(
     scenario: Annotated[str, typer.Argument(help="S1..S5, or the path of a scenario .toml file")],
-    pilot: Annotated[str, typer.Option(help=f"pilot to fly: {', '.join(PILOTS)}")] = "geometric",
+    pilot: Annotated[
+        str, typer.Option(help="pilot to fly: geometric, vlm, replay, random")
+    ] = "geometric",
     seed: Annotated[
         int, typer.Option(help="seed of the procedural cave (S1..S5) and of the random pilot")
     ] = 0,
@@ -203,6 +174,7 @@ def run(
     depth_dropout: DepthDropout = None,
     depth_noise: DepthNoise = None,
     from_: Annotated[Path | None, typer.Option("--from", help="run folder to replay")] = None,
+    difficulty: DifficultyOpt = None,
     backend: BackendOpt = Backend.openai,
     base_url: BaseUrl = None,
     model: Model = None,
@@ -223,53 +195,27 @@ def run(
     """Fly one episode and write its run folder (summary, steps, frames, plots)."""
     from cavenav.episode.loop import EpisodeConfig, run_episode
     from cavenav.episode.run_folder import new_run_dir
+    from cavenav.pilots.factory import PilotSpec
     from cavenav.sensors.rig import SensorConfig
-    from cavenav.world.scenarios import load_scenario
+    from cavenav.world.scenarios import load_scenario, parse_difficulty
 
-    if pilot not in PILOTS:
-        raise CavenavError(f"unknown pilot '{pilot}'; choose one of {', '.join(PILOTS)}")
-    flyer: Any
+    spec = PilotSpec(
+        pilot,
+        _vlm_options(locals()),
+        recording=str(from_) if from_ else None,
+    )
     if pilot == "replay":
-        from cavenav.pilots.replay import ReplayPilot, recorded_scenario
+        from cavenav.pilots.replay import recorded_scenario
 
-        if from_ is None:
-            raise CavenavError("--pilot replay needs --from RUN_DIR")
-        flyer = ReplayPilot(from_)
-        recorded, recorded_seed = recorded_scenario(from_)
+        recorded, recorded_seed = recorded_scenario(str(from_))
         if recorded != scenario.upper() and Path(scenario).stem not in recorded:
             console.print(
                 f"[yellow]note:[/] the recording flew {recorded}, replaying in {scenario}"
             )
         seed = recorded_seed if recorded_seed is not None else seed
-    elif pilot == "vlm":
-        flyer = _vlm_pilot(
-            backend=backend,
-            base_url=base_url,
-            model=model,
-            api_key_env=api_key_env,
-            timeout=timeout,
-            retries=retries,
-            temperature=temperature,
-            max_tokens=max_tokens,
-            detail=detail,
-            requeries=requeries,
-            history=history,
-            prompt_file=prompt_file,
-            structured=structured,
-            price=price,
-            cache=cache,
-            device=device,
-        )
-    elif pilot == "random":
-        from cavenav.pilots.random_pilot import RandomPilot
-
-        flyer = RandomPilot(seed)
-    else:
-        from cavenav.pilots.geometric import GeometricPilot
-
-        flyer = GeometricPilot()
+    flyer = spec.build(seed=seed)
     with console.status(f"building {scenario} (seed {seed})"):
-        cave = load_scenario(scenario, seed)
+        cave = load_scenario(scenario, seed, difficulty=parse_difficulty(difficulty or []))
     sensors = _sensors(
         cave,
         replace(SensorConfig(), sounder=sounder.value, depth_max_m=depth_max),
@@ -328,14 +274,15 @@ def render(
     particles: Particles = None,
     noise: Noise = None,
     depth_max: DepthMax = DEPTH_RANGE_M[1],
+    difficulty: DifficultyOpt = None,
 ) -> None:
     """Write a contact sheet: colour and depth views from poses along the passage."""
     from cavenav.episode.gallery import passage_poses, write_contact_sheet
     from cavenav.sensors.rig import SensorConfig
-    from cavenav.world.scenarios import load_scenario
+    from cavenav.world.scenarios import load_scenario, parse_difficulty
 
     with console.status(f"building {scenario} (seed {seed})"):
-        cave = load_scenario(scenario, seed)
+        cave = load_scenario(scenario, seed, difficulty=parse_difficulty(difficulty or []))
     sensors = _sensors(
         cave,
         replace(SensorConfig(), depth_max_m=depth_max),
@@ -389,24 +336,10 @@ def ask(
 
     rgb = read(image, "RGB")
     depth_png = read(depth, "L") if depth else np.full(rgb.shape[:2], 255, np.uint8)
-    pilot = _vlm_pilot(
-        backend=backend,
-        base_url=base_url,
-        model=model,
-        api_key_env=api_key_env,
-        timeout=timeout,
-        retries=retries,
-        temperature=temperature,
-        max_tokens=max_tokens,
-        detail=detail,
-        requeries=requeries,
-        history=0,
-        prompt_file=prompt_file,
-        structured=structured,
-        price=None,
-        cache=None,
-        device=device,
-    )
+    from cavenav.pilots.factory import PilotSpec
+
+    options = _vlm_options(locals(), history=0, price=None, cache=None)
+    pilot = PilotSpec("vlm", options).build()
     nan = float("nan")
     observation = Observation(
         rgb=rgb,
@@ -426,6 +359,275 @@ def ask(
     from cavenav.actions import to_twist
 
     console.print(f"twist:         {to_twist(decision.action)}", markup=False)
+
+
+class FramesMode(StrEnum):
+    """What a sweep keeps of each step's images."""
+
+    all = "all"
+    png = "png"
+    none = "none"
+
+
+@app.command("eval")
+def eval_(
+    scenarios: Annotated[
+        str, typer.Option(help="comma-separated S1..S5 (each a family) or scenario files")
+    ] = "S1,S2,S3,S4,S5",
+    seeds: Annotated[
+        str, typer.Option(help="caves of each family: 0-19, or 0,3,1000-1019 (test split 1000+)")
+    ] = "0-19",
+    pilot: Annotated[str, typer.Option(help="pilot to fly: geometric, vlm, random")] = "geometric",
+    out: Annotated[
+        Path, typer.Option(help="sweep folder; re-run the same command to resume it")
+    ] = Path("runs/sweep"),
+    workers: Annotated[
+        int | None, typer.Option(min=1, help="worker processes (default: the core count)")
+    ] = None,
+    concurrency: Annotated[
+        int, typer.Option(min=1, help="episodes in flight per worker (for model pilots)")
+    ] = 1,
+    ray_address: Annotated[
+        str | None,
+        typer.Option(help="run on Ray: 'auto' (this cluster), 'local', or ray://HOST:PORT"),
+    ] = None,
+    frames: Annotated[
+        FramesMode, typer.Option(help="all: PNG + EXR; png: no EXR; none: no images")
+    ] = FramesMode.all,
+    steps: Annotated[int, typer.Option(min=1, help="step budget of each episode")] = 150,
+    shield: Annotated[bool, typer.Option(help="safety shield between pilot and vehicle")] = False,
+    report: Annotated[bool, typer.Option(help="write the HTML report at the end")] = True,
+    difficulty: DifficultyOpt = None,
+    sounder: Annotated[Sounder, typer.Option(help="echo-sounder model")] = Sounder.camera,
+    depth_max: DepthMax = DEPTH_RANGE_M[1],
+    water: WaterOpt = None,
+    light_power: LightPower = None,
+    daylight: Daylight = None,
+    particles: Particles = None,
+    noise: Noise = None,
+    depth_dropout: DepthDropout = None,
+    depth_noise: DepthNoise = None,
+    backend: BackendOpt = Backend.openai,
+    base_url: BaseUrl = None,
+    model: Model = None,
+    api_key_env: ApiKeyEnv = "OPENAI_API_KEY",
+    timeout: Timeout = 60.0,
+    retries: Retries = 4,
+    temperature: Temperature = 0.2,
+    max_tokens: MaxTokens = 1024,
+    detail: Detail = None,
+    requeries: Requeries = 3,
+    history: History = 2,
+    prompt_file: PromptFile = None,
+    structured: Structured = False,
+    price: Price = None,
+    cache: Cache = None,
+    device: Device = "auto",
+) -> None:
+    """Fly a pilot over scenarios x seeds; results.csv, aggregate.json and an HTML report."""
+    from cavenav.evaluation.sweep import SweepConfig, parse_seeds, run_sweep
+    from cavenav.pilots.factory import PilotSpec
+    from cavenav.world.scenarios import parse_difficulty
+
+    if pilot == "replay":
+        raise CavenavError("a sweep flies geometric, vlm or random pilots, not replay")
+    spec = PilotSpec(
+        pilot,
+        _vlm_options(locals()),
+    )
+    if pilot == "vlm":
+        spec.build()  # a missing key or an unreachable server fails now, not in a worker
+    optics = _optics_flags(
+        water=water,
+        light_power=light_power,
+        daylight=daylight,
+        particles=particles,
+        noise=noise,
+        depth_dropout=depth_dropout,
+        depth_noise_m=depth_noise,
+    )
+    config = SweepConfig(
+        scenarios=_scenario_list(scenarios),
+        seeds=parse_seeds(seeds),
+        pilot=spec,
+        steps=steps,
+        shield=shield,
+        frames=frames.value,
+        difficulty=parse_difficulty(difficulty or []).to_dict(),
+        sensors={"sounder": sounder.value, "depth_max_m": depth_max, "optics": optics},
+    )
+    executor = _executor(workers, concurrency, ray_address)
+    counts = {"done": 0, "success": 0}
+    with Progress(
+        TextColumn("[progress.description]{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TextColumn("{task.fields[status]}"),
+        TimeElapsedColumn(),
+        TextColumn("ETA"),
+        TimeRemainingColumn(),
+        console=console,
+    ) as progress:
+        task = progress.add_task("episodes", total=None, status="")
+
+        def started(left: int, grid: int) -> None:
+            if left < grid:
+                progress.console.print(f"resuming {out}: {grid - left} of {grid} episodes done")
+            progress.update(task, total=left)
+
+        def done(row: dict) -> None:
+            counts["done"] += 1
+            counts["success"] += row.get("outcome") == "success"
+            status = f"{counts['success']}/{counts['done']} succeeded  last: {row['episode']} "
+            progress.update(task, advance=1, status=status + str(row.get("outcome")))
+
+        try:
+            rows = run_sweep(config, out, executor, done, started)
+        except KeyboardInterrupt:
+            progress.stop()
+            errors.print(
+                f"interrupted after {counts['done']} episodes: results so far are in {out}; "
+                "run the same command again to resume"
+            )
+            raise typer.Exit(130) from None
+    _print_groups(rows)
+    console.print(f"sweep folder: [bold]{out}[/]", soft_wrap=True)
+    console.print(f"results:      {out / 'results.csv'}", soft_wrap=True)
+    if report:
+        from cavenav.evaluation.report import write_report
+
+        console.print(f"report:       {write_report(out)}", soft_wrap=True)
+
+
+def _scenario_list(text: str) -> tuple[str, ...]:
+    from cavenav.world.scenarios import SCENARIOS
+
+    names = [part.strip() for part in text.split(",") if part.strip()]
+    return tuple(name.upper() if name.upper() in SCENARIOS else name for name in names)
+
+
+def _executor(workers: int | None, concurrency: int, ray_address: str | None) -> Any:
+    from cavenav.evaluation.executors import InProcess, LocalPool, RayCluster
+
+    if ray_address:
+        return RayCluster(ray_address, workers, concurrency)
+    workers = workers or len(os.sched_getaffinity(0))
+    return InProcess(concurrency) if workers == 1 else LocalPool(workers, concurrency)
+
+
+def _print_groups(rows: list[dict]) -> None:
+    from cavenav.evaluation.results import aggregate
+
+    groups = aggregate(rows)
+    pilots = sorted({g["pilot"] for g in groups})
+    table = Table(title=f"{', '.join(pilots)}: success with its 95% Wilson interval")
+    for column in ("scenario", "done", "success", "95% CI", "collided", "other outcomes",
+                   "min clear.", "path eff.", "steps"):  # fmt: skip
+        table.add_column(column)
+    for g in groups:
+        ci = g["success_ci95"]
+        others = ", ".join(
+            f"{k} {v}" for k, v in g["outcomes"].items() if k not in ("success", "collision")
+        )
+        table.add_row(
+            g["scenario"],
+            f"{g['completed']}/{g['episodes']}",
+            "-" if g["success_rate"] is None else f"{g['success_rate']:.0%}",
+            "-" if ci is None else f"{ci[0]:.0%}-{ci[1]:.0%}",
+            str(g["collisions"]),
+            others or "-",
+            _metres(g["min_clearance_m"]["min"]),
+            "-" if g["path_efficiency"] is None else f"{g['path_efficiency']:.2f}",
+            "-" if g["steps"] is None else f"{g['steps']:.0f}",
+        )
+    console.print(table)
+
+
+@app.command()
+def compare(
+    sweep_a: Annotated[Path, typer.Argument(help="sweep folder A")],
+    sweep_b: Annotated[Path, typer.Argument(help="sweep folder B, over the same caves")],
+    json_out: Annotated[
+        Path | None, typer.Option("--json", help="also write the comparison to this file")
+    ] = None,
+) -> None:
+    """Pair two sweeps by cave: success rates, exact McNemar test, caves only one got through."""
+    import json
+
+    from cavenav.evaluation.results import compare as compare_rows
+    from cavenav.evaluation.sweep import read_rows, read_sweep
+
+    (config_a, _), (config_b, _) = read_sweep(sweep_a), read_sweep(sweep_b)
+    if dict(config_a.difficulty) != dict(config_b.difficulty):
+        raise CavenavError(
+            f"the sweeps flew different caves: difficulty {dict(config_a.difficulty)} in "
+            f"{sweep_a}, {dict(config_b.difficulty)} in {sweep_b}"
+        )
+    result = compare_rows(read_rows(sweep_a, write=False), read_rows(sweep_b, write=False))
+    label_a, label_b = config_a.pilot.label, config_b.pilot.label
+    table = Table(title=f"A = {label_a} ({sweep_a})   B = {label_b} ({sweep_b})")
+    for column in ("scenario", "pairs", "A success", "B success", "A - B", "only A", "only B",
+                   "McNemar exact p"):  # fmt: skip
+        table.add_column(column)
+    entries = [*result["per_scenario"].items(), ("all", result["overall"])]
+    for name, r in entries:
+        if not r["pairs"]:
+            continue
+        table.add_row(
+            name,
+            str(r["pairs"]),
+            f"{r['success_rate_a']:.0%}",
+            f"{r['success_rate_b']:.0%}",
+            f"{r['difference']:+.0%}",
+            str(len(r["only_a"])),
+            str(len(r["only_b"])),
+            f"{r['mcnemar_p']:.4g}",
+        )
+    console.print(table)
+    if result["unpaired"]:
+        console.print(f"{result['unpaired']} caves were completed in one sweep only (left out)")
+    shown = 12
+    for side, folder in (("a", sweep_a), ("b", sweep_b)):
+        caves = result["overall"][f"only_{side}"]
+        if caves:
+            console.print(f"[bold]only {side.upper()} got through ({len(caves)}):[/]")
+            for cave in caves[:shown]:
+                console.print(f"  {cave['cave']}: {folder / cave[side]}", soft_wrap=True)
+            if len(caves) > shown:
+                console.print(f"  ... {len(caves) - shown} more (all of them with --json FILE)")
+    if json_out:
+        json_out.write_text(json.dumps(result, indent=2) + "\n")
+        console.print(f"comparison: {json_out}", soft_wrap=True)
+
+
+@app.command()
+def report(
+    folder: Annotated[Path, typer.Argument(help="a sweep folder or a run folder")],
+) -> None:
+    """Write the static HTML report of a sweep (or of one run folder)."""
+    from cavenav.evaluation.report import write_report
+
+    if (folder / "sweep.json").is_file():
+        from cavenav.evaluation.sweep import read_rows
+
+        read_rows(folder)  # results.csv and aggregate.json, fresh from the episodes
+    console.print(f"report: [bold]{write_report(folder)}[/]", soft_wrap=True)
+
+
+@app.command()
+def video(
+    run_dir: Annotated[Path, typer.Argument(help="a run folder flown with frames")],
+    out: Annotated[
+        Path | None, typer.Option(help="MP4 to write (default: RUN/episode.mp4)")
+    ] = None,
+    fps: Annotated[float, typer.Option(min=0.5, max=60, help="steps per second")] = 4.0,
+) -> None:
+    """Write an MP4 of an episode: RGB, depth and the top-down map, side by side."""
+    from cavenav.episode.video import write_video
+
+    with console.status("encoding"):
+        path = write_video(run_dir, out, fps)
+    console.print(f"video: [bold]{path}[/]", soft_wrap=True)
 
 
 def _print_summary(summary: dict) -> None:

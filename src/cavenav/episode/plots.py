@@ -4,6 +4,9 @@ topdown.png projects every wall triangle onto the horizontal plane (the cave's
 footprint) and draws the path coloured by clearance. side.png unrolls the path: distance
 travelled against height, with the ceiling and floor straight above and below each point,
 so undulating and bending caves read the same way.
+
+Figures are made with `matplotlib.figure.Figure`, never pyplot: pyplot's global state is
+not thread-safe, and sweeps finish several episodes at once in one process.
 """
 
 from __future__ import annotations
@@ -12,25 +15,24 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-import matplotlib
+import numpy as np
+from matplotlib.axes import Axes
+from matplotlib.collections import LineCollection
+from matplotlib.colors import Normalize
+from matplotlib.figure import Figure
 
-matplotlib.use("Agg")  # headless: never open a window
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-from matplotlib.collections import LineCollection  # noqa: E402
-from matplotlib.colors import Normalize  # noqa: E402
+from cavenav.types import Pose
+from cavenav.world.mesh import CaveMesh
+from cavenav.world.raycast import RayCaster
+from cavenav.world.scenarios import ExitPortal, Scenario
 
-from cavenav.types import Pose  # noqa: E402
-from cavenav.world.raycast import RayCaster  # noqa: E402
-from cavenav.world.scenarios import Scenario  # noqa: E402
-
-__all__ = ["plot_episode"]
+__all__ = ["draw_exits", "draw_footprint", "plot_episode"]
 
 _CMAP = "viridis"
 _CREDIT = "Open Robotics / DARPA SubT"
 
 
-def _coloured_path(ax: plt.Axes, x: np.ndarray, y: np.ndarray, c: np.ndarray, norm: Normalize):
+def _coloured_path(ax: Axes, x: np.ndarray, y: np.ndarray, c: np.ndarray, norm: Normalize):
     segments = np.stack(
         [np.column_stack([x[:-1], y[:-1]]), np.column_stack([x[1:], y[1:]])], axis=1
     )
@@ -41,6 +43,39 @@ def _coloured_path(ax: plt.Axes, x: np.ndarray, y: np.ndarray, c: np.ndarray, no
     return lines
 
 
+def draw_footprint(ax: Axes, mesh: CaveMesh) -> None:
+    """The cave seen from above: every wall triangle projected onto the horizontal plane."""
+    v = mesh.vertices
+    ax.tripcolor(
+        v[:, 0],
+        v[:, 1],
+        mesh.faces,
+        facecolors=np.ones(len(mesh.faces)),
+        cmap="Greys",
+        vmin=0,
+        vmax=4,
+        edgecolors="none",
+        rasterized=True,
+    )
+
+
+def draw_exits(ax: Axes, exits: Sequence[ExitPortal]) -> None:
+    """Each exit portal from above: a thick orange segment across the passage."""
+    for k, portal in enumerate(exits):
+        ex = np.asarray(portal.point)
+        n = np.asarray(portal.normal)[:2]
+        n = n / max(np.linalg.norm(n), 1e-9)
+        across = np.array([-n[1], n[0]]) * portal.radius
+        ax.plot(
+            [ex[0] - across[0], ex[0] + across[0]],
+            [ex[1] - across[1], ex[1] + across[1]],
+            color="tab:orange",
+            lw=3,
+            zorder=5,
+            label="exit" if k == 0 else None,
+        )
+
+
 def _title(s: dict[str, Any]) -> str:
     return (
         f"{s['scenario']} · {s['pilot']} · seed {'-' if s['seed'] is None else s['seed']} · "
@@ -49,12 +84,11 @@ def _title(s: dict[str, Any]) -> str:
     )
 
 
-def _finish(fig: plt.Figure, ax: plt.Axes, lines, scenario: Scenario, path: Path) -> None:
+def _finish(fig: Figure, ax: Axes, lines, scenario: Scenario, path: Path) -> None:
     fig.colorbar(lines, ax=ax, label="clearance to nearest surface (m)", shrink=0.8)
     if scenario.mesh.name.startswith("cave_") and scenario.mesh.name.endswith(".dae"):
         fig.text(0.01, 0.01, f"mesh: {_CREDIT}", fontsize=7, color="0.4")
     fig.savefig(path, dpi=110, bbox_inches="tight")
-    plt.close(fig)
 
 
 def plot_episode(
@@ -78,34 +112,12 @@ def plot_episode(
     collision = summary.get("collision_pose")
 
     # ---- top-down
-    fig, ax = plt.subplots(figsize=(8, 8))
-    v = mesh.vertices
-    ax.tripcolor(
-        v[:, 0],
-        v[:, 1],
-        mesh.faces,
-        facecolors=np.ones(len(mesh.faces)),
-        cmap="Greys",
-        vmin=0,
-        vmax=4,
-        edgecolors="none",
-        rasterized=True,
-    )
+    fig = Figure(figsize=(8, 8))
+    ax = fig.subplots()
+    draw_footprint(ax, mesh)
     lines = _coloured_path(ax, p[:, 0], p[:, 1], c, norm)
     ax.plot(*p[0, :2], marker="o", color="tab:green", ms=9, zorder=5, label="start")
-    for k, portal in enumerate(scenario.exits):
-        ex = np.asarray(portal.point)
-        n = np.asarray(portal.normal)[:2]
-        n = n / max(np.linalg.norm(n), 1e-9)
-        across = np.array([-n[1], n[0]]) * portal.radius
-        ax.plot(
-            [ex[0] - across[0], ex[0] + across[0]],
-            [ex[1] - across[1], ex[1] + across[1]],
-            color="tab:orange",
-            lw=3,
-            zorder=5,
-            label="exit" if k == 0 else None,
-        )
+    draw_exits(ax, scenario.exits)
     if collision:
         ax.plot(
             collision["x"],
@@ -130,7 +142,8 @@ def plot_episode(
     ceiling = np.where(np.isfinite(up), dense[:, 2] + up, np.nan)
     floor = np.where(np.isfinite(down), dense[:, 2] - down, np.nan)
     s_pose = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))])
-    fig, ax = plt.subplots(figsize=(11, 4))
+    fig = Figure(figsize=(11, 4))
+    ax = fig.subplots()
     lo = np.nanmin(floor) - 1.0 if np.isfinite(floor).any() else p[:, 2].min() - 3
     hi = np.nanmax(ceiling) + 1.0 if np.isfinite(ceiling).any() else p[:, 2].max() + 3
     ax.fill_between(s_dense, lo, floor, color="0.55", step="mid", label="rock")

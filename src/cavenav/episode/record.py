@@ -8,6 +8,7 @@ same values.
 
 from __future__ import annotations
 
+import os
 import platform
 import time
 from dataclasses import asdict
@@ -56,8 +57,11 @@ class EpisodeLog:
         self._meta = {
             "cavenav_version": __version__,
             "python": platform.python_version(),
+            "host": platform.node(),
+            "pid": os.getpid(),  # which sweep worker flew it
             "started_at": datetime.now(UTC).isoformat(timespec="seconds"),
             "scenario_description": scenario.description,
+            "difficulty": scenario.difficulty.to_dict() if scenario.difficulty else None,
             "mesh": scenario.mesh.name,
             "triangles": scenario.mesh.triangle_count,
             "start_pose": scenario.start.to_dict(),

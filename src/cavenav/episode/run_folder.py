@@ -4,7 +4,7 @@ RUN_DIR/
   summary.json   rewritten atomically after every step (status "running" until the
                  end), so a crash or Ctrl-C leaves a valid partial summary
   steps.jsonl    one JSON object per step, flushed as it happens
-  frames/        step_NNNN_rgb.png, step_NNNN_depth.png, step_NNNN_depth.exr
+  frames/        step_NNNN_rgb.png, step_NNNN_depth.png, step_NNNN_depth.exr (unless off)
   topdown.png, side.png   trajectory plots, written at the end
   exchanges.jsonl  (model pilots) every request and raw reply, reasoning included
   images/        the images those requests carried, stored once by content hash
@@ -32,7 +32,7 @@ if TYPE_CHECKING:
     from cavenav.episode.record import EpisodeLog
     from cavenav.world.raycast import RayCaster
 
-__all__ = ["RunFolder", "new_run_dir"]
+__all__ = ["RunFolder", "new_run_dir", "read_jsonl"]
 
 
 def new_run_dir(root: str | Path, scenario: str, pilot: str, seed: int | None) -> Path:
@@ -45,6 +45,22 @@ def new_run_dir(root: str | Path, scenario: str, pilot: str, seed: int | None) -
         suffix += 1
         path = Path(root) / f"{safe}_{suffix}"
     return path
+
+
+def read_jsonl(path: Path) -> list[dict[str, Any]]:
+    """The records of steps.jsonl or exchanges.jsonl ([] when there is none).
+
+    A line cut short by a crash or a kill is skipped: the record up to it is valid.
+    """
+    if not path.is_file():
+        return []
+    records = []
+    for line in path.read_text(encoding="utf-8").splitlines():
+        try:
+            records.append(json.loads(line))
+        except json.JSONDecodeError:
+            continue
+    return records
 
 
 def _json_default(value: Any) -> Any:
@@ -71,27 +87,27 @@ def _finite(value: Any) -> Any:
 class RunFolder:
     """Writes one episode's record as it happens."""
 
-    def __init__(self, path: str | Path, save_frames: bool = True):
+    def __init__(self, path: str | Path, save_frames: bool = True, save_exr: bool = True):
         self.path = Path(path)
         self.save_frames = save_frames
+        self.save_exr = save_exr
         self.path.mkdir(parents=True, exist_ok=False)
         if save_frames:
             (self.path / "frames").mkdir()
         self._steps = open(self.path / "steps.jsonl", "a", encoding="utf-8")  # noqa: SIM115
+        self._stored: dict[str, str] = {}
 
     def write_frames(self, step: int, obs: Observation) -> dict[str, str]:
         """Save the observation's images; returns their paths relative to the run folder."""
         if not self.save_frames:
             return {}
         stem = f"frames/step_{step:04d}"
-        files = {
-            "rgb": f"{stem}_rgb.png",
-            "depth_png": f"{stem}_depth.png",
-            "depth_exr": f"{stem}_depth.exr",
-        }
+        files = {"rgb": f"{stem}_rgb.png", "depth_png": f"{stem}_depth.png"}
         Image.fromarray(obs.rgb).save(self.path / files["rgb"], compress_level=1)
         Image.fromarray(obs.depth_png).save(self.path / files["depth_png"], compress_level=1)
-        write_exr(self.path / files["depth_exr"], obs.depth_m)
+        if self.save_exr:
+            files["depth_exr"] = f"{stem}_depth.exr"
+            write_exr(self.path / files["depth_exr"], obs.depth_m)
         return files
 
     def append_step(self, record: dict[str, Any]) -> None:
@@ -99,7 +115,13 @@ class RunFolder:
         self._steps.flush()
 
     def store_image(self, data_url: str) -> str:
-        """Write a data-URL image once, named by its content hash; returns its path."""
+        """Write a data-URL image once, named by its content hash; returns its path.
+
+        A request re-sends the earlier observations' images: each string is decoded and
+        hashed only the first time (the dict compares the very same string objects).
+        """
+        if data_url in self._stored:
+            return self._stored[data_url]
         header, _, payload = data_url.partition(",")
         raw = base64.b64decode(payload)
         suffix = "png" if "png" in header else "jpg"
@@ -108,6 +130,7 @@ class RunFolder:
         if not path.exists():
             path.parent.mkdir(exist_ok=True)
             path.write_bytes(raw)
+        self._stored[data_url] = name
         return name
 
     def record(

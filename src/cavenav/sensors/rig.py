@@ -9,8 +9,9 @@ from __future__ import annotations
 import hashlib
 import math
 import struct
-from dataclasses import dataclass, field
-from typing import Literal
+from collections.abc import Mapping
+from dataclasses import dataclass, field, replace
+from typing import Any, Literal
 
 import numpy as np
 
@@ -25,7 +26,7 @@ from cavenav.sensors.lighting import (
     surface_table,
     vertex_normals,
 )
-from cavenav.sensors.optics import Optics, tone_lut
+from cavenav.sensors.optics import Optics, optics_from_table, tone_lut
 from cavenav.types import Observation, Pose
 from cavenav.world.raycast import RayCaster
 
@@ -68,6 +69,16 @@ class SensorConfig:
     sounder_max_range_m: float = 50.0
     optics: Optics = field(default_factory=Optics)
     seed: int = 0
+
+    def with_optics(self, table: Mapping[str, Any], where: str = "[optics]") -> SensorConfig:
+        """This set-up with the optics fields ``table`` sets (None keeps the current value).
+
+        Layered twice by the drivers: a scenario file's [optics] table, then the flags.
+
+        Raises:
+            ConfigError: an unknown key or a bad value, naming ``where``.
+        """
+        return replace(self, optics=optics_from_table(table, self.optics, where=where))
 
 
 @dataclass(frozen=True)

@@ -7,12 +7,17 @@ Embree; clearance is queried every step, so Open3D wins.
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 
 from cavenav.errors import DependencyError
 from cavenav.world.mesh import CaveMesh
 
 __all__ = ["RayCaster"]
+
+# Threads per cast: $CAVENAV_THREADS (set by sweep workers, one core each), else 0 = all.
+_THREADS = int(os.environ.get("CAVENAV_THREADS") or 0)
 
 
 def _import_open3d():  # noqa: ANN202 - module type
@@ -57,14 +62,14 @@ class RayCaster:
         (uint32, 0xFFFFFFFF where a ray escapes) and ``primitive_uvs`` (barycentric
         (u, v) of the hit: point = (1 - u - v) a + u b + v c).
         """
-        out = self._scene.cast_rays(self._o3d.core.Tensor.from_numpy(rays))
+        out = self._scene.cast_rays(self._o3d.core.Tensor.from_numpy(rays), nthreads=_THREADS)
         keys = ("t_hit", "primitive_ids", "primitive_normals", "primitive_uvs")
         return {k: out[k].numpy() for k in keys}
 
     def first_hit(self, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
         """(...) float32 ray parameter of the first hit only; cheaper than `cast`."""
         rays, shape = self._rays(origins, directions)
-        return self._scene.cast_rays(rays)["t_hit"].numpy().reshape(shape)
+        return self._scene.cast_rays(rays, nthreads=_THREADS)["t_hit"].numpy().reshape(shape)
 
     def count_intersections(self, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
         """(...) int number of surfaces each infinite ray crosses."""

@@ -1,17 +1,23 @@
 """Scenarios: a cave mesh with a start pose and an exit portal.
 
-The five topologies of SPEC section 6 are seeded factories registered by name (S1-S5);
-any user mesh becomes a scenario through a small TOML file (see `load_scenario_file`).
+The five topologies of SPEC section 6 are families of caves registered by name (S1-S5): a
+seed draws one cave of the family, and a `Difficulty` turns its knobs (the width of the
+constrictions, the angle of the bend, the number of boulders, ...). Seeds in
+`HELD_OUT_SEEDS` are the test split. Any user mesh becomes a scenario through a small TOML
+file, and so does a family at a chosen difficulty (see `load_scenario_file`).
 """
 
 from __future__ import annotations
 
+import hashlib
+import json
 import math
+import numbers
 import tomllib
-from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, TypeVar
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
@@ -25,11 +31,16 @@ from cavenav.world.procedural import Boulder, PassageSpec, build_cave, resample
 from cavenav.world.raycast import RayCaster
 
 __all__ = [
+    "HELD_OUT_SEEDS",
+    "KNOBS",
     "SCENARIOS",
+    "Difficulty",
     "ExitPortal",
     "Scenario",
+    "difficulty_table",
     "load_scenario",
     "load_scenario_file",
+    "parse_difficulty",
     "procedural_scenario",
     "validate_start",
 ]
@@ -68,6 +79,8 @@ class Scenario:
     Attributes:
         centreline: (n, 3) points along the passage from the start to the exit, where
             known (procedural caves); progress is then measured along it.
+        difficulty: the knobs a procedural cave was built with (``Difficulty()`` for the
+            family's defaults); None for a cave read from a mesh.
     """
 
     name: str
@@ -78,6 +91,7 @@ class Scenario:
     seed: int | None = None
     optics: Mapping[str, Any] = field(default_factory=dict)  # the file's [optics] table
     centreline: np.ndarray | None = None
+    difficulty: Difficulty | None = None
 
     def exited(self, position: np.ndarray) -> bool:
         """Whether ``position`` lies past any exit portal."""
@@ -123,6 +137,178 @@ def _arc_length_at(polyline: np.ndarray, point: np.ndarray) -> float:
     return float(lengths[:k].sum() + t[k] * lengths[k])
 
 
+# ------------------------------------------------------------------ difficulty
+
+HELD_OUT_SEEDS = range(1000, 2000)
+"""Cave seeds of the test split, which nobody tunes on.
+
+Seeds 0-999 are for development: tuning prompts, pilots and thresholds, and training (the
+Gymnasium environment draws its caves below ``cavenav.env.TRAINING_SEEDS``, which is 1000
+for this reason). The numbers a report states come from seeds of this range, so they
+measure caves no choice was fitted to. The split is the same for every family and every
+difficulty: S1 at seed 1234 is held out however hard it is made.
+"""
+
+
+@dataclass(frozen=True)
+class Difficulty:
+    """Knobs that make a cave family harder or easier; ``None`` keeps the family's default.
+
+    ``Difficulty()`` builds exactly the caves of the plain families, seed for seed and bit
+    for bit. A knob belongs to some families only (a bend angle means nothing in a straight
+    passage), and setting one that the family lacks is refused rather than ignored, so that
+    a sweep never reports a difficulty it did not fly. Each cell gives the family's default
+    and the values it accepts; '-' where the family has no such knob:
+
+    | family | constriction_m | undulation_m | bend_deg | obstacles | obstacle_scale | roughness_m |
+    | --- | --- | --- | --- | --- | --- | --- |
+    | S1 | 3.6 [1, 7] | - | - | - | - | 0.3 [0, 1] |
+    | S2 | 3.8 [1, 6.4] | 4 [0, 8] | - | - | - | 0.3 [0, 1] |
+    | S3 | - | - | - | 2 [0, 8] | 1 (0, 1.5] | 0.3 [0, 1] |
+    | S4 | - | - | 90 (0, 150] | - | - | 0.3 [0, 1] |
+    | S5 | - | - | - | 7 [0, 20] | 1 (0, 1.5] | 0.3 [0, 1] |
+
+    Why these limits: a constriction under 1 m leaves the 0.46 x 0.34 m vehicle too little
+    room once the rough walls bulge into it, and one wider than the passage would be a
+    bulge; undulations of more than 8 m peak to peak climb at over 40 degrees (slopes reach
+    atan(pi * undulation_m / 30): 23 degrees at the default 4 m, 32 at 6 m); a bend past
+    150 degrees folds the two legs into one chamber (beyond about 130 degrees the first leg
+    is shortened so that its closed end stays behind the exit plane); S3 has room for 8
+    boulders in its 45 m and S5 for 20 in its 60 m; boulders grown past 1.5 times close the
+    passage. Above about 0.6 m of roughness the walls may pinch narrow constrictions shut.
+
+    Attributes:
+        constriction_m: width of the narrowest constrictions in metres (S1, S2): the dips
+            are made as deep as it takes to leave this width (the height is unchanged).
+        undulation_m: peak-to-peak height of the vertical undulations in metres (S2).
+        bend_deg: the turn of the bend in degrees (S4): the second leg runs along x and
+            the first comes in at this angle to it.
+        obstacles: number of boulders. S3: alternately frontal (in line with the start)
+            and lateral (from the other wall), spread from 13 m to 41 m. S5: rocks on the
+            walls and floor, spread evenly.
+        obstacle_scale: factor on every boulder's semi-axes, not on its centre (S3, S5).
+        roughness_m: amplitude (standard deviation) of the wall noise in metres, every
+            family: `PassageSpec.roughness`.
+    """
+
+    constriction_m: float | None = None
+    undulation_m: float | None = None
+    bend_deg: float | None = None
+    obstacles: int | None = None
+    obstacle_scale: float | None = None
+    roughness_m: float | None = None
+
+    def __post_init__(self) -> None:
+        # Counts are stored as int and every other knob as float, so that 2 and 2.0 give
+        # the same cave digest and the same summary.json.
+        for name, value in self.to_dict().items():
+            integer = name in _COUNT_KNOBS
+            kind = numbers.Integral if integer else numbers.Real
+            if isinstance(value, bool) or not isinstance(value, kind):
+                what = "a whole number" if integer else "a number"
+                raise ScenarioError(f"difficulty {name} must be {what}, not {value!r}")
+            if not math.isfinite(value):
+                raise ScenarioError(f"difficulty {name} must be finite, not {value!r}")
+            object.__setattr__(self, name, int(value) if integer else float(value))
+
+    def __repr__(self) -> str:  # the knobs that are set, as one would write them
+        knobs = ", ".join(f"{k}={v!r}" for k, v in self.to_dict().items())
+        return f"Difficulty({knobs})"
+
+    def to_dict(self) -> dict[str, float]:
+        """The knobs that are set, in table order: what summary.json and sweep.json record."""
+        return {f.name: v for f in fields(self) if (v := getattr(self, f.name)) is not None}
+
+    @classmethod
+    def from_dict(cls, values: Mapping[str, Any]) -> Difficulty:
+        """The inverse of `to_dict`, also reading a scenario file's ``[difficulty]`` table.
+
+        Raises:
+            ConfigError: a key that is no knob, naming it and the knobs there are.
+            ScenarioError: a value of the wrong type.
+        """
+        for key in values:
+            if key not in KNOBS:
+                raise ConfigError(f"unknown difficulty knob '{key}'; the knobs are {_KNOB_LIST}")
+        return cls(**values)
+
+    def updated(self, other: Difficulty) -> Difficulty:
+        """This difficulty with every knob that ``other`` sets taken from ``other``: a
+        scenario file's knobs overridden from the command line."""
+        return replace(self, **other.to_dict())
+
+    @property
+    def tag(self) -> str:
+        """A short name for the knobs that are set ('' for none): keeps harder caves apart
+        from the plain ones by mesh name, in the cache and in the run records."""
+        if not self.to_dict():
+            return ""
+        text = json.dumps(self.to_dict(), sort_keys=True)
+        return "d" + hashlib.sha256(text.encode()).hexdigest()[:8]
+
+
+KNOBS: tuple[str, ...] = tuple(f.name for f in fields(Difficulty))
+_KNOB_LIST = ", ".join(KNOBS)
+_COUNT_KNOBS = frozenset({"obstacles"})  # whole numbers; every other knob is a real number
+
+
+def parse_difficulty(items: Sequence[str]) -> Difficulty:
+    """Read ``["constriction_m=3.0", "obstacles=4"]``, the command line's ``--difficulty``.
+
+    Raises:
+        ConfigError: an item that is not KEY=VALUE, an unknown key, a value that is not a
+            number (a whole number for counts), or a key given twice; one line each.
+    """
+    values: dict[str, float] = {}
+    for item in items:
+        key, sep, text = (part.strip() for part in item.partition("="))
+        if not sep or not key or not text:
+            raise ConfigError(f"difficulty '{item}': write KEY=VALUE, e.g. constriction_m=2.4")
+        if key not in KNOBS:
+            raise ConfigError(f"unknown difficulty knob '{key}'; the knobs are {_KNOB_LIST}")
+        if key in values:
+            raise ConfigError(f"difficulty knob '{key}' is given twice")
+        integer = key in _COUNT_KNOBS
+        try:
+            values[key] = int(text) if integer else float(text)
+        except ValueError:
+            what = "a whole number" if integer else "a number"
+            raise ConfigError(f"difficulty {key}={text}: {key} takes {what}") from None
+    return Difficulty.from_dict(values)
+
+
+@dataclass(frozen=True)
+class _Range:
+    """A family's default for one knob and the values it accepts."""
+
+    default: float
+    low: float
+    high: float
+    low_open: bool = False  # (low, high] instead of [low, high]
+
+    def admits(self, value: float) -> bool:
+        return (value > self.low if self.low_open else value >= self.low) and value <= self.high
+
+    def __str__(self) -> str:
+        return f"{'(' if self.low_open else '['}{self.low:g}, {self.high:g}]"
+
+
+def difficulty_table() -> str:
+    """The knob table in Markdown: each family's default and range, '-' where it has none.
+
+    The same table stands in `Difficulty`'s docstring and in the README, and a test keeps
+    them equal to this one.
+    """
+    lines = ["| family | " + " | ".join(KNOBS) + " |", "|" + " --- |" * (len(KNOBS) + 1)]
+    for name, family in SCENARIOS.items():
+        cells = [
+            f"{family.knobs[k].default:g} {family.knobs[k]}" if k in family.knobs else "-"
+            for k in KNOBS
+        ]
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
 # ------------------------------------------------------------------ procedural S1-S5
 
 
@@ -147,6 +333,15 @@ def _dips(s: np.ndarray, centres: list[float], depth: float, sigma: float = 1.6)
     return out
 
 
+def _dip_depth(half_width: float, narrowest_m: float) -> float:
+    """How deep dips must be to narrow a passage of ``half_width`` to ``narrowest_m`` across.
+
+    Rounded to the nanometre so that the decimal defaults give back the depths the families
+    were written with bit for bit: 3.2 - 3.8 / 2 is 1.3000000000000003 in floating point.
+    """
+    return round(half_width - narrowest_m / 2, 9)
+
+
 def _straighten_ends(
     s: np.ndarray, values: np.ndarray, length: float, margin: float = 6.0
 ) -> np.ndarray:
@@ -157,6 +352,11 @@ def _straighten_ends(
     out[s < 2.0] = head
     out[s > length - margin] = tail
     return gaussian_filter1d(out, sigma=4, mode="nearest")
+
+
+def _scaled(radii: tuple[float, float, float], scale: float) -> tuple[float, float, float]:
+    """Semi-axes times ``obstacle_scale`` (exact at the default 1.0)."""
+    return radii[0] * scale, radii[1] * scale, radii[2] * scale
 
 
 @dataclass(frozen=True)
@@ -175,6 +375,8 @@ def _layout_from_profiles(
     half_height: np.ndarray,
     length: float,
     seed: int,
+    *,
+    roughness: float,
     boulders: tuple[Boulder, ...] = (),
     start_offset: tuple[float, float, float] = (0.0, 0.0, 0.0),
     description: str = "",
@@ -183,11 +385,13 @@ def _layout_from_profiles(
     start_index = int(np.searchsorted(s, 0.0))
     heading = points[start_index + 1] - points[start_index]
     start = Pose.facing(points[start_index] + np.asarray(start_offset), heading)
-    spec = PassageSpec(points, half_width, half_height, boulders, exit_index, seed=seed)
+    spec = PassageSpec(
+        points, half_width, half_height, boulders, exit_index, roughness=roughness, seed=seed
+    )
     return _Layout(spec, start, description)
 
 
-def _s1(rng: np.random.Generator, seed: int) -> _Layout:
+def _s1(rng: np.random.Generator, seed: int, knobs: Mapping[str, float]) -> _Layout:
     length = 55.0
     s = np.arange(-4.0, length + 4.0, 0.25)
     x = _straighten_ends(
@@ -196,7 +400,7 @@ def _s1(rng: np.random.Generator, seed: int) -> _Layout:
     z = _straighten_ends(s, 0.5 * _smooth_noise(s, 12.0, rng), length)
     points = np.stack([x, -s, z], axis=1)
     necks = [c + rng.uniform(-2, 2) for c in (15.0, 29.0, 42.0)]
-    half_w = 3.5 - _dips(s, necks, 1.7)
+    half_w = 3.5 - _dips(s, necks, _dip_depth(3.5, knobs["constriction_m"]))
     half_h = 3.0 - _dips(s, necks[1:2], 1.0)
     return _layout_from_profiles(
         s,
@@ -205,20 +409,25 @@ def _s1(rng: np.random.Generator, seed: int) -> _Layout:
         half_h,
         length,
         seed,
-        description="narrow passage with three constrictions to about 3.6 m",
+        roughness=knobs["roughness_m"],
+        description="narrow passage with three constrictions to about "
+        f"{knobs['constriction_m']:.1f} m",
     )
 
 
-def _s2(rng: np.random.Generator, seed: int) -> _Layout:
+def _s2(rng: np.random.Generator, seed: int, knobs: Mapping[str, float]) -> _Layout:
     length = 55.0
     s = np.arange(-4.0, length + 4.0, 0.25)
     x = _straighten_ends(s, 1.0 * _smooth_noise(s, 15.0, rng), length)
-    period = rng.uniform(30, 34)  # slopes of at most 2 pi 2 / 30 = 23 degrees
-    z = _straighten_ends(s, 2.0 * np.sin(2 * np.pi * s / period), length)
+    # Slopes of at most atan(2 pi amplitude / 30): 23 degrees at the default 4 m peak to
+    # peak; larger undulations are steeper (see Difficulty).
+    period = rng.uniform(30, 34)
+    amplitude = knobs["undulation_m"] / 2
+    z = _straighten_ends(s, amplitude * np.sin(2 * np.pi * s / period), length)
     points = np.stack([x, -s, z], axis=1)
     # Constrictions on the slopes, between a crest and a trough.
     necks = [period * (k / 2 + 0.5) + rng.uniform(-1.5, 1.5) for k in (0, 1)]
-    half_w = 3.2 - _dips(s, necks, 1.3)
+    half_w = 3.2 - _dips(s, necks, _dip_depth(3.2, knobs["constriction_m"]))
     half_h = 2.9 - _dips(s, necks, 0.8)
     return _layout_from_profiles(
         s,
@@ -227,25 +436,38 @@ def _s2(rng: np.random.Generator, seed: int) -> _Layout:
         half_h,
         length,
         seed,
-        description="narrow passage with vertical undulations of about 4 m and two constrictions",
+        roughness=knobs["roughness_m"],
+        description=f"narrow passage with vertical undulations of about "
+        f"{knobs['undulation_m']:g} m and two constrictions",
     )
 
 
-def _s3(rng: np.random.Generator, seed: int) -> _Layout:
+def _s3(rng: np.random.Generator, seed: int, knobs: Mapping[str, float]) -> _Layout:
     length = 45.0
     s = np.arange(-4.0, length + 4.0, 0.25)
     points = np.stack([np.zeros_like(s), -s, np.zeros_like(s)], axis=1)
     half_w = np.full_like(s, 3.5)
     half_h = np.full_like(s, 3.0)
     wall_side = 1.0 if rng.random() < 0.5 else -1.0  # +x is the vehicle's left at psi = 0
-    front_y = -rng.uniform(13.0, 16.0)
-    lateral_y = -rng.uniform(27.0, 31.0)
-    boulders = (
-        # Frontal obstacle at the start height, in line with the start near the wall.
-        Boulder((-wall_side * 0.9, front_y, 0.0), (1.7, 1.5, 1.7)),
-        # Lateral obstacle jutting from the other wall.
-        Boulder((wall_side * 3.6, lateral_y, -0.3), (2.3, 1.8, 1.9)),
-    )
+    count, scale = int(knobs["obstacles"]), knobs["obstacle_scale"]
+    # Stations from 14.5 m on, 29 m / count apart: the default two at 14.5 m and 29 m, and
+    # the last of eight by 41 m, clear of the exit at 45 m. Each draws its place in turn.
+    spacing = 29.0 / max(count, 1)
+    boulders = []
+    for k in range(count):
+        station = 14.5 + k * spacing
+        if k % 2 == 0:  # frontal: at the start height, in line with the start near the wall
+            jitter = min(1.5, spacing / 4)
+            y = -rng.uniform(station - jitter, station + jitter)
+            boulder = Boulder((-wall_side * 0.9, y, 0.0), _scaled((1.7, 1.5, 1.7), scale))
+        else:  # lateral: jutting from the other wall
+            jitter = min(2.0, spacing / 4)
+            y = -rng.uniform(station - jitter, station + jitter)
+            boulder = Boulder((wall_side * 3.6, y, -0.3), _scaled((2.3, 1.8, 1.9), scale))
+        boulders.append(boulder)
+    kinds = {0: "no obstacle", 1: "a frontal obstacle", 2: "a frontal and a lateral obstacle"}
+    obstacles = kinds.get(count, f"{count} obstacles, alternately frontal and lateral")
+    start = "start near the wall at the frontal obstacle's height" if count else "start near a wall"
     return _layout_from_profiles(
         s,
         points,
@@ -253,20 +475,34 @@ def _s3(rng: np.random.Generator, seed: int) -> _Layout:
         half_h,
         length,
         seed,
-        boulders,
+        roughness=knobs["roughness_m"],
+        boulders=tuple(boulders),
         start_offset=(-wall_side * 2.0, 0.0, 0.0),
-        description="straight passage with a frontal and a lateral obstacle; "
-        "start near the wall at the frontal obstacle's height",
+        description=f"straight passage with {obstacles}; {start}",
     )
 
 
-def _s4(rng: np.random.Generator, seed: int) -> _Layout:
+def _s4(rng: np.random.Generator, seed: int, knobs: Mapping[str, float]) -> _Layout:
     leg = 30.0
     side = 1.0 if rng.random() < 0.5 else -1.0
-    corners = np.array([[0.0, 4.0, 0.0], [0.0, -leg, 0.0], [side * (leg + 4.0), -leg, 0.0]])
+    bend = knobs["bend_deg"]
+    # The grid is cut across the exit direction, which must be an axis: the second leg
+    # runs along side * x and the first leg is turned instead. ``back`` points from the
+    # corner up the first leg: +y for 90 degrees, tilted toward the second leg for less.
+    tilt = math.radians(bend - 90.0)
+    back = np.array([side * math.sin(tilt), math.cos(tilt), 0.0])
+    # A hairpin's first leg reaches back toward the exit plane: past about 130 degrees it
+    # is shortened so that its closed end (4 m behind the start, plus a wall) stays 7 m
+    # behind that plane, and so on the 0.25 m grid, where the corner falls on a sample.
+    reach = -math.cos(math.radians(bend))
+    first = leg if reach <= 0 else min(leg, math.floor(4 * ((leg - 7.0) / reach - 4.0)) / 4)
+    corner = np.array([0.0, -leg, 0.0])
+    corners = np.array(
+        [corner + (first + 4.0) * back, corner, corner + np.array([side * (leg + 4.0), 0, 0])]
+    )
     points, s = resample(corners, 0.25)
     s = s - 4.0
-    length = 2 * leg
+    length = first + leg
     half_w = 2.9 + 0.3 * _smooth_noise(s, 10.0, rng)
     half_h = 2.7 + 0.2 * _smooth_noise(s, 10.0, rng)
     return _layout_from_profiles(
@@ -276,11 +512,12 @@ def _s4(rng: np.random.Generator, seed: int) -> _Layout:
         half_h,
         length,
         seed,
-        description=f"sharp 90-degree bend to the {'left' if side > 0 else 'right'}",
+        roughness=knobs["roughness_m"],
+        description=f"sharp {bend:g}-degree bend to the {'left' if side > 0 else 'right'}",
     )
 
 
-def _s5(rng: np.random.Generator, seed: int) -> _Layout:
+def _s5(rng: np.random.Generator, seed: int, knobs: Mapping[str, float]) -> _Layout:
     length = 60.0
     s = np.arange(-4.0, length + 4.0, 0.25)
     heading = _straighten_ends(s, 0.55 * _smooth_noise(s, 14.0, rng), length)
@@ -296,8 +533,9 @@ def _s5(rng: np.random.Generator, seed: int) -> _Layout:
     half_w = 3.3 + 0.7 * _smooth_noise(s, 9.0, rng)
     half_h = 2.8 + 0.3 * _smooth_noise(s, 9.0, rng)
     tangent = np.gradient(points, axis=0)
+    count, scale = int(knobs["obstacles"]), knobs["obstacle_scale"]
     boulders = []
-    for k, at in enumerate(np.linspace(9.0, length - 9.0, 7)):
+    for k, at in enumerate(np.linspace(9.0, length - 9.0, count)):
         i = int(np.searchsorted(s, at + rng.uniform(-2, 2)))
         t = tangent[i] / np.linalg.norm(tangent[i])
         left = np.array([-t[1], t[0], 0.0]) / max(np.hypot(t[0], t[1]), 1e-9)
@@ -309,7 +547,7 @@ def _s5(rng: np.random.Generator, seed: int) -> _Layout:
             side = 1.0 if rng.random() < 0.5 else -1.0
             centre = points[i] + side * left * (half_w[i] - 0.2 * r)
             centre = centre + np.array([0.0, 0.0, rng.uniform(-0.8, 0.8)])
-        boulders.append(Boulder(_vec3(centre), (r, r * 1.1, r * 0.9)))
+        boulders.append(Boulder(_vec3(centre), _scaled((r, r * 1.1, r * 0.9), scale)))
     return _layout_from_profiles(
         s,
         points,
@@ -317,32 +555,135 @@ def _s5(rng: np.random.Generator, seed: int) -> _Layout:
         half_h,
         length,
         seed,
-        tuple(boulders),
-        description="irregular winding passage with rocks spread along it",
+        roughness=knobs["roughness_m"],
+        boulders=tuple(boulders),
+        description="irregular winding passage with rocks spread along it"
+        if count
+        else "irregular winding passage",
     )
+
+
+# Why each range ends where it does, for the message that refuses a value outside it.
+_LIMITS = {
+    "constriction_m": "under 1 m the 0.46 x 0.34 m vehicle has no room once the rough walls "
+    "bulge in, and over the top a constriction would be wider than the passage",
+    "undulation_m": "past 8 m peak to peak the slopes pass 40 degrees",
+    "bend_deg": "past 150 degrees the two legs fold into one chamber",
+    "obstacles": "counts start at 0, and more boulders do not fit along the passage",
+    "obstacle_scale": "boulders grown past 1.5 times close the passage",
+    "roughness_m": "past 1 m the walls close the passage",
+}
+_ROUGHNESS = _Range(0.3, 0.0, 1.0)  # PassageSpec.roughness: 0.3 m looks like rock
+_OBSTACLE_SCALE = _Range(1.0, 0.0, 1.5, low_open=True)
 
 
 @dataclass(frozen=True)
 class _Factory:
-    build: Callable[[np.random.Generator, int], _Layout]
+    """One family: its builder, a line for listings, and its knobs with defaults and ranges."""
+
+    name: str
+    build: Callable[[np.random.Generator, int, Mapping[str, float]], _Layout]
     summary: str
+    knobs: Mapping[str, _Range]
+
+    def resolve(self, difficulty: Difficulty | None = None) -> dict[str, float]:
+        """Every knob of this family: ``difficulty``'s value where set, else the default.
+
+        Raises:
+            ScenarioError: a knob this family lacks, naming the families that have it, or
+                a value outside the family's range, naming the range and why.
+        """
+        values = {key: knob.default for key, knob in self.knobs.items()}
+        for key, value in (difficulty or Difficulty()).to_dict().items():
+            if key not in self.knobs:
+                owners = ", ".join(n for n, f in SCENARIOS.items() if key in f.knobs)
+                raise ScenarioError(
+                    f"difficulty knob {key} does not apply to {self.name} (it belongs to "
+                    f"{owners}); {self.name} takes {', '.join(self.knobs)}"
+                )
+            if not self.knobs[key].admits(value):
+                raise ScenarioError(
+                    f"{self.name}: {key}={value:g} is outside {self.knobs[key]}: {_LIMITS[key]}"
+                )
+            values[key] = value
+        return values
+
+    def layout(self, seed: int, difficulty: Difficulty | None = None) -> _Layout:
+        """The passage for ``seed`` before meshing (milliseconds; meshing takes seconds).
+
+        The generator is seeded by the cave seed and the family's number alone, and the
+        knobs add draws only after the plain family's, so ``Difficulty()`` gives the plain
+        cave bit for bit.
+        """
+        knobs = self.resolve(difficulty)
+        return self.build(np.random.default_rng([seed, int(self.name[1:])]), seed, knobs)
 
 
 SCENARIOS: dict[str, _Factory] = {
-    "S1": _Factory(_s1, "constrictions: narrow passage, clearance-aware planning"),
-    "S2": _Factory(_s2, "undulations: narrow passage rising and falling, 3D manoeuvring"),
-    "S3": _Factory(_s3, "obstacles: straight passage, frontal and lateral obstacle"),
-    "S4": _Factory(_s4, "bend: a sharp 90-degree turn"),
-    "S5": _Factory(_s5, "irregular: winding passage with rocks spread along it"),
+    f.name: f
+    for f in (
+        _Factory(
+            "S1",
+            _s1,
+            "constrictions: narrow passage, clearance-aware planning",
+            {"constriction_m": _Range(3.6, 1.0, 7.0), "roughness_m": _ROUGHNESS},
+        ),
+        _Factory(
+            "S2",
+            _s2,
+            "undulations: narrow passage rising and falling, 3D manoeuvring",
+            {
+                "constriction_m": _Range(3.8, 1.0, 6.4),
+                "undulation_m": _Range(4.0, 0.0, 8.0),
+                "roughness_m": _ROUGHNESS,
+            },
+        ),
+        _Factory(
+            "S3",
+            _s3,
+            "obstacles: straight passage, frontal and lateral obstacle",
+            {
+                "obstacles": _Range(2, 0, 8),
+                "obstacle_scale": _OBSTACLE_SCALE,
+                "roughness_m": _ROUGHNESS,
+            },
+        ),
+        _Factory(
+            "S4",
+            _s4,
+            "bend: a sharp 90-degree turn",
+            {"bend_deg": _Range(90.0, 0.0, 150.0, low_open=True), "roughness_m": _ROUGHNESS},
+        ),
+        _Factory(
+            "S5",
+            _s5,
+            "irregular: winding passage with rocks spread along it",
+            {
+                "obstacles": _Range(7, 0, 20),
+                "obstacle_scale": _OBSTACLE_SCALE,
+                "roughness_m": _ROUGHNESS,
+            },
+        ),
+    )
 }
 
 
-def procedural_scenario(name: str, seed: int = 0) -> Scenario:
-    """Build S1..S5 for ``seed``; the same name and seed always give the same cave."""
+def procedural_scenario(name: str, seed: int = 0, difficulty: Difficulty | None = None) -> Scenario:
+    """Build S1..S5 for ``seed`` at ``difficulty`` (None: the family's defaults).
+
+    The same name, seed and difficulty always give the same cave, and the defaults give
+    the plain family's. The scenario records the difficulty (``Difficulty()`` for the
+    defaults); a harder cave's mesh name carries `Difficulty.tag`, and its mesh cache key
+    differs anyway, since `PassageSpec.digest` hashes all the geometry.
+
+    Raises:
+        ScenarioError: an unknown name, or a knob the family lacks or outside its range.
+    """
     key = name.upper()
     if key not in SCENARIOS:
         raise ScenarioError(f"unknown scenario '{name}'; choose one of {', '.join(SCENARIOS)}")
-    layout = SCENARIOS[key].build(np.random.default_rng([seed, int(key[1:])]), seed)
+    difficulty = Difficulty() if difficulty is None else difficulty
+    layout = SCENARIOS[key].layout(seed, difficulty)
     spec = layout.spec
     tangent = spec.centreline[spec.exit_index + 1] - spec.centreline[spec.exit_index - 1]
     tangent /= np.linalg.norm(tangent)
@@ -351,10 +692,18 @@ def procedural_scenario(name: str, seed: int = 0) -> Scenario:
         normal=_vec3(tangent),
         radius=float(max(spec.half_width.max(), spec.half_height.max()) + 1.5),
     )
-    mesh = build_cave(spec, name=f"{key}-seed{seed}")
+    mesh_name = f"{key}-seed{seed}" + (f"-{difficulty.tag}" if difficulty.tag else "")
+    mesh = build_cave(spec, name=mesh_name)
     centreline = spec.centreline[: spec.exit_index + 1]
     return Scenario(
-        key, mesh, layout.start, (exit_,), layout.description, seed, centreline=centreline
+        key,
+        mesh,
+        layout.start,
+        (exit_,),
+        layout.description,
+        seed,
+        centreline=centreline,
+        difficulty=difficulty,
     )
 
 
@@ -395,10 +744,30 @@ class _ScenarioFileModel(BaseModel):
     )
 
 
-def load_scenario_file(path: str | Path) -> Scenario:
-    """Read a scenario TOML file; the mesh path is relative to the file.
+class _FamilyFileModel(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    name: str | None = None
+    description: str = ""
+    family: str = Field(description="S1..S5, built at the seed the file is loaded with")
+    difficulty: dict[str, Any] = Field(default_factory=dict, description="see Difficulty")
+    optics: dict[str, Any] = Field(
+        default_factory=dict, description="water and light; see cavenav.sensors.optics"
+    )
 
-    Example::
+    @field_validator("family")
+    @classmethod
+    def _known(cls, v: str) -> str:
+        if v.upper() not in SCENARIOS:
+            raise ValueError(f"unknown family '{v}'; choose one of {', '.join(SCENARIOS)}")
+        return v.upper()
+
+
+def load_scenario_file(
+    path: str | Path, seed: int = 0, difficulty: Difficulty | None = None
+) -> Scenario:
+    """Read a scenario TOML file: a mesh with its start and exits, or a cave family.
+
+    A mesh file (its path relative to the file)::
 
         name = "my-cave"
         mesh = "meshes/cave.ply"
@@ -415,9 +784,23 @@ def load_scenario_file(path: str | Path) -> Scenario:
         water = "coastal"           # clear, ocean, coastal, turbid
         daylight = 0.5              # open-water brightness at the exits
 
+    A family file names a procedural family instead of a mesh, start and exit, and is
+    built at ``seed``: "hard S1" kept as a file, to sweep seeds over::
+
+        name = "hard-s1"
+        family = "S1"
+        [difficulty]                # optional: knobs of `Difficulty`
+        constriction_m = 2.4
+        [optics]                    # optional, as above
+
+    Args:
+        seed: which cave of a family file's family; a mesh file has one cave only.
+        difficulty: knobs that override the family file's (a mesh file takes none).
+
     Raises:
         ConfigError: unreadable TOML or invalid fields, naming the field.
         MeshError: the mesh cannot be used.
+        ScenarioError: ``difficulty`` given for a mesh file, or out of the family's range.
     """
     path = Path(path)
     if not path.is_file():
@@ -426,14 +809,38 @@ def load_scenario_file(path: str | Path) -> Scenario:
         raw = tomllib.loads(path.read_text())
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise ConfigError(f"{path}: not valid TOML ({exc})") from None
+    if "mesh" in raw and "family" in raw:
+        raise ConfigError(f"{path}: give either 'mesh' (a cave mesh) or 'family', not both")
+    if "family" in raw:
+        return _family_scenario(path, _validated(_FamilyFileModel, raw, path), seed, difficulty)
+    if "mesh" not in raw:
+        raise ConfigError(
+            f"{path}: give 'mesh' (a cave mesh file) or 'family' (one of {', '.join(SCENARIOS)})"
+        )
+    if difficulty is not None and difficulty.to_dict():
+        raise ScenarioError(
+            f"{path} is a mesh scenario, which has no difficulty knobs: they apply to the "
+            f"procedural families ({', '.join(SCENARIOS)}, or a file naming one)"
+        )
+    return _mesh_scenario(path, _validated(_ScenarioFileModel, raw, path))
+
+
+_Model = TypeVar("_Model", bound=BaseModel)
+
+
+def _validated(model: type[_Model], raw: dict[str, Any], path: Path) -> _Model:
+    """``raw`` checked against ``model``; the first problem as a one-line ConfigError."""
     try:
-        model = _ScenarioFileModel.model_validate(raw)
+        return model.model_validate(raw)
     except ValidationError as exc:
         first = exc.errors()[0]
         # Drop the class names pydantic inserts for union members ("exit._ExitModel.radius").
         parts = [str(p) for p in first["loc"] if not str(p).startswith(("_", "list["))]
         where = ".".join(parts) or "(top level)"
         raise ConfigError(f"{path}: field '{where}': {first['msg']}") from None
+
+
+def _mesh_scenario(path: Path, model: _ScenarioFileModel) -> Scenario:
     mesh = load_mesh(path.parent / model.mesh, scale=model.scale, up_axis=model.up_axis)
     start = Pose(*model.start.position, psi=math.radians(model.start.yaw_deg))
     portals = model.exit if isinstance(model.exit, list) else [model.exit]
@@ -445,13 +852,36 @@ def load_scenario_file(path: str | Path) -> Scenario:
     )
 
 
-def load_scenario(name_or_path: str, seed: int = 0) -> Scenario:
-    """S1..S5 by name (built with ``seed``), or a scenario TOML file by path."""
+def _family_scenario(
+    path: Path, model: _FamilyFileModel, seed: int, override: Difficulty | None
+) -> Scenario:
+    """The file's family at ``seed``, with its knobs updated by ``override``."""
+    try:
+        difficulty = Difficulty.from_dict(model.difficulty)
+        SCENARIOS[model.family].resolve(difficulty)  # the file's own knobs, blamed on it
+    except (ConfigError, ScenarioError) as exc:
+        raise ConfigError(f"{path}: [difficulty]: {exc}") from None
+    if override is not None:
+        difficulty = difficulty.updated(override)
+    cave = procedural_scenario(model.family, seed, difficulty)
+    return replace(
+        cave,
+        name=model.name or path.stem,
+        description=model.description or cave.description,
+        optics=model.optics,
+    )
+
+
+def load_scenario(
+    name_or_path: str, seed: int = 0, difficulty: Difficulty | None = None
+) -> Scenario:
+    """S1..S5 by name, or a scenario TOML file by path, built with ``seed`` and
+    ``difficulty`` where it is a family (see `load_scenario_file`)."""
     if name_or_path.upper() in SCENARIOS:
-        return procedural_scenario(name_or_path, seed)
+        return procedural_scenario(name_or_path, seed, difficulty)
     path = Path(name_or_path)
     if path.suffix.lower() == ".toml" or path.exists():
-        return load_scenario_file(path)
+        return load_scenario_file(path, seed, difficulty)
     raise ScenarioError(
         f"unknown scenario '{name_or_path}': give one of {', '.join(SCENARIOS)} "
         "or the path of a scenario .toml file"

@@ -1,0 +1,160 @@
+"""How fast sweeps run: episodes per minute by workers, VLM steps per second by concurrency.
+
+    .venv/bin/python benchmarks/sweep.py            # both parts (about 6 minutes on 2 cores)
+    .venv/bin/python benchmarks/sweep.py --part vlm
+
+Part 1 flies the geometric pilot over the same grid with 1 and 2 workers (processes) and
+prints episodes per minute and their ratio (target: at least 1.8 on 2 cores). Part 2
+flies the VLM pilot against a local OpenAI-compatible server that answers every request
+after a fixed delay (1.0 s), with --concurrency 1, 4 and 16 in one worker, and prints
+steps per second and the ratio to concurrency 1 (target: 16 at least 10x faster).
+
+Every ratio is measured within one run. Caves are built before the clock starts (the
+mesh cache), worker start-up is inside it. Frames are off (--frames none) in both parts,
+so the figures are the simulator's and the pilot's, not the disk's.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import tempfile
+import threading
+import time
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from pathlib import Path
+
+from cavenav.evaluation.executors import InProcess, LocalPool
+from cavenav.evaluation.sweep import SweepConfig, run_sweep
+from cavenav.pilots.factory import PilotSpec, VLMOptions
+from cavenav.world.scenarios import load_scenario
+
+REPLY = (
+    "Let me think step by step.\n(a) Situation: the passage is open ahead.\n"
+    "(b) Constraints: nothing within the standoff.\n(c) Action: turn to look along it.\n"
+    '{"turn left 10 deg": "look along the passage before moving"}'
+)
+
+
+def serve(delay_s: float) -> ThreadingHTTPServer:
+    """An OpenAI-compatible server on 127.0.0.1 that answers after ``delay_s``."""
+
+    class Handler(BaseHTTPRequestHandler):
+        def log_message(self, *args: object) -> None:
+            pass
+
+        def _send(self, payload: dict) -> None:
+            data = json.dumps(payload).encode()
+            self.send_response(200)
+            self.send_header("content-type", "application/json")
+            self.send_header("content-length", str(len(data)))
+            self.end_headers()
+            self.wfile.write(data)
+
+        def do_GET(self) -> None:  # noqa: N802 - http.server's naming
+            self._send({"object": "list", "data": [{"id": "bench", "object": "model"}]})
+
+        def do_POST(self) -> None:  # noqa: N802
+            body = json.loads(self.rfile.read(int(self.headers["content-length"])))
+            time.sleep(delay_s)
+            message = {"role": "assistant", "content": REPLY}
+            self._send(
+                {
+                    "id": "bench",
+                    "object": "chat.completion",
+                    "created": int(time.time()),
+                    "model": body["model"],
+                    "choices": [{"index": 0, "finish_reason": "stop", "message": message}],
+                    "usage": {"prompt_tokens": 1000, "completion_tokens": 60, "total_tokens": 1060},
+                }
+            )
+
+    server = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+    server.daemon_threads = True
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    return server
+
+
+def grid(n: int) -> tuple[tuple[str, ...], tuple[int, ...]]:
+    """n episodes: S1..S5 with as many seeds as needed (seeds 0..)."""
+    seeds = tuple(range(-(-n // 5)))
+    return ("S1", "S2", "S3", "S4", "S5"), seeds
+
+
+def build_caves(scenarios: tuple[str, ...], seeds: tuple[int, ...]) -> None:
+    for name in scenarios:
+        for seed in seeds:
+            load_scenario(name, seed)
+
+
+def timed(config: SweepConfig, executor: object) -> tuple[float, list[dict]]:
+    with tempfile.TemporaryDirectory() as folder:
+        started = time.perf_counter()
+        rows = run_sweep(config, Path(folder) / "sweep", executor)  # type: ignore[arg-type]
+        return time.perf_counter() - started, rows
+
+
+def geometric_part(episodes: int) -> None:
+    scenarios, seeds = grid(episodes)
+    build_caves(scenarios, seeds)
+    config = SweepConfig(scenarios, seeds, frames="none")
+    print(f"geometric pilot, {len(scenarios) * len(seeds)} episodes (S1-S5 x seeds {seeds})")
+    rates = {}
+    for workers in (1, 2):
+        executor = InProcess() if workers == 1 else LocalPool(workers)
+        wall, rows = timed(config, executor)
+        steps = sum(int(r["steps"]) for r in rows)
+        rates[workers] = 60.0 * len(rows) / wall
+        print(
+            f"  {workers} worker{'s' if workers > 1 else ' '}: {wall:6.1f} s, "
+            f"{rates[workers]:5.1f} episodes/min, {steps / wall:5.1f} steps/s"
+        )
+    print(f"  ratio 2 workers / 1 worker: {rates[2] / rates[1]:.2f} (target >= 1.8)")
+
+
+def vlm_part(delay_s: float, steps: int, workers: int) -> None:
+    server = serve(delay_s)
+    url = f"http://127.0.0.1:{server.server_address[1]}/v1"
+    pilot = PilotSpec("vlm", VLMOptions(model="bench", base_url=url, api_key_env="BENCH_KEY"))
+    os.environ.setdefault("BENCH_KEY", "local")
+    levels = (1, 4, 16)
+    scenarios, seeds = grid(2 * max(levels) * workers)
+    build_caves(scenarios, seeds)
+    print(
+        f"VLM pilot against a local server answering after {delay_s:.1f} s, "
+        f"{workers} worker{'s' if workers > 1 else ''}, episodes of {steps} steps"
+    )
+    rates = {}
+    for concurrency in levels:
+        # Twice as many episodes as can fly at once, so that K stay in flight most of the time.
+        sc, se = grid(max(2 * concurrency * workers, 5))
+        config = SweepConfig(sc, se, pilot=pilot, steps=steps, frames="none")
+        executor = InProcess(concurrency) if workers == 1 else LocalPool(workers, concurrency)
+        wall, rows = timed(config, executor)
+        flown = sum(int(r["steps"]) for r in rows)
+        rates[concurrency] = flown / wall
+        print(
+            f"  --concurrency {concurrency:2d}: {flown:4d} steps in {wall:5.1f} s = "
+            f"{rates[concurrency]:5.2f} steps/s ({rates[concurrency] / rates[1]:.1f}x)"
+        )
+    print(f"  ratio 16 / 1: {rates[16] / rates[1]:.1f} (target >= 10)")
+    server.shutdown()
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--part", choices=("all", "geometric", "vlm"), default="all")
+    parser.add_argument("--episodes", type=int, default=20, help="geometric grid size")
+    parser.add_argument("--delay", type=float, default=1.0, help="server delay, seconds")
+    parser.add_argument("--vlm-steps", type=int, default=20, help="step budget, VLM episodes")
+    parser.add_argument("--vlm-workers", type=int, default=1, help="worker processes, VLM part")
+    args = parser.parse_args()
+    if args.part in ("all", "geometric"):
+        geometric_part(args.episodes)
+    if args.part in ("all", "vlm"):
+        vlm_part(args.delay, args.vlm_steps, args.vlm_workers)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,330 @@
+"""Episode videos: what the vehicle saw beside where it was, one frame per step.
+
+Each frame puts the step's colour image, its depth PNG and a top-down map side by side,
+each panel 480 px high (`PANEL_HEIGHT`), above a caption line (step, action, clearance):
+for the default 640x480 camera a frame is 1760 x 512 px (640 + 640 + 480 wide,
+480 + 32 high). The map shows the cave's footprint when the scenario can be rebuilt from
+summary.json (S1-S5, by name, seed and difficulty), else the path alone, with the exits,
+the whole path faintly, the path flown so far coloured by clearance and the vehicle as an
+arrow along its heading.
+
+The map background is drawn once with matplotlib; each frame only draws the vehicle and
+its path into a copy of it, through the axes' data-to-pixel mapping taken once, so a
+150-step episode encodes in seconds. Frames are H.264 (yuv420p) through imageio-ffmpeg,
+which ships its own ffmpeg.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Generator, Iterator, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from PIL import Image, ImageDraw, ImageFont
+
+from cavenav.episode.run_folder import read_jsonl
+from cavenav.errors import CavenavError, DependencyError
+
+__all__ = ["CAPTION_HEIGHT", "PANEL_HEIGHT", "write_video"]
+
+PANEL_HEIGHT = 480  # px: the camera's default height, so its images are not resampled
+CAPTION_HEIGHT = 32  # px: one line of 17 px text; 480 + 32 = 512, a multiple of 16
+_CMAP = "viridis"  # clearance colours, as in topdown.png (episode/plots.py)
+_CLEARANCE_MAX_M = 3.0  # top of the colour scale, as in topdown.png for calm episodes
+_MARGIN_M = 3.0  # map margin around the path and the exits
+_IMAGES = ("rgb", "depth_png")  # the frames/ files shown, left to right
+_LABELS = {"rgb": "colour", "depth_png": "depth (dark = near)"}
+
+
+@dataclass(frozen=True)
+class MapCanvas:
+    """A top-down map drawn once: its pixels and the affine data-to-pixel mapping.
+
+    Attributes:
+        image: (h, w, 3) uint8.
+        affine: (2, 3) float: ``[col, row] = affine @ [x, y, 1]`` for world metres.
+    """
+
+    image: np.ndarray
+    affine: np.ndarray
+
+    def pixels(self, xy: np.ndarray) -> np.ndarray:
+        """(n, 2) world x, y in metres -> (n, 2) float image column, row."""
+        xy = np.atleast_2d(np.asarray(xy, np.float64))
+        return xy @ self.affine[:, :2].T + self.affine[:, 2]
+
+
+def _rebuild_scenario(summary: Mapping[str, Any]) -> Any:
+    """The flown cave, rebuilt from its name, seed and difficulty; None where it cannot be.
+
+    Only the procedural families rebuild from a name. The rebuilt mesh must carry the
+    recorded mesh name (which encodes the difficulty), so a map never shows another cave.
+    """
+    from cavenav.world.scenarios import SCENARIOS, Difficulty, load_scenario
+
+    name, seed = summary.get("scenario"), summary.get("seed")
+    if not isinstance(name, str) or name.upper() not in SCENARIOS or seed is None:
+        return None
+    try:
+        knobs = summary.get("difficulty") or {}
+        kwargs = {"difficulty": Difficulty.from_dict(knobs)} if knobs else {}
+        scenario = load_scenario(name, int(seed), **kwargs)
+    except (CavenavError, TypeError, ValueError):
+        return None
+    return scenario if scenario.mesh.name == summary.get("mesh") else None
+
+
+def _map_limits(points: np.ndarray, exits: Sequence[Mapping[str, Any]]) -> np.ndarray:
+    """[[xmin, xmax], [ymin, ymax]]: a square around the path and the exits."""
+    xy = [points[:, :2]] + [np.asarray(e["point"], np.float64)[None, :2] for e in exits]
+    every = np.concatenate(xy)
+    lo, hi = every.min(axis=0) - _MARGIN_M, every.max(axis=0) + _MARGIN_M
+    centre, half = 0.5 * (lo + hi), 0.5 * max(float((hi - lo).max()), 10.0)
+    return np.stack([centre - half, centre + half], axis=1)
+
+
+def _draw_map(
+    positions: np.ndarray,
+    exits: Sequence[Mapping[str, Any]],
+    scenario: Any | None,
+    size_px: int = PANEL_HEIGHT,
+) -> MapCanvas:
+    """The map background of a video: footprint (if ``scenario``), exits, whole path faint.
+
+    Args:
+        positions: (n, 3) float, every pose of the episode in metres.
+        exits: summary.json's exits (point, normal, radius).
+        scenario: the rebuilt `Scenario`, or None for the path alone.
+    """
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    from cavenav.episode.plots import draw_exits, draw_footprint
+    from cavenav.world.scenarios import ExitPortal
+
+    fig = Figure(figsize=(size_px / 100, size_px / 100), dpi=100)
+    canvas = FigureCanvasAgg(fig)
+    ax = fig.add_axes((0.1, 0.07, 0.87, 0.9))
+    if scenario is not None:  # the cave's footprint, as topdown.png draws it
+        draw_footprint(ax, scenario.mesh)
+    else:
+        ax.set_facecolor("#f2f4f7")
+        ax.text(
+            0.02,
+            0.02,
+            "path only (cave not rebuilt)",
+            transform=ax.transAxes,
+            fontsize=7,
+            color="0.45",
+        )
+    draw_exits(ax, [ExitPortal(**portal) for portal in exits])
+    ax.plot(positions[:, 0], positions[:, 1], color="0.6", lw=1, ls=":", zorder=3)
+    ax.plot(*positions[0, :2], marker="o", color="tab:green", ms=7, zorder=5)
+    limits = _map_limits(positions, exits)
+    ax.set_xlim(*limits[0])
+    ax.set_ylim(*limits[1])
+    ax.set_aspect("equal", adjustable="box")
+    ax.tick_params(labelsize=7, length=2, pad=1)
+    ax.set_xlabel("x (m)", fontsize=7, labelpad=1)
+    ax.set_ylabel("y (m)", fontsize=7, labelpad=1)
+    canvas.draw()
+    image = np.asarray(canvas.buffer_rgba())[..., :3].copy()
+    # Display coordinates have their origin at the bottom left; image rows run down.
+    corners = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
+    display = ax.transData.transform(corners)
+    height = image.shape[0]
+    pix = np.column_stack([display[:, 0], height - display[:, 1]])
+    affine = np.column_stack([pix[1] - pix[0], pix[2] - pix[0], pix[0]])
+    return MapCanvas(image, affine)
+
+
+def _viridis(values: np.ndarray) -> list[tuple[int, int, int]]:
+    from matplotlib import colormaps
+
+    rgba = colormaps[_CMAP](np.clip(values / _CLEARANCE_MAX_M, 0.0, 1.0))
+    return [tuple(int(255 * c) for c in colour[:3]) for colour in rgba]
+
+
+def _map_frame(
+    canvas: MapCanvas,
+    pixels: np.ndarray,
+    colours: Sequence[tuple[int, int, int]],
+    k: int,
+    yaw_deg: float,
+    crash: np.ndarray | None,
+) -> Image.Image:
+    """The map at step ``k``: path so far in clearance colours, the vehicle as an arrow.
+
+    Args:
+        pixels: (n, 2) image coordinates of every pose; colours: one per pose.
+        crash: image coordinates of the collision point when it happened at this step.
+    """
+    image = Image.fromarray(canvas.image)
+    draw = ImageDraw.Draw(image)
+    for j in range(1, k + 1):
+        draw.line([tuple(pixels[j - 1]), tuple(pixels[j])], fill=colours[j], width=3)
+    psi = math.radians(yaw_deg)
+    heading = canvas.affine[:, :2] @ np.array([math.sin(psi), -math.cos(psi)])  # Pose.forward
+    heading /= max(float(np.linalg.norm(heading)), 1e-9)
+    side = np.array([-heading[1], heading[0]])
+    tip = pixels[k] + 11 * heading
+    arrow = [tip, pixels[k] - 6 * heading + 6 * side, pixels[k] - 6 * heading - 6 * side]
+    draw.polygon([tuple(p) for p in arrow], fill=(214, 39, 40), outline=(0, 0, 0))
+    if crash is not None:
+        x, y = crash
+        for d in (1, -1):
+            draw.line([(x - 7, y - 7 * d), (x + 7, y + 7 * d)], fill=(214, 39, 40), width=4)
+    return image
+
+
+def _panel(path: Path | None, width: int) -> Image.Image:
+    """A saved frame scaled to the panel height, or a grey panel when it is missing."""
+    if path is None or not path.is_file():
+        return Image.new("RGB", (width, PANEL_HEIGHT), (60, 60, 60))
+    image = Image.open(path).convert("RGB")
+    if image.height != PANEL_HEIGHT:
+        w = round(image.width * PANEL_HEIGHT / image.height)
+        image = image.resize((w, PANEL_HEIGHT), Image.Resampling.BILINEAR)
+    return image
+
+
+def _panel_width(path: Path) -> int:
+    """The width of a saved frame once scaled to the panel height."""
+    with Image.open(path) as image:
+        return round(image.width * PANEL_HEIGHT / image.height)
+
+
+def _caption(step: Mapping[str, Any], count: int) -> str:
+    action = step.get("action")
+    parts = [
+        f"step {step.get('step')}/{count - 1}",
+        action if action is not None else "no action (pilot failure)",
+        f"clearance {step.get('clearance_m', float('nan')):.2f} m",
+        f"top {step.get('d_top_m', float('nan')):.2f} m, bottom "
+        f"{step.get('d_bottom_m', float('nan')):.2f} m",
+    ]
+    if step.get("shield"):
+        parts.append(f"shield replaced {step['shield'].get('proposed')}")
+    if step.get("invalid_action"):
+        parts.append("invalid action: held")
+    if step.get("collision"):
+        parts.append("COLLISION")
+    return "  ·  ".join(parts)
+
+
+def _font(size: int) -> ImageFont.FreeTypeFont | ImageFont.ImageFont:
+    """DejaVu Sans, which matplotlib ships, so captions look the same everywhere."""
+    from matplotlib import font_manager
+
+    try:
+        return ImageFont.truetype(font_manager.findfont("DejaVu Sans"), size)
+    except OSError:
+        return ImageFont.load_default()
+
+
+def _frames(
+    run_dir: Path, steps: Sequence[Mapping[str, Any]], summary: Mapping[str, Any]
+) -> Iterator[np.ndarray]:
+    """Yield one (h, w, 3) uint8 frame per step, every frame the same even size."""
+    positions = np.array([[s["pose"]["x"], s["pose"]["y"], s["pose"]["z"]] for s in steps])
+    canvas = _draw_map(positions, summary.get("exits") or [], _rebuild_scenario(summary))
+    pixels = canvas.pixels(positions[:, :2])
+    colours = _viridis(np.array([s.get("clearance_m") or 0.0 for s in steps], np.float64))
+    first = next(s["frames"] for s in steps if s.get("frames"))
+    widths = [_panel_width(run_dir / first[key]) if key in first else 640 for key in _IMAGES]
+    widths.append(canvas.image.shape[1])
+    width = sum(widths) + sum(widths) % 2  # H.264 with yuv420p needs even sizes
+    height = PANEL_HEIGHT + CAPTION_HEIGHT
+    font, small = _font(17), _font(13)
+    for k, step in enumerate(steps):
+        files = step.get("frames") or {}
+        frame = Image.new("RGB", (width, height), (16, 16, 16))
+        x = 0
+        draw = ImageDraw.Draw(frame)
+        for key, w in zip(_IMAGES, widths, strict=False):
+            panel = _panel(run_dir / files[key] if key in files else None, w)
+            frame.paste(panel.resize((w, PANEL_HEIGHT)) if panel.width != w else panel, (x, 0))
+            draw.text(
+                (x + 8, 6),
+                _LABELS[key],
+                fill="white",
+                font=small,
+                stroke_width=2,
+                stroke_fill="black",
+            )
+            x += w
+        crash = None
+        if step.get("collision") and step.get("next_pose"):
+            q = step["next_pose"]
+            crash = canvas.pixels(np.array([[q["x"], q["y"]]]))[0]
+        yaw = float(step["pose"].get("yaw_deg", 0.0))
+        frame.paste(_map_frame(canvas, pixels, colours, k, yaw, crash), (x, 0))
+        colour = (255, 110, 110) if step.get("collision") else (235, 235, 235)
+        draw.text((10, PANEL_HEIGHT + 6), _caption(step, len(steps)), fill=colour, font=font)
+        yield np.asarray(frame)
+
+
+def _encoder(path: Path, size: tuple[int, int], fps: float) -> Generator[None, Any, None]:
+    """imageio-ffmpeg's frame writer (a generator to send frames to), or the install hint."""
+    try:
+        import imageio_ffmpeg
+    except ImportError:
+        raise DependencyError(
+            "writing videos needs imageio-ffmpeg: pip install imageio-ffmpeg"
+        ) from None
+    return imageio_ffmpeg.write_frames(
+        str(path),
+        size,
+        fps=fps,
+        codec="libx264",
+        pix_fmt_in="rgb24",
+        pix_fmt_out="yuv420p",
+        quality=None,
+        macro_block_size=2,
+        ffmpeg_log_level="error",
+        output_params=["-crf", "23", "-preset", "veryfast"],  # legible text, quick encoding
+    )
+
+
+def write_video(run_dir: Path, out: Path | None = None, fps: float = 4.0) -> Path:
+    """Write an MP4 of the episode in ``run_dir``, one frame per step; returns its path.
+
+    Each frame: colour image | depth PNG | top-down map with the vehicle's position,
+    heading and path so far, above a caption (step, action, clearance, echo sounders).
+    1760 x 512 px for the default 640 x 480 camera (see the module docstring).
+
+    Args:
+        out: the MP4 to write (default ``run_dir/episode.mp4``).
+        fps: steps shown per second.
+
+    Raises:
+        CavenavError: no run folder, or it holds no frames (flown with frames off).
+        DependencyError: imageio-ffmpeg is not installed (the message has the command).
+    """
+    run_dir = Path(run_dir)
+    if not (run_dir / "summary.json").is_file() or not (run_dir / "steps.jsonl").is_file():
+        raise CavenavError(f"{run_dir} is no run folder (no summary.json or steps.jsonl)")
+    summary = json.loads((run_dir / "summary.json").read_text(encoding="utf-8"))
+    steps = [s for s in read_jsonl(run_dir / "steps.jsonl") if "pose" in s]
+    if not any(s.get("frames") for s in steps):
+        raise CavenavError(
+            f"{run_dir} holds no frames: a video needs the episode flown with frames saved "
+            "(cavenav run without --no-frames; cavenav eval --frames png or all)"
+        )
+    out = Path(out) if out is not None else run_dir / "episode.mp4"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    frames = _frames(run_dir, steps, summary)
+    first = next(frames)
+    writer = _encoder(out, (first.shape[1], first.shape[0]), fps)
+    writer.send(None)  # start the generator: ffmpeg is launched here
+    try:
+        writer.send(np.ascontiguousarray(first))
+        for frame in frames:
+            writer.send(np.ascontiguousarray(frame))
+    finally:
+        writer.close()
+    return out

@@ -1,0 +1,1 @@
+"""Evaluation: sweeps over scenario x pilot x seed, their results, and reports."""

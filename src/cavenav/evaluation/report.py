@@ -1,0 +1,675 @@
+"""Static HTML reports of a sweep or of one episode, readable from disk with no server.
+
+A sweep folder (sweep.json, results.csv, aggregate.json, episodes/<id>/) gets
+``report/index.html`` (configuration, aggregate table, every episode, thumbnails) and one
+page per episode under ``report/episodes/``; a lone run folder gets ``report.html`` beside
+its files. Pages reach the run folders' images by relative paths, so a sweep folder can be
+copied or zipped whole and its report still opens; nothing is fetched from the network
+and no script is needed (the one inline script only sorts the episode table).
+
+Everything a model wrote is escaped by the templates (autoescape): a reply is data to
+read, never markup to run.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+from collections import Counter
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
+from typing import Any
+from urllib.parse import quote
+
+from cavenav.episode.run_folder import read_jsonl
+from cavenav.errors import CavenavError, DependencyError
+from cavenav.evaluation.results import aggregate
+from cavenav.evaluation.results import outcome as episode_outcome
+from cavenav.evaluation.sweep import read_rows
+
+__all__ = ["RunRecord", "SweepRecord", "read_run", "read_sweep_record", "write_report"]
+
+# Outcome -> CSS class: green for success, red for collision, amber for the other ways a
+# finished episode fails, grey for episodes that did not finish (error, incomplete).
+_OUTCOME_CLASS = {
+    "success": "ok",
+    "collision": "bad",
+    "budget": "warn",
+    "stuck": "warn",
+    "oscillating": "warn",
+    "pilot_failure": "warn",
+}
+_EMPTY = "—"  # shown for a missing value
+
+
+# --------------------------------------------------------------------------- reading
+
+
+@dataclass(frozen=True)
+class RunRecord:
+    """A run folder as read from disk.
+
+    Attributes:
+        exchanges: the model requests of each step (exchanges.jsonl), attempts in order.
+    """
+
+    path: Path
+    summary: Mapping[str, Any]
+    steps: tuple[Mapping[str, Any], ...]
+    exchanges: Mapping[int, tuple[Mapping[str, Any], ...]]
+
+
+@dataclass(frozen=True)
+class SweepRecord:
+    """A sweep folder as read from disk.
+
+    Attributes:
+        rows: one results row per episode of the grid, read from the run folders (so a
+            sweep still running or cut short is reported as it stands).
+        groups: the aggregates of those rows (as in aggregate.json).
+    """
+
+    path: Path
+    config: Mapping[str, Any]
+    rows: tuple[Mapping[str, Any], ...]
+    groups: tuple[Mapping[str, Any], ...]
+
+
+def _read_json(path: Path) -> dict[str, Any]:
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, json.JSONDecodeError) as exc:
+        raise CavenavError(f"{path}: cannot be read as JSON ({exc})") from None
+
+
+def read_run(path: Path) -> RunRecord:
+    """Read summary.json, steps.jsonl and exchanges.jsonl of a run folder."""
+    by_step: dict[int, list[dict[str, Any]]] = {}
+    for exchange in read_jsonl(path / "exchanges.jsonl"):
+        by_step.setdefault(int(exchange.get("step", -1)), []).append(exchange)
+    return RunRecord(
+        path=path,
+        summary=_read_json(path / "summary.json"),
+        steps=tuple(read_jsonl(path / "steps.jsonl")),
+        exchanges={
+            step: tuple(sorted(items, key=lambda e: e.get("attempt", 0)))
+            for step, items in by_step.items()
+        },
+    )
+
+
+def read_sweep_record(folder: Path) -> SweepRecord:
+    """Read sweep.json and every episode's results row, and aggregate them."""
+    rows = read_rows(folder, write=False)
+    return SweepRecord(
+        path=folder,
+        config=_read_json(folder / "sweep.json"),
+        rows=tuple(rows),
+        groups=tuple(aggregate(rows)),
+    )
+
+
+# --------------------------------------------------------------------------- formatting
+
+
+def _num(value: Any, digits: int = 2, unit: str = "") -> str:
+    """A number with ``digits`` decimals and its unit; a dash when missing."""
+    if value is None or value == "":
+        return _EMPTY
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return str(value)
+    return f"{value:.{digits}f}{unit}"
+
+
+def _int(value: Any) -> str:
+    return _EMPTY if value is None else f"{int(value):,}"
+
+
+def _percent_ci(rate: Any, ci: Any) -> str:
+    """A rate with its 95 % interval, as "95% [76-99]"."""
+    if rate is None:
+        return _EMPTY
+    text = f"{100 * rate:.0f}%"
+    if ci and None not in ci:
+        text += f" [{100 * ci[0]:.0f}-{100 * ci[1]:.0f}]"
+    return text
+
+
+def _counts(counts: Mapping[str, int] | None) -> str:
+    if not counts:
+        return _EMPTY
+    return " · ".join(f"{name} {n}" for name, n in sorted(counts.items(), key=lambda kv: -kv[1]))
+
+
+def _href(target: Path, page_dir: Path) -> str:
+    """A relative URL from a page in ``page_dir`` to ``target``, for file:// viewing."""
+    return quote(Path(os.path.relpath(target, page_dir)).as_posix())
+
+
+def outcome_class(outcome: Any) -> str:
+    return _OUTCOME_CLASS.get(str(outcome), "other")
+
+
+@dataclass(frozen=True)
+class Column:
+    """One column of a table: how to read its value from a record and how to show it.
+
+    Attributes:
+        value: the value the column sorts by and that decides whether it is empty.
+        text: shows the value; ``row_text``, where given, shows the whole record instead
+            (two numbers in one cell).
+        zero_is_empty: a column of zeros is hidden like a column of blanks (token counts
+            and costs are 0 for pilots without a model).
+    """
+
+    header: str
+    value: Callable[[Mapping[str, Any]], Any]
+    text: Callable[[Any], str] = _num
+    zero_is_empty: bool = False
+    numeric: bool = True  # right-aligned
+    row_text: Callable[[Mapping[str, Any]], str] | None = None
+
+    def empty(self, value: Any) -> bool:
+        return value is None or value == "" or (self.zero_is_empty and value == 0)
+
+
+@dataclass(frozen=True)
+class Cell:
+    text: str
+    sort: str  # what the sorting script compares: the raw number where there is one
+    numeric: bool = True
+
+
+def _table(
+    columns: Sequence[Column], records: Sequence[Mapping[str, Any]]
+) -> tuple[list[str], list[list[Cell]]]:
+    """Headers and cells, leaving out the columns that are empty for every record."""
+    shown = [c for c in columns if any(not c.empty(c.value(r)) for r in records)]
+    rows = []
+    for record in records:
+        cells = []
+        for column in shown:
+            value = column.value(record)
+            sort = "" if value is None else str(value)
+            if column.empty(value):
+                text = _EMPTY
+            elif column.row_text is not None:
+                text = column.row_text(record)
+            else:
+                text = column.text(value)
+            cells.append(Cell(text, sort, column.numeric))
+        rows.append(cells)
+    return [c.header for c in shown], rows
+
+
+def _key(name: str) -> Callable[[Mapping[str, Any]], Any]:
+    return lambda record: record.get(name)
+
+
+_AGGREGATE_COLUMNS = (
+    Column("scenario", _key("scenario"), str, numeric=False),
+    Column("pilot", _key("pilot"), str, numeric=False),
+    Column(
+        "episodes",
+        lambda g: (g.get("completed"), g.get("episodes")),
+        lambda v: str(v[1]) if v[0] == v[1] else f"{v[0]} of {v[1]} completed",
+    ),
+    Column(
+        "success [95% CI]",
+        lambda g: (g.get("success_rate"), g.get("success_ci95")),
+        lambda v: _percent_ci(*v),
+    ),
+    Column(
+        "collisions",
+        lambda g: (g.get("collisions"), g.get("collision_rate")),
+        lambda v: f"{v[0]} ({_percent_ci(v[1], None)})" if v[1] is not None else str(v[0]),
+    ),
+    Column("outcomes", _key("outcomes"), _counts, numeric=False),
+    Column(
+        "min clearance: min / mean",
+        _key("min_clearance_m"),
+        lambda v: f"{_num(v.get('min'))} / {_num(v.get('mean'))} m",
+    ),
+    Column("mean clearance", _key("mean_clearance_m"), lambda v: _num(v, 2, " m")),
+    Column("steps below standoff", _key("steps_below_standoff"), lambda v: _num(v, 1)),
+    Column("path efficiency", _key("path_efficiency")),
+    Column("steps", _key("steps"), lambda v: _num(v, 1)),
+    Column("shield interventions", _key("shield_interventions"), lambda v: _num(v, 1)),
+    Column("pilot time", _key("mean_pilot_ms"), lambda v: _num(v, 1, " ms")),
+    Column("model latency", _key("mean_model_latency_s"), lambda v: _num(v, 2, " s")),
+    Column("prompt tokens", _key("prompt_tokens"), _int, zero_is_empty=True),
+    Column("completion tokens", _key("completion_tokens"), _int, zero_is_empty=True),
+    Column("cost", _key("cost_usd"), lambda v: f"${v:.4f}", zero_is_empty=True),
+    Column("re-queries", _key("requeries"), _int, zero_is_empty=True),
+)
+
+
+_EPISODE_COLUMNS = (
+    Column("scenario", _key("scenario"), str, numeric=False),
+    Column("seed", _key("seed"), str),
+    Column("pilot", _key("pilot"), str, numeric=False),
+    Column("steps", _key("steps"), _int),
+    Column("collisions", _key("collisions"), _int),
+    Column(
+        "progress / passage (m)",
+        _key("progress_m"),
+        row_text=lambda r: f"{_num(r.get('progress_m'), 1)} / {_num(r.get('passage_length_m'), 1)}",
+    ),
+    Column("path efficiency", _key("path_efficiency")),
+    Column("min clearance (m)", _key("min_clearance_m")),
+    Column("mean clearance (m)", _key("mean_clearance_m")),
+    Column("below standoff", _key("steps_below_standoff"), _int),
+    Column("shield", _key("shield_interventions"), _int, zero_is_empty=True),
+    Column("invalid", _key("invalid_actions"), _int, zero_is_empty=True),
+    Column("re-queries", _key("requeries"), _int, zero_is_empty=True),
+    Column("retries", _key("transport_retries"), _int, zero_is_empty=True),
+    Column(
+        "tokens in / out",
+        lambda r: (r.get("prompt_tokens") or 0) + (r.get("completion_tokens") or 0),
+        zero_is_empty=True,
+        row_text=lambda r: f"{_int(r.get('prompt_tokens'))} / {_int(r.get('completion_tokens'))}",
+    ),
+    Column("cost", _key("cost_usd"), lambda v: f"${v:.4f}", zero_is_empty=True),
+    Column("model latency (s)", _key("mean_model_latency_s")),
+    Column("pilot (ms)", _key("mean_pilot_ms"), lambda v: _num(v, 1)),
+    Column("wall (s)", _key("wall_time_s"), lambda v: _num(v, 1)),
+    Column("error", _key("error"), str, numeric=False),
+)
+
+
+def _summary_facts(s: Mapping[str, Any], outcome: str) -> list[tuple[str, str]]:
+    """The header of an episode page: what a reader checks first, in that order."""
+    usage = s.get("usage") or {}
+    config = s.get("config") or {}
+    passage = s.get("passage_length_m")
+    facts = [
+        ("scenario", f"{s.get('scenario')} · {s.get('scenario_description', '')}".rstrip(" ·")),
+        ("seed", _EMPTY if s.get("seed") is None else str(s["seed"])),
+        ("pilot", str(s.get("pilot"))),
+        ("outcome", outcome),
+        ("termination", str(s.get("termination"))),
+        ("status", str(s.get("status"))),
+        ("steps", f"{s.get('steps')} of {config.get('max_steps', '?')}"),
+        ("collisions", str(s.get("collisions"))),
+        ("min clearance", _num(s.get("min_clearance_m"), 2, " m")),
+        ("mean clearance", _num(s.get("mean_clearance_m"), 2, " m")),
+        ("steps below standoff", str(s.get("steps_below_standoff"))),
+        ("path length", _num(s.get("path_length_m"), 2, " m")),
+        ("progress / passage", f"{_num(s.get('progress_m'), 2)} / {_num(passage, 2)} m"),
+        ("exit distance", _num(s.get("exit_distance_m"), 2, " m")),
+        (
+            "shield",
+            f"on, {s.get('shield_interventions', 0)} interventions" if s.get("shield") else "off",
+        ),
+        ("invalid actions", str(s.get("invalid_actions", 0))),
+        (
+            "sense / pilot",
+            f"{_num(s.get('mean_sense_ms'), 1)} / {_num(s.get('mean_pilot_ms'), 1)} ms a step",
+        ),
+        ("wall time", _num(s.get("wall_time_s"), 1, " s")),
+        ("started", str(s.get("started_at", _EMPTY))),
+    ]
+    if usage:
+        tokens = f"{_int(usage.get('prompt_tokens'))} in, {_int(usage.get('completion_tokens'))}"
+        retries = f"{usage.get('requeries')} / {usage.get('transport_retries')}"
+        facts += [
+            ("tokens", tokens + " out"),
+            ("model latency", _num(usage.get("mean_latency_s"), 2, " s a step")),
+            ("re-queries / retries", retries),
+            ("cost", _EMPTY if usage.get("cost_usd") is None else f"${usage['cost_usd']:.4f}"),
+        ]
+    if s.get("failure"):
+        facts.append(("failure", str(s["failure"])))
+    return facts
+
+
+# --------------------------------------------------------------------------- page views
+
+
+@dataclass(frozen=True)
+class Picture:
+    href: str
+    label: str
+
+
+@dataclass(frozen=True)
+class Plot:
+    name: str
+    href: str | None  # None: missing, see reason
+    reason: str = ""
+
+
+@dataclass(frozen=True)
+class StepView:
+    """One step block of an episode page.
+
+    Attributes:
+        record: the steps.jsonl record.
+        pictures: the colour and depth images, relative to the page.
+        pictures_note: where they came from, or why there are none.
+        attempts: the model's exchanges of the step, first try first.
+    """
+
+    record: Mapping[str, Any]
+    pictures: tuple[Picture, ...]
+    pictures_note: str
+    attempts: tuple[Mapping[str, Any], ...]
+
+    @property
+    def marks(self) -> tuple[str, ...]:
+        """CSS classes of what happened: collision, shield, invalid, failure, requery."""
+        r = self.record
+        marks = [
+            name
+            for name, hit in (
+                ("collision", r.get("collision")),
+                ("shield", r.get("shield")),
+                ("invalid", r.get("invalid_action")),
+                ("failure", r.get("failure")),
+                ("requery", len(self.attempts) > 1),
+            )
+            if hit
+        ]
+        return tuple(marks)
+
+
+def _sent_images(exchanges: Sequence[Mapping[str, Any]]) -> list[str]:
+    """The current colour and depth images a step's first request carried (files).
+
+    A request lists earlier observations first; the current one follows the text part
+    that starts "Current observation". Without that marker, the last two images.
+    """
+    if not exchanges:
+        return []
+    parts: list[Mapping[str, Any]] = []
+    for message in exchanges[0].get("messages", []):
+        if message.get("role") == "user" and isinstance(message.get("content"), list):
+            parts.extend(message["content"])
+    images = [k for k, p in enumerate(parts) if p.get("type") == "image" and p.get("file")]
+    current = [
+        k
+        for k, p in enumerate(parts)
+        if p.get("type") == "text" and str(p.get("text", "")).startswith("Current observation")
+    ]
+    after = [k for k in images if current and k > current[-1]][:2]
+    return [str(parts[k]["file"]) for k in (after or images[-2:])]
+
+
+def _step_pictures(
+    run: RunRecord, record: Mapping[str, Any], page_dir: Path, no_frames_note: str
+) -> tuple[tuple[Picture, ...], str]:
+    frames = record.get("frames") or {}
+    saved = [
+        Picture(_href(run.path / frames[key], page_dir), label)
+        for key, label in (("rgb", "colour"), ("depth_png", "depth"))
+        if key in frames and (run.path / frames[key]).is_file()
+    ]
+    if saved:
+        return tuple(saved), ""
+    sent = [f for f in _sent_images(run.exchanges.get(record.get("step", -1), ())) if f]
+    sent = [f for f in sent if (run.path / f).is_file()]
+    if sent:
+        labels = ("colour, as sent to the model", "depth, as sent to the model")
+        pictures = tuple(
+            Picture(_href(run.path / f, page_dir), label)
+            for f, label in zip(sent, labels, strict=False)
+        )
+        return pictures, "frames not saved; images from the model request"
+    if frames:
+        return (), "frames listed in steps.jsonl but missing from the run folder"
+    return (), no_frames_note
+
+
+def _missing_plot_reason(summary: Mapping[str, Any]) -> str:
+    status = summary.get("status")
+    if status == "interrupted":
+        return "episode interrupted: no plot drawn"
+    if status == "running":
+        return "episode still running (or killed): no plot yet"
+    if status == "crashed":
+        return "episode crashed before its plots were drawn"
+    if not (summary.get("config") or {}).get("plots", True):
+        return "plots turned off for this episode"
+    return "plot file missing"
+
+
+def _plots(run: RunRecord, page_dir: Path) -> tuple[Plot, Plot]:
+    def plot(name: str) -> Plot:
+        path = run.path / f"{name}.png"
+        if path.is_file():
+            return Plot(name, _href(path, page_dir))
+        return Plot(name, None, _missing_plot_reason(run.summary))
+
+    return plot("topdown"), plot("side")
+
+
+def _system_prompt(run: RunRecord) -> str | None:
+    for exchanges in run.exchanges.values():
+        for message in exchanges[0].get("messages", [])[:1]:
+            if message.get("role") == "system" and isinstance(message.get("content"), str):
+                return message["content"]
+    return None
+
+
+# --------------------------------------------------------------------------- rendering
+
+
+@lru_cache(maxsize=1)
+def _environment() -> Any:
+    try:
+        import jinja2
+    except ImportError:
+        raise DependencyError("reports need jinja2: pip install jinja2") from None
+    env = jinja2.Environment(
+        loader=jinja2.PackageLoader("cavenav", "evaluation/templates"),
+        # select_autoescape's default list checks the last suffix only, which for
+        # "index.html.j2" is "j2": name the double suffix or nothing would be escaped.
+        autoescape=jinja2.select_autoescape(enabled_extensions=("html", "html.j2")),
+        undefined=jinja2.StrictUndefined,
+        trim_blocks=True,
+        lstrip_blocks=True,
+    )
+    env.filters["num"] = _num
+    env.filters["int"] = _int
+    env.filters["outcome_class"] = outcome_class
+    return env
+
+
+def _render(template: str, path: Path, **context: Any) -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    html = _environment().get_template(template).render(**context)
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(html, encoding="utf-8")
+    os.replace(tmp, path)  # a reader refreshing the page never sees half of it
+    return path
+
+
+@dataclass(frozen=True)
+class Neighbours:
+    """Links from an episode page of a sweep: the index and the episodes beside it."""
+
+    index: str
+    previous: str | None = None
+    next: str | None = None
+
+
+def _episode_title(summary: Mapping[str, Any]) -> str:
+    seed = summary.get("seed")
+    parts = [summary.get("scenario"), summary.get("pilot")]
+    return " · ".join(map(str, parts + ([f"seed {seed}"] if seed is not None else [])))
+
+
+def _write_episode_page(
+    run: RunRecord,
+    page: Path,
+    outcome: str | None = None,
+    neighbours: Neighbours | None = None,
+    no_frames_note: str = "no frames saved (flown with --no-frames)",
+) -> Path:
+    """Render one episode's page at ``page``; image links are relative to its folder.
+
+    Args:
+        outcome: the sweep's outcome for it (stuck, oscillating ...), else from its summary.
+        neighbours: links back to the sweep's index, for episodes of a sweep.
+        no_frames_note: what a step without images says.
+    """
+    page_dir = page.parent
+    steps = []
+    for record in run.steps:
+        pictures, note = _step_pictures(run, record, page_dir, no_frames_note)
+        attempts = run.exchanges.get(record.get("step", -1), ())
+        steps.append(StepView(record, pictures, note, attempts))
+    outcome = outcome or episode_outcome(run.summary, run.steps)
+    return _render(
+        "episode.html.j2",
+        page,
+        title=_episode_title(run.summary),
+        run_href=_href(run.path, page_dir),
+        summary=run.summary,
+        outcome=outcome,
+        facts=_summary_facts(run.summary, outcome),
+        plots=_plots(run, page_dir),
+        steps=steps,
+        system_prompt=_system_prompt(run),
+        models=sorted({str(e.get("model")) for ex in run.exchanges.values() for e in ex}),
+        neighbours=neighbours,
+    )
+
+
+@dataclass(frozen=True)
+class EpisodeLink:
+    """An episode on the index: its row, its page and its thumbnail."""
+
+    id: str
+    outcome: str
+    href: str
+    cells: list[Cell]
+    thumb: str | None
+    thumb_reason: str
+
+
+def _flat(values: Mapping[str, Any], prefix: str = "") -> str:
+    """``{"a": 1, "b": {"c": 2}}`` as "a=1, b.c=2"; a dash when empty."""
+    items = []
+    for key, value in values.items():
+        if isinstance(value, Mapping):
+            items.append(_flat(value, f"{prefix}{key}.") if value else "")
+        else:
+            items.append(f"{prefix}{key}={value}")
+    return ", ".join(i for i in items if i) or _EMPTY
+
+
+def _sweep_facts(config: Mapping[str, Any]) -> list[tuple[str, str]]:
+    pilot = config.get("pilot") or {}
+    name, label = pilot.get("name"), pilot.get("label") or pilot.get("name")
+    facts = [
+        ("scenarios", ", ".join(map(str, config.get("scenarios", [])))),
+        ("seeds", _seed_text([str(s) for s in config.get("seeds", [])])),
+        ("pilot", str(label) if label == name else f"{label} ({name})"),
+        ("pilot options", _flat(pilot.get("options") or {})),
+        ("episode", _flat(config.get("episode") or {})),
+    ]
+    facts += [
+        (key, _flat(config[key]))
+        for key in ("difficulty", "sensors")
+        if isinstance(config.get(key), Mapping) and config[key]
+    ]
+    return facts + [
+        ("created", str(config.get("created_at", _EMPTY))),
+        ("cavenav", str(config.get("cavenav_version", _EMPTY))),
+    ]
+
+
+def _seed_text(seeds: Sequence[str]) -> str:
+    """Seeds as "0-19" when they are a run of integers, else listed."""
+    if len(seeds) > 2 and all(s.isdigit() for s in seeds):
+        numbers = [int(s) for s in seeds]
+        if numbers == list(range(numbers[0], numbers[0] + len(numbers))):
+            return f"{numbers[0]}-{numbers[-1]} ({len(numbers)} seeds)"
+    return ", ".join(seeds) or _EMPTY
+
+
+def _page_name(episode: str) -> str:
+    """The file name of an episode's page: its id, made safe to stay inside report/."""
+    return re.sub(r"[^A-Za-z0-9_.-]+", "_", episode).lstrip(".") + ".html"
+
+
+def _episode_pages(
+    sweep: SweepRecord, report: Path, cells: Sequence[list[Cell]]
+) -> Iterable[EpisodeLink]:
+    """Write every episode's page; yield what the index shows of each (``cells``: its row)."""
+    frames_note = (
+        "no frames saved (--frames none)"
+        if sweep.config["episode"]["frames"] == "none"
+        else "no frames saved for this step"
+    )
+    ids = [str(row.get("episode")) for row in sweep.rows]
+    pages = [f"episodes/{quote(_page_name(i))}" for i in ids]
+    for k, row in enumerate(sweep.rows):
+        run_dir = sweep.path / str(row.get("run_dir") or f"episodes/{ids[k]}")
+        page = report / "episodes" / _page_name(ids[k])
+        outcome = str(row.get("outcome") or "incomplete")
+        neighbours = Neighbours(
+            index="../index.html",
+            previous=f"../{pages[k - 1]}" if k > 0 else None,
+            next=f"../{pages[k + 1]}" if k + 1 < len(pages) else None,
+        )
+        if (run_dir / "summary.json").is_file():
+            run = read_run(run_dir)
+            _write_episode_page(run, page, outcome, neighbours, frames_note)
+            topdown = run_dir / "topdown.png"
+            thumb = _href(topdown, report) if topdown.is_file() else None
+            reason = "" if thumb else _missing_plot_reason(run.summary)
+        else:
+            error = row.get("error") or "the run folder holds no summary.json"
+            _render(
+                "missing.html.j2", page, title=ids[k], id=ids[k], error=error, neighbours=neighbours
+            )
+            thumb, reason = None, f"no run folder: {error}"
+        yield EpisodeLink(ids[k], outcome, pages[k], cells[k], thumb, reason)
+
+
+def _write_sweep_report(folder: Path) -> Path:
+    """report/index.html and report/episodes/<id>.html for a sweep folder; returns the index."""
+    sweep = read_sweep_record(folder)
+    report = folder / "report"
+    headers, cells = _table(_EPISODE_COLUMNS, sweep.rows)
+    episodes = list(_episode_pages(sweep, report, cells))
+    groups = list(sweep.groups)
+    group_headers, group_rows = _table(_AGGREGATE_COLUMNS, groups)
+    outcomes = Counter(link.outcome for link in episodes)
+    return _render(
+        "index.html.j2",
+        report / "index.html",
+        title=f"sweep {folder.name}",
+        facts=_sweep_facts(sweep.config),
+        groups=list(zip(groups, group_rows, strict=True)),
+        group_headers=group_headers,
+        episode_headers=headers,
+        episodes=episodes,
+        outcomes=outcomes.most_common(),
+    )
+
+
+def write_report(folder: Path) -> Path:
+    """Write the HTML report of a sweep folder or of one run folder; returns its main page.
+
+    A sweep folder (holding sweep.json) gets ``report/index.html`` and one page per
+    episode under ``report/episodes/``; a run folder (holding summary.json) gets
+    ``report.html``. Rewriting is safe at any time, also while the sweep runs.
+
+    Raises:
+        CavenavError: ``folder`` is neither a sweep folder nor a run folder.
+    """
+    folder = Path(folder)
+    if (folder / "sweep.json").is_file():
+        return _write_sweep_report(folder)
+    if (folder / "summary.json").is_file():
+        return _write_episode_page(read_run(folder), folder / "report.html")
+    raise CavenavError(
+        f"{folder} is neither a sweep folder (no sweep.json) nor a run folder "
+        "(no summary.json): give the folder `cavenav eval` or `cavenav run` wrote"
+    )

@@ -1,0 +1,326 @@
+"""What a sweep found: one row per episode, aggregates with intervals, paired comparisons.
+
+Everything here reads run folders (summary.json and steps.jsonl), never the live sweep,
+so `cavenav report` and `cavenav compare` work on any sweep folder, finished or not, and
+the tables always agree with the episodes they summarise.
+
+Outcomes (the failure taxonomy, one per episode):
+    success        the vehicle passed the exit portal
+    collision      it touched a surface
+    pilot_failure  the pilot could not produce a valid action (e.g. persistent bad replies)
+    budget         out of steps while still making headway: the last `WINDOW` steps got
+                   past the farthest point reached before them (too slow, not lost)
+    stuck          out of steps having barely moved during the last `WINDOW` steps
+    oscillating    out of steps having moved during the last `WINDOW` steps without making
+                   headway: back and forth, or round in circles
+    error          the episode raised an error (recorded in its summary) or its worker died
+    incomplete     not flown yet, or cut short by Ctrl-C or a kill (re-run to finish it)
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from collections import Counter
+from collections.abc import Iterable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scipy.stats import binomtest
+
+from cavenav.episode.run_folder import read_jsonl
+
+__all__ = [
+    "COLUMNS",
+    "OUTCOMES",
+    "WINDOW",
+    "aggregate",
+    "compare",
+    "episode_row",
+    "outcome",
+    "wilson",
+    "write_results",
+]
+
+OUTCOMES = (
+    "success",
+    "collision",
+    "pilot_failure",
+    "budget",
+    "stuck",
+    "oscillating",
+    "error",
+    "incomplete",
+)
+# A budget ending is judged on the last WINDOW steps: headway below HEADWAY_M there means
+# the pilot was no longer getting anywhere; a path below MOVED_M there means it barely moved
+# (both scaled down for a budget shorter than the window).
+WINDOW = 30
+HEADWAY_M = 1.0
+MOVED_M = 1.5
+
+COLUMNS = (
+    "episode",
+    "scenario",
+    "seed",
+    "pilot",
+    "status",
+    "success",
+    "termination",
+    "outcome",
+    "steps",
+    "collisions",
+    "progress_m",
+    "passage_length_m",
+    "path_length_m",
+    "path_efficiency",
+    "min_clearance_m",
+    "mean_clearance_m",
+    "steps_below_standoff",
+    "shield_interventions",
+    "invalid_actions",
+    "requeries",
+    "transport_retries",
+    "prompt_tokens",
+    "completion_tokens",
+    "cost_usd",
+    "mean_model_latency_s",
+    "mean_pilot_ms",
+    "mean_sense_ms",
+    "wall_time_s",
+    "error",
+    "run_dir",
+)
+
+
+def outcome(summary: Mapping[str, Any], steps: Sequence[Mapping[str, Any]]) -> str:
+    """The episode's place in the failure taxonomy (see the module docstring)."""
+    status = summary.get("status")
+    if status == "crashed" or summary.get("error"):
+        return "error"
+    if status != "finished":
+        return "incomplete"
+    termination = summary.get("termination")
+    if termination == "exit":
+        return "success"
+    if termination in ("collision", "pilot_failure"):
+        return str(termination)
+    moves = [s for s in steps if s.get("action")]
+    window, earlier = moves[-WINDOW:], moves[:-WINDOW]
+    if len(window) < 2:
+        return "stuck"
+    share = len(window) / WINDOW  # a budget shorter than the window scales the thresholds
+    # Headway: how far the window got past the best point reached before it. The best,
+    # not the last: near a bend the nearest centre-line point jumps as the vehicle circles.
+    reached = max(float(s["progress_m"]) for s in earlier or window[:1])
+    headway = max(float(s["progress_m"]) for s in window) - reached
+    if headway >= HEADWAY_M * share:
+        return "budget"
+    positions = np.array([[s["pose"][k] for k in "xyz"] for s in window])
+    moved = float(np.linalg.norm(np.diff(positions, axis=0), axis=1).sum())
+    return "oscillating" if moved >= MOVED_M * share else "stuck"
+
+
+def episode_row(run_dir: Path, root: Path | None = None) -> dict[str, Any]:
+    """One results.csv row for the run folder ``run_dir`` (``root``: paths relative to it).
+
+    A folder with no readable summary (never started, or killed before its first write)
+    gives an ``incomplete`` row.
+    """
+    run_dir = Path(run_dir)
+    relative = str(run_dir.relative_to(root)) if root else str(run_dir)
+    try:
+        summary = json.loads((run_dir / "summary.json").read_text(encoding="utf-8"))
+    except (OSError, json.JSONDecodeError):
+        return {"episode": run_dir.name, "status": "missing", "outcome": "incomplete",
+                "run_dir": relative}  # fmt: skip
+    steps = read_jsonl(run_dir / "steps.jsonl")
+    usage = summary.get("usage") or {}
+    path_m, progress_m = summary.get("path_length_m"), summary.get("progress_m")
+    efficiency = None
+    if path_m and progress_m is not None:
+        efficiency = round(max(float(progress_m), 0.0) / float(path_m), 4)
+    return {
+        "episode": run_dir.name,
+        "scenario": summary.get("scenario"),
+        "seed": summary.get("seed"),
+        "pilot": summary.get("pilot"),
+        "status": summary.get("status"),
+        "success": summary.get("success"),
+        "termination": summary.get("termination"),
+        "outcome": outcome(summary, steps),
+        "steps": summary.get("steps"),
+        "collisions": summary.get("collisions"),
+        "progress_m": progress_m,
+        "passage_length_m": summary.get("passage_length_m"),
+        "path_length_m": path_m,
+        "path_efficiency": efficiency,
+        "min_clearance_m": summary.get("min_clearance_m"),
+        "mean_clearance_m": summary.get("mean_clearance_m"),
+        "steps_below_standoff": summary.get("steps_below_standoff"),
+        "shield_interventions": summary.get("shield_interventions")
+        if summary.get("shield")
+        else None,  # fmt: skip
+        "invalid_actions": summary.get("invalid_actions"),
+        "requeries": usage.get("requeries"),
+        "transport_retries": usage.get("transport_retries"),
+        "prompt_tokens": usage.get("prompt_tokens"),
+        "completion_tokens": usage.get("completion_tokens"),
+        "cost_usd": usage.get("cost_usd"),
+        "mean_model_latency_s": usage.get("mean_latency_s"),
+        "mean_pilot_ms": summary.get("mean_pilot_ms"),
+        "mean_sense_ms": summary.get("mean_sense_ms"),
+        "wall_time_s": summary.get("wall_time_s"),
+        "error": summary.get("error"),
+        "run_dir": relative,
+    }
+
+
+def wilson(successes: int, trials: int, confidence: float = 0.95) -> tuple[float, float] | None:
+    """The Wilson score interval of a success rate (scipy's binomtest), None for no trials."""
+    if trials == 0:
+        return None
+    ci = binomtest(successes, trials).proportion_ci(confidence_level=confidence, method="wilson")
+    return round(float(ci.low), 4), round(float(ci.high), 4)
+
+
+def _mean(values: Iterable[Any]) -> float | None:
+    numbers = [float(v) for v in values if v is not None and v != ""]
+    numbers = [v for v in numbers if math.isfinite(v)]
+    return round(sum(numbers) / len(numbers), 4) if numbers else None
+
+
+def _total(values: Iterable[Any]) -> float | None:
+    numbers = [float(v) for v in values if v is not None and v != ""]
+    return round(sum(numbers), 6) if numbers else None
+
+
+def _group(scenario: str, pilot: str, rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+    """The aggregate of one (scenario, pilot) cell over its completed episodes.
+
+    Rates and their intervals count every completed episode (errors included: a pilot
+    that crashes the episode did not get through); incomplete ones are left out.
+    """
+    done = [r for r in rows if r["outcome"] != "incomplete"]
+    successes = sum(1 for r in done if r["outcome"] == "success")
+    collisions = sum(1 for r in done if r["outcome"] == "collision")
+    n = len(done)
+    clearance_minima = [r["min_clearance_m"] for r in done if r.get("min_clearance_m") is not None]
+    return {
+        "scenario": scenario,
+        "pilot": pilot,
+        "episodes": len(rows),
+        "completed": n,
+        "successes": successes,
+        "success_rate": round(successes / n, 4) if n else None,
+        "success_ci95": wilson(successes, n),
+        "collisions": collisions,
+        "collision_rate": round(collisions / n, 4) if n else None,
+        "collision_ci95": wilson(collisions, n),
+        "outcomes": {k: v for k in OUTCOMES if (v := sum(r["outcome"] == k for r in rows))},
+        "terminations": dict(Counter(str(r["termination"]) for r in done if r.get("termination"))),
+        "min_clearance_m": {
+            "min": round(min(map(float, clearance_minima)), 4) if clearance_minima else None,
+            "mean": _mean(clearance_minima),
+        },
+        "mean_clearance_m": _mean(r.get("mean_clearance_m") for r in done),
+        "steps_below_standoff": _mean(r.get("steps_below_standoff") for r in done),
+        "path_efficiency": _mean(
+            r.get("path_efficiency") for r in done if r["outcome"] == "success"
+        ),
+        "steps": _mean(r.get("steps") for r in done),
+        "shield_interventions": _mean(r.get("shield_interventions") for r in done),
+        "mean_pilot_ms": _mean(r.get("mean_pilot_ms") for r in done),
+        "mean_model_latency_s": _mean(r.get("mean_model_latency_s") for r in done),
+        "prompt_tokens": _total(r.get("prompt_tokens") for r in done),
+        "completion_tokens": _total(r.get("completion_tokens") for r in done),
+        "cost_usd": _total(r.get("cost_usd") for r in done),
+        "requeries": _total(r.get("requeries") for r in done),
+    }
+
+
+def aggregate(rows: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
+    """One group per (scenario, pilot) in order of appearance, then "all" per pilot.
+
+    ``path_efficiency`` is averaged over successful episodes only (metres of centre line
+    per metre flown); clearances, steps and costs over every completed episode.
+    """
+    cells: dict[tuple[str, str], list[Mapping[str, Any]]] = {}
+    for row in rows:
+        cells.setdefault((str(row.get("scenario")), str(row.get("pilot"))), []).append(row)
+    groups = [_group(scenario, pilot, members) for (scenario, pilot), members in cells.items()]
+    for pilot in dict.fromkeys(pilot for _, pilot in cells):
+        everything = [r for (_, p), members in cells.items() if p == pilot for r in members]
+        groups.append(_group("all", pilot, everything))
+    return groups
+
+
+def write_results(folder: Path, rows: Sequence[Mapping[str, Any]], meta: Mapping[str, Any]) -> None:
+    """results.csv (one row per episode) and aggregate.json (``meta`` under "sweep")."""
+    tmp = folder / ".results.csv.tmp"
+    with open(tmp, "w", newline="", encoding="utf-8") as out:
+        writer = csv.DictWriter(out, COLUMNS, extrasaction="ignore")
+        writer.writeheader()
+        for row in rows:
+            writer.writerow({k: "" if row.get(k) is None else row.get(k) for k in COLUMNS})
+    tmp.replace(folder / "results.csv")
+    tmp = folder / ".aggregate.json.tmp"
+    tmp.write_text(json.dumps({"sweep": meta, "groups": aggregate(rows)}, indent=2) + "\n")
+    tmp.replace(folder / "aggregate.json")
+
+
+def compare(rows_a: Sequence[Mapping[str, Any]], rows_b: Sequence[Mapping[str, Any]]) -> dict:
+    """Two sweeps paired by (scenario, seed): success rates and the exact McNemar test.
+
+    Only caves completed in both sweeps are paired. McNemar's exact test is the two-sided
+    binomial test of the discordant pairs (A succeeded where B failed, and the reverse)
+    against an even split: the concordant caves say nothing about which pilot is better.
+
+    Returns:
+        "overall" and "per_scenario" entries with the pairs, both success rates, their
+        difference (A - B), the exact p-value, and the caves only A ("only_a") or only
+        B ("only_b") got through: {"cave", "a", "b"} with both run folders.
+    """
+
+    def completed(rows: Sequence[Mapping[str, Any]]) -> dict[tuple[str, int], Mapping]:
+        return {
+            (str(r["scenario"]), int(r["seed"])): r
+            for r in rows
+            if r["outcome"] != "incomplete" and r.get("seed") not in (None, "")
+        }
+
+    a, b = completed(rows_a), completed(rows_b)
+    paired = sorted(set(a) & set(b))
+
+    def won(row: Mapping[str, Any]) -> bool:
+        return row["outcome"] == "success"
+
+    def cave(key: tuple[str, int]) -> dict[str, Any]:
+        return {"cave": f"{key[0]} seed {key[1]}", "a": a[key]["run_dir"], "b": b[key]["run_dir"]}
+
+    def test(keys: Sequence[tuple[str, int]]) -> dict[str, Any]:
+        only_a = [k for k in keys if won(a[k]) and not won(b[k])]
+        only_b = [k for k in keys if won(b[k]) and not won(a[k])]
+        discordant = len(only_a) + len(only_b)
+        n = len(keys)
+        rate_a = sum(won(a[k]) for k in keys) / max(n, 1)
+        rate_b = sum(won(b[k]) for k in keys) / max(n, 1)
+        p = binomtest(len(only_a), discordant, 0.5).pvalue if discordant else 1.0
+        return {
+            "pairs": n,
+            "success_rate_a": round(rate_a, 4) if n else None,
+            "success_rate_b": round(rate_b, 4) if n else None,
+            "difference": round(rate_a - rate_b, 4) if n else None,
+            "mcnemar_p": float(p),
+            "only_a": [cave(k) for k in only_a],
+            "only_b": [cave(k) for k in only_b],
+        }
+
+    scenarios = dict.fromkeys(s for s, _ in paired)
+    return {
+        "overall": test(paired),
+        "per_scenario": {s: test([k for k in paired if k[0] == s]) for s in scenarios},
+        "unpaired": len(set(a) ^ set(b)),
+    }

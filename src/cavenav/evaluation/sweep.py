@@ -1,0 +1,403 @@
+"""Sweeps: one pilot over a grid of caves (scenario x seed), resumable, one folder.
+
+DIR/
+  sweep.json      the configuration, written once; a re-run must match it
+  episodes/       one run folder per episode, named SCENARIO-seedNNNN
+  results.csv     one row per episode (see `cavenav.evaluation.results.COLUMNS`)
+  aggregate.json  per scenario and overall: success rate with its Wilson interval, ...
+  report/         index.html and one page per episode
+
+Re-running the same command skips every episode whose summary says ``finished`` and
+flies the others again from scratch: never started, interrupted by Ctrl-C, killed, or
+crashed with an error. An episode that fails is recorded with its error in its summary
+and never stops the sweep.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import shutil
+import threading
+import traceback
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field, replace
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any, Protocol
+
+from cavenav import __version__
+from cavenav.episode.loop import EpisodeConfig, run_episode
+from cavenav.errors import ConfigError
+from cavenav.evaluation.results import episode_row, write_results
+from cavenav.pilots.base import Pilot
+from cavenav.pilots.factory import PilotSpec, VLMOptions
+from cavenav.sensors.rig import SensorConfig
+from cavenav.world.scenarios import SCENARIOS, Difficulty, Scenario, load_scenario
+
+__all__ = [
+    "FRAMES",
+    "EpisodeJob",
+    "EpisodeWorker",
+    "Executor",
+    "SweepConfig",
+    "parse_seeds",
+    "plan",
+    "prepare",
+    "read_rows",
+    "read_sweep",
+    "run_sweep",
+]
+
+FRAMES = ("all", "png", "none")
+FORMAT = 1
+# Pilot settings that change how a request travels, not what the pilot does: a resumed
+# sweep may change them (a longer timeout, more retries, a reply cache).
+_TRANSPORT_OPTIONS = ("timeout", "retries", "cache", "device", "api_key_env")
+
+
+@dataclass(frozen=True)
+class SweepConfig:
+    """What a sweep flies; everything that changes its results, nothing about how it runs.
+
+    Attributes:
+        scenarios: S1..S5 or scenario-file paths; each is a family when procedural.
+        seeds: caves drawn from each family (development seeds below 1000, test split
+            from 1000; see `cavenav.world.scenarios.HELD_OUT_SEEDS`).
+        difficulty: `Difficulty` knobs, each set on the families that have it.
+        sensors: sounder, depth_max_m and an "optics" table of flag overrides.
+        frames: "all" (PNG and EXR), "png" (no EXR) or "none".
+    """
+
+    scenarios: tuple[str, ...]
+    seeds: tuple[int, ...]
+    pilot: PilotSpec = field(default_factory=PilotSpec)
+    steps: int = 150
+    shield: bool = False
+    frames: str = "all"
+    difficulty: Mapping[str, float] = field(default_factory=dict)
+    sensors: Mapping[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if self.frames not in FRAMES:
+            raise ConfigError(f"--frames must be one of {', '.join(FRAMES)}, got '{self.frames}'")
+        if not self.scenarios:
+            raise ConfigError("give at least one scenario, e.g. --scenarios S1,S2")
+        if not self.seeds:
+            raise ConfigError("give at least one seed, e.g. --seeds 0-19")
+        knobs = Difficulty.from_dict(self.difficulty).to_dict()  # fails here, not in a worker
+        files = [s for s in self.scenarios if s.upper() not in SCENARIOS]
+        for knob in knobs:
+            if not files and not any(knob in SCENARIOS[s.upper()].knobs for s in self.scenarios):
+                raise ConfigError(
+                    f"difficulty knob {knob} applies to none of {', '.join(self.scenarios)}"
+                )
+
+    def difficulty_for(self, scenario: str) -> Difficulty:
+        """The knobs ``scenario`` takes: a sweep over several families sets each knob on
+        the families that have it (constriction_m on S1 and S2, bend_deg on S4, ...)."""
+        knobs = Difficulty.from_dict(self.difficulty)
+        family = SCENARIOS.get(scenario.upper())
+        if family is None:  # a scenario file: its family, if any, judges the knobs
+            return knobs
+        return Difficulty.from_dict({k: v for k, v in knobs.to_dict().items() if k in family.knobs})
+
+    def to_dict(self) -> dict[str, Any]:
+        """sweep.json."""
+        return {
+            "format": FORMAT,
+            "scenarios": list(self.scenarios),
+            "seeds": list(self.seeds),
+            "pilot": self.pilot.to_dict(),
+            "episode": {"steps": self.steps, "shield": self.shield, "frames": self.frames},
+            "difficulty": dict(self.difficulty),
+            "sensors": json.loads(json.dumps(self.sensors)),
+            "created_at": datetime.now(UTC).isoformat(timespec="seconds"),
+            "cavenav_version": __version__,
+        }
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> SweepConfig:
+        """The configuration a sweep.json describes (compare, report, resumed sweeps)."""
+        pilot = data["pilot"]
+        return cls(
+            scenarios=tuple(data["scenarios"]),
+            seeds=tuple(data["seeds"]),
+            pilot=PilotSpec(
+                pilot["name"], VLMOptions(**pilot.get("options", {})), pilot.get("recording")
+            ),
+            steps=data["episode"]["steps"],
+            shield=data["episode"]["shield"],
+            frames=data["episode"]["frames"],
+            difficulty=data.get("difficulty", {}),
+            sensors=data.get("sensors", {}),
+        )
+
+
+@dataclass(frozen=True)
+class EpisodeJob:
+    """One cell of the grid: a cave (scenario, seed) and where its run folder goes."""
+
+    scenario: str
+    seed: int
+
+    @property
+    def episode(self) -> str:
+        """The run folder's name: SCENARIO-seedNNNN (a scenario file by its stem)."""
+        stem = (
+            Path(self.scenario).stem if self.scenario.lower().endswith(".toml") else self.scenario
+        )
+        return re.sub(r"[^A-Za-z0-9_.-]+", "_", f"{stem}-seed{self.seed:04d}")
+
+
+def parse_seeds(text: str) -> tuple[int, ...]:
+    """ "0-19", "3", "0,5,7-9" -> the seeds, in order, without repeats.
+
+    Raises:
+        ConfigError: naming the part that is not a seed or a range.
+    """
+    seeds: dict[int, None] = {}
+    for part in (p.strip() for p in text.split(",")):
+        match = re.fullmatch(r"(\d+)(?:\s*-\s*(\d+))?", part)
+        if not match:
+            raise ConfigError(
+                f"--seeds: '{part}' is not a seed or a range; write e.g. 0-19 or 0,5,1000-1019"
+            )
+        first = int(match[1])
+        last = int(match[2]) if match[2] else first
+        if last < first:
+            raise ConfigError(f"--seeds: the range '{part}' runs backwards")
+        seeds.update(dict.fromkeys(range(first, last + 1)))
+    return tuple(seeds)
+
+
+def plan(config: SweepConfig) -> list[EpisodeJob]:
+    """Every episode of the grid, scenario by scenario.
+
+    Raises:
+        ConfigError: two scenarios would share run folders (two files with one name).
+    """
+    jobs = [EpisodeJob(s, seed) for s in config.scenarios for seed in config.seeds]
+    names = [job.episode for job in jobs]
+    if len(set(names)) != len(names):
+        raise ConfigError("two scenarios of --scenarios share a name; rename one of the files")
+    return jobs
+
+
+def _identity(data: Mapping[str, Any]) -> dict[str, Any]:
+    """The part of sweep.json a resumed sweep must match."""
+    same = {k: v for k, v in data.items() if k not in ("created_at", "cavenav_version")}
+    pilot = dict(same["pilot"])
+    if "options" in pilot:
+        pilot["options"] = {
+            k: v for k, v in pilot["options"].items() if k not in _TRANSPORT_OPTIONS
+        }
+    same["pilot"] = pilot
+    return same
+
+
+def _first_difference(old: Any, new: Any, where: str = "") -> str:
+    if isinstance(old, dict) and isinstance(new, dict):
+        for key in dict.fromkeys([*old, *new]):
+            if old.get(key) != new.get(key):
+                return _first_difference(old.get(key), new.get(key), f"{where}.{key}".strip("."))
+    return f"{where or 'configuration'}: {json.dumps(old)} there, {json.dumps(new)} now"
+
+
+def prepare(config: SweepConfig, folder: Path) -> list[EpisodeJob]:
+    """Create or reopen the sweep folder; the episodes still to fly.
+
+    Raises:
+        ConfigError: ``folder`` holds another sweep (naming the first difference), or
+            something that is not a sweep.
+    """
+    folder = Path(folder)
+    jobs = plan(config)
+    settings = folder / "sweep.json"
+    wanted = config.to_dict()
+    if settings.is_file():
+        try:
+            recorded = json.loads(settings.read_text(encoding="utf-8"))
+        except json.JSONDecodeError:
+            raise ConfigError(f"{settings} is not valid JSON; use another --out") from None
+        if _identity(recorded) != _identity(wanted):
+            raise ConfigError(
+                f"{folder} holds a sweep with another configuration "
+                f"({_first_difference(_identity(recorded), _identity(wanted))}); "
+                "re-run with the same options to resume it, or choose another --out"
+            )
+    elif folder.exists() and any(folder.iterdir()):
+        raise ConfigError(f"{folder} is not empty and holds no sweep.json; choose another --out")
+    else:
+        (folder / "episodes").mkdir(parents=True, exist_ok=True)
+        tmp = folder / ".sweep.json.tmp"
+        tmp.write_text(json.dumps(wanted, indent=2) + "\n")
+        tmp.replace(settings)
+    return [job for job in jobs if not _finished(folder / "episodes" / job.episode)]
+
+
+def _finished(run_dir: Path) -> bool:
+    try:
+        return json.loads((run_dir / "summary.json").read_text())["status"] == "finished"
+    except (OSError, ValueError, KeyError):
+        return False
+
+
+class EpisodeWorker:
+    """Flies a sweep's episodes in one process, keeping the process warm.
+
+    A worker lives as long as the sweep: its compiled kernels, imports and the caves it
+    built stay loaded between episodes. It is safe to call `fly` from several threads
+    at once (``--concurrency``): each thread keeps its own pilot, and caves are shared.
+    """
+
+    def __init__(self, config: SweepConfig, folder: Path, caves_kept: int = 4):
+        self.config = config
+        self.folder = Path(folder)
+        self._caves: dict[tuple[str, int], Scenario] = {}
+        self._caves_kept = caves_kept
+        self._lock = threading.Lock()
+        self._local = threading.local()
+
+    def _cave(self, job: EpisodeJob) -> Scenario:
+        key = (job.scenario, job.seed)
+        with self._lock:
+            if key in self._caves:
+                return self._caves[key]
+        difficulty = self.config.difficulty_for(job.scenario)
+        cave = load_scenario(job.scenario, job.seed, difficulty=difficulty)
+        with self._lock:
+            self._caves[key] = cave
+            while len(self._caves) > self._caves_kept:
+                del self._caves[next(iter(self._caves))]
+        return cave
+
+    def _pilot(self, job: EpisodeJob) -> Pilot:
+        spec = self.config.pilot
+        if spec.name == "random":  # seeded per cave, so every episode is reproducible
+            return spec.build(seed=job.seed)
+        if getattr(self._local, "pilot", None) is None:
+            self._local.pilot = spec.build()
+        return self._local.pilot
+
+    def episode_config(self, cave: Scenario) -> EpisodeConfig:
+        settings = dict(self.config.sensors)
+        optics = settings.pop("optics", {})
+        sensors = (
+            replace(SensorConfig(), **settings)
+            .with_optics(cave.optics, where=f"{cave.name}: [optics]")
+            .with_optics(optics, where="options")
+        )
+        return EpisodeConfig(
+            max_steps=self.config.steps,
+            save_frames=self.config.frames != "none",
+            save_exr=self.config.frames == "all",
+            shield=self.config.shield,
+            sensors=sensors,
+        )
+
+    def fly(self, job: EpisodeJob) -> dict[str, Any]:
+        """Fly one episode into a fresh run folder; its results row, whatever happens.
+
+        Any error is recorded in the run folder's summary (status "crashed", "error")
+        and returned in the row: one episode never stops the sweep.
+        """
+        run_dir = self.folder / "episodes" / job.episode
+        if run_dir.exists():
+            shutil.rmtree(run_dir)  # an interrupted or crashed attempt: start again
+        try:
+            cave = self._cave(job)
+            run_episode(cave, self._pilot(job), self.episode_config(cave), run_dir)
+        except Exception as exc:  # noqa: BLE001 - recorded, and the sweep goes on
+            record_error(run_dir, job, f"{type(exc).__name__}: {exc}", traceback.format_exc())
+        return episode_row(run_dir, self.folder)
+
+
+def record_error(run_dir: Path, job: EpisodeJob, error: str, trace: str = "") -> None:
+    """Mark ``run_dir`` as crashed with ``error``, keeping whatever it already holds."""
+    run_dir.mkdir(parents=True, exist_ok=True)
+    path = run_dir / "summary.json"
+    try:
+        summary = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, json.JSONDecodeError):
+        summary = {"scenario": job.scenario, "seed": job.seed, "termination": None}
+    summary.update(status="crashed", error=error)
+    tmp = run_dir / ".summary.json.tmp"
+    tmp.write_text(json.dumps(summary, indent=2) + "\n")
+    tmp.replace(path)
+    if trace:
+        (run_dir / "error.txt").write_text(trace)
+
+
+class Executor(Protocol):
+    """Runs episode jobs somewhere (`cavenav.evaluation.executors`)."""
+
+    def run(
+        self,
+        config: SweepConfig,
+        folder: Path,
+        jobs: Sequence[EpisodeJob],
+        done: Callable[[dict[str, Any]], None],
+    ) -> None:
+        """Fly every job, calling ``done`` with each results row as it arrives."""
+
+
+def run_sweep(
+    config: SweepConfig,
+    folder: Path,
+    executor: Executor,
+    done: Callable[[dict[str, Any]], None] | None = None,
+    started: Callable[[int, int], None] | None = None,
+) -> list[dict[str, Any]]:
+    """Fly what is left of the sweep in ``folder``; write results.csv and aggregate.json.
+
+    Args:
+        done: called with each episode's results row as it finishes.
+        started: called once with (episodes left to fly, episodes in the grid).
+
+    Returns:
+        Every episode's row, finished earlier or now. On Ctrl-C the tables are still
+        written (the episodes in flight count as incomplete) before the interrupt goes on.
+    """
+    folder = Path(folder)
+    jobs = prepare(config, folder)
+    if started:
+        started(len(jobs), len(plan(config)))
+    try:
+        executor.run(config, folder, jobs, done or (lambda row: None))
+    finally:
+        rows = read_rows(folder)
+    return rows
+
+
+def read_sweep(folder: Path) -> tuple[SweepConfig, dict[str, Any]]:
+    """The configuration of the sweep in ``folder`` and its sweep.json as written.
+
+    Raises:
+        ConfigError: ``folder`` holds no readable sweep.json.
+    """
+    path = Path(folder) / "sweep.json"
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+        return SweepConfig.from_dict(data), data
+    except FileNotFoundError:
+        raise ConfigError(f"{folder} is not a sweep folder: no sweep.json") from None
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise ConfigError(f"{path} cannot be read as a sweep: {exc}") from None
+
+
+def read_rows(folder: Path, write: bool = True) -> list[dict[str, Any]]:
+    """Every episode's results row, in grid order; with ``write``, results.csv and
+    aggregate.json are (re)written from them. Episodes never started are "incomplete"."""
+    folder = Path(folder)
+    config, meta = read_sweep(folder)
+    rows = []
+    for job in plan(config):
+        row = episode_row(folder / "episodes" / job.episode, folder)
+        if row["status"] == "missing":
+            row.update(scenario=job.scenario, pilot=config.pilot.label)
+        row["seed"] = job.seed  # a mesh file's summary has none, yet its episodes pair by it
+        rows.append(row)
+    if write:
+        write_results(folder, rows, meta)
+    return rows

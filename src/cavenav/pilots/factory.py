@@ -1,0 +1,171 @@
+"""Pilots by name: a plain, picklable description that builds the pilot where it flies.
+
+The command line, the sweep workers (other processes, other machines) and the report all
+need "which pilot, with which settings" as data: `PilotSpec` is that data, JSON-able for
+sweep.json, and `PilotSpec.build` makes the pilot in the process that will fly it, so a
+model client or a loaded model never has to travel between processes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+from cavenav.errors import ConfigError
+from cavenav.pilots.base import Pilot
+
+__all__ = ["PILOTS", "PilotSpec", "VLMOptions"]
+
+PILOTS = ("geometric", "vlm", "replay", "random")
+
+
+@dataclass(frozen=True)
+class VLMOptions:
+    """How to reach the model and how to prompt it (the `--...` flags of the VLM pilot).
+
+    Holds the *name* of the environment variable with the API key, never the key, so it
+    can be written to sweep.json and run folders.
+    """
+
+    model: str | None = None
+    backend: str = "openai"  # or "transformers"
+    base_url: str | None = None
+    api_key_env: str = "OPENAI_API_KEY"
+    timeout: float = 60.0
+    retries: int = 4
+    temperature: float = 0.2
+    max_tokens: int = 1024
+    detail: str | None = None
+    requeries: int = 3
+    history: int = 2
+    prompt_file: str | None = None
+    structured: bool = False
+    price: str | None = None  # "input,output" USD per million tokens
+    cache: str | None = None  # reply cache folder
+    device: str = "auto"  # transformers only
+
+    def prices(self) -> tuple[float, float] | None:
+        if not self.price:
+            return None
+        try:
+            price_in, price_out = (float(v) for v in self.price.split(","))
+        except ValueError:
+            raise ConfigError(
+                f"--price must be 'input,output' in USD per million tokens, got '{self.price}'"
+            ) from None
+        return price_in, price_out
+
+
+@dataclass(frozen=True)
+class PilotSpec:
+    """Which pilot flies, with which settings.
+
+    Attributes:
+        name: one of `PILOTS`.
+        vlm: the model settings of the VLM pilot.
+        recording: the run folder the replay pilot re-flies.
+    """
+
+    name: str = "geometric"
+    vlm: VLMOptions = field(default_factory=VLMOptions)
+    recording: str | None = None
+
+    def __post_init__(self) -> None:
+        if self.name not in PILOTS:
+            raise ConfigError(f"unknown pilot '{self.name}'; choose one of {', '.join(PILOTS)}")
+        if self.name == "vlm" and not self.vlm.model:
+            raise ConfigError(
+                "the VLM pilot needs --model (a model name, or a folder for transformers)"
+            )
+        if self.name == "replay" and self.recording is None:
+            raise ConfigError("--pilot replay needs --from RUN_DIR")
+        self.vlm.prices()  # a malformed price fails now, not in a worker
+
+    @property
+    def label(self) -> str:
+        """The name tables and run folders show: ``vlm:MODEL`` for model pilots."""
+        return f"vlm:{self.vlm.model}" if self.name == "vlm" else self.name
+
+    def to_dict(self) -> dict[str, Any]:
+        """The settings that change what the pilot does (for sweep.json)."""
+        out: dict[str, Any] = {"name": self.name, "label": self.label}
+        if self.name == "vlm":
+            out["options"] = asdict(self.vlm)
+        if self.recording is not None:
+            out["recording"] = self.recording
+        return out
+
+    def build(self, seed: int = 0, check: bool = True) -> Pilot:
+        """Make the pilot; ``seed`` seeds the random pilot's draws.
+
+        Args:
+            check: let a model pilot verify its backend (key, server) right away.
+        """
+        if self.name == "geometric":
+            from cavenav.pilots.geometric import GeometricPilot
+
+            return GeometricPilot()
+        if self.name == "random":
+            from cavenav.pilots.random_pilot import RandomPilot
+
+            return RandomPilot(seed)
+        if self.name == "replay":
+            from cavenav.pilots.replay import ReplayPilot
+
+            return ReplayPilot(Path(str(self.recording)))
+        return _vlm_pilot(self.vlm, check)
+
+
+def _vlm_pilot(options: VLMOptions, check: bool) -> Pilot:
+    from cavenav.pilots.backends import (
+        CachedBackend,
+        OpenAIBackend,
+        OpenAIConfig,
+        TransformersBackend,
+        TransformersConfig,
+    )
+    from cavenav.pilots.prompt import PromptConfig
+    from cavenav.pilots.vlm import VLMPilot
+
+    assert options.model is not None
+    engine: Any
+    if options.backend == "openai":
+        engine = OpenAIBackend(
+            OpenAIConfig(
+                model=options.model,
+                base_url=options.base_url,
+                api_key_env=options.api_key_env,
+                timeout_s=options.timeout,
+                max_retries=options.retries,
+                temperature=options.temperature,
+                max_tokens=options.max_tokens,
+                detail=options.detail or "auto",
+            )
+        )
+    elif options.backend == "transformers":
+        engine = TransformersBackend(
+            TransformersConfig(
+                model=options.model,
+                device=options.device,
+                max_new_tokens=options.max_tokens,
+                temperature=options.temperature,
+            )
+        )
+    else:
+        raise ConfigError(f"unknown backend '{options.backend}'; use openai or transformers")
+    if options.cache is not None:
+        engine = CachedBackend(engine, Path(options.cache))
+    prompt = PromptConfig(
+        history=options.history,
+        system_file=Path(options.prompt_file) if options.prompt_file else None,
+        structured=options.structured,
+    )
+    return VLMPilot(
+        engine,
+        prompt,
+        max_requeries=options.requeries,
+        detail=options.detail,
+        price_per_mtok=options.prices(),
+        check=check,
+    )

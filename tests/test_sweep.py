@@ -1,0 +1,279 @@
+"""Sweeps: a grid of episodes in one folder, resumable, recorded whatever goes wrong."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import signal
+import threading
+import time
+from pathlib import Path
+
+import pytest
+import trimesh
+from scipy.stats import binomtest
+
+from cavenav.errors import ConfigError
+from cavenav.evaluation.executors import InProcess, LocalPool
+from cavenav.evaluation.results import aggregate, compare, outcome
+from cavenav.evaluation.sweep import EpisodeJob, SweepConfig, parse_seeds, read_rows, run_sweep
+from cavenav.pilots.factory import PilotSpec, VLMOptions
+
+
+def write_room(folder: Path, start_y: float = 8.0) -> Path:
+    """A scenario file: a closed 8 x 20 x 7 m hall, exit 2 m before its far wall."""
+    folder.mkdir(parents=True, exist_ok=True)
+    trimesh.creation.box(extents=(8.0, 20.0, 7.0)).export(folder / "room.ply")
+    path = folder / f"room{'' if start_y == 8.0 else '-bad'}.toml"
+    path.write_text(
+        '# a test corridor\nmesh = "room.ply"\n'
+        f"[start]\nposition = [0.0, {start_y}, 0.0]\n"
+        "[[exit]]\npoint = [0.0, -6.0, 0.0]\nnormal = [0.0, -1.0, 0.0]\nradius = 3.0\n"
+    )
+    return path
+
+
+@pytest.fixture
+def room(tmp_path: Path) -> str:
+    return str(write_room(tmp_path / "caves"))
+
+
+def sweep(room: str, seeds=(0, 1, 2), **fields) -> SweepConfig:
+    return SweepConfig(scenarios=(room,), seeds=tuple(seeds), steps=6, frames="none", **fields)
+
+
+def test_seeds_are_read_as_ranges_and_lists() -> None:
+    assert parse_seeds("0-2,5,1000-1001") == (0, 1, 2, 5, 1000, 1001)
+    assert parse_seeds("3, 3,2") == (3, 2)
+    with pytest.raises(ConfigError, match="'x1' is not a seed or a range"):
+        parse_seeds("0-3,x1")
+    with pytest.raises(ConfigError, match="runs backwards"):
+        parse_seeds("9-2")
+
+
+def test_a_sweep_flies_every_cave_once_and_writes_its_tables(room: str, tmp_path: Path) -> None:
+    out = tmp_path / "sweep"
+    rows = run_sweep(sweep(room), out, InProcess())
+    assert [r["episode"] for r in rows] == ["room-seed0000", "room-seed0001", "room-seed0002"]
+    assert {r["outcome"] for r in rows} == {"budget"}  # 6 steps cannot cross 14 m
+    with open(out / "results.csv", newline="") as f:
+        table = list(csv.DictReader(f))
+    assert [r["episode"] for r in table] == [r["episode"] for r in rows]
+    assert table[0]["steps"] == "6" and table[0]["run_dir"] == "episodes/room-seed0000"
+    groups = json.loads((out / "aggregate.json").read_text())["groups"]
+    assert [(g["scenario"], g["completed"], g["successes"]) for g in groups] == [
+        ("room", 3, 0),
+        ("all", 3, 0),
+    ]
+    low, high = binomtest(0, 3).proportion_ci(method="wilson")
+    assert groups[0]["success_ci95"] == [round(low, 4), round(high, 4)]
+    assert json.loads((out / "sweep.json").read_text())["seeds"] == [0, 1, 2]
+    assert not list(out.glob("episodes/*/frames"))  # --frames none
+
+
+def test_a_rerun_skips_finished_episodes_and_reflies_interrupted_ones(
+    room: str, tmp_path: Path
+) -> None:
+    out = tmp_path / "sweep"
+    run_sweep(sweep(room), out, InProcess())
+    kept = out / "episodes" / "room-seed0000" / "summary.json"
+    before = kept.stat().st_mtime_ns
+    # seed 1 was cut short by a kill: its summary still says running, a step is half written
+    cut = out / "episodes" / "room-seed0001"
+    summary = json.loads((cut / "summary.json").read_text())
+    (cut / "summary.json").write_text(json.dumps({**summary, "status": "running"}))
+    with open(cut / "steps.jsonl", "a") as f:
+        f.write('{"step": 6, "po')
+    assert read_rows(out)[1]["outcome"] == "incomplete"
+
+    flown = []
+    left = []
+    run_sweep(sweep(room), out, InProcess(), flown.append, lambda n, grid: left.append((n, grid)))
+    assert left == [(1, 3)] and [r["episode"] for r in flown] == ["room-seed0001"]
+    assert kept.stat().st_mtime_ns == before
+    assert read_rows(out)[1]["outcome"] == "budget"
+
+
+def test_another_configuration_in_the_same_folder_is_refused(room: str, tmp_path: Path) -> None:
+    out = tmp_path / "sweep"
+    run_sweep(sweep(room, seeds=(0,)), out, InProcess())
+    with pytest.raises(ConfigError, match=r"episode.steps: 6 there, 7 now"):
+        run_sweep(SweepConfig((room,), (0,), steps=7, frames="none"), out, InProcess())
+    with pytest.raises(ConfigError, match="pilot.name"):
+        run_sweep(sweep(room, seeds=(0,), pilot=PilotSpec("random")), out, InProcess())
+    (tmp_path / "other").mkdir()
+    (tmp_path / "other" / "notes.txt").write_text("mine")
+    with pytest.raises(ConfigError, match="not empty and holds no sweep.json"):
+        run_sweep(sweep(room), tmp_path / "other", InProcess())
+
+
+def test_a_failing_episode_is_recorded_and_the_sweep_goes_on(room: str, tmp_path: Path) -> None:
+    bad = str(write_room(tmp_path / "caves", start_y=30.0))  # the start lies outside the room
+    out = tmp_path / "sweep"
+    rows = run_sweep(SweepConfig((bad, room), (0,), steps=4, frames="none"), out, InProcess())
+    assert [r["outcome"] for r in rows] == ["error", "budget"]
+    assert "ScenarioError" in rows[0]["error"] and "outside" in rows[0]["error"]
+    assert (out / "episodes" / "room-bad-seed0000" / "error.txt").is_file()
+
+
+def test_worker_processes_give_the_same_episodes_as_one_process(room: str, tmp_path: Path) -> None:
+    config = sweep(room, seeds=(0, 1, 2, 3), pilot=PilotSpec("random"))
+    alone = run_sweep(config, tmp_path / "alone", InProcess())
+    pooled = run_sweep(config, tmp_path / "pool", LocalPool(workers=2, concurrency=2))
+    keys = ("episode", "outcome", "steps", "path_length_m", "min_clearance_m")
+    assert [[r[k] for k in keys] for r in pooled] == [[r[k] for k in keys] for r in alone]
+    pids = set()
+    for run in (tmp_path / "pool" / "episodes").iterdir():
+        pids.add(json.loads((run / "summary.json").read_text())["pid"])
+    assert len(pids) == 2 and os.getpid() not in pids  # two workers flew them
+
+
+def test_the_failure_taxonomy_reads_the_last_steps() -> None:
+    finished = {"status": "finished", "termination": "budget"}
+
+    def steps(progress, xs):
+        return [
+            {"action": "forward 0.5 m", "progress_m": p, "pose": {"x": x, "y": 0.0, "z": 0.0}}
+            for p, x in zip(progress, xs, strict=True)
+        ]
+
+    still = steps([5.0] * 30, [0.0] * 30)
+    pacing = steps([5.0, 5.3] * 15, [0.0, 0.5] * 15)
+    slow = steps([0.1 * k for k in range(30)], [0.1 * k for k in range(30)])
+    assert outcome(finished, still) == "stuck"
+    assert outcome(finished, pacing) == "oscillating"
+    assert outcome(finished, slow) == "budget"
+    assert outcome({"status": "finished", "termination": "exit"}, []) == "success"
+    assert outcome({"status": "running"}, still) == "incomplete"
+    assert outcome({"status": "crashed", "error": "boom"}, []) == "error"
+
+
+def row(scenario: str, seed: int, result: str) -> dict:
+    return {"scenario": scenario, "seed": seed, "pilot": "p", "outcome": result,
+            "run_dir": f"episodes/{scenario}-seed{seed:04d}"}  # fmt: skip
+
+
+def test_comparison_pairs_caves_and_tests_the_discordant_ones() -> None:
+    a = [row("S1", k, "success") for k in range(10)] + [row("S2", 0, "collision")]
+    b = [row("S1", k, "success" if k < 3 else "collision") for k in range(10)]
+    b += [row("S2", 0, "success"), row("S3", 0, "success")]
+    result = compare(a, b)
+    overall = result["overall"]
+    assert overall["pairs"] == 11 and result["unpaired"] == 1
+    assert overall["difference"] == round(10 / 11 - 4 / 11, 4)
+    assert overall["mcnemar_p"] == pytest.approx(binomtest(7, 8, 0.5).pvalue)
+    assert [c["cave"] for c in overall["only_b"]] == ["S2 seed 0"]
+    assert overall["only_a"][0] == {
+        "cave": "S1 seed 3",
+        "a": "episodes/S1-seed0003",
+        "b": "episodes/S1-seed0003",
+    }
+    assert result["per_scenario"]["S2"]["mcnemar_p"] == 1.0
+
+
+def test_aggregates_count_completed_episodes_only() -> None:
+    rows = [row("S1", 0, "success"), row("S1", 1, "incomplete"), row("S1", 2, "error")]
+    group = aggregate(rows)[0]
+    assert (group["episodes"], group["completed"], group["successes"]) == (3, 2, 1)
+    assert group["outcomes"] == {"success": 1, "error": 1, "incomplete": 1}
+    assert EpisodeJob("examples/hard_s1.toml", 7).episode == "hard_s1-seed0007"
+
+
+def test_a_difficulty_knob_goes_to_the_families_that_have_it(room: str) -> None:
+    config = SweepConfig(("S1", "S4"), (0,), difficulty={"constriction_m": 3.0, "bend_deg": 60})
+    assert config.difficulty_for("S1").to_dict() == {"constriction_m": 3.0}
+    assert config.difficulty_for("S4").to_dict() == {"bend_deg": 60.0}
+    with pytest.raises(ConfigError, match="bend_deg applies to none of S1, S3"):
+        SweepConfig(("S1", "S3"), (0,), difficulty={"bend_deg": 60})
+    with pytest.raises(ConfigError, match="unknown difficulty knob 'width'"):
+        SweepConfig(("S1",), (0,), difficulty={"width": 3.0})
+
+
+def test_a_small_grid_runs_on_a_local_ray_instance(room: str, tmp_path: Path) -> None:
+    pytest.importorskip("ray", reason="Ray is an extra: pip install 'cavenav[ray]'")
+    from cavenav.evaluation.executors import RayCluster
+
+    config = sweep(room, seeds=(0, 1, 2), pilot=PilotSpec("random"))
+    on_ray = run_sweep(config, tmp_path / "ray", RayCluster("local", workers=2, concurrency=2))
+    here = run_sweep(config, tmp_path / "here", InProcess())
+    keys = ("episode", "outcome", "steps", "path_length_m")
+    assert [[r[k] for k in keys] for r in on_ray] == [[r[k] for k in keys] for r in here]
+    assert all(r["status"] == "finished" for r in on_ray)
+
+
+def test_model_pilots_fly_several_episodes_at_once_and_keep_the_key_out(
+    room: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from .vlm_server import FakeVLM
+
+    secret = "sk-test-0123456789abcdef"
+    monkeypatch.setenv("SWEEP_TEST_KEY", secret)
+    with FakeVLM(required_key=secret) as server:
+        options = VLMOptions(
+            model="fake-vlm", base_url=server.base_url, api_key_env="SWEEP_TEST_KEY"
+        )
+        config = sweep(room, seeds=(0, 1, 2, 3), pilot=PilotSpec("vlm", options))
+        rows = run_sweep(config, tmp_path / "vlm", InProcess(concurrency=4))
+    assert [r["status"] for r in rows] == ["finished"] * 4
+    assert all(r["prompt_tokens"] > 0 and r["pilot"] == "vlm:fake-vlm" for r in rows)
+    for r in rows:
+        exchanges = (tmp_path / "vlm" / r["run_dir"] / "exchanges.jsonl").read_text()
+        assert len(exchanges.splitlines()) == r["steps"]  # each episode its own requests
+    for path in (tmp_path / "vlm").rglob("*"):
+        if path.is_file():
+            assert secret.encode() not in path.read_bytes(), path
+
+
+def test_a_pilot_is_described_completely_before_any_worker_starts() -> None:
+    with pytest.raises(ConfigError, match="unknown pilot 'genius'"):
+        PilotSpec("genius")
+    with pytest.raises(ConfigError, match="needs --model"):
+        PilotSpec("vlm")
+    with pytest.raises(ConfigError, match="--price must be 'input,output'"):
+        PilotSpec("vlm", VLMOptions(model="m", price="cheap"))
+    spec = PilotSpec("vlm", VLMOptions(model="m", api_key_env="MY_KEY"))
+    assert spec.label == "vlm:m" and spec.to_dict()["options"]["api_key_env"] == "MY_KEY"
+
+
+def test_a_worker_killed_mid_episode_costs_only_that_episode(room: str, tmp_path: Path) -> None:
+    out = tmp_path / "sweep"
+    config = SweepConfig((room,), tuple(range(6)), steps=40, frames="none")
+    victim: dict[str, int] = {}
+
+    def kill_a_worker_in_flight() -> None:
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and not victim:
+            for summary in out.glob("episodes/*/summary.json"):
+                try:
+                    record = json.loads(summary.read_text())
+                except ValueError:
+                    continue  # being rewritten
+                if record["status"] == "running" and record["steps"] >= 2:
+                    victim.update(pid=record["pid"], seed=int(summary.parent.name[-4:]))
+                    os.kill(record["pid"], signal.SIGKILL)
+                    return
+            time.sleep(0.05)
+
+    killer = threading.Thread(target=kill_a_worker_in_flight)
+    killer.start()
+    rows = run_sweep(config, out, LocalPool(workers=2))
+    killer.join()
+    assert victim, "no episode was caught in flight"
+    lost = rows[victim["seed"]]
+    assert lost["outcome"] == "error" and "worker process died (exit code -9)" in lost["error"]
+    others = [r for r in rows if r is not lost]
+    assert [r["outcome"] for r in others] == ["success"] * 5  # the other worker flew the rest
+
+
+@pytest.mark.parametrize(("frames", "per_step"), [("all", 3), ("png", 2)])
+def test_frames_mode_decides_which_images_are_kept(
+    room: str, tmp_path: Path, frames: str, per_step: int
+) -> None:
+    run_sweep(SweepConfig((room,), (0,), steps=2, frames=frames), tmp_path / frames, InProcess())
+    files = sorted(p.name for p in (tmp_path / frames / "episodes/room-seed0000/frames").iterdir())
+    assert len(files) == 2 * per_step  # two steps
+    assert (
+        files[:per_step]
+        == ["step_0000_depth.exr", "step_0000_depth.png", "step_0000_rgb.png"][3 - per_step :]
+    )

@@ -1,0 +1,108 @@
+"""Episode videos: one H.264 frame per step, colour | depth | map, read back as a player would.
+
+Episodes are flown in the 20 m test corridor (fast); the S1-S5 map background is checked
+by rebuilding a family cave from its summary fields.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import imageio_ffmpeg
+import numpy as np
+import pytest
+
+from cavenav.episode.loop import EpisodeConfig, run_episode
+from cavenav.episode.video import CAPTION_HEIGHT, PANEL_HEIGHT, _rebuild_scenario, write_video
+from cavenav.errors import CavenavError, DependencyError
+from cavenav.pilots.geometric import GeometricPilot
+from cavenav.world.scenarios import load_scenario
+
+from .test_report import INTO_THE_WALL, ScriptedPilot, corridor
+
+STEPS = 6
+CAMERA = (640, 480)  # the default camera: panels 640 + 640 + a 480 px square map
+
+
+@pytest.fixture(scope="module")
+def forward_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Six 1 m moves down the test corridor (along -y), frames saved."""
+    run_dir = tmp_path_factory.mktemp("video") / "forward"
+    config = EpisodeConfig(max_steps=STEPS, plots=False)
+    run_episode(corridor(), ScriptedPilot(("forward 1 m",)), config, run_dir)
+    return run_dir
+
+
+def read_video(path: Path) -> tuple[tuple[int, int], float, list[np.ndarray]]:
+    """(width, height), fps and every decoded frame as (h, w, 3) uint8."""
+    reader = imageio_ffmpeg.read_frames(str(path))
+    meta = reader.__next__()
+    width, height = meta["size"]
+    frames = [np.frombuffer(f, np.uint8).reshape(height, width, 3) for f in reader]
+    return (width, height), meta["fps"], frames
+
+
+def vehicle_centre(frame: np.ndarray) -> np.ndarray:
+    """(row, col) of the red vehicle arrow inside the map panel (right of the two images)."""
+    map_panel = frame[:PANEL_HEIGHT, 2 * CAMERA[0] :].astype(int)
+    red = (map_panel[..., 0] > 170) & (map_panel[..., 1] < 90) & (map_panel[..., 2] < 90)
+    assert red.sum() > 20, "no vehicle marker on the map"
+    return np.argwhere(red).mean(axis=0)
+
+
+def test_a_video_has_one_frame_per_step_at_the_documented_size(forward_run: Path) -> None:
+    out = write_video(forward_run)
+    assert out == forward_run / "episode.mp4"
+    size, fps, frames = read_video(out)
+    assert len(frames) == STEPS
+    assert size == (2 * CAMERA[0] + PANEL_HEIGHT, PANEL_HEIGHT + CAPTION_HEIGHT) == (1760, 512)
+    assert fps == pytest.approx(4.0)
+
+
+def test_the_vehicle_moves_down_the_map_as_it_heads_along_minus_y(
+    forward_run: Path, tmp_path: Path
+) -> None:
+    _, fps, frames = read_video(write_video(forward_run, tmp_path / "fast.mp4", fps=10))
+    assert fps == pytest.approx(10.0)
+    first, last = vehicle_centre(frames[0]), vehicle_centre(frames[-1])
+    assert last[0] > first[0] + 5  # image rows grow downward, like -y on the map
+    assert abs(last[1] - first[1]) < 5
+
+
+def test_a_run_flown_without_frames_is_refused_in_one_line(tmp_path: Path) -> None:
+    run_dir = tmp_path / "noframes"
+    config = EpisodeConfig(max_steps=2, save_frames=False, plots=False)
+    run_episode(corridor(), GeometricPilot(), config, run_dir)
+    with pytest.raises(CavenavError) as error:
+        write_video(run_dir)
+    message = str(error.value)
+    assert "\n" not in message and "no frames" in message and "frames saved" in message
+    assert not (run_dir / "episode.mp4").exists()
+
+
+def test_without_imageio_ffmpeg_the_error_says_how_to_install_it(
+    forward_run: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setitem(sys.modules, "imageio_ffmpeg", None)  # import now fails
+    with pytest.raises(DependencyError, match="pip install imageio-ffmpeg"):
+        write_video(forward_run, tmp_path / "x.mp4")
+
+
+def test_a_cave_that_cannot_be_rebuilt_still_gets_a_video_of_its_path(tmp_path: Path) -> None:
+    run_dir = tmp_path / "room"
+    result = run_episode(corridor(), ScriptedPilot(INTO_THE_WALL), EpisodeConfig(), run_dir)
+    assert result.termination == "collision"  # the last frame shows the crash
+    size, _, frames = read_video(write_video(run_dir))
+    assert len(frames) == result.summary["steps"] == 3
+    assert size == (1760, 512)
+
+
+def test_the_map_shows_the_flown_cave_only_when_it_rebuilds_to_the_same_mesh() -> None:
+    s4 = {"scenario": "S4", "seed": 3, "mesh": "S4-seed3"}
+    rebuilt = _rebuild_scenario(s4)
+    assert rebuilt is not None and rebuilt.mesh.name == "S4-seed3"
+    assert rebuilt.mesh.triangle_count == load_scenario("S4", 3).mesh.triangle_count
+    assert _rebuild_scenario({**s4, "mesh": "S4-seed3-d0123abcd"}) is None  # harder knobs
+    assert _rebuild_scenario({**s4, "scenario": "room"}) is None  # not a family: path only
+    assert _rebuild_scenario({**s4, "seed": None}) is None
