@@ -70,8 +70,11 @@ def serve(delay_s: float) -> ThreadingHTTPServer:
                 }
             )
 
-    server = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
-    server.daemon_threads = True
+    class Server(ThreadingHTTPServer):
+        request_queue_size = 128  # 32 requests may arrive at once
+        daemon_threads = True
+
+    server = Server(("127.0.0.1", 0), Handler)
     threading.Thread(target=server.serve_forever, daemon=True).start()
     return server
 
@@ -132,7 +135,10 @@ def vlm_part(delay_s: float, steps: int, workers: int) -> None:
         config = SweepConfig(sc, se, pilot=pilot, steps=steps, frames="none")
         executor = InProcess(concurrency) if workers == 1 else LocalPool(workers, concurrency)
         wall, rows = timed(config, executor)
-        flown = sum(int(r["steps"]) for r in rows)
+        flown = sum(int(r["steps"] or 0) for r in rows)
+        for r in rows:
+            if r["outcome"] in ("error", "pilot_failure"):
+                print(f"    {r['episode']}: {r['outcome']}: {r.get('error')}")
         rates[concurrency] = flown / wall
         print(
             f"  --concurrency {concurrency:2d}: {flown:4d} steps in {wall:5.1f} s = "

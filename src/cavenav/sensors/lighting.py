@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import hashlib
 import math
+import threading
 from collections import OrderedDict
 from dataclasses import dataclass
 from functools import lru_cache
@@ -136,6 +137,7 @@ def _hemisphere(n: int) -> np.ndarray:
 # Recent tables by mesh content and parameters: rigs are many, caves few.
 _SURFACE_CACHE: OrderedDict[tuple, np.ndarray] = OrderedDict()
 _SURFACE_CACHE_SIZE = 6
+_SURFACE_LOCK = threading.Lock()
 
 
 def surface_table(caster: RayCaster, optics: Optics, seed: int = 0, rays: int = 32) -> np.ndarray:
@@ -150,13 +152,19 @@ def surface_table(caster: RayCaster, optics: Optics, seed: int = 0, rays: int = 
     digest.update(mesh.faces.tobytes())
     key = (digest.hexdigest(), seed, rays, optics.rock_colour, optics.sediment_colour,
            optics.daylight, optics.daylight_colour, water.absorption, water.scattering)  # fmt: skip
-    if key in _SURFACE_CACHE:
-        _SURFACE_CACHE.move_to_end(key)
-    else:
-        _SURFACE_CACHE[key] = _surface_table(caster, optics, seed, rays)
+    # Sweeps build rigs on several threads at once: look up and evict under the lock, and
+    # return the table held here (another thread may evict the key right after).
+    with _SURFACE_LOCK:
+        table = _SURFACE_CACHE.get(key)
+        if table is not None:
+            _SURFACE_CACHE.move_to_end(key)
+            return table
+    table = _surface_table(caster, optics, seed, rays)  # outside the lock: about a second
+    with _SURFACE_LOCK:
+        _SURFACE_CACHE[key] = table
         while len(_SURFACE_CACHE) > _SURFACE_CACHE_SIZE:
             _SURFACE_CACHE.popitem(last=False)
-    return _SURFACE_CACHE[key]
+    return table
 
 
 def _surface_table(caster: RayCaster, optics: Optics, seed: int, n_rays: int) -> np.ndarray:
