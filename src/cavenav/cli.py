@@ -496,7 +496,7 @@ def eval_(
     if report:
         from cavenav.evaluation.report import write_report
 
-        console.print(f"report:       {write_report(out)}", soft_wrap=True)
+        console.print(f"report:       {write_report(out, rows)}", soft_wrap=True)
 
 
 def _scenario_list(text: str) -> tuple[str, ...]:
@@ -607,10 +607,6 @@ def report(
     """Write the static HTML report of a sweep (or of one run folder)."""
     from cavenav.evaluation.report import write_report
 
-    if (folder / "sweep.json").is_file():
-        from cavenav.evaluation.sweep import read_rows
-
-        read_rows(folder)  # results.csv and aggregate.json, fresh from the episodes
     console.print(f"report: [bold]{write_report(folder)}[/]", soft_wrap=True)
 
 

@@ -32,7 +32,7 @@ if TYPE_CHECKING:
     from cavenav.episode.record import EpisodeLog
     from cavenav.world.raycast import RayCaster
 
-__all__ = ["RunFolder", "new_run_dir", "read_jsonl"]
+__all__ = ["RunFolder", "new_run_dir", "read_jsonl", "write_atomic", "write_json"]
 
 
 def new_run_dir(root: str | Path, scenario: str, pilot: str, seed: int | None) -> Path:
@@ -61,6 +61,18 @@ def read_jsonl(path: Path) -> list[dict[str, Any]]:
         except json.JSONDecodeError:
             continue
     return records
+
+
+def write_atomic(path: Path, text: str) -> None:
+    """(Re)write a text file through a temporary beside it: readers never see half a file."""
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(text, encoding="utf-8")
+    os.replace(tmp, path)
+
+
+def write_json(path: Path, data: Mapping[str, Any]) -> None:
+    """Atomically (re)write a JSON file; inf and NaN become null, numpy values plain."""
+    write_atomic(path, json.dumps(_finite(dict(data)), indent=2, default=_json_default) + "\n")
 
 
 def _json_default(value: Any) -> Any:
@@ -172,10 +184,8 @@ class RunFolder:
         return {**message, "content": parts}
 
     def write_json(self, name: str, data: dict[str, Any]) -> None:
-        """Atomically (re)write a JSON file: readers never see half a file."""
-        tmp = self.path / f".{name}.tmp"
-        tmp.write_text(json.dumps(_finite(data), indent=2, default=_json_default) + "\n")
-        os.replace(tmp, self.path / name)
+        """Atomically (re)write a JSON file of the run folder."""
+        write_json(self.path / name, data)
 
     def finish(
         self, summary: dict[str, Any], log: EpisodeLog, caster: RayCaster, plots: bool

@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import quote
 
-from cavenav.episode.run_folder import read_jsonl
+from cavenav.episode.run_folder import read_jsonl, write_atomic
 from cavenav.errors import CavenavError, DependencyError
 from cavenav.evaluation.results import aggregate
 from cavenav.evaluation.results import outcome as episode_outcome
@@ -101,9 +101,14 @@ def read_run(path: Path) -> RunRecord:
     )
 
 
-def read_sweep_record(folder: Path) -> SweepRecord:
-    """Read sweep.json and every episode's results row, and aggregate them."""
-    rows = read_rows(folder, write=False)
+def read_sweep_record(folder: Path, rows: Sequence[Mapping[str, Any]] | None = None) -> SweepRecord:
+    """Read sweep.json and every episode's results row, and aggregate them.
+
+    Args:
+        rows: the rows as the sweep just read them; None reads them from the run folders
+            and rewrites results.csv and aggregate.json from them.
+    """
+    rows = list(rows) if rows is not None else read_rows(folder)
     return SweepRecord(
         path=folder,
         config=_read_json(folder / "sweep.json"),
@@ -480,10 +485,8 @@ def _environment() -> Any:
 
 def _render(template: str, path: Path, **context: Any) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
-    html = _environment().get_template(template).render(**context)
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(html, encoding="utf-8")
-    os.replace(tmp, path)  # a reader refreshing the page never sees half of it
+    # Atomic: a reader refreshing the page never sees half of it.
+    write_atomic(path, _environment().get_template(template).render(**context))
     return path
 
 
@@ -632,9 +635,9 @@ def _episode_pages(
         yield EpisodeLink(ids[k], outcome, pages[k], cells[k], thumb, reason)
 
 
-def _write_sweep_report(folder: Path) -> Path:
+def _write_sweep_report(folder: Path, rows: Sequence[Mapping[str, Any]] | None) -> Path:
     """report/index.html and report/episodes/<id>.html for a sweep folder; returns the index."""
-    sweep = read_sweep_record(folder)
+    sweep = read_sweep_record(folder, rows)
     report = folder / "report"
     headers, cells = _table(_EPISODE_COLUMNS, sweep.rows)
     episodes = list(_episode_pages(sweep, report, cells))
@@ -654,19 +657,21 @@ def _write_sweep_report(folder: Path) -> Path:
     )
 
 
-def write_report(folder: Path) -> Path:
+def write_report(folder: Path, rows: Sequence[Mapping[str, Any]] | None = None) -> Path:
     """Write the HTML report of a sweep folder or of one run folder; returns its main page.
 
     A sweep folder (holding sweep.json) gets ``report/index.html`` and one page per
-    episode under ``report/episodes/``; a run folder (holding summary.json) gets
-    ``report.html``. Rewriting is safe at any time, also while the sweep runs.
+    episode under ``report/episodes/``, with results.csv and aggregate.json refreshed
+    from the run folders unless the sweep hands over the ``rows`` it just read; a run
+    folder (holding summary.json) gets ``report.html``. Rewriting is safe at any time,
+    also while the sweep runs.
 
     Raises:
         CavenavError: ``folder`` is neither a sweep folder nor a run folder.
     """
     folder = Path(folder)
     if (folder / "sweep.json").is_file():
-        return _write_sweep_report(folder)
+        return _write_sweep_report(folder, rows)
     if (folder / "summary.json").is_file():
         return _write_episode_page(read_run(folder), folder / "report.html")
     raise CavenavError(

@@ -20,6 +20,7 @@ Outcomes (the failure taxonomy, one per episode):
 from __future__ import annotations
 
 import csv
+import io
 import json
 import math
 from collections import Counter
@@ -30,7 +31,7 @@ from typing import Any
 import numpy as np
 from scipy.stats import binomtest
 
-from cavenav.episode.run_folder import read_jsonl
+from cavenav.episode.run_folder import read_jsonl, write_atomic, write_json
 
 __all__ = [
     "COLUMNS",
@@ -259,16 +260,13 @@ def aggregate(rows: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
 
 def write_results(folder: Path, rows: Sequence[Mapping[str, Any]], meta: Mapping[str, Any]) -> None:
     """results.csv (one row per episode) and aggregate.json (``meta`` under "sweep")."""
-    tmp = folder / ".results.csv.tmp"
-    with open(tmp, "w", newline="", encoding="utf-8") as out:
-        writer = csv.DictWriter(out, COLUMNS, extrasaction="ignore")
-        writer.writeheader()
-        for row in rows:
-            writer.writerow({k: "" if row.get(k) is None else row.get(k) for k in COLUMNS})
-    tmp.replace(folder / "results.csv")
-    tmp = folder / ".aggregate.json.tmp"
-    tmp.write_text(json.dumps({"sweep": meta, "groups": aggregate(rows)}, indent=2) + "\n")
-    tmp.replace(folder / "aggregate.json")
+    table = io.StringIO(newline="")
+    writer = csv.DictWriter(table, COLUMNS, extrasaction="ignore")
+    writer.writeheader()
+    for row in rows:
+        writer.writerow({k: "" if row.get(k) is None else row.get(k) for k in COLUMNS})
+    write_atomic(folder / "results.csv", table.getvalue())
+    write_json(folder / "aggregate.json", {"sweep": meta, "groups": aggregate(rows)})
 
 
 def compare(rows_a: Sequence[Mapping[str, Any]], rows_b: Sequence[Mapping[str, Any]]) -> dict:

@@ -28,6 +28,7 @@ from typing import Any, Protocol
 
 from cavenav import __version__
 from cavenav.episode.loop import EpisodeConfig, run_episode
+from cavenav.episode.run_folder import write_json
 from cavenav.errors import ConfigError
 from cavenav.evaluation.results import episode_row, write_results
 from cavenav.pilots.base import Pilot
@@ -230,9 +231,7 @@ def prepare(config: SweepConfig, folder: Path) -> list[EpisodeJob]:
         raise ConfigError(f"{folder} is not empty and holds no sweep.json; choose another --out")
     else:
         (folder / "episodes").mkdir(parents=True, exist_ok=True)
-        tmp = folder / ".sweep.json.tmp"
-        tmp.write_text(json.dumps(wanted, indent=2) + "\n")
-        tmp.replace(settings)
+        write_json(settings, wanted)
     return [job for job in jobs if not _finished(folder / "episodes" / job.episode)]
 
 
@@ -322,9 +321,7 @@ def record_error(run_dir: Path, job: EpisodeJob, error: str, trace: str = "") ->
     except (OSError, json.JSONDecodeError):
         summary = {"scenario": job.scenario, "seed": job.seed, "termination": None}
     summary.update(status="crashed", error=error)
-    tmp = run_dir / ".summary.json.tmp"
-    tmp.write_text(json.dumps(summary, indent=2) + "\n")
-    tmp.replace(path)
+    write_json(path, summary)
     if trace:
         (run_dir / "error.txt").write_text(trace)
 
