@@ -3,11 +3,15 @@
 PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
+# setup: cavenav and what it needs to fly (what `make demo` needs);
+# setup-test: plus pytest, transformers with torch (CPU) and Ray, for `make test`.
 STAMP := $(VENV)/.installed
+TEST_STAMP := $(VENV)/.installed-test
 
-.PHONY: setup demo test bench lint clean
+.PHONY: setup setup-test demo test bench lint clean
 
 setup: $(STAMP)
+setup-test: $(TEST_STAMP)
 
 # Open3D's wheel links against libusb-1.0 at import time; Debian does not ship it by default.
 $(STAMP): pyproject.toml
@@ -21,20 +25,26 @@ $(STAMP): pyproject.toml
 	fi
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
-	$(BIN)/python -m pip install -q -e '.[test,transformers,ray]'
+	$(BIN)/python -m pip install -q -e .
+	@# numba compiles the sensor kernels on first use (about a minute); do it now, once.
+	$(BIN)/cavenav warmup
 	touch $(STAMP)
+
+$(TEST_STAMP): $(STAMP)
+	$(BIN)/python -m pip install -q -e '.[test,transformers,ray]'
+	touch $(TEST_STAMP)
 
 demo: setup
 	$(BIN)/cavenav run S4 --pilot geometric
 
-test: setup
+test: setup-test
 	$(BIN)/python -m pytest -q
 
-bench: setup
+bench: setup-test
 	$(BIN)/python benchmarks/sensor_step.py
 	$(BIN)/python benchmarks/sweep.py
 
-lint: setup
+lint: setup-test
 	$(BIN)/ruff check src tests benchmarks
 
 clean:

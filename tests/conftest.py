@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import atexit
 import os
+import shutil
+import tempfile
 
 import numpy as np
 import pytest
@@ -16,6 +19,31 @@ from cavenav.world.scenarios import ExitPortal, Scenario
 # Tests never reach a model hub: whatever they load, they built themselves.
 os.environ["HF_HUB_OFFLINE"] = "1"
 os.environ["TRANSFORMERS_OFFLINE"] = "1"
+
+
+# The procedural-cave mesh cache (`cavenav.world.procedural.cache_dir`) is a folder of this
+# test session's own: tests neither read meshes a user's ~/.cache/cavenav holds nor leave
+# theirs there, and each cave is built once per session. It is set here, at import, before
+# any test module copies the environment, so the commands and worker processes the tests
+# start share it; a child process that imports this file again keeps its parent's folder.
+# Set CAVENAV_TEST_CACHE to a folder to keep the test caves from one session to the next.
+# (numba's kernel cache is left alone: it lives in the package's __pycache__, and a fresh
+# one would cost every session minutes of compiling.)
+def _session_cave_cache() -> str:
+    if not os.environ.get("CAVENAV_TEST_CACHE"):
+        folder = tempfile.mkdtemp(prefix="cavenav-test-caves-")
+        os.environ["CAVENAV_TEST_CACHE"] = folder
+        owner = os.getpid()
+
+        def remove() -> None:  # by the session's process only, not by a child of it
+            if os.getpid() == owner:
+                shutil.rmtree(folder, ignore_errors=True)
+
+        atexit.register(remove)
+    return os.environ["CAVENAV_TEST_CACHE"]
+
+
+os.environ["CAVENAV_CACHE"] = _session_cave_cache()
 
 
 def box_room(extents=(4.0, 20.0, 4.0), centre=(0.0, 0.0, 0.0)) -> CaveMesh:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import re
 
 import pytest
 from hypothesis import given
@@ -82,13 +83,39 @@ def test_every_valid_action_formats_and_parses_back_to_itself(action: Action) ->
     assert parse_action(format_action(action)) == action
 
 
-@given(st.text(max_size=200))
-def test_no_input_crashes_the_parser(text: str) -> None:
+# Text that reads like an action often enough for the parser to accept some of it: motions,
+# magnitudes in and out of the admissible sets, units right and wrong, several separators.
+_MOTIONS = "forward|back|ahead|turn left|turn right|rotate|strafe left|shift right|ascend|descend"
+_clause = st.builds(
+    "{} {}{}".format,
+    st.sampled_from([*_MOTIONS.split("|"), "up", "left", "hold", "df=", "dpsi ="]),
+    st.sampled_from(["0.1", "0.2", "0.3", ".5", "1", "1.0", "2", "2.5", "10", "15", "20", "-0.5"]),
+    st.sampled_from([" m", "m", " cm", " deg", "°", " degrees", " metres", " rad", ""]),
+)
+action_like = st.builds(
+    lambda clauses, sep: sep.join(clauses),
+    st.lists(_clause, min_size=1, max_size=4),
+    st.sampled_from([", ", " and ", " + ", " then ", "; "]),
+)
+
+
+@given(st.one_of(st.text(max_size=200), action_like))
+def test_whatever_the_parser_accepts_is_admissible_canonical_and_written_in_the_text(
+    text: str,
+) -> None:
     try:
         action = parse_action(text)
     except ActionError:
-        return
+        return  # rejected with a reason: fine
     assert DEFAULT_SPACE.is_valid(action)
+    assert parse_action(format_action(action)) == action
+    # Never rounded to the set, never invented: each magnitude is a number the text wrote
+    # (in metres, or in centimetres divided by 100).
+    written = [float(n) for n in re.findall(r"\d+(?:\.\d*)?|\.\d+", text)]
+    written += [n / 100 for n in written]
+    for value in (action.forward, action.right, action.up, action.yaw_deg):
+        if value:
+            assert any(abs(abs(value) - n) < 1e-9 for n in written), (value, text)
 
 
 def test_twist_follows_ros_conventions() -> None:

@@ -12,18 +12,27 @@ SRC = Path(__file__).resolve().parents[1] / "src" / "cavenav"
 
 
 def imports_of(path: Path) -> set[str]:
-    """Every cavenav module a file imports, at the top or inside a function."""
+    """Every cavenav module a file imports, at the top or inside a function, relative
+    imports resolved; ``from cavenav.x import y`` counts ``cavenav.x`` and ``cavenav.x.y``
+    (y may be a module)."""
+    package = ["cavenav", *path.relative_to(SRC).parent.parts]
     found = set()
     for node in ast.walk(ast.parse(path.read_text())):
-        if isinstance(node, ast.ImportFrom) and node.module and node.module.startswith("cavenav"):
-            found.add(node.module)
+        if isinstance(node, ast.ImportFrom):
+            base = package[: len(package) - node.level + 1] if node.level else []
+            module = ".".join([*base, *([node.module] if node.module else [])])
+            if module.startswith("cavenav"):
+                found |= {module} | {f"{module}.{a.name}" for a in node.names}
         elif isinstance(node, ast.Import):
             found |= {a.name for a in node.names if a.name.startswith("cavenav")}
     return found
 
 
 def modules(folder: str) -> list[Path]:
-    return sorted((SRC / folder).glob("*.py")) if (SRC / folder).is_dir() else [SRC / folder]
+    """The layer's source files, subpackages included; a layer that is gone is an error."""
+    found = sorted((SRC / folder).rglob("*.py")) if (SRC / folder).is_dir() else [SRC / folder]
+    assert found and all(path.is_file() for path in found), f"no layer {folder} in {SRC}"
+    return found
 
 
 TOP = ("cavenav.evaluation", "cavenav.cli")  # nothing below them imports these

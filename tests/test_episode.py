@@ -6,7 +6,9 @@ import json
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
 import pytest
+from PIL import Image
 
 from cavenav.actions import format_action
 from cavenav.episode.loop import EpisodeConfig, run_episode
@@ -62,10 +64,14 @@ def test_reaching_the_exit_ends_the_episode_with_success(room_scenario: Scenario
 
 
 def test_touching_a_wall_is_a_collision(room_scenario: Scenario) -> None:
+    # Start at x = 0 heading -y: the vehicle's right is -x, the wall at x = -2.
     result = run_episode(room_scenario, Scripted(Action(right=1.0)), FAST)
     assert result.termination == "collision"
     assert result.summary["collisions"] == 1 and not result.success
-    assert result.summary["collision_pose"] is not None
+    assert result.summary["steps"] == 2
+    # Where the move would have ended; the vehicle stays where it was, 1 m short.
+    assert result.summary["collision_pose"] == {"x": -2.0, "y": 8.0, "z": 0.0, "yaw_deg": 0.0}
+    assert result.poses[-1].position == pytest.approx((-1.0, 8.0, 0.0))
 
 
 def test_running_out_of_steps_is_a_truncation(room_scenario: Scenario) -> None:
@@ -107,11 +113,54 @@ def test_the_run_folder_holds_summary_steps_frames_and_plots(
     ):
         assert key in first
     assert first["clearance_m"] == pytest.approx(2.0, abs=1e-3)  # corridor 4 m wide
-    for path in first["frames"].values():
-        assert (run_dir / path).stat().st_size > 0
-    assert read_exr(run_dir / first["frames"]["depth_exr"]).shape == (480, 640)
-    assert (run_dir / "topdown.png").stat().st_size > 10_000
-    assert (run_dir / "side.png").stat().st_size > 10_000
+    frames = first["frames"]
+    assert set(frames) == {"rgb", "depth_png", "depth_exr"}
+    depth_m = read_exr(run_dir / frames["depth_exr"])
+    assert depth_m.shape == (480, 640)
+    # Heading -y from y = 8: the far wall at y = -10 is 17.8 m beyond the lens.
+    assert depth_m[240, 320] == pytest.approx(17.8, abs=1e-3)
+    with Image.open(run_dir / frames["rgb"]) as rgb, Image.open(run_dir / frames["depth_png"]) as d:
+        assert (rgb.format, rgb.mode, rgb.size) == ("PNG", "RGB", (640, 480))
+        assert (d.format, d.mode, d.size) == ("PNG", "L", (640, 480))
+        assert d.getpixel((320, 240)) == round(17.8 / 20 * 255)  # dark near, bright far
+    assert_topdown_shows_the_corridor_and_its_exit(run_dir / "topdown.png")
+    assert_side_view_shows_ceiling_and_floor(run_dir / "side.png")
+
+
+TAB_ORANGE, TAB_RED, FOOTPRINT_GREY = (255, 127, 14), (214, 39, 40), (217, 217, 217)
+
+
+def pixels_of(image: np.ndarray, colour: tuple[int, int, int], tolerance: int = 10) -> np.ndarray:
+    return np.abs(image - np.array(colour)).max(axis=-1) <= tolerance
+
+
+def assert_topdown_shows_the_corridor_and_its_exit(path: Path) -> None:
+    """The 4 x 20 m corridor from above at equal scale, the 6 m exit across it at y = -6."""
+    with Image.open(path) as png:
+        image = np.asarray(png.convert("RGB")).astype(int)
+    footprint = pixels_of(image, FOOTPRINT_GREY, tolerance=0)
+    rows = np.flatnonzero(footprint.sum(axis=1) > 50)
+    columns = np.flatnonzero(footprint.sum(axis=0) > 200)
+    height, width = rows[-1] - rows[0] + 1, columns[-1] - columns[0] + 1
+    assert width / height == pytest.approx(4 / 20, abs=0.01)
+    exit_line = pixels_of(image, TAB_ORANGE)
+    (exit_rows,) = np.nonzero(exit_line.sum(axis=1) > width)  # wider than the corridor
+    exit_y = 10.0 - 20.0 * (exit_rows.mean() - rows[0]) / height
+    assert exit_y == pytest.approx(-6.0, abs=0.15)
+    exit_columns = np.flatnonzero(exit_line[exit_rows].any(axis=0))
+    assert (exit_columns[-1] - exit_columns[0] + 1) / width == pytest.approx(6 / 4, abs=0.03)
+    assert not pixels_of(image, TAB_RED).any()  # no collision marker
+
+
+def assert_side_view_shows_ceiling_and_floor(path: Path) -> None:
+    """Unrolled side view: rock drawn 1 m beyond a ceiling and a floor 4 m apart."""
+    with Image.open(path) as png:
+        image = np.asarray(png.convert("RGB")).astype(int)
+    column = image[:, image.shape[1] // 4]  # a quarter of the way along, clear of the legend
+    (rock,) = np.nonzero(pixels_of(column, (140, 140, 140), tolerance=0))  # grey "0.55"
+    (water,) = np.nonzero(pixels_of(column, (217, 236, 242), tolerance=0))  # "#d9ecf2"
+    assert rock[0] < water[0] and water[-1] < rock[-1], "rock above the ceiling, below the floor"
+    assert (water[-1] - water[0]) / (rock[-1] - rock[0]) == pytest.approx(4 / 6, abs=0.02)
 
 
 def test_an_interrupted_run_leaves_a_valid_partial_record(

@@ -10,6 +10,10 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
+from scipy.stats import binomtest
+
+from .test_cli import table_rows
 from .test_sweep import write_room
 
 
@@ -34,6 +38,7 @@ def finished(out: Path) -> list[str]:
     return done
 
 
+@pytest.mark.slow
 def test_a_sweep_survives_ctrl_c_and_resumes_where_it_stopped(tmp_path: Path) -> None:
     room = str(write_room(tmp_path / "caves"))
     out = tmp_path / "sweep"
@@ -64,6 +69,7 @@ def test_a_sweep_survives_ctrl_c_and_resumes_where_it_stopped(tmp_path: Path) ->
     assert len(results) == 1 + 6 and all(",finished," in line for line in results[1:])
 
 
+@pytest.mark.slow
 def test_compare_pairs_two_sweeps_and_names_the_caves_that_differ(tmp_path: Path) -> None:
     room = str(write_room(tmp_path / "caves"))
     common = ["--scenarios", room, "--seeds", "0-1", "--workers", "1", "--frames", "none"]
@@ -72,7 +78,13 @@ def test_compare_pairs_two_sweeps_and_names_the_caves_that_differ(tmp_path: Path
         "eval", *common, "--steps", "40", "--pilot", "random", "--out", str(tmp_path / "b")
     )
     assert geometric.returncode == 0 and random.returncode == 0, geometric.stderr + random.stderr
-    assert "room" in geometric.stdout and "100%" in geometric.stdout
+    # scenario, done, success, its 95% Wilson interval, collided: the room, then all caves
+    low, high = binomtest(2, 2).proportion_ci(method="wilson")
+    expected = ["2/2", "100%", f"{low:.0%}-{high:.0%}", "0"]
+    assert [row[:5] for row in table_rows(geometric.stdout)] == [
+        ["room", *expected],
+        ["all", *expected],
+    ]
     assert (tmp_path / "a" / "report" / "index.html").is_file()
 
     done = cavenav(
@@ -82,10 +94,13 @@ def test_compare_pairs_two_sweeps_and_names_the_caves_that_differ(tmp_path: Path
     result = json.loads((tmp_path / "c.json").read_text())["overall"]
     assert result["pairs"] == 2 and result["success_rate_a"] == 1.0
     assert result["success_rate_b"] == 0.0 and result["mcnemar_p"] == 0.5
-    assert "only A got through" in done.stdout
-    assert str(tmp_path / "a" / "episodes" / "room-seed0000") in done.stdout
+    lines = done.stdout.splitlines()
+    assert lines[lines.index("only A got through (2):") + 1 :][:2] == [
+        f"  room seed {k}: {tmp_path / 'a' / 'episodes' / f'room-seed000{k}'}" for k in (0, 1)
+    ]
 
 
+@pytest.mark.slow
 def test_a_different_configuration_is_refused_in_one_line(tmp_path: Path) -> None:
     room = str(write_room(tmp_path / "caves"))
     base = ["eval", "--scenarios", room, "--seeds", "0", "--workers", "1", "--frames", "none",

@@ -1,6 +1,8 @@
 """The acceptance flights: the geometric pilot through every shipped cave, no collision.
 
-These are the slowest tests (10-20 s each): whole episodes on the full sensor rig.
+These are among the slowest tests (5-25 s each): whole episodes on the full sensor rig,
+marked `slow` but for the short straight tube, which keeps one whole flight in a quick
+`pytest -m "not slow"`.
 """
 
 from __future__ import annotations
@@ -14,8 +16,11 @@ from cavenav.pilots.geometric import GeometricPilot
 from cavenav.world.scenarios import load_scenario
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
-CAVES = ["S1", "S2", "S3", "S4", "S5"] + [
-    str(EXAMPLES / f"osrf_cave_{name}.toml") for name in ("straight", "L", "3way")
+SLOW = pytest.mark.slow
+CAVES = [pytest.param(name, marks=SLOW) for name in ("S1", "S2", "S3", "S4", "S5")] + [
+    pytest.param(str(EXAMPLES / "osrf_cave_straight.toml")),
+    pytest.param(str(EXAMPLES / "osrf_cave_L.toml"), marks=SLOW),
+    pytest.param(str(EXAMPLES / "osrf_cave_3way.toml"), marks=SLOW),
 ]
 
 

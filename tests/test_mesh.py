@@ -59,7 +59,7 @@ def test_missing_file_names_the_path(tmp_path: Path) -> None:
 def test_a_file_that_is_not_a_mesh_is_a_one_line_error(tmp_path: Path) -> None:
     path = tmp_path / "notes.ply"
     path.write_text("this is not a mesh\n")
-    with pytest.raises(MeshError) as info:
+    with pytest.raises(MeshError, match="notes.ply: cannot read as a .ply mesh") as info:
         load_mesh(path)
     assert "\n" not in str(info.value)
 
@@ -74,7 +74,7 @@ def test_unsupported_suffix(tmp_path: Path) -> None:
 def test_empty_mesh(tmp_path: Path) -> None:
     path = tmp_path / "empty.obj"
     path.write_text("# nothing here\n")
-    with pytest.raises(MeshError):
+    with pytest.raises(MeshError, match="empty.obj: mesh has no vertices"):
         load_mesh(path)
 
 

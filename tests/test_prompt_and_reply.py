@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import contextlib
 import json
 from pathlib import Path
 
@@ -10,7 +9,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from cavenav.actions import ActionSpace
+from cavenav.actions import DEFAULT_SPACE, ActionSpace, format_action, parse_action
 from cavenav.errors import ActionError, ConfigError
 from cavenav.pilots.prompt import PromptConfig, render_repair, render_system
 from cavenav.pilots.reply import parse_reply
@@ -83,6 +82,8 @@ def test_the_repair_message_tells_the_model_what_was_wrong() -> None:
         '```python\n{"ahead 0.5 m + rotate left 15 deg": "open ahead"}\n```\nDone.',
         'Earlier I thought {"hold": "x"} but now: '
         '{"forward 0.5 m and turn left 15 deg": "open ahead"}',
+        "I considered {going left, but it's narrow there.\n"
+        '{"forward 0.5 m, turn left 15 deg": "open ahead"}',
         '{"situation": "s", "constraints": "c", "action": "forward 0.5 m, turn left 15 deg", '
         '"justification": "open ahead"}',
     ],
@@ -109,10 +110,22 @@ def test_unusable_replies_are_rejected_with_a_reason(reply: str, reason: str) ->
         parse_reply(reply)
 
 
+def assert_accepted_replies_are_sound(reply: str) -> None:
+    """Parse ``reply``; if it is accepted, the action must be admissible and be the one
+    its own action text reads as, and the justification must be trimmed text."""
+    try:
+        parsed = parse_reply(reply)
+    except ActionError:
+        return  # rejected with a reason: fine
+    assert DEFAULT_SPACE.is_valid(parsed.action)
+    assert parse_action(parsed.action_text) == parsed.action
+    assert parsed.action_text == parsed.action_text.strip()
+    assert parsed.justification == parsed.justification.strip()
+
+
 @given(st.text(max_size=400))
 def test_no_reply_crashes_the_parser(reply: str) -> None:
-    with contextlib.suppress(ActionError):
-        parse_reply(reply)
+    assert_accepted_replies_are_sound(reply)
 
 
 @given(
@@ -123,5 +136,32 @@ def test_no_reply_crashes_the_parser(reply: str) -> None:
     )
 )
 def test_no_json_value_crashes_the_parser(value: object) -> None:
-    with contextlib.suppress(ActionError):
-        parse_reply("answer: " + json.dumps(value))
+    assert_accepted_replies_are_sound("answer: " + json.dumps(value))
+
+
+admissible_actions = st.builds(
+    Action,
+    forward=st.sampled_from([0.0, 0.1, 0.2, 0.5, 1.0, -0.5]),
+    right=st.sampled_from([0.0, 0.1, -0.2, 1.0]),
+    up=st.sampled_from([0.0, 0.1, -0.35, 2.0]),
+    yaw_deg=st.sampled_from([0.0, 5.0, -15.0, 90.0, -180.0]),
+)
+
+
+@given(
+    admissible_actions,
+    st.text(max_size=40),
+    st.text(max_size=200).filter(lambda t: "}" not in t),
+    st.text(max_size=200).filter(lambda t: "{" not in t),
+    st.sampled_from([json.dumps, repr]),
+)
+def test_the_final_answer_is_found_after_any_reasoning_and_before_any_afterword(
+    action: Action, justification: str, reasoning: str, afterword: str, write
+) -> None:
+    # Prose without a dictionary of its own (braces left open before the answer included),
+    # before and after a JSON or Python-literal answer.
+    reply = reasoning + write({format_action(action): justification}) + afterword
+    parsed = parse_reply(reply)
+    assert parsed.action == action
+    assert parsed.action_text == format_action(action)
+    assert parsed.justification == justification.strip()

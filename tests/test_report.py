@@ -191,7 +191,8 @@ def test_an_episode_page_shows_the_reasoning_and_why_a_reply_was_rejected(
     assert f"rejected: {rejected['rejected']}" in page.text
     for exchange in exchanges:  # every attempt's raw reply, reasoning included
         assert " ".join(exchange["reply"].split()) in page.text
-    assert sum(1 for tag, _ in page.tags if tag == "details") >= len(exchanges)
+    # one folded block for the system prompt, then one per request
+    assert sum(1 for tag, _ in page.tags if tag == "details") == 1 + len(exchanges)
 
 
 def test_model_text_is_escaped_never_run(runs: dict[str, Path]) -> None:

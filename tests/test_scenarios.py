@@ -5,6 +5,7 @@ from __future__ import annotations
 import inspect
 import json
 import math
+import os
 from pathlib import Path
 
 import numpy as np
@@ -16,7 +17,7 @@ from cavenav.errors import ConfigError, MeshError, ScenarioError
 from cavenav.types import Pose
 from cavenav.world import scenarios as scenarios_module
 from cavenav.world.collision import VehicleBody, clearance
-from cavenav.world.procedural import resample
+from cavenav.world.procedural import cache_dir, resample
 from cavenav.world.raycast import RayCaster
 from cavenav.world.scenarios import (
     HELD_OUT_SEEDS,
@@ -34,6 +35,7 @@ from cavenav.world.scenarios import (
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 
 
+@pytest.mark.slow
 def test_the_same_seed_builds_the_same_cave_bit_for_bit(tmp_path: Path, monkeypatch) -> None:
     monkeypatch.setenv("CAVENAV_CACHE", str(tmp_path / "a"))
     a = load_scenario("S3", seed=7)
@@ -42,6 +44,14 @@ def test_the_same_seed_builds_the_same_cave_bit_for_bit(tmp_path: Path, monkeypa
     assert np.array_equal(a.mesh.vertices, b.mesh.vertices)
     assert np.array_equal(a.mesh.faces, b.mesh.faces)
     assert a.start == b.start
+
+
+def test_a_built_cave_is_cached_in_the_folder_cavenav_cache_names() -> None:
+    # conftest points CAVENAV_CACHE at this test session's own folder.
+    cache = Path(os.environ["CAVENAV_CACHE"])
+    assert cache_dir() == cache and cache != Path.home() / ".cache" / "cavenav"
+    load_scenario("S1", seed=0)
+    assert (cache / f"S1-seed0-{REFERENCE_DIGESTS['S1']}.npz").is_file()
 
 
 def test_another_seed_builds_another_cave() -> None:

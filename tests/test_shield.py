@@ -81,6 +81,7 @@ def test_the_geometric_pilot_remembers_with_the_shields_memory() -> None:
     assert isinstance(pilot.memory, DepthMemory) and len(pilot.memory.frames) == 1
 
 
+@pytest.mark.slow
 def test_the_random_pilot_under_the_shield_does_not_collide(room_scenario: Scenario) -> None:
     config = EpisodeConfig(max_steps=60, save_frames=False, plots=False, shield=True)
     result = run_episode(room_scenario, RandomPilot(seed=3), config)

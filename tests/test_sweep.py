@@ -52,6 +52,7 @@ def test_seeds_are_read_as_ranges_and_lists() -> None:
         parse_seeds("9-2")
 
 
+@pytest.mark.slow
 def test_a_sweep_flies_every_cave_once_and_writes_its_tables(room: str, tmp_path: Path) -> None:
     out = tmp_path / "sweep"
     rows = run_sweep(sweep(room), out, InProcess())
@@ -72,6 +73,7 @@ def test_a_sweep_flies_every_cave_once_and_writes_its_tables(room: str, tmp_path
     assert not list(out.glob("episodes/*/frames"))  # --frames none
 
 
+@pytest.mark.slow
 def test_a_rerun_skips_finished_episodes_and_reflies_interrupted_ones(
     room: str, tmp_path: Path
 ) -> None:
@@ -117,6 +119,7 @@ def test_a_failing_episode_is_recorded_and_the_sweep_goes_on(room: str, tmp_path
     assert (out / "episodes" / "room-bad-seed0000" / "error.txt").is_file()
 
 
+@pytest.mark.slow
 def test_worker_processes_give_the_same_episodes_as_one_process(room: str, tmp_path: Path) -> None:
     config = sweep(room, seeds=(0, 1, 2, 3), pilot=PilotSpec("random"))
     alone = run_sweep(config, tmp_path / "alone", InProcess())
@@ -190,6 +193,7 @@ def test_a_difficulty_knob_goes_to_the_families_that_have_it(room: str) -> None:
         SweepConfig(("S1",), (0,), difficulty={"width": 3.0})
 
 
+@pytest.mark.slow
 def test_a_small_grid_runs_on_a_local_ray_instance(room: str, tmp_path: Path) -> None:
     pytest.importorskip("ray", reason="Ray is an extra: pip install 'cavenav[ray]'")
     from cavenav.evaluation.executors import RayCluster
@@ -202,6 +206,7 @@ def test_a_small_grid_runs_on_a_local_ray_instance(room: str, tmp_path: Path) ->
     assert all(r["status"] == "finished" for r in on_ray)
 
 
+@pytest.mark.slow
 def test_model_pilots_fly_several_episodes_at_once_and_keep_the_key_out(
     room: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -216,10 +221,12 @@ def test_model_pilots_fly_several_episodes_at_once_and_keep_the_key_out(
         config = sweep(room, seeds=(0, 1, 2, 3), pilot=PilotSpec("vlm", options))
         rows = run_sweep(config, tmp_path / "vlm", InProcess(concurrency=4))
     assert [r["status"] for r in rows] == ["finished"] * 4
-    assert all(r["prompt_tokens"] > 0 and r["pilot"] == "vlm:fake-vlm" for r in rows)
+    assert all(r["pilot"] == "vlm:fake-vlm" for r in rows)
     for r in rows:
-        exchanges = (tmp_path / "vlm" / r["run_dir"] / "exchanges.jsonl").read_text()
-        assert len(exchanges.splitlines()) == r["steps"]  # each episode its own requests
+        lines = (tmp_path / "vlm" / r["run_dir"] / "exchanges.jsonl").read_text().splitlines()
+        assert len(lines) == r["steps"]  # each episode its own requests
+        # The row's tokens are those its own exchanges were billed.
+        assert r["prompt_tokens"] == sum(json.loads(x)["prompt_tokens"] for x in lines) > 0
     for path in (tmp_path / "vlm").rglob("*"):
         if path.is_file():
             assert secret.encode() not in path.read_bytes(), path
@@ -236,6 +243,7 @@ def test_a_pilot_is_described_completely_before_any_worker_starts() -> None:
     assert spec.label == "vlm:m" and spec.to_dict()["options"]["api_key_env"] == "MY_KEY"
 
 
+@pytest.mark.slow
 def test_a_worker_killed_mid_episode_costs_only_that_episode(room: str, tmp_path: Path) -> None:
     out = tmp_path / "sweep"
     config = SweepConfig((room,), tuple(range(6)), steps=40, frames="none")
@@ -277,3 +285,20 @@ def test_frames_mode_decides_which_images_are_kept(
         files[:per_step]
         == ["step_0000_depth.exr", "step_0000_depth.png", "step_0000_rgb.png"][3 - per_step :]
     )
+
+
+def test_a_model_server_outage_is_an_error_that_a_resumed_sweep_flies_again(
+    room: str, tmp_path: Path
+) -> None:
+    from .vlm_server import FakeVLM
+
+    with FakeVLM() as server:
+        options = VLMOptions(model="fake-vlm", base_url=server.base_url, retries=0)
+        config = sweep(room, seeds=(0,), pilot=PilotSpec("vlm", options))
+        server.persistent_fault = "500"  # the server is down, not the model wrong
+        (row,) = run_sweep(config, tmp_path / "vlm", InProcess())
+        assert row["outcome"] == "error" and "HTTP 500" in row["error"]
+        server.persistent_fault = None
+        (row,) = run_sweep(config, tmp_path / "vlm", InProcess())
+    assert row["outcome"] != "error" and row["error"] is None
+    assert row["steps"] == 6

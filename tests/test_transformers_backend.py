@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import base64
+import io
 import json
 from pathlib import Path
 
@@ -26,6 +28,38 @@ def tiny_model(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return build_tiny_idefics3(tmp_path_factory.mktemp("tiny-idefics3"))
 
 
+def greedy_reference(model_dir: Path, messages: list[dict], max_new_tokens: int):
+    """What transformers itself generates greedily for ``messages``, the backend left out:
+    (the processor, the prompt's token ids, the generated token ids)."""
+    import torch
+    from PIL import Image
+    from transformers import AutoModelForImageTextToText, AutoProcessor
+
+    processor = AutoProcessor.from_pretrained(model_dir)
+    model = AutoModelForImageTextToText.from_pretrained(model_dir).eval()
+    chat, images = [], []
+    for message in messages:  # OpenAI-format parts -> the chat template's parts
+        content = message["content"]
+        if isinstance(content, str):
+            content = [{"type": "text", "text": content}]
+        parts = []
+        for part in content:
+            if part["type"] == "text":
+                parts.append({"type": "text", "text": part["text"]})
+            else:
+                data = base64.b64decode(part["image_url"]["url"].split(",", 1)[1])
+                images.append(Image.open(io.BytesIO(data)).convert("RGB"))
+                parts.append({"type": "image"})
+        chat.append({"role": message["role"], "content": parts})
+    prompt = processor.apply_chat_template(chat, add_generation_prompt=True)
+    inputs = processor(text=prompt, images=images, return_tensors="pt")
+    with torch.inference_mode():
+        out = model.generate(**inputs, max_new_tokens=max_new_tokens, do_sample=False)
+    prompt_ids = inputs["input_ids"][0]
+    return processor, prompt_ids, out[0, len(prompt_ids) :]
+
+
+@pytest.mark.slow
 def test_the_tiny_model_answers_through_the_real_backend(tiny_model: Path) -> None:
     backend = TransformersBackend(
         TransformersConfig(str(tiny_model), device="cpu", max_new_tokens=12)
@@ -35,11 +69,19 @@ def test_the_tiny_model_answers_through_the_real_backend(tiny_model: Path) -> No
     system = render_system(PromptConfig())
     messages = build_messages(system, EncodedObservation(image, depth, 2.0, 2.0), [])
     completion = backend.complete(messages)
-    assert completion.completion_tokens == 12
-    assert completion.prompt_tokens > 100  # the system prompt went in
-    assert isinstance(completion.text, str)
+    assert completion.model == str(tiny_model)
+    # Greedy decoding (temperature 0) answers the same request the same way.
+    assert backend.complete(messages).text == completion.text
+    processor, prompt_ids, new_ids = greedy_reference(tiny_model, messages, 12)
+    # The tokens counted are the tokens the model read (system prompt, text and both
+    # images) and the tokens it wrote: the whole budget, as this seeded model never stops.
+    assert completion.prompt_tokens == len(prompt_ids)
+    assert (prompt_ids == processor.image_token_id).sum() == 2 * 4  # 4 tokens per image
+    assert len(new_ids) == completion.completion_tokens == 12
+    assert completion.text == processor.decode(new_ids, skip_special_tokens=True)
 
 
+@pytest.mark.slow
 def test_its_garbage_ends_the_episode_as_pilot_failure(tiny_model: Path, tmp_path: Path) -> None:
     backend = TransformersBackend(
         TransformersConfig(str(tiny_model), device="cpu", max_new_tokens=16)

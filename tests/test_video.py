@@ -58,6 +58,12 @@ def test_a_video_has_one_frame_per_step_at_the_documented_size(forward_run: Path
     assert len(frames) == STEPS
     assert size == (2 * CAMERA[0] + PANEL_HEIGHT, PANEL_HEIGHT + CAPTION_HEIGHT) == (1760, 512)
     assert fps == pytest.approx(4.0)
+    reader = imageio_ffmpeg.read_frames(str(out))
+    meta = next(reader)
+    reader.close()
+    # H.264 in 4:2:0, what every browser and player decodes.
+    assert meta["codec"] == "h264" and meta["pix_fmt"].startswith("yuv420p")
+    assert meta["duration"] == pytest.approx(STEPS / 4.0, abs=0.01)
 
 
 def test_the_vehicle_moves_down_the_map_as_it_heads_along_minus_y(

@@ -3,7 +3,9 @@
 Its replies are computed from the images it receives: it decodes the current depth PNG
 from the request, chooses as the geometric pilot would, and phrases the answer the way
 models do (reasoning first, fenced or inline, single or double quotes, varied wording).
-Faults can be queued per request or switched on for good to exercise the failure paths.
+Faults can be queued per request or switched on for good to exercise the failure paths:
+wrong replies, HTTP errors, a proxy's HTML page, a slow answer, and a reply dripped one
+byte at a time (headers at once, then a byte every `drip_s`).
 """
 
 from __future__ import annotations
@@ -23,7 +25,15 @@ from PIL import Image
 from cavenav.pilots.geometric import GeometricPilot
 from cavenav.types import Action, Observation
 
-FAULTS = ("garbage", "two_keys", "out_of_set", "429", "500", "slow", "401")
+FAULTS = ("garbage", "two_keys", "out_of_set", "429", "500", "slow", "401", "html", "drip")
+
+# What a proxy in front of a model server sends when the server is down: a 200 with a page,
+# longer than what a run folder keeps of it.
+PROXY_PAGE = (
+    "<!DOCTYPE html><html><head><title>Service temporarily unavailable</title></head><body>"
+    + "<p>The upstream server did not answer; please try again later.</p>" * 60
+    + "</body></html>"
+)
 
 
 def _decode(url: str, mode: str) -> np.ndarray:
@@ -85,6 +95,8 @@ class FakeVLM:
         self.required_key = required_key
         self.requests: list[dict] = []
         self.slow_s = 1.5
+        self.drip_s = 2.0
+        self._stopped = threading.Event()  # ends replies still dripping
         self._pilot = GeometricPilot()
         self._last_answer: tuple[str, str] | None = None
         self._style = 0
@@ -101,6 +113,7 @@ class FakeVLM:
         return self
 
     def __exit__(self, *exc: object) -> None:
+        self._stopped.set()
         self._server.shutdown()
         self._server.server_close()
 
@@ -139,15 +152,33 @@ class FakeVLM:
             def log_message(self, *args: object) -> None:  # keep test output clean
                 pass
 
-            def _send(self, status: int, payload: dict, headers: dict | None = None) -> None:
-                data = json.dumps(payload).encode()
+            def _send(
+                self,
+                status: int,
+                payload: dict | str,
+                headers: dict | None = None,
+                drip: bool = False,
+            ) -> None:
+                """A JSON payload (or a page, given as text); ``drip``: the body one byte
+                every `drip_s`, until the client hangs up or the server stops."""
+                html = isinstance(payload, str)
+                data = (payload if html else json.dumps(payload)).encode()
                 self.send_response(status)
-                self.send_header("content-type", "application/json")
+                self.send_header("content-type", "text/html" if html else "application/json")
                 self.send_header("content-length", str(len(data)))
                 for k, v in (headers or {}).items():
                     self.send_header(k, v)
                 self.end_headers()
-                self.wfile.write(data)
+                if not drip:
+                    self.wfile.write(data)
+                    return
+                try:
+                    for k in range(len(data)):
+                        self.wfile.write(data[k : k + 1])
+                        if owner._stopped.wait(owner.drip_s):
+                            return
+                except OSError:  # the client gave up: the point of the fault
+                    return
 
             def _authorised(self) -> bool:
                 if owner.required_key is None:
@@ -176,6 +207,12 @@ class FakeVLM:
                     headers = {"retry-after": "0.05"} if status == 429 else None
                     self._send(status, {"error": {"message": f"fault {fault}"}}, headers)
                     return
+                if fault == "401":  # the key revoked mid-run
+                    self._send(401, {"error": {"message": "invalid api key"}})
+                    return
+                if fault == "html":
+                    self._send(200, PROXY_PAGE)
+                    return
                 if fault == "slow":
                     time.sleep(owner.slow_s)  # longer than the client's timeout
                 if fault == "garbage":
@@ -184,6 +221,8 @@ class FakeVLM:
                     text = 'Two options:\n{"forward 0.5 m": "open", "turn left 10 deg": "wall"}'
                 elif fault == "out_of_set":
                     text = 'I will go ahead a bit.\n{"forward 0.3 m": "gap ahead"}'
+                elif fault == "drip":  # never read whole: its words do not matter
+                    text = 'Slowly.\n{"forward 0.5 m": "open water"}'
                 else:
                     with owner._lock:
                         text = owner.answer(body)
@@ -221,6 +260,7 @@ class FakeVLM:
                             "total_tokens": prompt_tokens + len(text) // 4,
                         },
                     },
+                    drip=fault == "drip",
                 )
 
         return Handler

@@ -12,8 +12,11 @@ cavenav video RUN                      an MP4 of one episode
 
 from __future__ import annotations
 
+import contextlib
+import math
 import os
 import sys
+import warnings
 from dataclasses import replace
 from enum import StrEnum
 from pathlib import Path
@@ -65,24 +68,47 @@ class WaterType(StrEnum):
     turbid = "turbid"
 
 
+def _finite(value: float | None) -> float | None:
+    """A range's bounds let infinity through: refuse it (and NaN) by name."""
+    if value is not None and not math.isfinite(value):
+        raise typer.BadParameter(f"{value} is not finite; give a number")
+    return value
+
+
+def _positive(value: float) -> float:
+    if not (math.isfinite(value) and value > 0):
+        raise typer.BadParameter(f"{value} m: give a finite distance above 0")
+    return value
+
+
 # Options shared by `run` and `render`: how the cave looks. None keeps the scenario's own.
 WaterOpt = Annotated[WaterType | None, typer.Option(help="water preset (default: clear)")]
 LightPower = Annotated[
-    float | None, typer.Option(min=0, help="lamp power; 0 turns the lamps off (default 20)")
+    float | None,
+    typer.Option(min=0, callback=_finite, help="lamp power; 0 turns the lamps off (default 20)"),
 ]
 Daylight = Annotated[
-    float | None, typer.Option(min=0, help="open-water brightness at exits (default 1)")
+    float | None,
+    typer.Option(min=0, callback=_finite, help="open-water brightness at exits (default 1)"),
 ]
 Particles = Annotated[
-    float | None, typer.Option(min=0, help="marine snow, particles per m³ (default 2)")
+    float | None,
+    typer.Option(min=0, callback=_finite, help="marine snow, particles per m³ (default 2)"),
 ]
-Noise = Annotated[float | None, typer.Option(min=0, help="sensor noise, 0 = none (default 1)")]
+Noise = Annotated[
+    float | None, typer.Option(min=0, callback=_finite, help="sensor noise, 0 = none (default 1)")
+]
 DepthDropout = Annotated[
     float | None,
-    typer.Option(min=0, help="drop depth where returned lamp light is below this (default 0)"),
+    typer.Option(
+        min=0,
+        callback=_finite,
+        help="drop depth where returned lamp light is below this (default 0)",
+    ),
 ]
 DepthNoise = Annotated[
-    float | None, typer.Option(min=0, help="depth noise std at 10 m, metres (default 0)")
+    float | None,
+    typer.Option(min=0, callback=_finite, help="depth noise std at 10 m, metres (default 0)"),
 ]
 
 
@@ -100,7 +126,9 @@ def _sensors(cave: Any, base: Any, **options: Any) -> Any:  # noqa: ANN401 - laz
     )
 
 
-DepthMax = Annotated[float, typer.Option(help="D_max of the depth PNG, metres")]
+DepthMax = Annotated[
+    float, typer.Option(callback=_positive, help="D_max of the depth PNG, metres (above 0)")
+]
 DifficultyOpt = Annotated[
     list[str] | None,
     typer.Option(
@@ -120,9 +148,20 @@ BaseUrl = Annotated[
 Model = Annotated[str | None, typer.Option(help="model name, or a local folder for transformers")]
 BackendOpt = Annotated[Backend, typer.Option(help="where the model runs")]
 ApiKeyEnv = Annotated[str, typer.Option(help="environment variable that holds the API key")]
-Timeout = Annotated[float, typer.Option(help="seconds per request")]
+Timeout = Annotated[
+    float, typer.Option(min=0.1, callback=_finite, help="seconds one attempt may take, whole")
+]
+Deadline = Annotated[
+    float | None,
+    typer.Option(
+        min=0.1,
+        callback=_finite,
+        help="seconds a request may take, retries and waits included "
+        "(default: timeout x (retries + 1))",
+    ),
+]
 Retries = Annotated[int, typer.Option(min=0, help="transport retries per request")]
-Temperature = Annotated[float, typer.Option(help="sampling temperature")]
+Temperature = Annotated[float, typer.Option(min=0, callback=_finite, help="sampling temperature")]
 MaxTokens = Annotated[int, typer.Option(min=16, help="maximum output tokens per reply")]
 Detail = Annotated[str | None, typer.Option(help="image detail sent with images: low, high, auto")]
 Requeries = Annotated[int, typer.Option(min=0, help="re-queries after an unusable reply")]
@@ -156,7 +195,8 @@ def run(
         str, typer.Option(help="pilot to fly: geometric, vlm, replay, random")
     ] = "geometric",
     seed: Annotated[
-        int, typer.Option(help="seed of the procedural cave (S1..S5) and of the random pilot")
+        int,
+        typer.Option(min=0, help="seed of the procedural cave (S1..S5) and of the random pilot"),
     ] = 0,
     out: Annotated[Path, typer.Option(help="folder that receives the run folder")] = Path("runs"),
     steps: Annotated[int, typer.Option(min=1, help="step budget")] = 150,
@@ -180,6 +220,7 @@ def run(
     model: Model = None,
     api_key_env: ApiKeyEnv = "OPENAI_API_KEY",
     timeout: Timeout = 60.0,
+    deadline: Deadline = None,
     retries: Retries = 4,
     temperature: Temperature = 0.2,
     max_tokens: MaxTokens = 1024,
@@ -194,7 +235,7 @@ def run(
 ) -> None:
     """Fly one episode and write its run folder (summary, steps, frames, plots)."""
     from cavenav.episode.loop import EpisodeConfig, run_episode
-    from cavenav.episode.run_folder import new_run_dir
+    from cavenav.episode.run_folder import new_run_dir, prepare_root
     from cavenav.pilots.factory import PilotSpec
     from cavenav.sensors.rig import SensorConfig
     from cavenav.world.scenarios import load_scenario, parse_difficulty
@@ -213,6 +254,7 @@ def run(
                 f"[yellow]note:[/] the recording flew {recorded}, replaying in {scenario}"
             )
         seed = recorded_seed if recorded_seed is not None else seed
+    prepare_root(out)  # a folder that cannot be written is refused before the cave is built
     flyer = spec.build(seed=seed)
     with console.status(f"building {scenario} (seed {seed})"):
         cave = load_scenario(scenario, seed, difficulty=parse_difficulty(difficulty or []))
@@ -228,11 +270,11 @@ def run(
         depth_noise_m=depth_noise,
     )
     config = EpisodeConfig(max_steps=steps, save_frames=frames, shield=shield, sensors=sensors)
-    run_dir = new_run_dir(out, cave.name, pilot, cave.seed)
     console.print(
         f"[bold]{cave.name}[/]: {cave.description or cave.mesh.name} "
         f"({cave.mesh.triangle_count:,} triangles)"
     )
+    run_dir = new_run_dir(out, cave.name, pilot, cave.seed)
     with Progress(
         TextColumn("[progress.description]{task.description}"),
         BarColumn(),
@@ -241,30 +283,60 @@ def run(
         TimeElapsedColumn(),
         console=console,
     ) as progress:
-        task = progress.add_task(f"flying {cave.name}", total=steps, status="")
+        # Before the first step: the kernels load (the first run on a machine compiles
+        # them, about a minute), the lighting tables are built and the start is checked.
+        task = progress.add_task(
+            f"preparing {cave.name}", total=steps, status="sensors, lighting, start check"
+        )
 
         def on_step(record: dict) -> None:
             status = f"clearance {record['clearance_m']:.2f} m  {record.get('action') or ''}"
-            progress.update(task, advance=1, status=status[:60])
+            progress.update(task, advance=1, description=f"flying {cave.name}", status=status[:60])
 
         try:
             result = run_episode(cave, flyer, config, run_dir, on_step)
         except KeyboardInterrupt:
             progress.stop()
-            errors.print(f"interrupted: the partial record is in {run_dir}")
+            errors.print(_interrupted(run_dir), soft_wrap=True)
             raise typer.Exit(130) from None
+        except CavenavError as exc:
+            progress.stop()
+            _remove_if_empty(run_dir)  # refused before anything was written (the start)
+            if (run_dir / "summary.json").is_file():
+                exc.args = (f"{exc} (the record so far is in {run_dir})",)
+            raise
     _print_summary(result.summary)
     # soft_wrap: paths stay on one line, whatever the terminal width, for copy and paste.
     console.print(f"run folder: [bold]{run_dir}[/]", soft_wrap=True)
     for name in result.summary.get("plots", {}).values():
         console.print(f"plot:       {run_dir / name}", soft_wrap=True)
+    if result.termination == "pilot_failure":
+        raise typer.Exit(1)
+
+
+def _interrupted(run_dir: Path) -> str:
+    """What Ctrl-C left: a partial record, or a whole episode without its plots."""
+    import json
+
+    try:
+        status = json.loads((run_dir / "summary.json").read_text())["status"]
+    except (OSError, ValueError, KeyError):
+        status = None
+    if status == "finished":
+        return f"interrupted while drawing the plots: the episode's record is whole in {run_dir}"
+    return f"interrupted: the partial record is in {run_dir}"
+
+
+def _remove_if_empty(folder: Path) -> None:
+    with contextlib.suppress(OSError):  # not empty: it holds the record
+        folder.rmdir()
 
 
 @app.command()
 def render(
     scenario: Annotated[str, typer.Argument(help="S1..S5, or the path of a scenario .toml file")],
     water: WaterOpt = None,
-    seed: Annotated[int, typer.Option(help="seed of the procedural cave (S1..S5)")] = 0,
+    seed: Annotated[int, typer.Option(min=0, help="seed of the procedural cave (S1..S5)")] = 0,
     views: Annotated[int, typer.Option(min=1, max=24, help="poses along the passage")] = 6,
     out: Annotated[
         Path | None, typer.Option(help="PNG to write (default: render-SCENARIO-WATER.png)")
@@ -311,6 +383,7 @@ def ask(
     model: Model = None,
     api_key_env: ApiKeyEnv = "OPENAI_API_KEY",
     timeout: Timeout = 60.0,
+    deadline: Deadline = None,
     retries: Retries = 4,
     temperature: Temperature = 0.2,
     max_tokens: MaxTokens = 1024,
@@ -320,36 +393,21 @@ def ask(
     structured: Structured = False,
     device: Device = "auto",
 ) -> None:
-    """Send one query for a single image (e.g. a photograph from a real cave)."""
-    import numpy as np
-    from PIL import Image, UnidentifiedImageError
+    """Send one query for a single image (e.g. a photograph from a real cave).
 
-    from cavenav.types import Observation
-
-    def read(path: Path, mode: str) -> np.ndarray:
-        try:
-            return np.asarray(Image.open(path).convert(mode))
-        except (OSError, UnidentifiedImageError) as exc:
-            raise CavenavError(f"cannot read image {path}: {exc}") from None
-
-    from cavenav.sensors.camera import CameraIntrinsics
-
-    rgb = read(image, "RGB")
-    depth_png = read(depth, "L") if depth else np.full(rgb.shape[:2], 255, np.uint8)
+    The photograph is turned upright and shrunk to what the model can use; without
+    --depth the request carries no depth image and says so, and a missing --top or
+    --bottom is sent as "unknown".
+    """
     from cavenav.pilots.factory import PilotSpec
+    from cavenav.pilots.photo import load_photo
 
+    # The images first: a bad one is refused before the endpoint is contacted.
+    observation, notes = load_photo(image, depth, d_top=top, d_bottom=bottom, detail=detail)
+    for note in notes:
+        console.print(f"[yellow]note:[/] {escape(note)}", soft_wrap=True)
     options = _vlm_options(locals(), history=0, price=None, cache=None)
     pilot = PilotSpec("vlm", options).build()
-    nan = float("nan")
-    observation = Observation(
-        rgb=rgb,
-        depth_m=depth_png.astype(np.float32),
-        depth_png=depth_png,
-        d_top=nan if top is None else top,
-        d_bottom=nan if bottom is None else bottom,
-        depth_range=DEPTH_RANGE_M,
-        hfov_deg=CameraIntrinsics().hfov_deg,
-    )
     decision = pilot.decide(observation)
     console.rule("reasoning")
     console.print(decision.raw, markup=False, highlight=False)
@@ -412,6 +470,7 @@ def eval_(
     model: Model = None,
     api_key_env: ApiKeyEnv = "OPENAI_API_KEY",
     timeout: Timeout = 60.0,
+    deadline: Deadline = None,
     retries: Retries = 4,
     temperature: Temperature = 0.2,
     max_tokens: MaxTokens = 1024,
@@ -425,12 +484,14 @@ def eval_(
     device: Device = "auto",
 ) -> None:
     """Fly a pilot over scenarios x seeds; results.csv, aggregate.json and an HTML report."""
+    from cavenav.episode.run_folder import prepare_root
     from cavenav.evaluation.sweep import SweepConfig, parse_seeds, run_sweep
     from cavenav.pilots.factory import PilotSpec
     from cavenav.world.scenarios import parse_difficulty
 
     if pilot == "replay":
         raise CavenavError("a sweep flies geometric, vlm or random pilots, not replay")
+    prepare_root(out)
     spec = PilotSpec(
         pilot,
         _vlm_options(locals()),
@@ -643,6 +704,7 @@ def _print_summary(summary: dict) -> None:
         ("mean clearance", _metres(summary["mean_clearance_m"])),
         ("steps below standoff", summary["steps_below_standoff"]),
         ("sensing per step", f"{summary['mean_sense_ms']} ms"),
+        ("first sensing", f"{summary.get('first_sense_ms')} ms (with loading the kernels)"),
         ("pilot per step", f"{summary['mean_pilot_ms']} ms"),
     ]
     if summary.get("shield"):
@@ -668,6 +730,16 @@ def _print_summary(summary: dict) -> None:
 
 def _metres(value: float | None) -> str:
     return "-" if value is None else f"{value:.2f} m"
+
+
+@app.command()
+def warmup() -> None:
+    """Compile the sensor kernels into numba's cache (once per machine; make setup runs it)."""
+    from cavenav.sensors.warmup import warm_up
+
+    with console.status("loading the sensor kernels (the first time on a machine: compiling)"):
+        seconds = warm_up()
+    console.print(f"sensor kernels ready ({seconds:.1f} s)")
 
 
 @app.command()
@@ -698,15 +770,33 @@ def _first_comment(path: Path) -> str:
 
 
 def main() -> None:
-    """Entry point: typer reports usage errors; our own errors become one line, exit 2."""
+    """Entry point; the exit status is part of the interface (README, "Bad input and faults").
+
+    0: the command did its work (an episode ended at the exit, a wall or the budget).
+    1: an episode ended as a pilot failure, or the run folder could not be written.
+    2: bad input (a typer usage error, or a `CavenavError`), refused before anything
+       was written.
+    130: interrupted (Ctrl-C); what was recorded so far stays valid.
+    """
+    warnings.showwarning = _show_warning
     try:
         app()
     except CavenavError as exc:
         errors.print(f"[red]error:[/] {escape(str(exc))}", highlight=False)
-        sys.exit(2)
+        sys.exit(exc.exit_status)
     except KeyboardInterrupt:
         errors.print("interrupted")
         sys.exit(130)
+
+
+def _show_warning(message: Warning | str, category: type[Warning], *_: Any, **__: Any) -> None:
+    """Our warnings (a mesh in centimetres, ...) as one line; others as Python prints them."""
+    from cavenav.errors import CavenavWarning
+
+    if issubclass(category, CavenavWarning):
+        errors.print(f"[yellow]warning:[/] {escape(str(message))}", highlight=False)
+    else:
+        errors.print(f"{category.__name__}: {escape(str(message))}", highlight=False)
 
 
 if __name__ == "__main__":

@@ -13,17 +13,26 @@ __all__ = [
     "BackendTimeout",
     "BackendUnavailable",
     "CavenavError",
+    "CavenavWarning",
     "ConfigError",
     "DependencyError",
     "MeshError",
     "PilotFailure",
     "RateLimited",
+    "RecordingError",
     "ScenarioError",
 ]
 
 
 class CavenavError(Exception):
-    """Base class of every error cavenav raises deliberately."""
+    """Base class of every error cavenav raises deliberately.
+
+    Attributes:
+        exit_status: what the command line exits with (see the README's table): 2 for
+            bad input, found before anything was written.
+    """
+
+    exit_status = 2
 
 
 class ConfigError(CavenavError):
@@ -38,6 +47,15 @@ class ScenarioError(CavenavError):
     """A scenario is inconsistent: unknown name, start pose outside the passage, ..."""
 
 
+class RecordingError(CavenavError):
+    """The run folder cannot be written (a read-only folder, a full disk).
+
+    Mid-episode, the record stops at the last whole step and the command exits 1.
+    """
+
+    exit_status = 1
+
+
 class ActionError(CavenavError, ValueError):
     """An action string cannot be parsed or lies outside the admissible magnitudes."""
 
@@ -49,12 +67,25 @@ class PilotFailure(CavenavError):
         exchanges: the requests and replies of the failed step (plain JSON records, as
             in `Decision.exchanges`), kept for the record.
         usage: what the failed step cost (a `cavenav.types.Usage`), counted like any other.
+        cause: why, for the summary: "reply" (no usable reply after the re-queries),
+            "backend" (the transport gave up: retries, deadline, a body that is no
+            reply) or "auth" (the endpoint refused the key mid-run).
     """
 
-    def __init__(self, message: str, exchanges: tuple = (), usage: object | None = None):
+    exit_status = 1  # the input was fine; the model (or its server) failed
+
+    def __init__(
+        self,
+        message: str,
+        exchanges: tuple = (),
+        usage: object | None = None,
+        *,
+        cause: str = "reply",
+    ):
         super().__init__(message)
         self.exchanges = exchanges
         self.usage = usage
+        self.cause = cause
 
 
 class DependencyError(CavenavError, ImportError):
@@ -62,7 +93,18 @@ class DependencyError(CavenavError, ImportError):
 
 
 class BackendError(CavenavError):
-    """A model backend failed after its bounded retries."""
+    """A model backend failed after its bounded retries.
+
+    Attributes:
+        errors: one line per failed attempt, oldest first, so that the run folder shows
+            what the transport went through even though no reply came.
+        reply: the start of the last body the endpoint sent (an error page), if any.
+    """
+
+    def __init__(self, message: str, *, errors: tuple[str, ...] = (), reply: str = ""):
+        super().__init__(message)
+        self.errors = errors
+        self.reply = reply
 
 
 class BackendAuthError(BackendError):
@@ -70,7 +112,8 @@ class BackendAuthError(BackendError):
 
 
 class BackendTimeout(BackendError):
-    """The endpoint did not answer within the timeout."""
+    """The endpoint did not answer within the timeout, or the deadline left no time to
+    try again."""
 
 
 class RateLimited(BackendError):
@@ -78,4 +121,14 @@ class RateLimited(BackendError):
 
 
 class BackendUnavailable(BackendError):
-    """Connection refused, or the endpoint kept answering 408/409/5xx."""
+    """Connection refused, or the endpoint kept answering 408/409/5xx or a body that is
+    no reply (a proxy's HTML page)."""
+
+
+class CavenavWarning(UserWarning):
+    """Something cavenav can go on with but a user should hear about: a mesh whose passage
+    is implausibly large or small for the vehicle (likely drawn in another unit), ...
+
+    Issued with `warnings.warn`; the command line prints each as one line, and a script
+    can turn them into errors with ``warnings.simplefilter("error", CavenavWarning)``.
+    """

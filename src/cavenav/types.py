@@ -165,6 +165,10 @@ class Observation:
         previous_action: the action the vehicle executed since the previous
             observation (after any safety shield), as its own command log knows it;
             None at the start of an episode or when the source does not say.
+        has_depth: False when no depth camera took part (a photograph given to
+            ``cavenav ask`` alone). The VLM pilot then sends no depth image and says so;
+            ``depth_m`` is NaN and ``depth_png`` 0 (near) everywhere, so that a reader
+            that misses this flag sees no free space rather than open water.
     """
 
     rgb: np.ndarray
@@ -177,6 +181,7 @@ class Observation:
     camera_offset_m: float = 0.0
     step: int = 0
     previous_action: Action | None = None
+    has_depth: bool = True
 
 
 @dataclass(frozen=True)

@@ -24,7 +24,7 @@ from gymnasium.wrappers import TimeLimit
 from cavenav.env import CaveNavEnv
 from cavenav.episode.record import TERMINATIONS, EpisodeLog
 from cavenav.episode.run_folder import RunFolder
-from cavenav.errors import PilotFailure
+from cavenav.errors import CavenavError, PilotFailure, RecordingError
 from cavenav.pilots.base import Pilot
 from cavenav.sensors.rig import SensorConfig
 from cavenav.types import DEFAULT_RULES, Pose, Rules, VehicleBody
@@ -107,7 +107,7 @@ def run_episode(
     config = config or EpisodeConfig()
     env = make_env(scenario, config)
     vehicle: CaveNavEnv = env.unwrapped  # type: ignore[assignment]
-    _, info = env.reset(seed=config.seed)  # checks the start before any folder exists
+    _, info = env.reset(seed=config.seed)  # checks the start before any folder is written
     assert vehicle.pose is not None
     log = EpisodeLog(
         scenario, pilot.name, config.rules, config.shield, vehicle.pose, info["clearance_m"], config
@@ -119,12 +119,13 @@ def run_episode(
     status = "crashed"
     try:
         if folder:
-            folder.write_json("summary.json", log.summary("running"))
+            _write(folder.write_json, folder.path, "summary.json", log.summary("running"))
         while log.termination is None:
             observation = vehicle.observation
             assert observation is not None
             timing = {"sense": vehicle.timings_ms["sense"]}
             started = time.perf_counter()
+            mark = log.mark()
             try:
                 decision = pilot.decide(observation)
             except PilotFailure as failure:
@@ -141,13 +142,22 @@ def run_episode(
                 )
                 exchanges = decision.exchanges
             if folder:
-                folder.record(record, observation, exchanges)
-                folder.write_json("summary.json", log.summary("running"))
+                try:
+                    _write(folder.record, folder.path, record, observation, exchanges,
+                           log.summary("running"))  # fmt: skip
+                except RecordingError:
+                    log.rewind(mark)  # the record ends at the last whole step
+                    raise
             if on_step:
                 on_step(record)
         status = "finished"
     except KeyboardInterrupt:
         status = "interrupted"
+        raise
+    except Exception as exc:
+        log.crashed(
+            f"{type(exc).__name__}: {exc}" if not isinstance(exc, CavenavError) else str(exc)
+        )
         raise
     finally:
         summary = log.summary(status)
@@ -157,3 +167,13 @@ def run_episode(
     return EpisodeResult(
         summary, log.poses, log.clearances, log.steps, folder.path if folder else None
     )
+
+
+def _write(write: Callable[..., None], where: Path, *args: Any) -> None:
+    """Call a run-folder writer; a full disk or a lost folder becomes a `RecordingError`."""
+    try:
+        write(*args)
+    except OSError as exc:
+        raise RecordingError(
+            f"cannot write the run folder {where}: {exc.strerror or exc}"
+        ) from None

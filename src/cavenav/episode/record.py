@@ -51,6 +51,7 @@ class EpisodeLog:
         self.usage: list[Usage] = []
         self.termination: str | None = None
         self.failure: str | None = None
+        self.failure_cause: str | None = None
         self.collision_pose: dict[str, float] | None = None
         self.progress_m = 0.0
         self._started = time.perf_counter()
@@ -137,10 +138,27 @@ class EpisodeLog:
         if isinstance(failure.usage, Usage):
             self.usage.append(failure.usage)
             record["vlm"] = failure.usage.to_dict()
-        record.update(action=None, failure=self.failure)
+        self.failure_cause = getattr(failure, "cause", "reply")
+        record.update(action=None, failure=self.failure, failure_cause=self.failure_cause)
         record["timing_ms"] = {k: round(v, 2) for k, v in timing_ms.items()}
         self.steps.append(record)
         return record
+
+    def mark(self) -> tuple:
+        """Where the log stands, to `rewind` to when a step cannot be recorded."""
+        lengths = (len(self.poses), len(self.clearances), len(self.steps), len(self.usage))
+        return lengths, self.termination, self.failure, self.collision_pose, self.progress_m
+
+    def rewind(self, mark: tuple) -> None:
+        """Forget what was logged since ``mark``: the summary then agrees with the folder."""
+        lengths, self.termination, self.failure, self.collision_pose, self.progress_m = mark
+        for items, length in zip((self.poses, self.clearances, self.steps, self.usage), lengths,
+                                 strict=True):  # fmt: skip
+            del items[length:]
+
+    def crashed(self, error: str) -> None:
+        """Note why the episode stopped without an ending (status "crashed")."""
+        self.failure, self.failure_cause = error, None
 
     def summary(self, status: str) -> dict[str, Any]:
         """summary.json: ``status`` is running, finished, interrupted or crashed."""
@@ -168,8 +186,12 @@ class EpisodeLog:
             "collision_pose": self.collision_pose,
             "exit_distance_m": round(self.scenario.exit_distance(end), 4),
             "failure": self.failure,
+            "failure_cause": self.failure_cause,
             "wall_time_s": round(time.perf_counter() - self._started, 3),
-            "mean_sense_ms": _mean_timing(self.steps, "sense"),
+            # The first sensing pays one-off costs (loading or compiling the kernels, cold
+            # caches): reported apart so that the mean is what a step costs.
+            "first_sense_ms": self.steps[0]["timing_ms"]["sense"] if self.steps else None,
+            "mean_sense_ms": _mean_timing(self.steps[1:] or self.steps, "sense"),
             "mean_pilot_ms": _mean_timing(self.steps, "pilot"),
             "usage": Usage.total(self.usage),
             **self._meta,

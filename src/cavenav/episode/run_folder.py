@@ -13,11 +13,17 @@ RUN_DIR/
 from __future__ import annotations
 
 import base64
+import errno
 import hashlib
+import itertools
 import json
 import os
 import re
-from collections.abc import Mapping, Sequence
+import signal
+import tempfile
+import threading
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from contextlib import contextmanager
 from datetime import datetime
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -25,6 +31,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from PIL import Image
 
+from cavenav.errors import ConfigError, RecordingError
 from cavenav.sensors.depth import write_exr
 from cavenav.types import Observation
 
@@ -32,19 +39,53 @@ if TYPE_CHECKING:
     from cavenav.episode.record import EpisodeLog
     from cavenav.world.raycast import RayCaster
 
-__all__ = ["RunFolder", "new_run_dir", "read_jsonl", "write_atomic", "write_json"]
+__all__ = [
+    "RunFolder",
+    "new_run_dir",
+    "prepare_root",
+    "read_jsonl",
+    "write_atomic",
+    "write_json",
+]
+
+
+def prepare_root(root: str | Path) -> Path:
+    """``root`` created if needed and checked writable, before any cave is built.
+
+    Raises:
+        ConfigError: ``root`` is a file, read-only or cannot be created (bad input, exit
+            status 2).
+    """
+    root = Path(root)
+    if root.exists() and not root.is_dir():
+        raise ConfigError(f"cannot write run folders into {root}: it is a file")
+    try:
+        root.mkdir(parents=True, exist_ok=True)
+        os.rmdir(tempfile.mkdtemp(prefix=".probe-", dir=root))  # what access() cannot tell
+    except OSError as exc:
+        raise ConfigError(f"cannot write run folders into {root}: {exc.strerror or exc}") from None
+    return root
 
 
 def new_run_dir(root: str | Path, scenario: str, pilot: str, seed: int | None) -> Path:
-    """A fresh folder under ``root`` named by time, scenario, pilot and seed."""
+    """Create a fresh, empty folder under ``root`` named by time, scenario, pilot and seed.
+
+    The name is claimed by creating the folder, which the file system does atomically:
+    two runs started in the same second (or in parallel) get ``NAME`` and ``NAME_2``.
+    """
+    root = prepare_root(root)
     stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
     safe = re.sub(r"[^A-Za-z0-9_.-]+", "_", f"{stamp}_{scenario}_{pilot}_seed{seed}")
-    path = Path(root) / safe
-    suffix = 1
-    while path.exists():
-        suffix += 1
-        path = Path(root) / f"{safe}_{suffix}"
-    return path
+    for suffix in itertools.count(1):
+        path = root / (safe if suffix == 1 else f"{safe}_{suffix}")
+        try:
+            path.mkdir()
+        except FileExistsError:
+            continue
+        except OSError as exc:
+            raise RecordingError(f"cannot create {path}: {exc.strerror or exc}") from None
+        return path
+    raise AssertionError("unreachable")
 
 
 def read_jsonl(path: Path) -> list[dict[str, Any]]:
@@ -63,11 +104,43 @@ def read_jsonl(path: Path) -> list[dict[str, Any]]:
     return records
 
 
+def write_then_rename(path: Path, write: Callable[[Path], object]) -> None:
+    """``write`` into a hidden temporary beside ``path``, then rename it into place.
+
+    Readers (and a record cut short by SIGKILL) see the whole file or none of it; a failed
+    write (a full disk, Ctrl-C) removes its temporary.
+    """
+    tmp = path.with_name(f".{path.name}.tmp")
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
 def write_atomic(path: Path, text: str) -> None:
     """(Re)write a text file through a temporary beside it: readers never see half a file."""
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(text, encoding="utf-8")
-    os.replace(tmp, path)
+    write_then_rename(path, lambda tmp: tmp.write_text(text, encoding="utf-8"))
+
+
+@contextmanager
+def interrupts_deferred() -> Iterator[None]:
+    """Hold Ctrl-C (SIGINT) until the block ends, so the final summary is written whole.
+
+    Only the main thread can handle signals; elsewhere this does nothing.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    caught: list[int] = []
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: caught.append(signum))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    if caught:
+        raise KeyboardInterrupt
 
 
 def write_json(path: Path, data: Mapping[str, Any]) -> None:
@@ -97,16 +170,28 @@ def _finite(value: Any) -> Any:
 
 
 class RunFolder:
-    """Writes one episode's record as it happens."""
+    """Writes one episode's record as it happens, one whole step at a time.
+
+    A step is its frames, its model exchanges, its line in steps.jsonl and the rewritten
+    summary.json, in that order. Each file appears whole or not at all (frames and images
+    through a temporary and a rename), so a SIGKILL leaves no half file that a line names;
+    steps.jsonl may then hold one line more than the summary counts (the kill fell between
+    the two). A step that cannot be written whole (a full disk) is taken back: its frames
+    removed and steps.jsonl cut back, so the folder ends at the last whole step.
+    """
 
     def __init__(self, path: str | Path, save_frames: bool = True, save_exr: bool = True):
+        """``path`` must not exist, or be an empty folder (as `new_run_dir` makes it)."""
         self.path = Path(path)
         self.save_frames = save_frames
         self.save_exr = save_exr
-        self.path.mkdir(parents=True, exist_ok=False)
+        self.path.mkdir(parents=True, exist_ok=True)
+        if any(self.path.iterdir()):
+            raise RecordingError(f"{self.path} is not empty: a run folder starts empty")
         if save_frames:
             (self.path / "frames").mkdir()
-        self._steps = open(self.path / "steps.jsonl", "a", encoding="utf-8")  # noqa: SIM115
+        # Unbuffered bytes: a line is one write, and a failed one can be cut back exactly.
+        self._steps = open(self.path / "steps.jsonl", "ab", buffering=0)  # noqa: SIM115
         self._stored: dict[str, str] = {}
 
     def write_frames(self, step: int, obs: Observation) -> dict[str, str]:
@@ -115,16 +200,41 @@ class RunFolder:
             return {}
         stem = f"frames/step_{step:04d}"
         files = {"rgb": f"{stem}_rgb.png", "depth_png": f"{stem}_depth.png"}
-        Image.fromarray(obs.rgb).save(self.path / files["rgb"], compress_level=1)
-        Image.fromarray(obs.depth_png).save(self.path / files["depth_png"], compress_level=1)
         if self.save_exr:
             files["depth_exr"] = f"{stem}_depth.exr"
-            write_exr(self.path / files["depth_exr"], obs.depth_m)
+        try:
+            self._save_png(files["rgb"], obs.rgb)
+            self._save_png(files["depth_png"], obs.depth_png)
+            if self.save_exr:
+                write_then_rename(
+                    self.path / files["depth_exr"], lambda t: write_exr(t, obs.depth_m)
+                )
+        except BaseException:
+            self._remove(files.values())
+            raise
         return files
 
+    def _save_png(self, name: str, image: np.ndarray) -> None:
+        write_then_rename(
+            self.path / name,
+            lambda tmp: Image.fromarray(image).save(tmp, format="PNG", compress_level=1),
+        )
+
+    def _remove(self, names: Iterable[str]) -> None:
+        for name in names:
+            (self.path / name).unlink(missing_ok=True)
+
     def append_step(self, record: dict[str, Any]) -> None:
-        self._steps.write(json.dumps(_finite(record), default=_json_default) + "\n")
-        self._steps.flush()
+        """Append one line to steps.jsonl; a line that fails half-written is cut back."""
+        line = (json.dumps(_finite(record), default=_json_default) + "\n").encode()
+        end = self._steps.seek(0, os.SEEK_END)
+        try:
+            written = self._steps.write(line)
+            if written != len(line):
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        except BaseException:
+            self._steps.truncate(end)
+            raise
 
     def store_image(self, data_url: str) -> str:
         """Write a data-URL image once, named by its content hash; returns its path.
@@ -141,18 +251,33 @@ class RunFolder:
         path = self.path / name
         if not path.exists():
             path.parent.mkdir(exist_ok=True)
-            path.write_bytes(raw)
+            write_then_rename(path, lambda tmp: tmp.write_bytes(raw))
         self._stored[data_url] = name
         return name
 
     def record(
-        self, step: dict[str, Any], obs: Observation, exchanges: Sequence[Mapping[str, Any]]
+        self,
+        step: dict[str, Any],
+        obs: Observation,
+        exchanges: Sequence[Mapping[str, Any]],
+        summary: Mapping[str, Any],
     ) -> None:
-        """Write one step: its frames, its model exchanges, then its line in steps.jsonl."""
+        """Write one whole step: frames, model exchanges, its line, then ``summary``.
+
+        Raises:
+            OSError: the step could not be written (it was taken back, see the class).
+        """
         step["frames"] = self.write_frames(step["step"], obs)
-        if exchanges:
-            self.record_exchanges(step["step"], exchanges)
-        self.append_step(step)
+        end = self._steps.seek(0, os.SEEK_END)
+        try:
+            if exchanges:
+                self.record_exchanges(step["step"], exchanges)
+            self.append_step(step)
+            self.write_json("summary.json", summary)
+        except BaseException:
+            self._steps.truncate(end)
+            self._remove(step["frames"].values())
+            raise
 
     def record_exchanges(self, step: int, exchanges: Sequence[Mapping[str, Any]]) -> None:
         """Append every model request and raw reply of a step to exchanges.jsonl.
@@ -161,15 +286,17 @@ class RunFolder:
         replaced by references to images/, stored once; the request carries no
         credentials (keys live in the backend's HTTP headers, never in messages).
         """
+        lines = []
+        for attempt, exchange in enumerate(exchanges):
+            record = {
+                "step": step,
+                "attempt": attempt,
+                **exchange,
+                "messages": [self._strip_images(m) for m in exchange["messages"]],
+            }
+            lines.append(json.dumps(record) + "\n")
         with open(self.path / "exchanges.jsonl", "a", encoding="utf-8") as out:
-            for attempt, exchange in enumerate(exchanges):
-                record = {
-                    "step": step,
-                    "attempt": attempt,
-                    **exchange,
-                    "messages": [self._strip_images(m) for m in exchange["messages"]],
-                }
-                out.write(json.dumps(record) + "\n")
+            out.write("".join(lines))
 
     def _strip_images(self, message: dict[str, Any]) -> dict[str, Any]:
         content = message["content"]
@@ -183,14 +310,20 @@ class RunFolder:
                 parts.append(part)
         return {**message, "content": parts}
 
-    def write_json(self, name: str, data: dict[str, Any]) -> None:
+    def write_json(self, name: str, data: Mapping[str, Any]) -> None:
         """Atomically (re)write a JSON file of the run folder."""
         write_json(self.path / name, data)
 
     def finish(
         self, summary: dict[str, Any], log: EpisodeLog, caster: RayCaster, plots: bool
     ) -> None:
-        """Draw the plots from what was recorded (if ``plots``), write the final summary."""
+        """Draw the plots from what was recorded (if ``plots``), write the final summary.
+
+        The summary is written whatever happens: Ctrl-C while the plots are drawn leaves
+        the episode's own status with no plots, and is held while the summary is written.
+        A summary that cannot be written (the disk is still full) leaves the last one,
+        which agrees with steps.jsonl.
+        """
         try:
             if plots:
                 from cavenav.episode.plots import plot_episode
@@ -199,5 +332,12 @@ class RunFolder:
                     summary, log.poses, log.clearances, log.scenario, caster, self.path
                 )
         finally:
-            self.write_json("summary.json", summary)
             self._steps.close()
+            with interrupts_deferred():
+                try:
+                    self.write_json("summary.json", summary)
+                except OSError as exc:
+                    if summary["status"] != "crashed":  # else the cause is on its way up
+                        raise RecordingError(
+                            f"cannot write {self.path / 'summary.json'}: {exc.strerror or exc}"
+                        ) from None

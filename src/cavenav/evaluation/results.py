@@ -13,7 +13,9 @@ Outcomes (the failure taxonomy, one per episode):
     stuck          out of steps having barely moved during the last `WINDOW` steps
     oscillating    out of steps having moved during the last `WINDOW` steps without making
                    headway: back and forth, or round in circles
-    error          the episode raised an error (recorded in its summary) or its worker died
+    error          the episode raised an error (recorded in its summary), its worker died,
+                   or the model server failed it (no answer in time, a refused key, a
+                   proxy's page): not the model's fault, so a resumed sweep flies it again
     incomplete     not flown yet, or cut short by Ctrl-C or a kill (re-run to finish it)
 """
 
@@ -96,10 +98,18 @@ COLUMNS = (
 )
 
 
+def server_failed(summary: Mapping[str, Any]) -> bool:
+    """The pilot failed because its model server did (`PilotFailure.cause`), not its replies."""
+    return summary.get("termination") == "pilot_failure" and summary.get("failure_cause") in (
+        "backend",
+        "auth",
+    )
+
+
 def outcome(summary: Mapping[str, Any], steps: Sequence[Mapping[str, Any]]) -> str:
     """The episode's place in the failure taxonomy (see the module docstring)."""
     status = summary.get("status")
-    if status == "crashed" or summary.get("error"):
+    if status == "crashed" or summary.get("error") or server_failed(summary):
         return "error"
     if status != "finished":
         return "incomplete"
@@ -174,7 +184,8 @@ def episode_row(run_dir: Path, root: Path | None = None) -> dict[str, Any]:
         "mean_pilot_ms": summary.get("mean_pilot_ms"),
         "mean_sense_ms": summary.get("mean_sense_ms"),
         "wall_time_s": summary.get("wall_time_s"),
-        "error": summary.get("error"),
+        "error": summary.get("error")
+        or (summary.get("failure") if server_failed(summary) else None),
         "run_dir": relative,
     }
 

@@ -15,12 +15,15 @@ and never stops the sweep.
 
 from __future__ import annotations
 
+import fcntl
 import json
+import os
 import re
 import shutil
 import threading
 import traceback
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from datetime import UTC, datetime
 from pathlib import Path
@@ -28,9 +31,9 @@ from typing import Any, Protocol
 
 from cavenav import __version__
 from cavenav.episode.loop import EpisodeConfig, run_episode
-from cavenav.episode.run_folder import write_json
+from cavenav.episode.run_folder import prepare_root, write_json
 from cavenav.errors import ConfigError
-from cavenav.evaluation.results import episode_row, write_results
+from cavenav.evaluation.results import episode_row, server_failed, write_results
 from cavenav.pilots.base import Pilot
 from cavenav.pilots.factory import PilotSpec, VLMOptions
 from cavenav.sensors.rig import SensorConfig
@@ -236,10 +239,12 @@ def prepare(config: SweepConfig, folder: Path) -> list[EpisodeJob]:
 
 
 def _finished(run_dir: Path) -> bool:
+    """Flown to an ending the pilot is answerable for: nothing to fly again on resume."""
     try:
-        return json.loads((run_dir / "summary.json").read_text())["status"] == "finished"
-    except (OSError, ValueError, KeyError):
+        summary = json.loads((run_dir / "summary.json").read_text())
+    except (OSError, ValueError):
         return False
+    return summary.get("status") == "finished" and not server_failed(summary)
 
 
 class EpisodeWorker:
@@ -357,14 +362,40 @@ def run_sweep(
         written (the episodes in flight count as incomplete) before the interrupt goes on.
     """
     folder = Path(folder)
-    jobs = prepare(config, folder)
-    if started:
-        started(len(jobs), len(plan(config)))
-    try:
-        executor.run(config, folder, jobs, done or (lambda row: None))
-    finally:
-        rows = read_rows(folder)
+    with _only_sweep_in(folder):
+        jobs = prepare(config, folder)
+        if started:
+            started(len(jobs), len(plan(config)))
+        try:
+            executor.run(config, folder, jobs, done or (lambda row: None))
+        finally:
+            rows = read_rows(folder)
     return rows
+
+
+@contextmanager
+def _only_sweep_in(folder: Path) -> Iterator[None]:
+    """Hold ``folder`` for this sweep: a second sweep started into it (the same command in
+    another terminal) would fly the same episodes into the same run folders.
+
+    The lock is the kernel's (flock on the folder itself): a killed sweep releases it.
+
+    Raises:
+        ConfigError: another sweep holds ``folder``.
+    """
+    prepare_root(folder)
+    fd = os.open(folder, os.O_RDONLY)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise ConfigError(
+                f"another sweep is writing into {folder}; wait for it to end, or choose "
+                "another --out"
+            ) from None
+        yield
+    finally:
+        os.close(fd)  # releases the lock
 
 
 def read_sweep(folder: Path) -> tuple[SweepConfig, dict[str, Any]]:

@@ -8,16 +8,22 @@ recorded in a run folder means the same thing to every backend.
 from __future__ import annotations
 
 import base64
+import email.utils
 import hashlib
 import io
 import json
 import math
 import os
 import random
+import threading
 import time
-from dataclasses import asdict, dataclass, field
+from collections.abc import Callable, Iterator, Mapping
+from contextlib import contextmanager
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
+
+import httpx2
 
 from cavenav.errors import (
     BackendAuthError,
@@ -28,6 +34,9 @@ from cavenav.errors import (
     DependencyError,
     RateLimited,
 )
+
+if TYPE_CHECKING:
+    import openai
 
 __all__ = [
     "Backend",
@@ -49,7 +58,8 @@ class Completion:
         text: the raw reply, reasoning included.
         prompt_tokens, completion_tokens: as reported by the server (or counted locally).
         latency_s: wall time of the successful request.
-        retries: transport retries before it (timeouts, 408/409/429/5xx, refused).
+        retries: transport retries before it (timeouts, 408/409/429/5xx, refused, a
+            body that was no reply).
         errors: one line per failed attempt, for the record.
         cached: served from the reply cache, no model call.
     """
@@ -91,17 +101,23 @@ class OpenAIConfig:
         base_url: e.g. http://localhost:8000/v1; None means api.openai.com.
         model: model name as the server knows it.
         api_key_env: environment variable holding the key; the key itself is never stored.
-        timeout_s: per request.
-        max_retries: transport retries per request (timeout, refused, 408/409/429/5xx),
-            with exponential backoff that honours retry-after.
+        timeout_s: the whole of one attempt (connect, send, wait, read every byte), not
+            each socket read: a server trickling a byte a second is cut off all the same.
+        deadline_s: the whole of one `complete()` call, retries and waits included; None
+            means ``timeout_s * (max_retries + 1)``. A retry whose wait would pass it is
+            not made.
+        max_retries: transport retries per request (timeout, refused, 408/409/429/5xx,
+            a body that is no reply, or what the server's x-should-retry says).
         temperature, max_tokens, detail: sampling and image settings sent with each request.
-        backoff_s, backoff_cap_s: first and largest wait between retries.
+        backoff_s, backoff_cap_s: first and largest wait between retries when the server
+            names none (retry-after): doubling from the first, less 0-25 % at random.
     """
 
     model: str
     base_url: str | None = None
     api_key_env: str = "OPENAI_API_KEY"
     timeout_s: float = 60.0
+    deadline_s: float | None = None
     max_retries: int = 4
     temperature: float = 0.2
     max_tokens: int = 1024
@@ -109,16 +125,151 @@ class OpenAIConfig:
     backoff_s: float = 1.0
     backoff_cap_s: float = 30.0
 
+    @property
+    def budget_s(self) -> float:
+        """Seconds one `complete()` call may take: `deadline_s`, or every attempt's timeout."""
+        return (
+            self.deadline_s
+            if self.deadline_s is not None
+            else self.timeout_s * (self.max_retries + 1)
+        )
 
-_RETRY_STATUS = {408, 409, 429}
+
+# As the openai SDK (`_base_client.py`, `MAX_RETRY_AFTER_DELAY`): a server that asks for a
+# longer wait than this means "not soon", and the request is not retried at all.
+MAX_RETRY_AFTER_S = 120.0
+# Of a body that is no reply (a proxy's error page), what the run folder keeps: enough
+# to read the page's message, not a whole site.
+REPLY_CHARS = 2000
+
+
+def _retry_after(headers: Mapping[str, str], now: float) -> float | None:
+    """The wait a server asked for, in seconds, as the SDK reads it: retry-after-ms, else
+    retry-after as seconds or as an HTTP date (measured from ``now``, a `time.time()`).
+    None when it named none, or nothing finite."""
+    for name, scale in (("retry-after-ms", 1e-3), ("retry-after", 1.0)):
+        try:
+            value = float(headers[name]) * scale
+        except (KeyError, ValueError):
+            continue
+        return value if math.isfinite(value) else None
+    date = email.utils.parsedate_tz(headers.get("retry-after", ""))
+    if date is None:
+        return None
+    try:
+        return email.utils.mktime_tz(date) - now
+    except (OverflowError, ValueError):
+        return None
+
+
+def _should_retry(status: int, headers: Mapping[str, str], asked: float | None) -> bool:
+    """Whether an HTTP error is worth another attempt, as the SDK's `_should_retry`
+    decides: never after a wait too long to honour, then as the server's x-should-retry
+    says, else for 408, 409, 429 and 5xx."""
+    if asked is not None and asked > MAX_RETRY_AFTER_S:
+        return False
+    flag = headers.get("x-should-retry")
+    if flag in ("true", "false"):
+        return flag == "true"
+    return status in (408, 409, 429) or status >= 500
+
+
+def _backoff(retry: int, asked: float | None, first_s: float, cap_s: float) -> float:
+    """Seconds to wait before retry number ``retry`` (0 for the first).
+
+    The server's retry-after when it is a usable wait (0 < asked <= MAX_RETRY_AFTER_S),
+    else ``min(first_s * 2**retry, cap_s)`` less 0-25 % at random, so that clients
+    refused together do not all come back together (the SDK's
+    `_calculate_retry_timeout`, with our first wait and cap).
+    """
+    if asked is not None and 0 < asked <= MAX_RETRY_AFTER_S:
+        return asked
+    # 2**32 passes any cap; the bound keeps the power finite for absurd retry counts.
+    return min(first_s * 2.0 ** min(retry, 32), cap_s) * (1 - 0.25 * random.random())
+
+
+def _time_left(deadline: float, clock: Callable[[], float]) -> float:
+    """Seconds until ``deadline``; past it, the `httpx2.ReadTimeout` the SDK reports as
+    `openai.APITimeoutError`, so that a cut-off attempt is a timeout like any other."""
+    left = deadline - clock()
+    if left <= 0:
+        raise httpx2.ReadTimeout("the attempt's deadline has passed")
+    return left
+
+
+class _DeadlineStream(httpx2.SyncByteStream):
+    """A response body that ends at a deadline however steadily it trickles in: the read
+    timeout bounds each wait for bytes, so one byte every few seconds never trips it."""
+
+    def __init__(self, inner: httpx2.SyncByteStream, deadline: float, clock: Callable[[], float]):
+        self._inner, self._deadline, self._clock = inner, deadline, clock
+
+    def __iter__(self) -> Iterator[bytes]:
+        for chunk in self._inner:
+            _time_left(self._deadline, self._clock)
+            yield chunk
+
+    def close(self) -> None:
+        self._inner.close()
+
+
+@dataclass(frozen=True)
+class _Failed:
+    """One failed attempt: its line for the record, whether to try again, what to raise
+    if not, the wait the server asked for and the body it sent (if any)."""
+
+    error: type[BackendError]
+    line: str
+    retry: bool
+    asked_s: float | None = None
+    reply: str = ""
+
+
+def _status_failure(exc: openai.APIStatusError, key_env: str) -> _Failed:
+    """What an HTTP error means: a refused key is not retried (it will not change);
+    the rest are retried as the SDK would."""
+    status, headers, body = exc.status_code, exc.response.headers, exc.response.text
+    if status in (401, 403):
+        line = f"the API key from ${key_env} was refused (HTTP {status})"
+        return _Failed(BackendAuthError, line, retry=False, reply=body)
+    asked = _retry_after(headers, time.time())
+    error: type[BackendError] = BackendError
+    if status == 429:
+        error = RateLimited
+    elif status in (408, 409) or status >= 500:
+        error = BackendUnavailable
+    line = f"HTTP {status}: {_short(exc)}"
+    return _Failed(error, line, _should_retry(status, headers, asked), asked, body)
 
 
 class OpenAIBackend:
-    """Chat completions through the official `openai` SDK."""
+    """Chat completions through the official `openai` SDK.
+
+    Retries are made here, not in the SDK, so that each is counted and recorded; the
+    SDK's HTTP client is built here too, so that an attempt's deadline reaches every
+    phase of the request (see `_cap_timeouts` and `_bound_body`). One gap is left: the
+    status line and headers are read under one read timeout (the time left when the
+    request starts) per socket read, so only a server trickling its *body* is cut off
+    mid-way; headers trickled byte by byte would be bounded per read alone.
+    """
 
     name = "openai"
 
-    def __init__(self, config: OpenAIConfig, http_client: Any = None):
+    def __init__(
+        self,
+        config: OpenAIConfig,
+        transport: httpx2.BaseTransport | None = None,
+        sleep: Callable[[float], None] = time.sleep,
+        clock: Callable[[], float] = time.monotonic,
+    ):
+        """
+        Args:
+            config: the endpoint and its limits.
+            transport: how requests leave (default: the network, proxies from the
+                environment included); tests pass an `httpx2.MockTransport`.
+            sleep, clock: the waits between retries and the time deadlines are kept
+                against (seconds, monotonic), injectable so that tests need not wait.
+        """
         import openai
 
         self.config = config
@@ -130,23 +281,60 @@ class OpenAIBackend:
                 "(or point --base-url at a local server)"
             )
         self._openai = openai
+        self._sleep, self._clock = sleep, clock
+        # The deadline of the attempt this thread is making: sweeps share one backend
+        # between threads, and the HTTP hooks run in the thread that sends.
+        self._attempt_deadline = threading.local()
+        hooks: dict[str, list[Callable[..., Any]]] = {
+            "request": [self._cap_timeouts],
+            "response": [self._bound_body],
+        }
         # Local servers (vLLM, Ollama, llama.cpp) accept any key; the SDK needs one.
         self._client = openai.OpenAI(
             api_key=key or "EMPTY",
             base_url=config.base_url,
             timeout=config.timeout_s,
             max_retries=0,  # retried here, so that every retry is counted and recorded
-            http_client=http_client,
+            http_client=openai.DefaultHttpxClient(transport=transport, event_hooks=hooks),
         )
 
     @property
     def params(self) -> dict[str, Any]:
         return {"temperature": self.config.temperature, "max_tokens": self.config.max_tokens}
 
+    @contextmanager
+    def _until(self, deadline: float) -> Iterator[None]:
+        """Bound every request this thread sends meanwhile by ``deadline`` (clock time)."""
+        self._attempt_deadline.at = deadline
+        try:
+            yield
+        finally:
+            self._attempt_deadline.at = None
+
+    def _cap_timeouts(self, request: httpx2.Request) -> None:
+        """Request hook: no phase (connect, write, pool, each read) may wait past the
+        attempt's deadline."""
+        deadline = getattr(self._attempt_deadline, "at", None)
+        if deadline is None:
+            return
+        left = _time_left(deadline, self._clock)
+        request.extensions["timeout"] = {
+            phase: left if limit is None else min(limit, left)
+            for phase, limit in request.extensions["timeout"].items()
+        }
+
+    def _bound_body(self, response: httpx2.Response) -> None:
+        """Response hook: the body, read next, stops at the attempt's deadline."""
+        deadline = getattr(self._attempt_deadline, "at", None)
+        if deadline is not None:
+            assert isinstance(response.stream, httpx2.SyncByteStream)  # a sync client
+            response.stream = _DeadlineStream(response.stream, deadline, self._clock)
+
     def check(self) -> None:
         openai = self._openai
         try:
-            self._client.with_options(max_retries=1).models.list()
+            with self._until(self._clock() + self.config.budget_s):
+                self._client.with_options(max_retries=1).models.list()
         except (openai.AuthenticationError, openai.PermissionDeniedError) as exc:
             raise BackendAuthError(
                 f"{self._where()} refused the API key from ${self.config.api_key_env} "
@@ -163,77 +351,87 @@ class OpenAIBackend:
         return self.config.base_url or "api.openai.com"
 
     def complete(self, messages: list[Message], json_schema: dict | None = None) -> Completion:
-        openai, cfg = self._openai, self.config
+        """One reply, retried within the call's deadline.
+
+        Raises:
+            BackendError: or a subclass saying why, carrying each attempt's error and
+                the last body received, when no attempt gave a reply.
+        """
+        cfg = self.config
         extra: dict[str, Any] = {}
         if json_schema is not None:
             extra["response_format"] = {
                 "type": "json_schema",
                 "json_schema": {"name": "pilot_reply", "schema": json_schema, "strict": True},
             }
+        deadline = self._clock() + cfg.budget_s
         errors: list[str] = []
-        for attempt in range(cfg.max_retries + 1):
-            start = time.perf_counter()
-            wait: float | None = None
-            try:
-                response = self._client.chat.completions.create(
+        while True:
+            outcome = self._attempt(messages, extra, min(self._clock() + cfg.timeout_s, deadline))
+            if isinstance(outcome, Completion):
+                return replace(outcome, retries=len(errors), errors=tuple(errors))
+            errors.append(outcome.line)
+            attempts = f"{len(errors)} attempt{'s' if len(errors) > 1 else ''}"
+            wait = _backoff(len(errors) - 1, outcome.asked_s, cfg.backoff_s, cfg.backoff_cap_s)
+            error = outcome.error
+            if not outcome.retry:
+                reason = outcome.line
+            elif len(errors) > cfg.max_retries:
+                reason = f"gave up after {attempts} ({outcome.line})"
+            elif self._clock() + wait >= deadline:
+                error = BackendTimeout
+                reason = f"deadline of {cfg.budget_s:g} s reached after {attempts} ({outcome.line})"
+            else:
+                self._sleep(wait)
+                continue
+            raise error(
+                f"{self._where()}: {reason}",
+                errors=tuple(errors),
+                reply=outcome.reply[:REPLY_CHARS],
+            )
+
+    def _attempt(
+        self, messages: list[Message], extra: dict[str, Any], deadline: float
+    ) -> Completion | _Failed:
+        """One request that must end by ``deadline`` (clock time)."""
+        openai, cfg = self._openai, self.config
+        start = self._clock()
+        try:
+            with self._until(deadline):
+                raw = self._client.chat.completions.with_raw_response.create(
                     model=cfg.model,
                     messages=messages,  # type: ignore[arg-type]  # plain dicts, OpenAI format
                     **self.params,
                     **extra,
                 )
-            except (openai.AuthenticationError, openai.PermissionDeniedError) as exc:
-                raise BackendAuthError(
-                    f"{self._where()} refused the API key ({exc.status_code})"
-                ) from None
-            except openai.APITimeoutError:
-                errors.append(f"timeout after {cfg.timeout_s:g} s")
-                final: type[BackendError] = BackendTimeout
-            except openai.APIConnectionError as exc:
-                errors.append(f"connection failed: {exc}")
-                final = BackendUnavailable
-            except openai.APIStatusError as exc:
-                status = exc.status_code
-                if status not in _RETRY_STATUS and status < 500:
-                    raise BackendError(
-                        f"{self._where()} answered {status}: {_short(exc)}"
-                    ) from None
-                errors.append(f"HTTP {status}: {_short(exc)}")
-                final = RateLimited if status == 429 else BackendUnavailable
-                wait = _retry_after(exc.response.headers)
-            else:
-                choice = response.choices[0] if response.choices else None
-                text = (choice.message.content or "") if choice else ""
-                usage = response.usage
-                return Completion(
-                    text=text,
-                    prompt_tokens=int(getattr(usage, "prompt_tokens", 0) or 0),
-                    completion_tokens=int(getattr(usage, "completion_tokens", 0) or 0),
-                    latency_s=time.perf_counter() - start,
-                    retries=attempt,
-                    errors=tuple(errors),
-                    model=response.model or cfg.model,
-                )
-            if attempt < cfg.max_retries:
-                backoff = cfg.backoff_s * 2**attempt * (1 + 0.1 * random.random())
-                time.sleep(min(wait if wait is not None else backoff, cfg.backoff_cap_s))
-        raise final(f"{self._where()}: gave up after {cfg.max_retries + 1} attempts ({errors[-1]})")
+        except openai.APITimeoutError:
+            return _Failed(BackendTimeout, f"timeout after {deadline - start:.3g} s", retry=True)
+        except openai.APIConnectionError as exc:
+            return _Failed(BackendUnavailable, f"connection failed: {exc}", retry=True)
+        except openai.APIStatusError as exc:
+            return _status_failure(exc, cfg.api_key_env)
+        body = raw.http_response.text
+        try:
+            # A str for a body that is not JSON; a ValueError when it claims to be.
+            parsed: Any = raw.parse()
+        except ValueError:
+            parsed = None
+        if not isinstance(parsed, openai.types.chat.ChatCompletion) or parsed.choices is None:
+            line = f"HTTP {raw.status_code} but no chat completion: {body[:100]!r}"
+            return _Failed(BackendUnavailable, line, retry=True, reply=body)
+        choice = parsed.choices[0] if parsed.choices else None
+        usage = parsed.usage
+        return Completion(
+            text=(choice.message.content or "") if choice else "",
+            prompt_tokens=int(getattr(usage, "prompt_tokens", 0) or 0),
+            completion_tokens=int(getattr(usage, "completion_tokens", 0) or 0),
+            latency_s=self._clock() - start,
+            model=parsed.model or cfg.model,
+        )
 
 
 def _short(exc: Exception) -> str:
     return str(exc).splitlines()[0][:200]
-
-
-def _retry_after(headers: Any) -> float | None:
-    """Seconds from a retry-after(-ms) header, if the server sent one."""
-    try:
-        if headers.get("retry-after-ms"):
-            return float(headers["retry-after-ms"]) / 1000.0
-        if headers.get("retry-after"):
-            value = float(headers["retry-after"])
-            return value if math.isfinite(value) and value >= 0 else None
-    except (TypeError, ValueError):
-        return None
-    return None
 
 
 # --------------------------------------------------------------------------- cache

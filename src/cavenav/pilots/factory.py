@@ -32,7 +32,8 @@ class VLMOptions:
     backend: str = "openai"  # or "transformers"
     base_url: str | None = None
     api_key_env: str = "OPENAI_API_KEY"
-    timeout: float = 60.0
+    timeout: float = 60.0  # seconds one attempt may take, whole
+    deadline: float | None = None  # seconds a request may take, retries included
     retries: int = 4
     temperature: float = 0.2
     max_tokens: int = 1024
@@ -137,6 +138,7 @@ def _vlm_pilot(options: VLMOptions, check: bool) -> Pilot:
                 base_url=options.base_url,
                 api_key_env=options.api_key_env,
                 timeout_s=options.timeout,
+                deadline_s=options.deadline,
                 max_retries=options.retries,
                 temperature=options.temperature,
                 max_tokens=options.max_tokens,

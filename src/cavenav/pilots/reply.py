@@ -30,7 +30,8 @@ class ParsedReply:
 
 
 def _dict_candidates(text: str) -> list[str]:
-    """Every balanced ``{...}`` span, outermost only, in order of appearance."""
+    """Every balanced ``{...}`` span, outermost only, in order of appearance; a brace
+    that is never closed is read as prose."""
     spans, depth, start, quote, escaped = [], 0, -1, "", False
     for i, ch in enumerate(text):
         if quote:
@@ -51,6 +52,10 @@ def _dict_candidates(text: str) -> list[str]:
             depth -= 1
             if depth == 0:
                 spans.append(text[start : i + 1])
+    if depth > 0:
+        # A brace (or a quote) left open in the reasoning ("I considered {going left")
+        # would swallow the answer after it: look again past the brace that opened it.
+        spans += _dict_candidates(text[start + 1 :])
     return spans
 
 

@@ -4,14 +4,16 @@ Per step it sends the fixed system prompt first (servers with prefix caching reu
 then the K most recent earlier observations with the action taken after each, then the
 current RGB and depth images with d_top and d_bottom. A reply that cannot be used is sent
 back with the reason, at most `max_requeries` times; after that, or when the backend
-gives up after its own retries, the pilot raises `PilotFailure` and the episode ends as
-``pilot_failure``. It never substitutes a default action.
+gives up after its own retries (or is refused the key), the pilot raises `PilotFailure`,
+the failed request recorded with it, and the episode ends as ``pilot_failure``. It never
+substitutes a default action.
 """
 
 from __future__ import annotations
 
 import base64
 import io
+import math
 from collections import deque
 from dataclasses import dataclass, replace
 from typing import Any
@@ -38,10 +40,14 @@ def png_data_url(image: np.ndarray) -> str:
 
 @dataclass(frozen=True)
 class EncodedObservation:
-    """An observation as sent: encoded images, sounder readings, action taken after it."""
+    """An observation as sent: encoded images, sounder readings, action taken after it.
+
+    ``depth_url`` is None when the observation has no depth image (a photograph), and
+    a sounder reading NaN when it was not measured; the request then says so in words.
+    """
 
     rgb_url: str
-    depth_url: str
+    depth_url: str | None
     d_top: float
     d_bottom: float
     action: str = ""
@@ -54,6 +60,14 @@ class Exchange:
     messages: list[Message]
     completion: Completion
     error: str | None = None  # why the reply was rejected, if it was
+
+    @classmethod
+    def failed(cls, messages: list[Message], error: BackendError) -> Exchange:
+        """A request the backend gave up on: whatever body came back, each failed
+        attempt's error, and the give-up message as the reason it was rejected."""
+        retries = max(len(error.errors) - 1, 0)  # one line per attempt
+        completion = Completion(error.reply, retries=retries, errors=error.errors)
+        return cls(list(messages), completion, str(error))
 
     def to_record(self, model: str) -> dict[str, Any]:
         """A plain JSON record: the episode layer stores it without knowing any backend."""
@@ -81,8 +95,34 @@ def _image(url: str, detail: str | None) -> dict[str, Any]:
     return {"type": "image_url", "image_url": image_url}
 
 
+# Said instead of a depth image that does not exist: a blank one would read as "nothing
+# within D_max", and the system prompt promises a depth image with every observation.
+NO_DEPTH_TEXT = "No depth image is available for this observation: judge distances from"
+
+
+def _metres(value: float) -> str:
+    return f"{value:.2f} m" if math.isfinite(value) else "unknown"
+
+
 def _readings(seen: EncodedObservation) -> str:
-    return f"d_top = {seen.d_top:.2f} m, d_bottom = {seen.d_bottom:.2f} m"
+    return f"d_top = {_metres(seen.d_top)}, d_bottom = {_metres(seen.d_bottom)}"
+
+
+def _introduce(seen: EncodedObservation, opening: str, detail: str | None) -> list[dict[str, Any]]:
+    """The sounder readings and what the images are, then the images."""
+    text = f"{opening}: {_readings(seen)}."
+    if seen.depth_url is not None:
+        return [
+            {"type": "text", "text": f"{text} Colour, then depth:"},
+            _image(seen.rgb_url, detail),
+            _image(seen.depth_url, detail),
+        ]
+    sounders = math.isfinite(seen.d_top) or math.isfinite(seen.d_bottom)
+    sources = "the colour image and the sounder readings" if sounders else "the colour image"
+    return [
+        {"type": "text", "text": f"{text} {NO_DEPTH_TEXT} {sources}. Colour:"},
+        _image(seen.rgb_url, detail),
+    ]
 
 
 def build_messages(
@@ -91,24 +131,22 @@ def build_messages(
     history: list[EncodedObservation],
     detail: str | None = None,
 ) -> list[Message]:
-    """OpenAI-format messages: system prompt, then one user turn with every image."""
+    """OpenAI-format messages: system prompt, then one user turn with every image.
+
+    Each observation is introduced by its sounder readings ("unknown" where not
+    measured) and by what its images are; one without a depth image gets a sentence
+    saying so (`NO_DEPTH_TEXT`) in place of the image.
+    """
     content: list[dict[str, Any]] = []
     for k, seen in enumerate(history):
         age = len(history) - k
+        when = f"{age} step{'s' if age > 1 else ''} ago"
         content += [
-            {
-                "type": "text",
-                "text": f"Earlier observation ({age} step{'s' if age > 1 else ''} "
-                f"ago): {_readings(seen)}. Colour, then depth:",
-            },
-            _image(seen.rgb_url, detail),
-            _image(seen.depth_url, detail),
+            *_introduce(seen, f"Earlier observation ({when})", detail),
             {"type": "text", "text": f"Action taken after it: {seen.action}"},
         ]
     content += [
-        {"type": "text", "text": f"Current observation: {_readings(current)}. Colour, then depth:"},
-        _image(current.rgb_url, detail),
-        _image(current.depth_url, detail),
+        *_introduce(current, "Current observation", detail),
         {"type": "text", "text": "Think step by step, then give the final one-pair dictionary."},
     ]
     return [{"role": "system", "content": system}, {"role": "user", "content": content}]
@@ -168,7 +206,7 @@ class VLMPilot:
     def decide(self, observation: Observation) -> Decision:
         current = EncodedObservation(
             png_data_url(observation.rgb),
-            png_data_url(observation.depth_png),
+            png_data_url(observation.depth_png) if observation.has_depth else None,
             observation.d_top,
             observation.d_bottom,
         )
@@ -184,10 +222,10 @@ class VLMPilot:
         for _ in range(self.max_requeries + 1):
             try:
                 completion = self.backend.complete(messages, schema)
-            except BackendAuthError:
-                raise
             except BackendError as exc:
-                raise self._failure(f"backend failed: {exc}", exchanges) from None
+                exchanges.append(Exchange.failed(messages, exc))
+                cause = "auth" if isinstance(exc, BackendAuthError) else "backend"
+                raise self._failure(f"backend failed: {exc}", exchanges, cause) from None
             try:
                 parsed = parse_reply(completion.text, self.prompt.space)
             except ActionError as exc:
@@ -224,10 +262,12 @@ class VLMPilot:
     def _records(self, exchanges: list[Exchange]) -> tuple[dict[str, Any], ...]:
         return tuple(e.to_record(self.backend.model) for e in exchanges)
 
-    def _failure(self, message: str, exchanges: list[Exchange]) -> PilotFailure:
+    def _failure(
+        self, message: str, exchanges: list[Exchange], cause: str = "reply"
+    ) -> PilotFailure:
         """The episode-ending failure, carrying the failed step's records and cost."""
         usage = self._usage(exchanges) if exchanges else None
-        return PilotFailure(message, self._records(exchanges), usage)
+        return PilotFailure(message, self._records(exchanges), usage, cause=cause)
 
     def _usage(self, exchanges: list[Exchange]) -> Usage:
         """What the step's requests cost; each request after the first was a re-query."""

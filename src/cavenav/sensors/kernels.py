@@ -37,6 +37,7 @@ numba.config.THREADING_LAYER_PRIORITY = ["omp", "workqueue", "tbb"]  # type: ign
 
 __all__ = [
     "bounce_light",
+    "corner_sums",
     "fill_rays",
     "gather_sky",
     "hemisphere_rays",
@@ -861,6 +862,25 @@ def bounce_light(
             b1 += leaving[face, side, 1] * math.exp(-attenuation[1] * dist)
             b2 += leaving[face, side, 2] * math.exp(-attenuation[2] * dist)
         out[f, 0], out[f, 1], out[f, 2] = b0 / r, b1 / r, b2 / r
+
+
+@numba.njit(cache=True)
+def corner_sums(
+    faces: np.ndarray,  # (m, 3) int vertex indices
+    weighted: np.ndarray,  # (m, k) float64 per-face values times the face's weight
+    weight: np.ndarray,  # (m,) float64 per-face weights
+    total: np.ndarray,  # (n, k) float64 out, zeroed: sum of weighted over each vertex's faces
+    total_weight: np.ndarray,  # (n,) float64 out, zeroed: sum of weight likewise
+) -> None:
+    """Scatter-add each face's row to its three vertices: corner 0 of every face first,
+    then 1, then 2, one thread, so each vertex sums in np.add.at's order, bit for bit."""
+    m, k = weighted.shape
+    for corner in range(3):
+        for f in range(m):
+            v = faces[f, corner]
+            for j in range(k):
+                total[v, j] += weighted[f, j]
+            total_weight[v] += weight[f]
 
 
 @numba.njit(parallel=True, fastmath=_FAST, cache=True)

@@ -20,6 +20,7 @@ from __future__ import annotations
 import hashlib
 import math
 import threading
+import weakref
 from collections import OrderedDict
 from dataclasses import dataclass
 from functools import lru_cache
@@ -31,6 +32,7 @@ from cavenav.sensors.camera import CameraIntrinsics
 from cavenav.sensors.kernels import (
     GRAIN_STEP,
     bounce_light,
+    corner_sums,
     gather_sky,
     hemisphere_rays,
     integrate_backscatter,
@@ -48,12 +50,25 @@ __all__ = [
     "lamp_arrays",
     "rock_albedo",
     "rock_grain",
+    "surface_patches",
     "surface_table",
     "vertex_normals",
 ]
 
 ALBEDO, DAYLIGHT = slice(0, 3), slice(3, 6)  # columns of the surface table
 CREVICE_RADIUS_M = 0.6  # rays hitting rock closer than this count as enclosed
+# Most ray origins of the surface table: 64 rays each, so at most 12.8 million rays
+# (about 10 s on 2 cores at 3 million triangles, whose BVH slows every ray). Every
+# cave shipped or generated has fewer triangles (S1-S5 about 80,000-100,000), and keeps
+# one origin per triangle; a finer mesh is grouped into patches (`surface_patches`).
+SURFACE_PATCHES = 200_000
+
+
+# Face normals and areas by mesh, while the mesh lives (see `face_normals`).
+_FACES: weakref.WeakKeyDictionary[CaveMesh, tuple[np.ndarray, np.ndarray]] = (
+    weakref.WeakKeyDictionary()
+)
+_FACES_LOCK = threading.Lock()
 
 
 def rock_albedo(mesh: CaveMesh, seed: int = 0, colour=(0.40, 0.37, 0.33)) -> np.ndarray:
@@ -94,24 +109,43 @@ def rock_grain(seed: int = 0, size: int = 64, strength: float = 0.5) -> np.ndarr
 
 
 def face_normals(mesh: CaveMesh) -> tuple[np.ndarray, np.ndarray]:
-    """(m, 3) unit normals (by winding) and (m,) areas of the triangles."""
-    tri = mesh.vertices[mesh.faces]
-    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    """(m, 3) unit normals (by winding) and (m,) areas of the triangles, read-only.
+
+    Kept while the mesh lives: the surface table and both vertex averages of a rig need
+    them, and at millions of triangles each computation takes a second.
+    """
+    with _FACES_LOCK:
+        known = _FACES.get(mesh)
+    if known is not None:
+        return known
+    v, f = mesh.vertices, mesh.faces
+    a = v[f[:, 0]]
+    ab, ac = v[f[:, 1]] - a, v[f[:, 2]] - a
+    # np.cross's own formula, written out on columns: the same bits, without its copies.
+    normal = np.empty_like(ab)
+    normal[:, 0] = ab[:, 1] * ac[:, 2] - ab[:, 2] * ac[:, 1]
+    normal[:, 1] = ab[:, 2] * ac[:, 0] - ab[:, 0] * ac[:, 2]
+    normal[:, 2] = ab[:, 0] * ac[:, 1] - ab[:, 1] * ac[:, 0]
     double_area = np.linalg.norm(normal, axis=1)
-    return normal / np.maximum(double_area, 1e-12)[:, None], 0.5 * double_area
+    normal /= np.maximum(double_area, 1e-12)[:, None]
+    area = 0.5 * double_area
+    normal.flags.writeable = area.flags.writeable = False
+    with _FACES_LOCK:
+        _FACES[mesh] = (normal, area)
+    return normal, area
 
 
 def at_vertices(mesh: CaveMesh, per_face: np.ndarray) -> np.ndarray:
     """(n_vertices, ...) float32 area-weighted mean of a per-face array over each vertex's
     faces, for smooth interpolation across triangles."""
     _, area = face_normals(mesh)
-    shape = (-1, *([1] * (per_face.ndim - 1)))
-    total = np.zeros((len(mesh.vertices), *per_face.shape[1:]))
-    weight = np.zeros(len(mesh.vertices))
-    for corner in range(3):
-        np.add.at(total, mesh.faces[:, corner], per_face * area.reshape(shape))
-        np.add.at(weight, mesh.faces[:, corner], area)
-    return (total / np.maximum(weight, 1e-12).reshape(shape)).astype(np.float32)
+    n, m = len(mesh.vertices), len(mesh.faces)
+    weighted = (per_face * area.reshape(-1, *([1] * (per_face.ndim - 1)))).reshape(m, -1)
+    total = np.zeros((n, weighted.shape[1]))
+    weight = np.zeros(n)
+    corner_sums(mesh.faces, np.ascontiguousarray(weighted), area, total, weight)
+    total /= np.maximum(weight, 1e-12)[:, None]
+    return total.reshape(n, *per_face.shape[1:]).astype(np.float32)
 
 
 def vertex_normals(mesh: CaveMesh) -> np.ndarray:
@@ -144,7 +178,8 @@ def surface_table(caster: RayCaster, optics: Optics, seed: int = 0, rays: int = 
     """(m, 2, 6) float32: per triangle and side (0: along its normal, 1: against it),
     columns 0-2 the albedo and 3-5 the daylight D (radiance = albedo * D).
 
-    About 1 s per 100,000 triangles on 2 cores; cached per mesh and parameters.
+    About 1 s per 100,000 triangles on 2 cores, and rays from at most `SURFACE_PATCHES`
+    places however fine the mesh; cached per mesh and parameters.
     """
     mesh = caster.mesh
     water = optics.medium
@@ -167,10 +202,67 @@ def surface_table(caster: RayCaster, optics: Optics, seed: int = 0, rays: int = 
     return table
 
 
+def surface_patches(
+    centre: np.ndarray, normal: np.ndarray, area: np.ndarray, limit: int | None = None
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """Group a fine mesh's triangles into about ``limit`` small patches of like facing.
+
+    A patch is the triangles whose centres share a cube of the grid and whose normals
+    share an octant and a largest component, so they face within 60 degrees of one
+    another: the two faces of a thin wall, or two walls meeting in a corner, never share
+    a patch.
+    The cube's side is set from the total area so that about ``limit`` cubes are
+    occupied: 5 cm for 3 million triangles over a 20 m tile, well under the 0.6 m of
+    `CREVICE_RADIUS_M` and the metres over which daylight changes.
+
+    Args:
+        centre: (m, 3) triangle centres.
+        normal: (m, 3) unit normals.
+        area: (m,) areas.
+        limit: the number of patches aimed at (default `SURFACE_PATCHES`).
+
+    Returns:
+        None when m <= ``limit`` (each triangle is its own patch); else ``patch``, (m,)
+        int64 the patch of each triangle, and ``representative``, (k,) int64 for each
+        patch the triangle nearest its area-weighted centre, whose rays stand for it.
+    """
+    m = len(centre)
+    limit = SURFACE_PATCHES if limit is None else limit
+    if m <= limit:
+        return None
+    facing = ((normal > 0.0) @ np.array([1, 2, 4])) * 3 + np.abs(normal).argmax(axis=1)
+    low = centre.min(axis=0)
+    # A surface crossing cubes at a slant occupies more than area / side^2 of them, about
+    # 1.2 times as many; a retry corrects any remaining excess.
+    side = math.sqrt(1.2 * max(float(area.sum()), 1e-12) / limit)
+    for _ in range(4):
+        cell = ((centre - low) / side).astype(np.int64)
+        dims = cell.max(axis=0) + 1
+        key = ((cell[:, 0] * dims[1] + cell[:, 1]) * dims[2] + cell[:, 2]) * 24 + facing
+        order = np.argsort(key, kind="stable")  # by patch
+        starts = np.flatnonzero(np.r_[True, key[order][1:] != key[order][:-1]])
+        if len(starts) <= 1.15 * limit:
+            break
+        side *= math.sqrt(len(starts) / limit)
+    k = len(starts)
+    sorted_patch = np.zeros(m, np.int64)
+    sorted_patch[starts[1:]] = 1
+    sorted_patch = np.cumsum(sorted_patch)
+    patch = np.empty(m, np.int64)
+    patch[order] = sorted_patch
+    weight = np.maximum(np.bincount(patch, area, minlength=k), 1e-30)
+    mean = np.stack([np.bincount(patch, area * centre[:, j], k) / weight for j in range(3)], 1)
+    gap = np.einsum("ij,ij->i", centre - mean[patch], centre - mean[patch])[order]
+    # In each patch's run of the sorted order, the first triangle at the run's least gap.
+    nearest = np.flatnonzero(gap == np.minimum.reduceat(gap, starts)[sorted_patch])
+    first = np.r_[True, sorted_patch[nearest][1:] != sorted_patch[nearest][:-1]]
+    return patch, order[nearest[first]]
+
+
 def _surface_table(caster: RayCaster, optics: Optics, seed: int, n_rays: int) -> np.ndarray:
     mesh = caster.mesh
     rng = np.random.default_rng([seed, 7])
-    normal, _ = face_normals(mesh)
+    normal, area = face_normals(mesh)
     centre = mesh.vertices[mesh.faces].mean(axis=1)
     m = len(mesh.faces)
     c = optics.medium.attenuation
@@ -178,41 +270,57 @@ def _surface_table(caster: RayCaster, optics: Optics, seed: int, n_rays: int) ->
     sky = optics.sky
     pattern = _hemisphere(n_rays)
     albedo = rock_albedo(mesh, seed, optics.rock_colour)[mesh.faces].mean(axis=1)
+    # Rays leave from every triangle of a mesh of up to SURFACE_PATCHES, else from one per
+    # patch; what they find (enclosure, daylight, bounce) is then spread over the patch,
+    # while albedo and sediment stay each triangle's own.
+    patches = surface_patches(centre, normal, area)
+    if patches is None:
+        origin, facing, k = centre, normal, m
+
+        def spread(per_origin: np.ndarray) -> np.ndarray:
+            return per_origin
+
+    else:
+        patch, representative = patches
+        origin, facing, k = centre[representative], normal[representative], len(representative)
+
+        def spread(per_origin: np.ndarray) -> np.ndarray:
+            return per_origin[patch]
 
     table = np.zeros((m, 2, 6), np.float32)
-    hit_face = np.empty((2, m, n_rays), np.int64)
-    hit_side = np.empty((2, m, n_rays), np.int8)
-    hit_dist = np.empty((2, m, n_rays), np.float32)
-    enclosed = np.empty(m)
-    direct = np.empty((m, 3))
+    hit_face = np.empty((2, k, n_rays), np.int64)
+    hit_side = np.empty((2, k, n_rays), np.int8)
+    hit_dist = np.empty((2, k, n_rays), np.float32)
+    enclosed = np.empty(k)
+    direct = np.empty((k, 3))
     chunk = max(1, 1_000_000 // n_rays)
     rays = np.empty((chunk * n_rays, 6), np.float32)
     for side, sign in enumerate((1.0, -1.0)):
-        n = sign * normal
-        # A random tangent frame per triangle, so the fixed ray pattern leaves no streaks.
-        tangent = np.cross(n, rng.normal(size=(m, 3)))
+        n = sign * facing
+        # A random tangent frame per origin, so the fixed ray pattern leaves no streaks.
+        tangent = np.cross(n, rng.normal(size=(k, 3)))
         tangent /= np.maximum(np.linalg.norm(tangent, axis=1, keepdims=True), 1e-12)
-        for start in range(0, m, chunk):
-            sl = slice(start, min(start + chunk, m))
+        for start in range(0, k, chunk):
+            sl = slice(start, min(start + chunk, k))
             batch = rays[: (sl.stop - start) * n_rays]
-            hemisphere_rays(centre[sl], n[sl], tangent[sl], pattern, 0.01, batch)
+            hemisphere_rays(origin[sl], n[sl], tangent[sl], pattern, 0.01, batch)
             out = caster.cast_raw_rays(batch)
             gather_sky(
                 batch, out["t_hit"], out["primitive_ids"], out["primitive_normals"], bounds,
                 c, sky, CREVICE_RADIUS_M, enclosed[sl], direct[sl], hit_face[side, sl],
                 hit_side[side, sl], hit_dist[side, sl],
             )  # fmt: skip
-        up = np.clip((n[:, 2] - 0.55) * 3.0, 0.0, 1.0)[:, None]  # silt settles on floors
+        up = np.clip((sign * normal[:, 2] - 0.55) * 3.0, 0.0, 1.0)[:, None]  # silt on floors
         rho = albedo + up * (np.asarray(optics.sediment_colour) - albedo)
-        rho *= (1.0 - 0.75 * enclosed**1.5)[:, None]  # crevices: light trapped, rock darker
+        rho *= spread(1.0 - 0.75 * enclosed**1.5)[:, None]  # crevices: light trapped, darker
         table[:, side, ALBEDO] = rho
-        table[:, side, DAYLIGHT] = direct
+        table[:, side, DAYLIGHT] = spread(direct)
     # One bounce: light from directly lit walls reaches walls around the corner.
     leaving = np.ascontiguousarray(table[..., ALBEDO] * table[..., DAYLIGHT])
-    bounce = np.empty((m, 3), np.float32)
+    bounce = np.empty((k, 3), np.float32)
     for side in range(2):
         bounce_light(hit_face[side], hit_side[side], hit_dist[side], leaving, c, bounce)
-        table[:, side, DAYLIGHT] += bounce
+        table[:, side, DAYLIGHT] += spread(bounce)
     return table
 
 

@@ -15,6 +15,7 @@ from typing import Any, Literal
 
 import numpy as np
 
+from cavenav.errors import ConfigError
 from cavenav.sensors.camera import CameraIntrinsics, camera_to_world, look_frame
 from cavenav.sensors.depth import DEPTH_RANGE_M
 from cavenav.sensors.kernels import SHARE, fill_rays, shade_frame, shade_grid, splat_particles
@@ -69,6 +70,16 @@ class SensorConfig:
     sounder_max_range_m: float = 50.0
     optics: Optics = field(default_factory=Optics)
     seed: int = 0
+
+    def __post_init__(self) -> None:
+        # A D_max of 0 flies with every pixel at 0 m; NaN or a negative one breaks the
+        # normalisation deep inside a step. Refuse them where they are set.
+        lo, hi = self.depth_min_m, self.depth_max_m
+        if not (math.isfinite(lo) and math.isfinite(hi) and 0 <= lo < hi):
+            raise ConfigError(
+                f"depth range D_min = {lo} m, D_max = {hi} m: give finite distances with "
+                "0 <= D_min < D_max"
+            )
 
     def with_optics(self, table: Mapping[str, Any], where: str = "[optics]") -> SensorConfig:
         """This set-up with the optics fields ``table`` sets (None keeps the current value).

@@ -8,6 +8,9 @@ Embree; clearance is queried every step, so Open3D wins.
 from __future__ import annotations
 
 import os
+import threading
+import weakref
+from typing import Any
 
 import numpy as np
 
@@ -18,6 +21,13 @@ __all__ = ["RayCaster"]
 
 # Threads per cast: $CAVENAV_THREADS (set by sweep workers, one core each), else 0 = all.
 _THREADS = int(os.environ.get("CAVENAV_THREADS") or 0)
+
+# Scenes by mesh and thread, while the mesh lives: loading a scenario file measures its
+# passage (`cavenav.world.mesh.check_units`), then the environment asks again for the same
+# mesh, and building the BVH takes 1.5-5 s at 3 million triangles. Threads do not share
+# a scene: sweeps fly one cave on several threads, each with a scene of its own as before.
+_SCENES: weakref.WeakKeyDictionary[CaveMesh, dict[int, Any]] = weakref.WeakKeyDictionary()
+_SCENES_LOCK = threading.Lock()
 
 
 def _import_open3d():  # noqa: ANN202 - module type
@@ -40,11 +50,18 @@ class RayCaster:
         o3d = _import_open3d()
         self._o3d = o3d
         self.mesh = mesh
-        self._scene = o3d.t.geometry.RaycastingScene()
-        self._scene.add_triangles(
-            o3d.core.Tensor(mesh.vertices.astype(np.float32)),
-            o3d.core.Tensor(mesh.faces.astype(np.uint32)),
-        )
+        thread = threading.get_ident()
+        with _SCENES_LOCK:
+            scene = _SCENES.get(mesh, {}).get(thread)
+        if scene is None:
+            scene = o3d.t.geometry.RaycastingScene()
+            scene.add_triangles(
+                o3d.core.Tensor(mesh.vertices.astype(np.float32)),
+                o3d.core.Tensor(mesh.faces.astype(np.uint32)),
+            )
+            with _SCENES_LOCK:
+                _SCENES.setdefault(mesh, {})[thread] = scene
+        self._scene = scene
 
     def _rays(self, origins: np.ndarray, directions: np.ndarray):  # noqa: ANN202
         origins, directions = np.asarray(origins), np.asarray(directions)

@@ -26,7 +26,7 @@ from scipy.ndimage import gaussian_filter1d
 from cavenav.errors import ConfigError, ScenarioError
 from cavenav.types import Pose
 from cavenav.world.collision import VehicleBody
-from cavenav.world.mesh import CaveMesh, load_mesh
+from cavenav.world.mesh import CaveMesh, check_units, load_mesh, sphere_directions
 from cavenav.world.procedural import Boulder, PassageSpec, build_cave, resample
 from cavenav.world.raycast import RayCaster
 
@@ -677,11 +677,14 @@ def procedural_scenario(name: str, seed: int = 0, difficulty: Difficulty | None 
     differs anyway, since `PassageSpec.digest` hashes all the geometry.
 
     Raises:
-        ScenarioError: an unknown name, or a knob the family lacks or outside its range.
+        ScenarioError: an unknown name, a negative seed, or a knob the family lacks or
+            outside its range.
     """
     key = name.upper()
     if key not in SCENARIOS:
         raise ScenarioError(f"unknown scenario '{name}'; choose one of {', '.join(SCENARIOS)}")
+    if not (isinstance(seed, int | np.integer) and seed >= 0):
+        raise ScenarioError(f"seed {seed!r}: a cave's seed is a whole number, 0 or more")
     difficulty = Difficulty() if difficulty is None else difficulty
     layout = SCENARIOS[key].layout(seed, difficulty)
     spec = layout.spec
@@ -710,14 +713,18 @@ def procedural_scenario(name: str, seed: int = 0, difficulty: Difficulty | None 
 # ------------------------------------------------------------------ scenario files
 
 
+# Unknown keys are typos; NaN or inf in a position, angle or size is never meant.
+_STRICT = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+
 class _StartModel(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = _STRICT
     position: tuple[float, float, float]
     yaw_deg: float = Field(0.0, description="0 heads along -y; positive turns left")
 
 
 class _ExitModel(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = _STRICT
     point: tuple[float, float, float]
     normal: tuple[float, float, float]
     radius: float = Field(gt=0)
@@ -731,21 +738,28 @@ class _ExitModel(BaseModel):
 
 
 class _ScenarioFileModel(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = _STRICT
     name: str | None = None
     description: str = ""
     mesh: str
     scale: float | None = Field(None, gt=0, description="metres per mesh unit")
     up_axis: Literal["x", "y", "z"] | None = None
     start: _StartModel
-    exit: _ExitModel | list[_ExitModel] = Field(description="one portal or a list of them")
+    exit: list[_ExitModel] = Field(description="one portal or a list of them")
     optics: dict[str, Any] = Field(
         default_factory=dict, description="water and light; see cavenav.sensors.optics"
     )
 
+    @field_validator("exit", mode="before")
+    @classmethod
+    def _as_list(cls, v: Any) -> Any:
+        # One [exit] table or several [[exit]]: validated as a list either way, so that
+        # an error names the field at fault, not "Input should be a valid dictionary".
+        return [v] if isinstance(v, dict) else v
+
 
 class _FamilyFileModel(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = _STRICT
     name: str | None = None
     description: str = ""
     family: str = Field(description="S1..S5, built at the seed the file is loaded with")
@@ -834,16 +848,19 @@ def _validated(model: type[_Model], raw: dict[str, Any], path: Path) -> _Model:
         return model.model_validate(raw)
     except ValidationError as exc:
         first = exc.errors()[0]
-        # Drop the class names pydantic inserts for union members ("exit._ExitModel.radius").
-        parts = [str(p) for p in first["loc"] if not str(p).startswith(("_", "list["))]
+        loc = list(first["loc"])
+        if len(loc) > 1 and isinstance(loc[1], int) and not isinstance(raw.get(loc[0]), list):
+            del loc[1]  # one [exit] table, validated as a list of one: no index to show
+        parts = [str(p) for p in loc]
         where = ".".join(parts) or "(top level)"
         raise ConfigError(f"{path}: field '{where}': {first['msg']}") from None
 
 
 def _mesh_scenario(path: Path, model: _ScenarioFileModel) -> Scenario:
     mesh = load_mesh(path.parent / model.mesh, scale=model.scale, up_axis=model.up_axis)
+    check_units(mesh, np.array(model.start.position))  # warns of a mesh in cm, mm, ...
     start = Pose(*model.start.position, psi=math.radians(model.start.yaw_deg))
-    portals = model.exit if isinstance(model.exit, list) else [model.exit]
+    portals = model.exit
     if not portals:
         raise ConfigError(f"{path}: give at least one [[exit]]")
     exits = tuple(ExitPortal(p.point, p.normal, p.radius) for p in portals)
@@ -900,7 +917,7 @@ def validate_start(scenario: Scenario, caster: RayCaster, body: VehicleBody) -> 
     """
     p = scenario.start.position
     where = f"start position {np.round(p, 2).tolist()}"
-    directions = _sphere_directions(64)
+    directions = sphere_directions(64)
     crossings = caster.count_intersections(np.broadcast_to(p, directions.shape), directions)
     hitting = crossings > 0
     if hitting.sum() < 0.25 * len(directions):
@@ -916,13 +933,3 @@ def validate_start(scenario: Scenario, caster: RayCaster, body: VehicleBody) -> 
             f"{where} is {gap:.2f} m from a wall, closer than the vehicle's "
             f"{body.bounding_radius:.2f} m half-diagonal"
         )
-
-
-def _sphere_directions(n: int) -> np.ndarray:
-    """(n, 3) roughly uniform unit vectors (Fibonacci sphere), slightly irrational so rays
-    never run exactly along mesh edges."""
-    k = np.arange(n) + 0.5
-    z = 1.0 - 2.0 * k / n
-    phi = np.pi * (1.0 + 5**0.5) * k + 0.1234
-    r = np.sqrt(1.0 - z**2)
-    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
