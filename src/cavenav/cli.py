@@ -782,7 +782,9 @@ def main() -> None:
     try:
         app()
     except CavenavError as exc:
-        errors.print(f"[red]error:[/] {escape(str(exc))}", highlight=False)
+        # One line, even when the message quotes a model's multi-line reply.
+        message = " ".join(str(exc).split())
+        errors.print(f"[red]error:[/] {escape(message)}", highlight=False)
         sys.exit(exc.exit_status)
     except KeyboardInterrupt:
         errors.print("interrupted")
