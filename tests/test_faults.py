@@ -444,3 +444,28 @@ def test_a_fine_meshs_footprint_is_drawn_fast_and_covers_what_each_triangle_woul
     every_triangle, binned = covered(10**9), covered(0)
     assert every_triangle > 0.05  # the disc is drawn
     assert binned == pytest.approx(every_triangle, rel=0.08)
+
+
+# ------------------------------------------------------------------ the first run
+
+
+def test_the_warm_up_compiles_every_cached_kernel_so_no_step_has_to() -> None:
+    # In a fresh process, as `make setup` runs it: a kernel it missed would be compiled
+    # inside a newcomer's first step instead (about a minute).
+    script = (
+        "import numba\n"
+        "from cavenav.sensors import kernels\n"
+        "from cavenav.sensors.warmup import warm_up\n"
+        "warm_up()\n"
+        "for name, f in vars(kernels).items():\n"
+        "    if isinstance(f, numba.core.registry.CPUDispatcher) and "
+        "type(f._cache).__name__ != 'NullCache':\n"
+        "        print(name, len(f.signatures))\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, timeout=600
+    )
+    assert done.returncode == 0, done.stderr
+    compiled = dict(line.split() for line in done.stdout.splitlines())
+    assert {"shade_frame", "shade_grid", "fill_rays", "splat_particles"} <= compiled.keys()
+    assert [name for name, count in compiled.items() if count == "0"] == []
