@@ -42,6 +42,7 @@ test: setup-test
 
 bench: setup-test
 	$(BIN)/python benchmarks/sensor_step.py
+	$(BIN)/python benchmarks/episode.py
 	$(BIN)/python benchmarks/sweep.py
 
 lint: setup-test
