@@ -121,9 +121,7 @@ def _optics_flags(**options: Any) -> dict[str, Any]:
 
 def _sensors(cave: Any, base: Any, **options: Any) -> Any:  # noqa: ANN401 - lazy imports
     """``base`` SensorConfig with the scenario's [optics] table, then the CLI options."""
-    return base.with_optics(cave.optics, where=f"{cave.name}: [optics]").with_optics(
-        _optics_flags(**options), where="options"
-    )
+    return base.for_scenario(cave.name, cave.optics, _optics_flags(**options))
 
 
 DepthMax = Annotated[

@@ -72,14 +72,15 @@ def new_run_dir(root: str | Path, scenario: str, pilot: str, seed: int | None) -
 
     The name is claimed by creating the folder, which the file system does atomically:
     two runs started in the same second (or in parallel) get ``NAME`` and ``NAME_2``.
+    `prepare_root` checks ``root`` first, before the cave is built.
     """
-    root = prepare_root(root)
+    root = Path(root)
     stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
     safe = re.sub(r"[^A-Za-z0-9_.-]+", "_", f"{stamp}_{scenario}_{pilot}_seed{seed}")
     for suffix in itertools.count(1):
         path = root / (safe if suffix == 1 else f"{safe}_{suffix}")
         try:
-            path.mkdir()
+            path.mkdir(parents=True)
         except FileExistsError:
             continue
         except OSError as exc:

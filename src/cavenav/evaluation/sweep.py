@@ -287,11 +287,7 @@ class EpisodeWorker:
     def episode_config(self, cave: Scenario) -> EpisodeConfig:
         settings = dict(self.config.sensors)
         optics = settings.pop("optics", {})
-        sensors = (
-            replace(SensorConfig(), **settings)
-            .with_optics(cave.optics, where=f"{cave.name}: [optics]")
-            .with_optics(optics, where="options")
-        )
+        sensors = replace(SensorConfig(), **settings).for_scenario(cave.name, cave.optics, optics)
         return EpisodeConfig(
             max_steps=self.config.steps,
             save_frames=self.config.frames != "none",
@@ -365,7 +361,7 @@ def run_sweep(
     with _only_sweep_in(folder):
         jobs = prepare(config, folder)
         if started:
-            started(len(jobs), len(plan(config)))
+            started(len(jobs), len(config.scenarios) * len(config.seeds))  # the grid
         try:
             executor.run(config, folder, jobs, done or (lambda row: None))
         finally:

@@ -84,12 +84,26 @@ class SensorConfig:
     def with_optics(self, table: Mapping[str, Any], where: str = "[optics]") -> SensorConfig:
         """This set-up with the optics fields ``table`` sets (None keeps the current value).
 
-        Layered twice by the drivers: a scenario file's [optics] table, then the flags.
+        Layered twice by the drivers (`for_scenario`): a scenario file's [optics] table,
+        then the flags.
 
         Raises:
             ConfigError: an unknown key or a bad value, naming ``where``.
         """
         return replace(self, optics=optics_from_table(table, self.optics, where=where))
+
+    def for_scenario(
+        self, scenario: str, scenario_optics: Mapping[str, Any], options: Mapping[str, Any]
+    ) -> SensorConfig:
+        """This set-up with a scenario's [optics] table, then the run's optics options over
+        it: the one layering `cavenav run`, `render` and every episode of a sweep share.
+
+        Raises:
+            ConfigError: an unknown key or a bad value, naming the scenario or "options".
+        """
+        return self.with_optics(scenario_optics, where=f"{scenario}: [optics]").with_optics(
+            options, where="options"
+        )
 
 
 @dataclass(frozen=True)
