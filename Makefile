@@ -44,6 +44,7 @@ bench: setup-test
 	$(BIN)/python benchmarks/sensor_step.py
 	$(BIN)/python benchmarks/episode.py
 	$(BIN)/python benchmarks/sweep.py
+	$(BIN)/python benchmarks/env_steps.py
 
 lint: setup-test
 	$(BIN)/ruff check src tests benchmarks

@@ -4,15 +4,16 @@ Prints, in one run (S4, seed 0, the geometric pilot, caves and kernels cached):
 
 - per step, the median of each phase in warm episodes with and without frames:
   sense (the observation), physics (move, clearance, swept collision), pilot, frames
-  (encoding and writing the PNG and EXR images) and recording (the step's line and the
-  summary rewrite, what remains of recording once the frames are out);
+  (encoding and writing the PNG and EXR images, on the run folder's writer thread, off
+  the loop), recording (what the loop itself waits for to hand a step to the writer),
+  and the loop's whole step (its wall time over its steps);
 - the start-up of a fresh process (imports, loading the kernels, the cave, the sensor
   rig's lighting tables, the start check) and the end (plots, final summary);
 - the whole process, `cavenav run S4` from the shell, with and without frames;
 - in-episode sense + physics against the isolated full step of `sensor_step.py` (the
   same work: observation, clearance and swept collision), measured in this run: both its
-  repeated-pose median and its first-time-at-each-pose median (an episode never
-  observes one pose twice, so its caches are as cold as the latter's).
+  repeated-pose median and its median the first time at each pose, right after the
+  pilot (as in an episode).
 
 Run: python benchmarks/episode.py [--repeats N]
 """
@@ -20,6 +21,7 @@ Run: python benchmarks/episode.py [--repeats N]
 from __future__ import annotations
 
 import argparse
+import json
 import statistics
 import subprocess
 import sys
@@ -100,12 +102,11 @@ def warm_episode(frames: bool, folder: Path) -> dict[str, list[float]]:
         for key in ("sense", "physics", "pilot"):
             if key in step["timing_ms"]:
                 phases[key].append(step["timing_ms"][key])
-    if frames:
-        phases["recording"] = [
-            r - f for r, f in zip(phases["record"], phases["frames"], strict=True)
-        ]
-    else:
-        phases["recording"], phases["frames"] = phases["record"], [0.0] * len(phases["record"])
+    phases["recording"] = phases.pop("record")
+    if not frames:
+        phases["frames"] = [0.0] * len(phases["recording"])
+    summary = json.loads((run_dir / "summary.json").read_text())
+    phases["step"] = [1e3 * summary["wall_time_s"] / summary["steps"]]
     return phases
 
 
@@ -155,7 +156,10 @@ def main() -> None:
         folder = Path(tmp)
         warm_episode(False, folder)  # load the kernels, build the cave: later ones are warm
         print(f"{SCENARIO} seed 0, geometric pilot: median ms a step, {args.repeats} warm episodes")
-        print(f"{'':<10} {'sense':>7} {'physics':>8} {'pilot':>7} {'frames':>7} {'recording':>10}")
+        print(
+            f"{'':<10} {'sense':>7} {'physics':>8} {'pilot':>7} {'frames':>7} {'recording':>10} "
+            f"{'whole step':>11}"
+        )
         medians = {}
         for frames in (True, False):
             merged: dict[str, list[float]] = defaultdict(list)
@@ -167,7 +171,7 @@ def main() -> None:
             kind = "frames" if frames else "no frames"
             print(
                 f"{kind:<10} {m['sense']:>7.1f} {m['physics']:>8.1f} {m['pilot']:>7.1f} "
-                f"{m['frames']:>7.1f} {m['recording']:>10.1f}"
+                f"{m['frames']:>7.1f} {m['recording']:>10.1f} {m['step']:>11.1f}"
             )
 
         _, isolated, _, _, fresh = bench(SCENARIO, poses=8, repeats=5)

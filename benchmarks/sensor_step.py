@@ -9,9 +9,10 @@ the median time of:
               PNG, both echo sounders, the clearance query and the swept collision check
 - ratio:      full step / bare cast (target: at most 1.5), the median over pairs timed back
               to back, so that a machine that slows down between pairs cancels out
-- fresh step: the full step the first time at each pose, as an episode meets them: the
-              repeats above find the same rays and tables in the caches, which makes
-              them about a third cheaper (see benchmarks/episode.py)
+- fresh step: the full step the first time at each pose, right after the geometric pilot
+              decided there, as an episode meets it. It once cost a third more than
+              the repeats: not cold caches but the pilot's BLAS threads, still spinning
+              on both cores when the cast began (see `cavenav.threads`)
 - set-up:     building the rig once per cave: the per-triangle light table (rays from
               every triangle) and the backscatter table, cold (not cached)
 
@@ -27,6 +28,7 @@ import statistics
 import time
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from cavenav.kinematics import apply
 from cavenav.pilots.geometric import GeometricPilot
@@ -57,17 +59,17 @@ def bench(name: str, poses: int, repeats: int) -> tuple[float, float, float, flo
     for _ in range(poses):
         obs = rig.observe(pose)
         nxt = apply(pose, pilot.decide(obs).action)
-        dirs = (
-            rig.config.camera.directions.reshape(-1, 3) @ camera_to_world(pose).astype(np.float32).T
-        )
-        rays, _ = caster._rays(rig.camera_position(pose), dirs)
 
         def step(pose=pose, nxt=nxt) -> None:
             rig.observe(pose)
             gap = clearance(caster, pose)
             swept_collision(caster, body, pose, nxt, gap)
 
-        fresh.append(_ms(step))
+        fresh.append(_ms(step))  # right after the pilot, as in an episode
+        with threadpool_limits(limits=1, user_api="blas"):  # no BLAS threads left spinning
+            world = camera_to_world(pose).astype(np.float32)
+            dirs = rig.config.camera.directions.reshape(-1, 3) @ world.T
+        rays, _ = caster._rays(rig.camera_position(pose), dirs)
         for _ in range(repeats):
             bare.append(_ms(lambda rays=rays: caster._scene.cast_rays(rays)))
             full.append(_ms(step))

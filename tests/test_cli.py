@@ -14,6 +14,8 @@ from PIL import Image
 
 from cavenav.world.scenarios import SCENARIOS
 
+from .test_sweep import write_room
+
 
 def wide() -> dict[str, str]:
     """The environment, with a terminal wide enough that a table row prints on one line."""
@@ -133,7 +135,7 @@ def test_a_scenario_files_optics_table_sets_the_water_and_flags_override_it(
     )
 
     def optics_of(*flags: str) -> dict:
-        out = tmp_path / f"runs{len(flags)}"
+        out = tmp_path / "-".join(["runs", *flags])
         done = cavenav(
             "run", str(scenario), "--steps", "1", "--no-frames", "--out", str(out), *flags
         )
@@ -171,3 +173,57 @@ def test_the_random_pilot_flies_behind_the_shield_and_its_interventions_are_reco
         if "shield" in step:
             assert step["action"] == step["shield"]["replacement"] != step["shield"]["proposed"]
             assert step["shield"]["reason"]
+
+
+def test_a_bad_resolution_is_refused_in_one_line_before_any_work(tmp_path: Path) -> None:
+    cases = [
+        (("run", "S1", "--resolution", "160"), "--resolution: '160' is not a resolution"),
+        (("render", "S1", "--resolution", "0x10"), "--resolution: '0x10' is not a resolution"),
+        (("eval", "--sounder-resolution", "axb"), "--sounder-resolution: 'axb' is not a"),
+    ]
+    for args, names_the_bad_value in cases:
+        done = cavenav(*args, "--out", str(tmp_path / "out"))
+        assert done.returncode == 2, done.stderr
+        assert done.stderr.startswith("error:") and done.stderr.count("\n") == 1, done.stderr
+        assert names_the_bad_value in done.stderr and "WIDTHxHEIGHT" in done.stderr
+    assert not (tmp_path / "out").exists()
+
+
+def camera_of(run_folder_root: Path) -> tuple[list[int], list[int]]:
+    """(resolution, sounder resolution) the one run folder under the root was flown with."""
+    (summary,) = run_folder_root.glob("**/summary.json")
+    sensors = json.loads(summary.read_text())["config"]["sensors"]
+    return [sensors["camera"]["width"], sensors["camera"]["height"]], sensors["sounder_pixels"]
+
+
+@pytest.mark.slow
+def test_a_scenario_files_sensors_table_sets_the_resolution_and_the_flag_overrides_it(
+    tmp_path: Path,
+) -> None:
+    scenario = write_room(tmp_path / "caves")
+    scenario.write_text(
+        scenario.read_text() + "[sensors]\nresolution = [84, 84]\nsounder_resolution = [8, 6]\n"
+    )
+
+    def flown_with(*flags: str) -> tuple[list[int], list[int]]:
+        out = tmp_path / "-".join(["runs", *flags])
+        done = cavenav(
+            "run", str(scenario), "--steps", "1", "--no-frames", "--out", str(out), *flags
+        )
+        assert done.returncode == 0, done.stderr
+        return camera_of(out)
+
+    assert flown_with() == ([84, 84], [8, 6])
+    assert flown_with("--resolution", "96x72") == ([96, 72], [8, 6])  # the table's sounders
+
+
+@pytest.mark.slow
+def test_eval_flies_every_episode_at_the_resolution_it_was_given(tmp_path: Path) -> None:
+    room, out = str(write_room(tmp_path / "caves")), tmp_path / "sweep"
+    args = ["--scenarios", room, "--seeds", "0", "--steps", "1", "--frames", "none",
+            "--workers", "1", "--no-report", "--out", str(out)]  # fmt: skip
+    done = cavenav("eval", *args, "--resolution", "84x84", "--sounder-resolution", "4x3")
+    assert done.returncode == 0, done.stderr
+    recorded = json.loads((out / "sweep.json").read_text())["sensors"]
+    assert recorded["resolution"] == [84, 84] and recorded["sounder_resolution"] == [4, 3]
+    assert camera_of(out / "episodes") == ([84, 84], [4, 3])

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import math
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -66,3 +68,18 @@ def test_vertical_moves_hit_ceiling_and_floor(dz: float) -> None:
     caster = RayCaster(box_room(extents=(4, 20, 2)))  # ceiling and floor at z = +-1
     start = Pose(0, 0, 0, 0)
     assert swept_collision(caster, BODY, start, apply(start, Action(up=dz)))
+
+
+def test_open3d_is_imported_without_its_web_viewer_which_still_works_when_called() -> None:
+    # In a fresh process: Dash and Plotly cost 0.75 s of every start-up otherwise.
+    script = (
+        "import sys\n"
+        "from cavenav.world.raycast import _import_open3d\n"
+        "o3d = _import_open3d()\n"
+        "assert 'dash' not in sys.modules and 'plotly' not in sys.modules\n"
+        "figure = o3d.visualization.get_plotly_fig([o3d.geometry.TriangleMesh.create_box()])\n"
+        "print(type(figure).__module__, 'dash' in sys.modules)\n"
+    )
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split() == ["plotly.graph_objs._figure", "True"]

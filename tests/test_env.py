@@ -11,9 +11,15 @@ from gymnasium.utils.env_checker import check_env
 
 import cavenav  # noqa: F401 - registers cavenav/CaveNav-v0
 from cavenav.env import CaveNavEnv, snap_action
+from cavenav.episode.loop import EpisodeConfig, run_episode
 from cavenav.errors import ActionError, ConfigError
-from cavenav.types import Action
-from cavenav.world.scenarios import Scenario
+from cavenav.pilots.geometric import GeometricPilot
+from cavenav.pilots.random_pilot import RandomPilot
+from cavenav.sensors.depth import normalise_depth
+from cavenav.sensors.rig import SensorConfig
+from cavenav.shield import DepthMemory
+from cavenav.types import Action, Observation
+from cavenav.world.scenarios import Scenario, load_scenario
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 
@@ -139,3 +145,95 @@ def test_action_vectors_snap_to_the_nearest_admissible_values(vector, expected) 
 def test_a_vector_that_is_not_four_finite_numbers_is_rejected() -> None:
     with pytest.raises(ActionError, match="4 finite numbers"):
         snap_action(np.array([0.0, np.nan, 0.0, 0.0]))
+
+
+# ------------------------------------------------------------------ resolution
+
+
+def test_the_resolution_keyword_sizes_the_observations_and_check_env_passes_at_84x84() -> None:
+    env = gym.make(
+        "cavenav/CaveNav-v0", scenario="S1", resolution=(84, 84), render_mode="rgb_array"
+    )
+    space = env.observation_space
+    assert space["rgb"].shape == (84, 84, 3)
+    assert space["depth"].shape == space["depth_m"].shape == (84, 84)
+    check_env(env.unwrapped)
+    obs, _ = env.reset(seed=0)
+    frame = env.render()
+    assert obs["rgb"].shape == (84, 84, 3) and frame is not None and frame.shape == (84, 84, 3)
+    assert env.unwrapped.observation.hfov_deg == pytest.approx(53.13, abs=0.01)
+
+
+def test_sensors_set_the_resolution_too_and_the_resolution_keyword_wins() -> None:
+    sensors = SensorConfig(sounder="beam").with_resolution(160, 120)
+    assert CaveNavEnv("S1", sensors=sensors).observation_space["depth"].shape == (120, 160)
+    both = CaveNavEnv("S1", sensors=sensors, resolution=(84, 84))
+    assert both.observation_space["depth"].shape == (84, 84) and both.sensors.sounder == "beam"
+    assert CaveNavEnv("S1").observation_space["depth"].shape == (480, 640)  # the paper's
+
+
+@pytest.mark.parametrize("resolution", [(84, 0), (84.0, 84), "84x84"])
+def test_a_bad_resolution_is_refused_when_the_environment_is_made(resolution) -> None:
+    with pytest.raises(ConfigError, match="resolution"):
+        CaveNavEnv("S1", resolution=resolution)
+
+
+def test_a_vector_of_two_84x84_environments_steps_with_action_vectors() -> None:
+    envs = gym.vector.SyncVectorEnv(
+        [lambda: CaveNavEnv("S1", resolution=(84, 84), action_format="vector") for _ in range(2)]
+    )
+    obs, _ = envs.reset(seed=[1, 2])
+    assert obs["rgb"].shape == (2, 84, 84, 3) and obs["depth_m"].shape == (2, 84, 84)
+    obs, reward, *_ = envs.step(np.array([[1.0, 0, 0, 0], [0, 0, 0, 15.0]], np.float32))
+    assert reward[0] == pytest.approx(1.0, abs=0.05) and reward[1] == pytest.approx(0.0, abs=1e-6)
+    envs.close()
+
+
+def _seen_at(width: int, height: int, depth_m: float) -> Observation:
+    depth = np.full((height, width), depth_m, np.float32)
+    return Observation(
+        rgb=np.zeros((height, width, 3), np.uint8),
+        depth_m=depth,
+        depth_png=normalise_depth(depth),
+        d_top=3.0,
+        d_bottom=3.0,
+        depth_range=(0.0, 20.0),
+        hfov_deg=53.13,
+        camera_offset_m=0.2,
+    )
+
+
+@pytest.mark.parametrize(("size", "blocks"), [((640, 480), (48, 64)), ((84, 84), (84, 84))])
+def test_the_depth_memory_keeps_about_64_columns_of_free_space_at_any_resolution(
+    size: tuple[int, int], blocks: tuple[int, int]
+) -> None:
+    memory = DepthMemory()
+    memory.update(_seen_at(*size, 5.0), None)
+    (frame,) = memory.frames
+    assert frame.depth.shape == blocks  # 10 x 10 pixels a block at 640x480, as always
+    assert frame.depth == pytest.approx(5.0, abs=0.05)
+    # The wall 5 m ahead is known free up to 4.6 m across the whole view, edges included.
+    across = np.linspace(-2.4, 2.4, 9)
+    points = np.stack([np.full(9, 4.9), across, np.zeros(9)], axis=1)
+    assert memory.seen_free(points, margin_m=0.3).all()
+    assert not memory.seen_free(points + (0.3, 0, 0), margin_m=0.3).any()
+
+
+@pytest.mark.slow
+def test_the_shield_keeps_the_random_pilot_off_the_walls_at_84x84(room_scenario: Scenario) -> None:
+    sensors = SensorConfig().with_resolution(84, 84)
+    config = EpisodeConfig(
+        max_steps=60, save_frames=False, plots=False, shield=True, sensors=sensors
+    )
+    result = run_episode(room_scenario, RandomPilot(seed=3), config)
+    assert result.summary["collisions"] == 0 and result.termination != "collision"
+    assert result.summary["shield_interventions"] > 0
+
+
+@pytest.mark.slow
+def test_the_geometric_pilot_reaches_the_exit_of_s1_at_160x120_without_touching_a_wall() -> None:
+    sensors = SensorConfig().with_resolution(160, 120)
+    config = EpisodeConfig(sensors=sensors, save_frames=False, plots=False)
+    result = run_episode(load_scenario("S1", 0), GeometricPilot(), config)
+    assert result.termination == "exit" and result.summary["collisions"] == 0
+    assert result.summary["config"]["sensors"]["camera"]["width"] == 160

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import threading
 from dataclasses import replace
 from pathlib import Path
 
@@ -175,6 +176,35 @@ def test_an_interrupted_run_leaves_a_valid_partial_record(
     assert summary["steps"] == 3
     lines = (run_dir / "steps.jsonl").read_text().splitlines()
     assert [json.loads(line)["step"] for line in lines] == [0, 1, 2]
+
+
+def test_frames_are_written_behind_the_loop_and_a_line_names_only_frames_on_disk(
+    room_scenario: Scenario, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from cavenav.env import CaveNavEnv
+    from cavenav.episode import run_folder
+
+    env = CaveNavEnv(room_scenario)
+    env.reset(seed=0)
+    disk_is_slow = threading.Event()
+    real_save = run_folder.save_png
+    monkeypatch.setattr(
+        run_folder, "save_png", lambda *args: (disk_is_slow.wait(60), real_save(*args))
+    )
+    folder = run_folder.RunFolder(tmp_path / "run")
+    step = {"step": 0}
+    folder.record(step, env.observation, [], {"status": "running", "steps": 1})
+    # record() returned with the frames still being encoded: nothing names them yet.
+    assert set(step["frames"]) == {"rgb", "depth_png", "depth_exr"}
+    assert (tmp_path / "run" / "steps.jsonl").read_text() == ""
+    assert not list((tmp_path / "run" / "frames").iterdir())
+    disk_is_slow.set()
+    folder.flush()
+    (line,) = run_folder.read_jsonl(tmp_path / "run" / "steps.jsonl")
+    assert line["frames"] == step["frames"]
+    assert all((tmp_path / "run" / name).is_file() for name in line["frames"].values())
+    folder.finish({"status": "finished"}, None, None, plots=False)  # type: ignore[arg-type]
+    assert json.loads((tmp_path / "run" / "summary.json").read_text())["status"] == "finished"
 
 
 class Costly:

@@ -415,10 +415,8 @@ def test_the_first_sensing_is_reported_apart_from_the_mean(room_scenario) -> Non
 # ------------------------------------------------------------------ big meshes
 
 
-@pytest.mark.slow
-def test_a_fine_meshs_footprint_is_drawn_fast_and_covers_what_each_triangle_would(
-    monkeypatch: pytest.MonkeyPatch,
-) -> None:
+@pytest.mark.parametrize("edge_m", [0.6, 0.15])
+def test_the_footprint_raster_covers_what_drawing_each_triangle_covers(edge_m: float) -> None:
     import trimesh
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
@@ -426,24 +424,53 @@ def test_a_fine_meshs_footprint_is_drawn_fast_and_covers_what_each_triangle_woul
     from cavenav.episode import plots
     from cavenav.world.mesh import make_mesh
 
-    tube = trimesh.creation.cylinder(radius=2.0, height=20.0, sections=64)
-    tube = tube.subdivide_to_size(0.15)  # a disc of radius 2 m seen from above
+    tube = trimesh.creation.cylinder(radius=2.0, height=0.5, sections=64)
+    tube = tube.subdivide_to_size(edge_m)  # a disc of radius 2 m seen from above
     mesh = make_mesh(np.asarray(tube.vertices), np.asarray(tube.faces), "tube")
 
-    def covered(fine_above: int) -> float:
-        monkeypatch.setattr(plots, "FINE_MESH_TRIANGLES", fine_above)
+    def covered(draw) -> float:  # noqa: ANN001
         figure = Figure(figsize=(4, 4), dpi=100)
         ax = figure.add_subplot()
-        plots.draw_footprint(ax, mesh)
+        draw(ax)
         ax.set(xlim=(-3, 3), ylim=(-3, 3), aspect="equal")
         ax.axis("off")
         canvas = FigureCanvasAgg(figure)
         canvas.draw()
         return float((np.asarray(canvas.buffer_rgba())[..., :3].mean(axis=2) < 250).mean())
 
-    every_triangle, binned = covered(10**9), covered(0)
+    every_triangle = covered(
+        lambda ax: ax.tripcolor(
+            *mesh.vertices[:, :2].T,
+            mesh.faces,
+            facecolors=np.ones(len(mesh.faces)),
+            cmap="Greys",
+            vmin=0,
+            vmax=4,
+            edgecolors="none",
+        )  # fmt: skip
+    )
+    raster = covered(lambda ax: plots.draw_footprint(ax, mesh))
     assert every_triangle > 0.05  # the disc is drawn
-    assert binned == pytest.approx(every_triangle, rel=0.08)
+    assert raster == pytest.approx(every_triangle, rel=0.03)
+
+
+@pytest.mark.parametrize("cells", [40, 400])  # triangles within 2 cells, and far larger
+def test_the_footprint_raster_of_a_disc_is_the_disc_without_holes(cells: int) -> None:
+    import trimesh
+
+    from cavenav.episode.plots import footprint_raster
+    from cavenav.world.mesh import make_mesh
+
+    disc = trimesh.creation.cylinder(radius=2.0, height=0.5, sections=64).subdivide_to_size(0.1)
+    mesh = make_mesh(np.asarray(disc.vertices), np.asarray(disc.faces), "disc")
+    covered, (left, right, bottom, top) = footprint_raster(mesh, cells=cells)
+    cell = (right - left) / covered.shape[0]
+    x = left + (np.arange(covered.shape[0]) + 0.5) * cell
+    y = bottom + (np.arange(covered.shape[1]) + 0.5) * cell
+    radius = np.hypot(*np.meshgrid(x, y, indexing="ij"))
+    assert covered[radius < 2.0 - 2 * cell].all()  # no holes inside
+    assert not covered[radius > 2.0 + 2 * cell].any()  # nothing outside
+    assert covered.sum() * cell**2 == pytest.approx(np.pi * 2.0**2, rel=0.1)
 
 
 # ------------------------------------------------------------------ the first run

@@ -186,6 +186,35 @@ def test_the_exit_is_brighter_the_closer_it_is():
     assert np.all(far < near)
 
 
+def test_a_new_process_reads_the_lighting_table_from_disk_and_renders_the_same_frame(
+    tmp_path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from cavenav.sensors import lighting
+
+    def new_process() -> None:  # nothing held in memory
+        monkeypatch.setattr(lighting, "_SURFACE_CACHE", type(lighting._SURFACE_CACHE)())
+
+    monkeypatch.setenv("CAVENAV_CACHE", str(tmp_path))
+    new_process()
+    tube = open_tube()
+    pose = Pose(0.0, -4.0, 0.0, 0.0)
+    cold = render(tube, Optics(), pose)
+    (stored,) = (tmp_path / "lighting").glob("*.npy")
+    new_process()
+    monkeypatch.setattr(lighting, "_surface_table", None)  # as a new process: no computing
+    warm = render(tube, Optics(), pose)
+    np.testing.assert_array_equal(warm.rgb, cold.rgb)
+    # Other parameters are another table; a file cut short is computed anew.
+    stored.write_bytes(stored.read_bytes()[:100])
+    monkeypatch.undo()
+    monkeypatch.setenv("CAVENAV_CACHE", str(tmp_path))
+    new_process()
+    np.testing.assert_array_equal(render(tube, Optics(), pose).rgb, cold.rgb)
+    assert np.load(stored).shape == (len(tube.faces), 2, 6)
+    render(tube, Optics(rock_colour=(0.3, 0.3, 0.3)), pose)
+    assert len(list((tmp_path / "lighting").glob("*.npy"))) == 2
+
+
 # ------------------------------------------------------------------ rock, snow, camera
 
 

@@ -14,6 +14,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from cavenav.errors import ConfigError, MeshError, ScenarioError
+from cavenav.sensors.rig import SensorConfig
 from cavenav.types import Pose
 from cavenav.world import scenarios as scenarios_module
 from cavenav.world.collision import VehicleBody, clearance
@@ -485,3 +486,45 @@ def test_the_shipped_hard_s1_file_flies_a_narrower_s1() -> None:
     assert cave.difficulty == Difficulty(constriction_m=2.4, roughness_m=0.45)
     assert cave.name == "hard-s1" and cave.mesh.name.startswith("S1-seed0-d")
     validate_start(cave, RayCaster(cave.mesh), VehicleBody())
+
+
+SENSORS_TABLE = "\n[sensors]\nresolution = [160, 120]\nsounder_resolution = [8, 6]\n"
+
+
+def test_a_scenario_files_sensors_table_sets_the_pixel_counts(tmp_path: Path) -> None:
+    scenario = load_scenario_file(_write(tmp_path, VALID + SENSORS_TABLE))
+    assert scenario.sensors == {"resolution": (160, 120), "sounder_resolution": (8, 6)}
+    sensors = SensorConfig().for_scenario(scenario.name, scenario.optics, {}, scenario.sensors)
+    assert sensors.resolution == (160, 120) and sensors.sounder_pixels == (8, 6)
+    assert sensors.camera.hfov_deg == pytest.approx(53.13, abs=0.01)
+    # Without the table: the paper's 640x480 and 32x24.
+    plain = load_scenario_file(_write(tmp_path, VALID))
+    assert plain.sensors == {}
+    assert SensorConfig().for_scenario("room", {}, {}, plain.sensors).resolution == (640, 480)
+
+
+def test_a_family_file_takes_a_sensors_table_too(tmp_path: Path, monkeypatch, room) -> None:
+    monkeypatch.setattr(scenarios_module, "build_cave", lambda spec, name: room)
+    path = tmp_path / "small.toml"
+    path.write_text('family = "S1"\n[sensors]\nresolution = [84, 84]\n')
+    assert load_scenario(str(path), seed=3).sensors == {"resolution": (84, 84)}
+
+
+@pytest.mark.parametrize(
+    ("table", "match"),
+    [
+        ("resolution = [0, 120]", r"'sensors\.resolution\.0'.*greater than 0"),
+        ("resolution = [160]", r"'sensors\.resolution\.1': Field required"),
+        ("resolution = [160.5, 120]", r"'sensors\.resolution\.0'.*integer"),
+        ("resolution = [160.0, 120]", r"'sensors\.resolution\.0'.*integer"),
+        ('resolution = "160x120"', r"'sensors\.resolution'"),
+        ("sounder_resolution = [8, -6]", r"'sensors\.sounder_resolution\.1'"),
+        ("fov_deg = 90", r"'sensors\.fov_deg'"),
+    ],
+)
+def test_a_bad_sensors_table_is_a_one_line_error_naming_the_field(
+    tmp_path: Path, table: str, match: str
+) -> None:
+    with pytest.raises(ConfigError, match=match) as info:
+        load_scenario_file(_write(tmp_path, f"{VALID}\n[sensors]\n{table}\n"))
+    assert "\n" not in str(info.value)

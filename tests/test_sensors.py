@@ -6,8 +6,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
-from cavenav.sensors.camera import CameraIntrinsics
+from cavenav.errors import ConfigError
+from cavenav.sensors.camera import CameraIntrinsics, parse_resolution
 from cavenav.sensors.depth import denormalise_depth, normalise_depth, read_exr, write_exr
 from cavenav.sensors.rig import SensorConfig, SensorRig
 from cavenav.types import Pose
@@ -36,11 +39,16 @@ def test_depth_range_is_user_settable() -> None:
     assert normalise_depth(np.array([[2.0, 6.0]]), 2.0, 6.0).tolist() == [[0, 255]]
 
 
-def test_exr_round_trip_is_exact(tmp_path: Path) -> None:
+@pytest.mark.parametrize("compression", ["none", "zip", "htj2k"])
+def test_exr_round_trip_is_exact_with_every_compression(tmp_path: Path, compression) -> None:
+    import OpenEXR
+
     depth = np.random.default_rng(0).uniform(0, 30, (48, 64)).astype(np.float32)
     depth[0, 0] = np.inf
-    write_exr(tmp_path / "d.exr", depth)
+    write_exr(tmp_path / "d.exr", depth, compression)
     assert np.array_equal(read_exr(tmp_path / "d.exr"), depth)
+    with OpenEXR.File(str(tmp_path / "d.exr")) as f:
+        assert f.header()["compression"].name.lower().startswith(compression.replace("none", "no"))
 
 
 def test_the_rendered_depth_png_is_the_normalised_raw_depth() -> None:
@@ -93,3 +101,108 @@ def test_rendering_is_deterministic() -> None:
     a = rig.observe(Pose(0.3, 1, 0.2, 0.4))
     b = rig.observe(Pose(0.3, 1, 0.2, 0.4))
     assert np.array_equal(a.rgb, b.rgb) and np.array_equal(a.depth_m, b.depth_m)
+
+
+# ------------------------------------------------------------------ resolution
+
+
+def test_a_smaller_camera_keeps_the_horizontal_field_of_view_with_square_pixels() -> None:
+    paper = CameraIntrinsics()
+    for width, height in [(160, 120), (84, 84), (33, 17)]:
+        small = paper.with_resolution(width, height)
+        assert small.hfov_deg == pytest.approx(paper.hfov_deg, abs=1e-9)
+        assert small.focal_px == width  # square pixels: one focal length for both axes
+    assert paper.with_resolution(160, 120).vfov_deg == pytest.approx(paper.vfov_deg)
+    assert paper.with_resolution(84, 84).vfov_deg == pytest.approx(53.13, abs=0.01)
+
+
+@pytest.mark.parametrize("size", [(0, 480), (640, -1), (84.5, 84), (True, 84), ("84", 84)])
+def test_a_resolution_that_is_not_two_positive_whole_numbers_is_refused_in_one_line(
+    size: tuple,
+) -> None:
+    with pytest.raises(ConfigError, match="camera resolution") as refused:
+        SensorConfig().with_resolution(*size)
+    assert "\n" not in str(refused.value)
+
+
+@pytest.mark.parametrize("size", [(0, 6), (8,), (8, 6.5), "8x6"])
+def test_a_bad_sounder_resolution_is_refused_in_one_line(size: object) -> None:
+    with pytest.raises(ConfigError, match="sounder resolution") as refused:
+        SensorConfig(sounder_pixels=size)  # type: ignore[arg-type]
+    assert "\n" not in str(refused.value)
+
+
+@pytest.mark.parametrize(("text", "size"), [("160x120", (160, 120)), ("84X84", (84, 84))])
+def test_the_command_line_form_of_a_resolution_is_width_x_height(text: str, size: tuple) -> None:
+    assert parse_resolution(text) == size
+
+
+@pytest.mark.parametrize("text", ["160", "0x10", "axb", "160x120x3", "-5x5", ""])
+def test_text_that_is_not_a_resolution_is_refused_naming_it(text: str) -> None:
+    with pytest.raises(ConfigError, match=f"'{text}' is not a resolution"):
+        parse_resolution(text)
+
+
+@given(st.integers(1, 10_000), st.integers(1, 10_000))
+def test_every_positive_width_and_height_round_trip_through_the_text_form(w: int, h: int) -> None:
+    assert parse_resolution(f"{w}x{h}") == (w, h)
+
+
+@pytest.mark.parametrize("size", [(640, 480), (160, 120), (84, 84), (33, 17)])
+def test_the_end_wall_spans_the_same_fraction_of_the_width_at_every_resolution(
+    size: tuple[int, int],
+) -> None:
+    # Walls at x = +-2 and y = -10; the camera, 9.8 m from the end wall, sees it within
+    # atan(2 / 9.8) either side of the axis: 2 * 2 / 9.8 = 40.8% of the width of a
+    # 53-degree view (whose half-width is 0.5 focal lengths), whatever the pixel count.
+    width, height = size
+    rig = SensorRig(RayCaster(box_room()), SensorConfig().with_resolution(width, height))
+    depth, _, rgb = rig.forward_frame(Pose(0, 0, 0, 0))
+    assert depth.shape == (height, width) and rgb.shape == (height, width, 3)
+    end_wall = np.isclose(depth[height // 2], 9.8, atol=1e-3)
+    assert end_wall.mean() == pytest.approx(2 * 2 / 9.8, abs=1.5 / width)
+    assert depth[height // 2, width // 2] == pytest.approx(9.8, abs=1e-3)
+
+
+@pytest.mark.parametrize("size", [(160, 120), (84, 84), (33, 17)])
+def test_small_and_odd_frames_are_shaded_to_their_last_row_and_column(
+    size: tuple[int, int],
+) -> None:
+    # The shading works in blocks of 4 pixels; a size that is no multiple of 4 must not
+    # leave the edge blocks black or read past the image.
+    width, height = size
+    rig = SensorRig(RayCaster(box_room()), SensorConfig().with_resolution(width, height))
+    frame = rig.render(Pose(0.5, 3, 0.2, 0.3), radiance=True)
+    assert frame.radiance is not None and frame.radiance.shape == (height, width, 3)
+    assert np.isfinite(frame.depth_m).all()  # a closed room: every pixel sees a wall
+    assert np.array_equal(frame.depth_png, normalise_depth(frame.depth_m))
+    brightness = frame.rgb.astype(float).sum(axis=-1)
+    assert (brightness > 0).all()
+    for edge, inside in [(0, 1), (-1, -2)]:  # first and last rows, then columns
+        assert brightness[edge].mean() > 0.5 * brightness[inside].mean()
+        assert brightness[:, edge].mean() > 0.5 * brightness[:, inside].mean()
+
+
+def test_the_sounder_resolution_is_a_setting_and_reads_the_same_ranges() -> None:
+    caster = RayCaster(box_room(extents=(8, 20, 4)))
+    config = SensorConfig().with_resolution(84, 84).with_sensors({"sounder_resolution": [8, 6]})
+    assert config.sounder_pixels == (8, 6) and config.resolution == (84, 84)
+    rig = SensorRig(caster, config)
+    obs = rig.observe(Pose(0, 0, 0.5, 0.3))
+    assert (obs.d_top, obs.d_bottom) == (pytest.approx(1.5, abs=1e-3), pytest.approx(2.5, abs=1e-3))
+    assert len(rig._rays) == 84 * 84 + 2 * 8 * 6  # one cast: the frame, then both sounders
+
+
+def test_a_sensors_table_with_an_unknown_key_names_it_and_the_keys() -> None:
+    with pytest.raises(ConfigError, match=r"S1: \[sensors\]: unknown key\(s\) 'fov'"):
+        SensorConfig().for_scenario("S1", {}, {}, {"fov": 60})
+
+
+def test_the_run_options_override_the_scenario_sensors_table() -> None:
+    table, options = (
+        {"resolution": [160, 120], "sounder_resolution": [8, 6]},
+        {"resolution": (84, 84)},
+    )
+    config = SensorConfig().for_scenario("S1", {}, {}, table, options)
+    assert config.resolution == (84, 84) and config.sounder_pixels == (8, 6)
+    assert SensorConfig().for_scenario("S1", {}, {}).resolution == (640, 480)

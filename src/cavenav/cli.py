@@ -54,6 +54,14 @@ class Sounder(StrEnum):
     beam = "beam"
 
 
+class ExrCompression(StrEnum):
+    """Depth EXR compressions, all lossless (measured in `cavenav.sensors.depth`)."""
+
+    none = "none"
+    zip = "zip"
+    htj2k = "htj2k"
+
+
 class Backend(StrEnum):
     openai = "openai"
     transformers = "transformers"
@@ -119,9 +127,41 @@ def _optics_flags(**options: Any) -> dict[str, Any]:
     }
 
 
-def _sensors(cave: Any, base: Any, **options: Any) -> Any:  # noqa: ANN401 - lazy imports
-    """``base`` SensorConfig with the scenario's [optics] table, then the CLI options."""
-    return base.for_scenario(cave.name, cave.optics, _optics_flags(**options))
+# Options shared by `run`, `render` and `eval`: pixel counts. None keeps the scenario's.
+Resolution = Annotated[
+    str | None,
+    typer.Option(
+        metavar="WxH",
+        help="forward camera pixels, e.g. 160x120 or 84x84 (default: the scenario file's "
+        "\\[sensors] table, else 640x480); the horizontal field of view stays 53 degrees",
+    ),
+]
+SounderResolution = Annotated[
+    str | None,
+    typer.Option(metavar="WxH", help="pixels of each echo sounder's depth camera (default 32x24)"),
+]
+
+
+def _sizes(resolution: str | None, sounder_resolution: str | None) -> dict[str, Any]:
+    """The pixel counts that were given, parsed (a bad one is refused before any work)."""
+    from cavenav.sensors.camera import parse_resolution
+
+    given = {"resolution": resolution, "sounder_resolution": sounder_resolution}
+    return {
+        key: parse_resolution(text, f"--{key.replace('_', '-')}")
+        for key, text in given.items()
+        if text is not None
+    }
+
+
+def _sensors(  # noqa: ANN401 - lazy imports
+    cave: Any, base: Any, sizes: dict[str, Any] | None = None, **options: Any
+) -> Any:
+    """``base`` SensorConfig with the scenario's [optics] and [sensors] tables, then the
+    CLI options (optics flags, then the pixel counts ``sizes``)."""
+    return base.for_scenario(
+        cave.name, cave.optics, _optics_flags(**options), cave.sensors, sizes or {}
+    )
 
 
 DepthMax = Annotated[
@@ -199,6 +239,13 @@ def run(
     out: Annotated[Path, typer.Option(help="folder that receives the run folder")] = Path("runs"),
     steps: Annotated[int, typer.Option(min=1, help="step budget")] = 150,
     frames: Annotated[bool, typer.Option(help="save RGB, depth PNG and EXR of every step")] = True,
+    exr_compression: Annotated[
+        ExrCompression,
+        typer.Option(
+            help="depth EXR compression: none (fastest; any reader), zip, or htj2k (60% "
+            "smaller; readers need OpenEXR 3.4 or later)"
+        ),
+    ] = ExrCompression.none,
     shield: Annotated[
         bool, typer.Option(help="safety shield between pilot and vehicle (cavenav.shield)")
     ] = False,
@@ -211,6 +258,8 @@ def run(
     noise: Noise = None,
     depth_dropout: DepthDropout = None,
     depth_noise: DepthNoise = None,
+    resolution: Resolution = None,
+    sounder_resolution: SounderResolution = None,
     from_: Annotated[Path | None, typer.Option("--from", help="run folder to replay")] = None,
     difficulty: DifficultyOpt = None,
     backend: BackendOpt = Backend.openai,
@@ -232,6 +281,7 @@ def run(
     device: Device = "auto",
 ) -> None:
     """Fly one episode and write its run folder (summary, steps, frames, plots)."""
+    sizes = _sizes(resolution, sounder_resolution)
     from cavenav.episode.loop import EpisodeConfig, run_episode
     from cavenav.episode.run_folder import new_run_dir, prepare_root
     from cavenav.pilots.factory import PilotSpec
@@ -259,6 +309,7 @@ def run(
     sensors = _sensors(
         cave,
         replace(SensorConfig(), sounder=sounder.value, depth_max_m=depth_max),
+        sizes,
         water=water,
         light_power=light_power,
         daylight=daylight,
@@ -267,7 +318,13 @@ def run(
         depth_dropout=depth_dropout,
         depth_noise_m=depth_noise,
     )
-    config = EpisodeConfig(max_steps=steps, save_frames=frames, shield=shield, sensors=sensors)
+    config = EpisodeConfig(
+        max_steps=steps,
+        save_frames=frames,
+        exr_compression=exr_compression.value,
+        shield=shield,
+        sensors=sensors,
+    )
     console.print(
         f"[bold]{cave.name}[/]: {cave.description or cave.mesh.name} "
         f"({cave.mesh.triangle_count:,} triangles)"
@@ -345,8 +402,11 @@ def render(
     noise: Noise = None,
     depth_max: DepthMax = DEPTH_RANGE_M[1],
     difficulty: DifficultyOpt = None,
+    resolution: Resolution = None,
+    sounder_resolution: SounderResolution = None,
 ) -> None:
     """Write a contact sheet: colour and depth views from poses along the passage."""
+    sizes = _sizes(resolution, sounder_resolution)
     from cavenav.episode.gallery import passage_poses, write_contact_sheet
     from cavenav.sensors.rig import SensorConfig
     from cavenav.world.scenarios import load_scenario, parse_difficulty
@@ -356,6 +416,7 @@ def render(
     sensors = _sensors(
         cave,
         replace(SensorConfig(), depth_max_m=depth_max),
+        sizes,
         water=water,
         light_power=light_power,
         daylight=daylight,
@@ -463,6 +524,8 @@ def eval_(
     noise: Noise = None,
     depth_dropout: DepthDropout = None,
     depth_noise: DepthNoise = None,
+    resolution: Resolution = None,
+    sounder_resolution: SounderResolution = None,
     backend: BackendOpt = Backend.openai,
     base_url: BaseUrl = None,
     model: Model = None,
@@ -482,6 +545,7 @@ def eval_(
     device: Device = "auto",
 ) -> None:
     """Fly a pilot over scenarios x seeds; results.csv, aggregate.json and an HTML report."""
+    sizes = _sizes(resolution, sounder_resolution)
     from cavenav.episode.run_folder import prepare_root
     from cavenav.evaluation.sweep import SweepConfig, parse_seeds, run_sweep
     from cavenav.pilots.factory import PilotSpec
@@ -513,7 +577,7 @@ def eval_(
         shield=shield,
         frames=frames.value,
         difficulty=parse_difficulty(difficulty or []).to_dict(),
-        sensors={"sounder": sounder.value, "depth_max_m": depth_max, "optics": optics},
+        sensors={"sounder": sounder.value, "depth_max_m": depth_max, "optics": optics, **sizes},
     )
     executor = _executor(workers, concurrency, ray_address)
     counts = {"done": 0, "success": 0}

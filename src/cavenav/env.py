@@ -27,6 +27,7 @@ from gymnasium import spaces
 from cavenav.actions import DEFAULT_SPACE, ActionSpace, format_action, parse_action
 from cavenav.errors import ActionError, ConfigError
 from cavenav.kinematics import apply
+from cavenav.sensors.camera import pixel_size
 from cavenav.sensors.rig import SensorConfig, SensorRig
 from cavenav.types import DEFAULT_RULES, Action, Observation, Pose, Rules, VehicleBody
 from cavenav.world.collision import clearance, swept_collision
@@ -83,7 +84,8 @@ class _World:
 class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
     """Fly a BlueROV2-sized vehicle through a cave, one action string at a time.
 
-    Observation (a ``Dict``): ``rgb`` (H, W, 3) uint8 forward colour image; ``depth``
+    Observation (a ``Dict``; H x W is 480 x 640 unless ``resolution`` or ``sensors``
+    says otherwise): ``rgb`` (H, W, 3) uint8 forward colour image; ``depth``
     (H, W) uint8 normalised depth, dark near, as a VLM sees it; ``depth_m`` (H, W)
     float32 planar depth in metres, D_max where nothing is nearer; ``d_top`` and
     ``d_bottom`` float32 arrays of shape () from the echo sounders, bounded by their
@@ -125,6 +127,7 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
         *,
         cave_seed: int | None = 0,
         sensors: SensorConfig | None = None,
+        resolution: tuple[int, int] | None = None,
         body: VehicleBody | None = None,
         rules: Rules = DEFAULT_RULES,
         space: ActionSpace = DEFAULT_SPACE,
@@ -136,7 +139,13 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
         Args:
             scenario: the cave flown after a reset without a ``scenario`` option.
             cave_seed: which cave of a procedural family; None draws one per reset.
-            sensors: camera, sounders and optics (default: SPEC section 2).
+            sensors: camera, sounders and optics (default: SPEC section 2). A scenario
+                file's [optics] and [sensors] tables are the drivers' to layer
+                (`SensorConfig.for_scenario`): the environment flies the sensors it was
+                made with, so its observation space holds for every reset.
+            resolution: (width, height) of the forward camera, over ``sensors``; e.g.
+                (84, 84) for fast training. The horizontal field of view stays 53.1
+                degrees, pixels stay square (`SensorConfig.with_resolution`).
             body: the vehicle's size, for the swept collision check.
             rules: the strategy's distances (for the shield and the metrics of drivers).
             space: admissible magnitudes.
@@ -150,6 +159,8 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
             raise ConfigError(f"action_format must be 'text' or 'vector', got {action_format!r}")
         self.render_mode = render_mode
         self.sensors = sensors or SensorConfig()
+        if resolution is not None:
+            self.sensors = self.sensors.with_resolution(*pixel_size(resolution, "resolution"))
         self.body = body or VehicleBody()
         self.rules = rules
         self.space = space

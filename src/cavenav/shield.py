@@ -33,6 +33,7 @@ import numpy as np
 
 from cavenav.actions import DEFAULT_SPACE, ActionSpace, format_action
 from cavenav.sensors.depth import denormalise_depth
+from cavenav.threads import one_blas_thread
 from cavenav.types import DEFAULT_RULES, Action, Observation, Rules, VehicleBody
 
 __all__ = ["DepthMemory", "SeenFrame", "Shield", "ShieldConfig", "Verdict", "move_points"]
@@ -145,16 +146,26 @@ class DepthMemory:
     surfaces seen (for clearance), `seen_free` tells known free space from the unknown.
     """
 
-    def __init__(self, frames: int = 8, stride: int = 10, max_range_m: float = 10.0):
+    def __init__(
+        self,
+        frames: int = 8,
+        stride: int | None = None,
+        max_range_m: float = 10.0,
+        columns: int = 64,
+    ):
         """
         Args:
             frames: depth images kept, the current one included.
             stride: every n-th pixel becomes a remembered surface point; free space is
-                kept in blocks of n x n pixels.
+                kept in blocks of n x n pixels. None follows each image's width to keep
+                about ``columns`` of them: 10 at 640x480, 2 at 160x120, 1 at 84x84
+                (a coarser block would see a 53-degree view as a few pixels).
             max_range_m: surfaces farther than this are not remembered as points.
+            columns: see ``stride``.
         """
         self.frames_kept = frames
         self.stride = stride
+        self.columns = columns
         self.max_range_m = max_range_m
         self.frames: list[SeenFrame] = []
 
@@ -169,8 +180,8 @@ class DepthMemory:
         self.frames = self.frames[-self.frames_kept :]
 
     def _frame(self, obs: Observation) -> SeenFrame:
-        s = self.stride
         h, w = obs.depth_png.shape
+        s = self.stride or max(1, w // self.columns)
         d_max = obs.depth_range[1]
         focal = 0.5 * w / math.tan(math.radians(obs.hfov_deg) / 2)
         # Surface points at every s-th pixel, as the geometric pilot has always kept them.
@@ -279,6 +290,7 @@ class Shield:
         self._observation = None
         self._last = None
 
+    @one_blas_thread
     def observe(self, observation: Observation) -> None:
         """Take in a new observation; the memory moves by the action executed before it,
         or, when the observation does not say, by the last action this shield judged."""
@@ -288,6 +300,7 @@ class Shield:
         self.memory.update(observation, moved_by)
         self._observation = observation
 
+    @one_blas_thread
     def judge(self, proposed: Action) -> Verdict:
         """The nearest action to ``proposed`` that keeps every rule (hold if none does)."""
         if self._observation is None:

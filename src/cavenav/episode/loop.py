@@ -12,6 +12,7 @@ Gymnasium's truncation) or ``pilot_failure`` (the pilot could not produce a vali
 
 from __future__ import annotations
 
+import contextlib
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -23,9 +24,10 @@ from gymnasium.wrappers import TimeLimit
 
 from cavenav.env import CaveNavEnv
 from cavenav.episode.record import TERMINATIONS, EpisodeLog
-from cavenav.episode.run_folder import RunFolder
+from cavenav.episode.run_folder import LostStep, RunFolder
 from cavenav.errors import CavenavError, PilotFailure, RecordingError
 from cavenav.pilots.base import Pilot
+from cavenav.sensors.depth import ExrCompression
 from cavenav.sensors.rig import SensorConfig
 from cavenav.types import DEFAULT_RULES, Pose, Rules, VehicleBody
 from cavenav.world.scenarios import Scenario
@@ -44,6 +46,8 @@ class EpisodeConfig:
         save_frames: write the RGB and depth PNG of every step; sweeps can turn this off.
         save_exr: with the frames, the depth in metres as OpenEXR (about 1.2 MB of the
             1.7 MB a step takes).
+        exr_compression: "none", "zip" or "htj2k" (lossless, 60 % smaller, needs
+            OpenEXR 3.4 to read): see `cavenav.sensors.depth`.
         plots: draw topdown.png and side.png at the end.
         shield: put the safety shield between the pilot and the vehicle.
         seed: seeds the episode's sensor noise (the environment's reset seed).
@@ -53,6 +57,7 @@ class EpisodeConfig:
     rules: Rules = DEFAULT_RULES
     save_frames: bool = True
     save_exr: bool = True
+    exr_compression: ExrCompression = "none"
     plots: bool = True
     shield: bool = False
     seed: int = 0
@@ -113,8 +118,13 @@ def run_episode(
         scenario, pilot.name, config.rules, config.shield, vehicle.pose, info["clearance_m"], config
     )
     folder = (
-        RunFolder(run_dir, config.save_frames, config.save_exr) if run_dir is not None else None
+        RunFolder(
+            run_dir, config.save_frames, config.save_exr, exr_compression=config.exr_compression
+        )  # fmt: skip
+        if run_dir is not None
+        else None
     )
+    marks: dict[int, tuple] = {}  # where the log stood before each step still being written
     pilot.reset()
     status = "crashed"
     try:
@@ -142,19 +152,24 @@ def run_episode(
                 )
                 exchanges = decision.exchanges
             if folder:
-                try:
-                    _write(folder.record, folder.path, record, observation, exchanges,
-                           log.summary("running"))  # fmt: skip
-                except RecordingError:
-                    log.rewind(mark)  # the record ends at the last whole step
-                    raise
+                marks[record["step"]] = mark
+                _record(folder, log, marks, folder.record, record, observation, exchanges,
+                        log.summary("running"))  # fmt: skip
             if on_step:
                 on_step(record)
+        if folder:
+            _record(folder, log, marks, folder.flush)
         status = "finished"
     except KeyboardInterrupt:
         status = "interrupted"
+        if folder:  # keep the steps flown: they are queued, whole
+            with contextlib.suppress(RecordingError):
+                _record(folder, log, marks, folder.flush)
         raise
     except Exception as exc:
+        if folder and not isinstance(exc, RecordingError):
+            with contextlib.suppress(RecordingError):
+                _record(folder, log, marks, folder.flush)
         log.crashed(
             f"{type(exc).__name__}: {exc}" if not isinstance(exc, CavenavError) else str(exc)
         )
@@ -169,11 +184,38 @@ def run_episode(
     )
 
 
+def _record(
+    folder: RunFolder, log: EpisodeLog, marks: dict[int, tuple], write: Callable[..., None],
+    *args: Any,
+) -> None:  # fmt: skip
+    """Record through ``folder``; a step the writer lost is taken back from the log too.
+
+    The run folder writes steps behind the loop: a step that could not be written (a full
+    disk) surfaces a step or two later, and the log forgets it and everything after it,
+    so that the summary agrees with the folder.
+
+    Raises:
+        RecordingError: a step could not be written.
+    """
+    try:
+        _write(write, folder.path, *args)
+    except LostStep as lost:
+        log.rewind(marks[lost.step])
+        marks.clear()
+        if isinstance(lost.error, OSError):
+            raise _recording_error(folder.path, lost.error) from None
+        raise lost.error from None
+    for step in [s for s in marks if s < len(log.steps) - 4]:
+        del marks[step]  # written long ago: the writer's queue holds at most 4 steps
+
+
 def _write(write: Callable[..., None], where: Path, *args: Any) -> None:
     """Call a run-folder writer; a full disk or a lost folder becomes a `RecordingError`."""
     try:
         write(*args)
     except OSError as exc:
-        raise RecordingError(
-            f"cannot write the run folder {where}: {exc.strerror or exc}"
-        ) from None
+        raise _recording_error(where, exc) from None
+
+
+def _recording_error(where: Path, exc: OSError) -> RecordingError:
+    return RecordingError(f"cannot write the run folder {where}: {exc.strerror or exc}")

@@ -26,7 +26,7 @@ from cavenav.world.mesh import CaveMesh
 from cavenav.world.raycast import RayCaster
 from cavenav.world.scenarios import ExitPortal, Scenario
 
-__all__ = ["draw_exits", "draw_footprint", "plot_episode"]
+__all__ = ["draw_exits", "draw_footprint", "footprint_raster", "plot_episode"]
 
 _CMAP = "viridis"
 _CREDIT = "Open Robotics / DARPA SubT"
@@ -43,53 +43,72 @@ def _coloured_path(ax: Axes, x: np.ndarray, y: np.ndarray, c: np.ndarray, norm: 
     return lines
 
 
-# Above this many triangles `tripcolor` takes tens of seconds (31 s for 3 million); so
-# fine a mesh is drawn as its vertices binned at the figure's resolution instead.
-FINE_MESH_TRIANGLES = 200_000
-
-
 def draw_footprint(ax: Axes, mesh: CaveMesh) -> None:
-    """The cave seen from above: every wall triangle projected onto the horizontal plane."""
-    v = mesh.vertices
-    if len(mesh.faces) > FINE_MESH_TRIANGLES:
-        _draw_binned_footprint(ax, mesh)
-        return
-    ax.tripcolor(
-        v[:, 0],
-        v[:, 1],
-        mesh.faces,
-        facecolors=np.ones(len(mesh.faces)),
-        cmap="Greys",
-        vmin=0,
-        vmax=4,
-        edgecolors="none",
-        rasterized=True,
-    )
-
-
-def _draw_binned_footprint(ax: Axes, mesh: CaveMesh, cells: int = 1000) -> None:
-    """The footprint of a fine mesh: the cells its vertices fall in, small gaps closed, in
-    the grey `tripcolor` gives coarse meshes. A cell is the typical edge's length (so
-    neighbouring vertices fall in touching cells), or 1/``cells`` of the longer side."""
-    from scipy import ndimage
-
-    v, faces = mesh.vertices, mesh.faces[:: max(len(mesh.faces) // 10_000, 1)]
-    edge = float(np.median(np.linalg.norm(v[faces[:, 0]] - v[faces[:, 1]], axis=1)))
-    lo, hi = v[:, :2].min(axis=0), v[:, :2].max(axis=0)
-    cell = max(edge, (hi - lo).max() / cells)
-    bins = np.maximum(np.ceil((hi - lo) / cell).astype(int), 1)
-    counts, _, _ = np.histogram2d(v[:, 0], v[:, 1], bins=bins, range=list(zip(lo, hi, strict=True)))
-    covered = ndimage.binary_closing(counts > 0, iterations=1, border_value=1).T
-    ax.imshow(
-        np.ma.masked_where(~covered, np.ones(covered.shape)),
+    """The cave seen from above: every wall triangle projected onto the horizontal plane,
+    filled in grey on a raster as fine as the figure (`footprint_raster`)."""
+    covered, extent = footprint_raster(mesh)
+    image = ax.imshow(
+        np.ma.masked_where(~covered.T, np.ones(covered.T.shape)),
         origin="lower",
-        extent=(lo[0], hi[0], lo[1], hi[1]),
+        extent=extent,
         cmap="Greys",
         vmin=0,
         vmax=4,
         interpolation="nearest",
         rasterized=True,
     )
+    image.sticky_edges.x.clear()  # margins around the cave, as around any plotted data
+    image.sticky_edges.y.clear()
+
+
+def footprint_raster(
+    mesh: CaveMesh, cells: int = 800, batch: int = 2_000_000
+) -> tuple[np.ndarray, tuple[float, float, float, float]]:
+    """Which cells of a grid over the cave's horizontal extent a wall triangle covers.
+
+    Matplotlib draws a `tripcolor` of the mesh one path per triangle: 0.6 s at 87,000
+    triangles and 31 s at 3 million. Here each triangle tests the centres of the cells
+    of its bounding box, all triangles with the same box size at once: 0.35 s and 0.9 s.
+    A cell counts as covered when its centre lies within half a cell of a triangle, so
+    thin triangles and the seams between them leave no gaps.
+
+    Returns:
+        ``covered``, (nx, ny) bool indexed [x, y], and its (left, right, bottom, top).
+    """
+    xy = mesh.vertices[:, :2].astype(np.float64)
+    lo, hi = xy.min(axis=0), xy.max(axis=0)
+    cell = max(float((hi - lo).max()) / cells, 1e-9)
+    shape = np.maximum(np.ceil((hi - lo) / cell).astype(int), 1) + 1
+    covered = np.zeros(shape, bool)
+    position = (xy - lo) / cell  # of each vertex, in cells
+    corner = np.floor(position).astype(np.int32)
+    covered[corner[:, 0], corner[:, 1]] = True  # the cells of every triangle's corners
+    # That is all a triangle within 2x2 cells (a fine mesh's) covers, bar a sliver of a
+    # cell, under a pixel of the figure. Larger ones test the cells of their box.
+    first = corner[mesh.faces].min(axis=1)
+    size = corner[mesh.faces].max(axis=1) - first + 1
+    large = np.flatnonzero((size > 2).any(axis=1))
+    a, b, c = position[mesh.faces[large]].transpose(1, 0, 2)
+    first, size = first[large], size[large]
+    turn = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0])
+    clockwise = turn[:, None] < 0
+    b, c = np.where(clockwise, c, b), np.where(clockwise, b, c)  # all counter-clockwise
+    key = size[:, 0] * (size[:, 1].max(initial=0) + 1) + size[:, 1]
+    for value in np.unique(key):
+        group = np.flatnonzero(key == value)
+        sx, sy = size[group[0]]
+        dx, dy = (d.ravel() for d in np.meshgrid(np.arange(sx), np.arange(sy), indexing="ij"))
+        for k in np.array_split(group, max(1, len(group) * sx * sy // batch)):
+            x, y = first[k, :1] + dx, first[k, 1:] + dy  # (triangles, cells) cell indices
+            inside = np.ones(x.shape, bool)
+            for p, q in ((a[k], b[k]), (b[k], c[k]), (c[k], a[k])):
+                edge = q - p
+                length = np.maximum(np.hypot(edge[:, :1], edge[:, 1:]), 1e-12)
+                left = edge[:, :1] * (y + 0.5 - p[:, 1:]) - edge[:, 1:] * (x + 0.5 - p[:, :1])
+                inside &= left >= -0.5 * length
+            covered[x[inside], y[inside]] = True
+    top = lo + shape * cell
+    return covered, (lo[0], top[0], lo[1], top[1])
 
 
 def draw_exits(ax: Axes, exits: Sequence[ExitPortal]) -> None:

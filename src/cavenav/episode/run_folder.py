@@ -3,7 +3,7 @@
 RUN_DIR/
   summary.json   rewritten atomically after every step (status "running" until the
                  end), so a crash or Ctrl-C leaves a valid partial summary
-  steps.jsonl    one JSON object per step, flushed as it happens
+  steps.jsonl    one JSON object per step, written once the step's frames are on disk
   frames/        step_NNNN_rgb.png, step_NNNN_depth.png, step_NNNN_depth.exr (unless off)
   topdown.png, side.png   trajectory plots, written at the end
   exchanges.jsonl  (model pilots) every request and raw reply, reasoning included
@@ -18,21 +18,22 @@ import hashlib
 import itertools
 import json
 import os
+import queue
 import re
 import signal
 import tempfile
 import threading
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
+from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from PIL import Image
 
 from cavenav.errors import ConfigError, RecordingError
-from cavenav.sensors.depth import write_exr
+from cavenav.sensors.depth import ExrCompression, save_png, write_exr
 from cavenav.types import Observation
 
 if TYPE_CHECKING:
@@ -40,6 +41,7 @@ if TYPE_CHECKING:
     from cavenav.world.raycast import RayCaster
 
 __all__ = [
+    "LostStep",
     "RunFolder",
     "new_run_dir",
     "prepare_root",
@@ -170,6 +172,76 @@ def _finite(value: Any) -> Any:
     return value
 
 
+@dataclass
+class LostStep(Exception):
+    """A step the background writer could not write: it and every later step are lost.
+
+    The folder ends at the step before ``step`` (see `RunFolder`); ``error`` is why.
+    """
+
+    step: int
+    error: BaseException
+
+    def __str__(self) -> str:
+        return f"step {self.step} could not be written: {self.error}"
+
+
+@dataclass(frozen=True)
+class _Step:
+    """One whole step, queued for the writer: what `RunFolder.record` was given."""
+
+    record: dict[str, Any]
+    obs: Observation
+    exchanges: Sequence[Mapping[str, Any]]
+    summary: Mapping[str, Any]
+
+
+class _StepWriter:
+    """Writes queued steps in order on a thread of its own, so that encoding the frames
+    (about 45 ms a step) overlaps with the pilot and the next step instead of adding to
+    them.
+
+    The queue holds at most ``depth`` steps (about 2.4 MB each at 640x480): a loop that
+    outruns the disk waits. After the first step that fails, later ones are dropped.
+    """
+
+    def __init__(self, write: Callable[[_Step], None], depth: int):
+        self._write = write
+        self._queue: queue.Queue[_Step | None] = queue.Queue(maxsize=depth)
+        self.failed: LostStep | None = None
+        self._thread = threading.Thread(target=self._run, name="cavenav-run-folder", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while (step := self._queue.get()) is not None:
+            if self.failed is None:
+                try:
+                    self._write(step)
+                except BaseException as exc:  # noqa: BLE001 - handed to the loop's thread
+                    self.failed = LostStep(step.record["step"], exc)
+            self._queue.task_done()
+        self._queue.task_done()
+
+    def put(self, step: _Step) -> None:
+        self._raise_failure()
+        self._queue.put(step)
+
+    def flush(self) -> None:
+        """Wait until every queued step is written (or dropped)."""
+        self._queue.join()
+        self._raise_failure()
+
+    def close(self) -> None:
+        """Write what is queued, then end the thread."""
+        if self._thread.is_alive():
+            self._queue.put(None)
+            self._thread.join()
+
+    def _raise_failure(self) -> None:
+        if self.failed is not None:
+            raise self.failed
+
+
 class RunFolder:
     """Writes one episode's record as it happens, one whole step at a time.
 
@@ -179,13 +251,27 @@ class RunFolder:
     steps.jsonl may then hold one line more than the summary counts (the kill fell between
     the two). A step that cannot be written whole (a full disk) is taken back: its frames
     removed and steps.jsonl cut back, so the folder ends at the last whole step.
+
+    With ``background`` (the default) steps are written in order on a thread of their
+    own (`_StepWriter`): `record` returns once the step is queued, and reports a step
+    that could not be written at a later call, or at `flush`, as `LostStep`.
     """
 
-    def __init__(self, path: str | Path, save_frames: bool = True, save_exr: bool = True):
+    def __init__(
+        self,
+        path: str | Path,
+        save_frames: bool = True,
+        save_exr: bool = True,
+        *,
+        exr_compression: ExrCompression = "none",
+        background: bool = True,
+        queue_depth: int = 4,
+    ):
         """``path`` must not exist, or be an empty folder (as `new_run_dir` makes it)."""
         self.path = Path(path)
         self.save_frames = save_frames
         self.save_exr = save_exr
+        self.exr_compression = exr_compression
         self.path.mkdir(parents=True, exist_ok=True)
         if any(self.path.iterdir()):
             raise RecordingError(f"{self.path} is not empty: a run folder starts empty")
@@ -194,21 +280,30 @@ class RunFolder:
         # Unbuffered bytes: a line is one write, and a failed one can be cut back exactly.
         self._steps = open(self.path / "steps.jsonl", "ab", buffering=0)  # noqa: SIM115
         self._stored: dict[str, str] = {}
+        self._writer = _StepWriter(self._write_step, queue_depth) if background else None
 
-    def write_frames(self, step: int, obs: Observation) -> dict[str, str]:
-        """Save the observation's images; returns their paths relative to the run folder."""
+    def frame_names(self, step: int) -> dict[str, str]:
+        """The paths, relative to the run folder, of the frames step ``step`` writes."""
         if not self.save_frames:
             return {}
         stem = f"frames/step_{step:04d}"
         files = {"rgb": f"{stem}_rgb.png", "depth_png": f"{stem}_depth.png"}
         if self.save_exr:
             files["depth_exr"] = f"{stem}_depth.exr"
+        return files
+
+    def write_frames(self, step: int, obs: Observation) -> dict[str, str]:
+        """Save the observation's images; returns their paths relative to the run folder."""
+        files = self.frame_names(step)
+        if not files:
+            return files
         try:
             self._save_png(files["rgb"], obs.rgb)
             self._save_png(files["depth_png"], obs.depth_png)
             if self.save_exr:
                 write_then_rename(
-                    self.path / files["depth_exr"], lambda t: write_exr(t, obs.depth_m)
+                    self.path / files["depth_exr"],
+                    lambda t: write_exr(t, obs.depth_m, self.exr_compression),
                 )
         except BaseException:
             self._remove(files.values())
@@ -216,10 +311,7 @@ class RunFolder:
         return files
 
     def _save_png(self, name: str, image: np.ndarray) -> None:
-        write_then_rename(
-            self.path / name,
-            lambda tmp: Image.fromarray(image).save(tmp, format="PNG", compress_level=1),
-        )
+        write_then_rename(self.path / name, lambda tmp: save_png(image, tmp))
 
     def _remove(self, names: Iterable[str]) -> None:
         for name in names:
@@ -265,16 +357,38 @@ class RunFolder:
     ) -> None:
         """Write one whole step: frames, model exchanges, its line, then ``summary``.
 
+        ``step`` gains the names of its frames (``step["frames"]``) at once. None of the
+        arguments may change afterwards: a background writer reads them later.
+
         Raises:
-            OSError: the step could not be written (it was taken back, see the class).
+            LostStep: (background) this or an earlier step could not be written.
+            OSError: (not background) the step could not be written; it was taken back.
         """
-        step["frames"] = self.write_frames(step["step"], obs)
+        step["frames"] = self.frame_names(step["step"])
+        queued = _Step(step, obs, exchanges, summary)
+        if self._writer is None:
+            self._write_step(queued)
+        else:
+            self._writer.put(queued)
+
+    def flush(self) -> None:
+        """Wait until every recorded step is on disk.
+
+        Raises:
+            LostStep: a step could not be written; the folder ends before it.
+        """
+        if self._writer is not None:
+            self._writer.flush()
+
+    def _write_step(self, queued: _Step) -> None:
+        step = queued.record
+        self.write_frames(step["step"], queued.obs)
         end = self._steps.seek(0, os.SEEK_END)
         try:
-            if exchanges:
-                self.record_exchanges(step["step"], exchanges)
+            if queued.exchanges:
+                self.record_exchanges(step["step"], queued.exchanges)
             self.append_step(step)
-            self.write_json("summary.json", summary)
+            self.write_json("summary.json", queued.summary)
         except BaseException:
             self._steps.truncate(end)
             self._remove(step["frames"].values())
@@ -325,6 +439,8 @@ class RunFolder:
         A summary that cannot be written (the disk is still full) leaves the last one,
         which agrees with steps.jsonl.
         """
+        if self._writer is not None:
+            self._writer.close()  # the loop has flushed it; a failure is already reported
         try:
             if plots:
                 from cavenav.episode.plots import plot_episode

@@ -36,7 +36,7 @@ from cavenav.errors import ConfigError
 from cavenav.evaluation.results import episode_row, server_failed, write_results
 from cavenav.pilots.base import Pilot
 from cavenav.pilots.factory import PilotSpec, VLMOptions
-from cavenav.sensors.rig import SensorConfig
+from cavenav.sensors.rig import SENSOR_KEYS, SensorConfig
 from cavenav.world.scenarios import SCENARIOS, Difficulty, Scenario, load_scenario
 
 __all__ = [
@@ -69,7 +69,9 @@ class SweepConfig:
         seeds: caves drawn from each family (development seeds below 1000, test split
             from 1000; see `cavenav.world.scenarios.HELD_OUT_SEEDS`).
         difficulty: `Difficulty` knobs, each set on the families that have it.
-        sensors: sounder, depth_max_m and an "optics" table of flag overrides.
+        sensors: sounder, depth_max_m, an "optics" table of flag overrides and, where
+            given, "resolution" and "sounder_resolution" ([width, height] over each
+            scenario file's [sensors] table).
         frames: "all" (PNG and EXR), "png" (no EXR) or "none".
     """
 
@@ -287,7 +289,10 @@ class EpisodeWorker:
     def episode_config(self, cave: Scenario) -> EpisodeConfig:
         settings = dict(self.config.sensors)
         optics = settings.pop("optics", {})
-        sensors = replace(SensorConfig(), **settings).for_scenario(cave.name, cave.optics, optics)
+        sizes = {key: settings.pop(key) for key in SENSOR_KEYS if key in settings}
+        sensors = replace(SensorConfig(), **settings).for_scenario(
+            cave.name, cave.optics, optics, cave.sensors, sizes
+        )
         return EpisodeConfig(
             max_steps=self.config.steps,
             save_frames=self.config.frames != "none",

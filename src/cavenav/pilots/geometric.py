@@ -28,7 +28,9 @@ from scipy import ndimage
 
 from cavenav.actions import DEFAULT_SPACE, ActionSpace, format_action
 from cavenav.sensors.depth import denormalise_depth
+from cavenav.sensors.kernels import free_lengths
 from cavenav.shield import DepthMemory, clearance_of_move
+from cavenav.threads import one_blas_thread
 from cavenav.types import DEFAULT_RULES, Action, Decision, Observation, Rules, VehicleBody
 
 __all__ = ["GeometricPilot", "GeometricPilotConfig"]
@@ -52,7 +54,12 @@ class GeometricPilotConfig:
             vehicle's half-width (0.17 m) plus a margin for rough walls.
         corridor_half_height_m: the same vertically (half-height 0.125 m plus margin).
         open_range_m: a bearing free this far counts as the passage's continuation.
-        stride: use every n-th pixel of the depth image; 5 keeps 128x96 points.
+        stride: use every n-th pixel of the depth image; None follows the image's
+            width to keep about `columns` of them: 5 at 640x480 (128x96 points), 2 at
+            320x240, 1 at 160x120 and below, where every pixel counts.
+        columns: about how many columns of the depth image the pilot reads when
+            ``stride`` is None: 128, one every 0.4 degrees of the 53-degree view, as the
+            strategy was tuned at 640x480.
         memory_frames: how many recent depth images the pilot remembers as points, moved
             by the actions the vehicle executed, to know the walls beside it that are out
             of view (the safety shield's memory: one piece of code serves both).
@@ -64,7 +71,8 @@ class GeometricPilotConfig:
     corridor_half_width_m: float = 0.6
     corridor_half_height_m: float = 0.5
     open_range_m: float = 8.0
-    stride: int = 5
+    stride: int | None = None
+    columns: int = 128
     memory_frames: int = 8
     body: VehicleBody = field(default_factory=VehicleBody)
     margin_m: float = 0.3
@@ -113,11 +121,12 @@ class GeometricPilot:
     # ------------------------------------------------------------------ perception
     def _measure(self, obs: Observation) -> _Scene:
         cfg = self.config
-        depth = denormalise_depth(obs.depth_png[:: cfg.stride, :: cfg.stride], *obs.depth_range)
         h, w = obs.depth_png.shape
+        stride = cfg.stride or max(1, w // cfg.columns)
+        depth = denormalise_depth(obs.depth_png[::stride, ::stride], *obs.depth_range)
         half_view = obs.hfov_deg / 2
         focal = 0.5 * w / math.tan(math.radians(half_view))
-        v, u = np.mgrid[0 : h : cfg.stride, 0 : w : cfg.stride].astype(np.float32) + 0.5
+        v, u = np.mgrid[0:h:stride, 0:w:stride].astype(np.float32) + 0.5
         forward = depth
         left = -(u - 0.5 * w) / focal * depth
         up = -(v - 0.5 * h) / focal * depth
@@ -126,11 +135,8 @@ class GeometricPilot:
 
         # Free length of a cylinder of the corridor's radius along every direction.
         points = np.stack([forward[surface], left[surface], up[surface]], axis=1)
-        along = points @ self._directions.T.astype(np.float32)  # (n, k)
-        across2 = (points**2).sum(axis=1)[:, None] - along**2
         radius = cfg.corridor_half_width_m
-        blocking = (across2 < radius**2) & (along > 0)
-        free = np.where(blocking, along, d_max).min(axis=0, initial=d_max)
+        free = free_lengths(points, self._directions, float(radius), float(d_max))
         free = free.reshape(len(_BEARINGS), len(_ELEVATIONS))
         # Remember what was seen: surfaces beside the vehicle are out of view now but were
         # in view a few steps ago. The memory (the safety shield's) keeps them in the body
@@ -248,6 +254,7 @@ class GeometricPilot:
                 )
         return candidates[-1], "boxed in: turning in place only"
 
+    @one_blas_thread
     def decide(self, observation: Observation) -> Decision:
         cfg, rules = self.config, self.config.rules
         half_view = observation.hfov_deg / 2

@@ -8,14 +8,23 @@ scaled so its z component is 1, so the ray parameter of a hit *is* the planar de
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+import numbers
+import re
+from dataclasses import dataclass, replace
 from functools import cached_property
 
 import numpy as np
 
+from cavenav.errors import ConfigError
 from cavenav.types import Pose
 
-__all__ = ["CameraIntrinsics", "camera_to_world", "look_frame"]
+__all__ = [
+    "CameraIntrinsics",
+    "camera_to_world",
+    "look_frame",
+    "parse_resolution",
+    "pixel_size",
+]
 
 
 @dataclass(frozen=True)
@@ -24,12 +33,33 @@ class CameraIntrinsics:
 
     36 mm focal length on a 36 mm wide sensor gives f = 640 px over 640 px, a horizontal
     field of view of 2 * atan(0.5) = 53.13 degrees (and 41.1 degrees vertically at 4:3).
+
+    Pixels are square and the focal length in pixels scales with the width, so the
+    horizontal field of view is the same at every resolution (`with_resolution`); the
+    vertical one follows the aspect ratio: 160x120 sees 53.1 x 41.1 degrees as 640x480
+    does, 84x84 sees 53.1 x 53.1.
     """
 
     width: int = 640
     height: int = 480
     focal_mm: float = 36.0
     sensor_width_mm: float = 36.0
+
+    def __post_init__(self) -> None:
+        # A zero, negative or fractional size fails deep inside the ray buffer's reshape;
+        # refuse it where it is set. numpy integers are welcome, stored as int (for JSON).
+        width, height = pixel_size((self.width, self.height), "camera resolution")
+        object.__setattr__(self, "width", width)
+        object.__setattr__(self, "height", height)
+
+    def with_resolution(self, width: int, height: int) -> CameraIntrinsics:
+        """The same lens and sensor at ``width`` x ``height`` pixels: the horizontal field
+        of view is kept, the vertical one follows the aspect ratio (see above).
+
+        Raises:
+            ConfigError: a size that is not a positive whole number.
+        """
+        return replace(self, width=width, height=height)
 
     @property
     def focal_px(self) -> float:
@@ -66,3 +96,34 @@ def look_frame(forward: np.ndarray, right: np.ndarray) -> np.ndarray:
 def camera_to_world(pose: Pose) -> np.ndarray:
     """(3, 3) rotation of the forward camera of a vehicle at ``pose`` (no pitch or roll)."""
     return look_frame(pose.forward, pose.right)
+
+
+def pixel_size(value: object, what: str = "resolution") -> tuple[int, int]:
+    """``value`` as (width, height) in pixels: two whole numbers above 0, in any sequence.
+
+    Raises:
+        ConfigError: naming ``what`` and the value, with an example.
+    """
+    pair = tuple(value) if isinstance(value, list | tuple | np.ndarray) else (value,)
+    whole = all(isinstance(v, numbers.Integral) and not isinstance(v, bool) for v in pair)
+    if len(pair) != 2 or not whole or min(pair) <= 0:  # type: ignore[type-var]
+        raise ConfigError(
+            f"{what} {value!r}: give [width, height] as two whole numbers of pixels above 0, "
+            "e.g. [160, 120]"
+        )
+    return int(pair[0]), int(pair[1])  # type: ignore[call-overload]
+
+
+def parse_resolution(text: str, what: str = "--resolution") -> tuple[int, int]:
+    """ "160x120" -> (160, 120): width x height in pixels, as the command line writes it.
+
+    Raises:
+        ConfigError: naming ``what`` and the text that is not WxH with positive sizes.
+    """
+    match = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", text)
+    if not match or min(int(match[1]), int(match[2])) <= 0:
+        raise ConfigError(
+            f"{what}: '{text}' is not a resolution; write WIDTHxHEIGHT in pixels above 0, "
+            "e.g. 160x120 or 84x84"
+        )
+    return int(match[1]), int(match[2])

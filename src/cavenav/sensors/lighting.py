@@ -19,11 +19,13 @@ from __future__ import annotations
 
 import hashlib
 import math
+import os
 import threading
 import weakref
 from collections import OrderedDict
 from dataclasses import dataclass
 from functools import lru_cache
+from pathlib import Path
 
 import numpy as np
 from scipy.ndimage import gaussian_filter
@@ -39,6 +41,7 @@ from cavenav.sensors.kernels import (
 )
 from cavenav.sensors.optics import Optics
 from cavenav.world.mesh import CaveMesh
+from cavenav.world.procedural import cache_dir
 from cavenav.world.raycast import RayCaster
 
 __all__ = [
@@ -179,7 +182,8 @@ def surface_table(caster: RayCaster, optics: Optics, seed: int = 0, rays: int = 
     columns 0-2 the albedo and 3-5 the daylight D (radiance = albedo * D).
 
     About 1 s per 100,000 triangles on 2 cores, and rays from at most `SURFACE_PATCHES`
-    places however fine the mesh; cached per mesh and parameters.
+    places however fine the mesh; kept per mesh and parameters in memory and, like the
+    caves, on disk (`cavenav.world.procedural.cache_dir`), so a new process finds it.
     """
     mesh = caster.mesh
     water = optics.medium
@@ -194,12 +198,48 @@ def surface_table(caster: RayCaster, optics: Optics, seed: int = 0, rays: int = 
         if table is not None:
             _SURFACE_CACHE.move_to_end(key)
             return table
-    table = _surface_table(caster, optics, seed, rays)  # outside the lock: about a second
+    path = cache_dir() / "lighting" / f"{_file_key(key)}.npy"
+    table = _load_table(path, len(mesh.faces))
+    if table is None:
+        table = _surface_table(caster, optics, seed, rays)  # outside the lock: about a second
+        _store_table(path, table)
     with _SURFACE_LOCK:
         _SURFACE_CACHE[key] = table
         while len(_SURFACE_CACHE) > _SURFACE_CACHE_SIZE:
             _SURFACE_CACHE.popitem(last=False)
     return table
+
+
+# Bump when `_surface_table` changes what it computes: tables on disk are then not used.
+SURFACE_TABLE_VERSION = 1
+
+
+def _file_key(key: tuple) -> str:
+    blob = repr((SURFACE_TABLE_VERSION, key)).encode()  # floats' repr is exact
+    return hashlib.blake2b(blob, digest_size=16).hexdigest()
+
+
+def _load_table(path: Path, triangles: int) -> np.ndarray | None:
+    """The table stored at ``path``, or None when there is none or it is not whole."""
+    try:
+        table = np.load(path, allow_pickle=False)
+    except (OSError, ValueError, EOFError):
+        return None
+    if table.shape != (triangles, 2, 6) or table.dtype != np.float32:
+        return None
+    return table
+
+
+def _store_table(path: Path, table: np.ndarray) -> None:
+    """Keep ``table`` for the next process; a cache that cannot be written is no error."""
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}.tmp")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with open(tmp, "wb") as out:
+            np.save(out, table, allow_pickle=False)
+        tmp.replace(path)
+    except OSError:
+        tmp.unlink(missing_ok=True)
 
 
 def surface_patches(

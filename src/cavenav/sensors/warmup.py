@@ -12,6 +12,7 @@ import time
 import numpy as np
 import trimesh
 
+from cavenav.sensors.kernels import free_lengths
 from cavenav.sensors.rig import SensorConfig, SensorRig
 from cavenav.types import Pose
 from cavenav.world.mesh import make_mesh
@@ -23,12 +24,14 @@ __all__ = ["warm_up"]
 def warm_up() -> float:
     """Render one observation in a small box room with both sounder models; the seconds it took.
 
-    Every kernel a step runs (lighting tables, shading, particles, both sounders) runs
-    here once with the types an episode gives it, so numba's cache then holds them all.
+    Every kernel a step runs (lighting tables, shading, particles, both sounders, the
+    geometric pilot's corridors) runs here once with the types an episode gives it, so
+    numba's cache then holds them all.
     """
     started = time.perf_counter()
     box = trimesh.creation.box(extents=(4.0, 20.0, 4.0))
     caster = RayCaster(make_mesh(np.asarray(box.vertices), np.asarray(box.faces), "warm-up"))
     for sounder in ("camera", "beam"):
         SensorRig(caster, SensorConfig(sounder=sounder)).observe(Pose(0.0, 5.0, 0.0, 0.0))
+    free_lengths(np.zeros((1, 3), np.float32), np.ones((1, 3)), 0.6, 20.0)  # the pilot's
     return time.perf_counter() - started

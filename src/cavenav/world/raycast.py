@@ -7,9 +7,13 @@ Embree; clearance is queried every step, so Open3D wins.
 
 from __future__ import annotations
 
+import importlib
 import os
+import sys
 import threading
+import types
 import weakref
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -30,7 +34,37 @@ _SCENES: weakref.WeakKeyDictionary[CaveMesh, dict[int, Any]] = weakref.WeakKeyDi
 _SCENES_LOCK = threading.Lock()
 
 
+# Open3D's visualization package imports this module, its Plotly/Dash web viewer, at
+# `import open3d`: 0.75 s of the 1.3 s the import takes, in every process, for a viewer
+# cavenav never opens. A stand-in takes its place until one of its functions is called.
+_PLOTLY_VIEWER = "open3d.visualization.draw_plotly"
+
+
+def _defer_plotly_viewer() -> None:
+    """Put a stand-in for `_PLOTLY_VIEWER` in `sys.modules` that imports the real module,
+    and calls it, the first time one of its functions is called."""
+    stand_in = types.ModuleType(_PLOTLY_VIEWER, "loaded on first use (cavenav.world.raycast)")
+
+    def forward(name: str) -> Callable[..., Any]:
+        def call(*args: Any, **kwargs: Any) -> Any:
+            if sys.modules.get(_PLOTLY_VIEWER) is stand_in:
+                del sys.modules[_PLOTLY_VIEWER]
+            return getattr(importlib.import_module(_PLOTLY_VIEWER), name)(*args, **kwargs)
+
+        return call
+
+    def module_getattr(name: str) -> Callable[..., Any]:  # `from ... import name`
+        if name.startswith("_"):
+            raise AttributeError(name)
+        return forward(name)
+
+    stand_in.__getattr__ = module_getattr  # type: ignore[method-assign]
+    sys.modules[_PLOTLY_VIEWER] = stand_in
+
+
 def _import_open3d():  # noqa: ANN202 - module type
+    if "open3d" not in sys.modules and _PLOTLY_VIEWER not in sys.modules:
+        _defer_plotly_viewer()
     try:
         import open3d as o3d
     except ImportError as exc:

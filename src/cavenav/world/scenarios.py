@@ -16,8 +16,9 @@ import numbers
 import tomllib
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, fields, replace
+from functools import cached_property
 from pathlib import Path
-from typing import Any, Literal, TypeVar
+from typing import Annotated, Any, Literal, TypeVar
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
@@ -92,6 +93,7 @@ class Scenario:
     optics: Mapping[str, Any] = field(default_factory=dict)  # the file's [optics] table
     centreline: np.ndarray | None = None
     difficulty: Difficulty | None = None
+    sensors: Mapping[str, Any] = field(default_factory=dict)  # the file's [sensors] table
 
     def exited(self, position: np.ndarray) -> bool:
         """Whether ``position`` lies past any exit portal."""
@@ -110,9 +112,13 @@ class Scenario:
         """
         if self.centreline is None:
             return self.exit_distance(self.start.position) - self.exit_distance(position)
-        return _arc_length_at(self.centreline, np.asarray(position, np.float64)) - (
-            _arc_length_at(self.centreline, self.start.position)
-        )
+        return _arc_length_at(self.centreline, np.asarray(position, np.float64)) - self._start_arc
+
+    @cached_property
+    def _start_arc(self) -> float:
+        """Arc length of the start along the centre line: asked for at every step."""
+        assert self.centreline is not None
+        return _arc_length_at(self.centreline, self.start.position)
 
     @property
     def passage_length_m(self) -> float:
@@ -715,6 +721,8 @@ def procedural_scenario(name: str, seed: int = 0, difficulty: Difficulty | None 
 
 # Unknown keys are typos; NaN or inf in a position, angle or size is never meant.
 _STRICT = ConfigDict(extra="forbid", allow_inf_nan=False)
+# A pixel count: a TOML integer above 0 (strict: 160.0 and true are refused, not rounded).
+_Pixels = Annotated[int, Field(strict=True, gt=0)]
 
 
 class _StartModel(BaseModel):
@@ -737,6 +745,18 @@ class _ExitModel(BaseModel):
         return v
 
 
+class _SensorsModel(BaseModel):
+    """A scenario file's [sensors] table: pixel counts; the lens stays the paper's."""
+
+    model_config = _STRICT
+    resolution: tuple[_Pixels, _Pixels] | None = Field(
+        None, description="[width, height] of the forward camera (default [640, 480])"
+    )
+    sounder_resolution: tuple[_Pixels, _Pixels] | None = Field(
+        None, description="[width, height] of each echo sounder's depth camera ([32, 24])"
+    )
+
+
 class _ScenarioFileModel(BaseModel):
     model_config = _STRICT
     name: str | None = None
@@ -749,6 +769,7 @@ class _ScenarioFileModel(BaseModel):
     optics: dict[str, Any] = Field(
         default_factory=dict, description="water and light; see cavenav.sensors.optics"
     )
+    sensors: _SensorsModel = Field(default_factory=_SensorsModel)
 
     @field_validator("exit", mode="before")
     @classmethod
@@ -767,6 +788,7 @@ class _FamilyFileModel(BaseModel):
     optics: dict[str, Any] = Field(
         default_factory=dict, description="water and light; see cavenav.sensors.optics"
     )
+    sensors: _SensorsModel = Field(default_factory=_SensorsModel)
 
     @field_validator("family")
     @classmethod
@@ -797,6 +819,10 @@ def load_scenario_file(
         [optics]                    # optional: how the cave looks
         water = "coastal"           # clear, ocean, coastal, turbid
         daylight = 0.5              # open-water brightness at the exits
+        [sensors]                   # optional: pixel counts (flags override them)
+        resolution = [160, 120]     # forward camera, default [640, 480]; the horizontal
+                                    # field of view (53 deg) is kept at any size
+        sounder_resolution = [32, 24]   # each echo sounder's depth camera
 
     A family file names a procedural family instead of a mesh, start and exit, and is
     built at ``seed``: "hard S1" kept as a file, to sweep seeds over::
@@ -806,6 +832,7 @@ def load_scenario_file(
         [difficulty]                # optional: knobs of `Difficulty`
         constriction_m = 2.4
         [optics]                    # optional, as above
+        [sensors]                   # optional, as above
 
     Args:
         seed: which cave of a family file's family; a mesh file has one cave only.
@@ -865,7 +892,13 @@ def _mesh_scenario(path: Path, model: _ScenarioFileModel) -> Scenario:
         raise ConfigError(f"{path}: give at least one [[exit]]")
     exits = tuple(ExitPortal(p.point, p.normal, p.radius) for p in portals)
     return Scenario(
-        model.name or path.stem, mesh, start, exits, model.description, optics=model.optics
+        model.name or path.stem,
+        mesh,
+        start,
+        exits,
+        model.description,
+        optics=model.optics,
+        sensors=model.sensors.model_dump(exclude_none=True),
     )
 
 
@@ -886,6 +919,7 @@ def _family_scenario(
         name=model.name or path.stem,
         description=model.description or cave.description,
         optics=model.optics,
+        sensors=model.sensors.model_dump(exclude_none=True),
     )
 
 
