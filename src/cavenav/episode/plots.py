@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from matplotlib import colormaps
 from matplotlib.axes import Axes
 from matplotlib.collections import LineCollection
 from matplotlib.colors import Normalize
@@ -29,6 +30,8 @@ from cavenav.world.scenarios import ExitPortal, Scenario
 __all__ = ["draw_exits", "draw_footprint", "footprint_raster", "plot_episode"]
 
 _CMAP = "viridis"
+# Light grey under the path's colours, as 8-bit RGBA (images are not rounded, lines are).
+_FOOTPRINT_GREY = np.round(np.array(colormaps["Greys"](0.25)) * 255).astype(np.uint8)
 _CREDIT = "Open Robotics / DARPA SubT"
 
 
@@ -47,16 +50,9 @@ def draw_footprint(ax: Axes, mesh: CaveMesh) -> None:
     """The cave seen from above: every wall triangle projected onto the horizontal plane,
     filled in grey on a raster as fine as the figure (`footprint_raster`)."""
     covered, extent = footprint_raster(mesh)
-    image = ax.imshow(
-        np.ma.masked_where(~covered.T, np.ones(covered.T.shape)),
-        origin="lower",
-        extent=extent,
-        cmap="Greys",
-        vmin=0,
-        vmax=4,
-        interpolation="nearest",
-        rasterized=True,
-    )
+    rgba = np.zeros((*covered.T.shape, 4), np.uint8)
+    rgba[covered.T] = _FOOTPRINT_GREY
+    image = ax.imshow(rgba, origin="lower", extent=extent, interpolation="nearest", rasterized=True)
     image.sticky_edges.x.clear()  # margins around the cave, as around any plotted data
     image.sticky_edges.y.clear()
 
