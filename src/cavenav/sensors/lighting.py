@@ -177,14 +177,20 @@ _SURFACE_CACHE_SIZE = 6
 _SURFACE_LOCK = threading.Lock()
 
 
-def surface_table(caster: RayCaster, optics: Optics, seed: int = 0, rays: int = 32) -> np.ndarray:
+def surface_table(
+    caster: RayCaster, optics: Optics, seed: int = 0, rays: int = 32, *, cached: bool = True
+) -> np.ndarray:
     """(m, 2, 6) float32: per triangle and side (0: along its normal, 1: against it),
     columns 0-2 the albedo and 3-5 the daylight D (radiance = albedo * D).
 
     About 1 s per 100,000 triangles on 2 cores, and rays from at most `SURFACE_PATCHES`
     places however fine the mesh; kept per mesh and parameters in memory and, like the
     caves, on disk (`cavenav.world.procedural.cache_dir`), so a new process finds it.
+    ``cached=False`` computes it anew and keeps nothing (the warm-up, which must run
+    every kernel).
     """
+    if not cached:
+        return _surface_table(caster, optics, seed, rays)
     mesh = caster.mesh
     water = optics.medium
     digest = hashlib.blake2b(mesh.vertices.tobytes(), digest_size=16)

@@ -13,6 +13,8 @@ import numpy as np
 import trimesh
 
 from cavenav.sensors.kernels import free_lengths
+from cavenav.sensors.lighting import surface_table
+from cavenav.sensors.optics import Optics
 from cavenav.sensors.rig import SensorConfig, SensorRig
 from cavenav.types import Pose
 from cavenav.world.mesh import make_mesh
@@ -31,6 +33,7 @@ def warm_up() -> float:
     started = time.perf_counter()
     box = trimesh.creation.box(extents=(4.0, 20.0, 4.0))
     caster = RayCaster(make_mesh(np.asarray(box.vertices), np.asarray(box.faces), "warm-up"))
+    surface_table(caster, Optics(), cached=False)  # the rigs may find it on disk
     for sounder in ("camera", "beam"):
         SensorRig(caster, SensorConfig(sounder=sounder)).observe(Pose(0.0, 5.0, 0.0, 0.0))
     free_lengths(np.zeros((1, 3), np.float32), np.ones((1, 3)), 0.6, 20.0)  # the pilot's
