@@ -242,8 +242,8 @@ def run(
     exr_compression: Annotated[
         ExrCompression,
         typer.Option(
-            help="depth EXR compression: none (fastest; any reader), zip, or htj2k (60% "
-            "smaller; readers need OpenEXR 3.4 or later)"
+            help="depth EXR compression, all lossless: none (fastest; any reader), zip (a "
+            "fifth smaller), or htj2k (two thirds smaller; readers need OpenEXR 3.4 or later)"
         ),
     ] = ExrCompression.none,
     shield: Annotated[

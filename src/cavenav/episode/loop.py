@@ -44,10 +44,10 @@ class EpisodeConfig:
         max_steps: step budget (SPEC: 150).
         rules: the strategy's distances; the standoff counts "steps below standoff".
         save_frames: write the RGB and depth PNG of every step; sweeps can turn this off.
-        save_exr: with the frames, the depth in metres as OpenEXR (about 1.2 MB of the
-            1.7 MB a step takes).
-        exr_compression: "none", "zip" or "htj2k" (lossless, 60 % smaller, needs
-            OpenEXR 3.4 to read): see `cavenav.sensors.depth`.
+        save_exr: with the frames, the depth in metres as OpenEXR (1.24 MB of the 2.05 MB
+            a step takes, uncompressed).
+        exr_compression: "none" (the fastest), "zip" (a fifth smaller) or "htj2k" (two
+            thirds smaller; OpenEXR 3.4 reads it), all lossless: `cavenav.sensors.depth`.
         plots: draw topdown.png and side.png at the end.
         shield: put the safety shield between the pilot and the vehicle.
         seed: seeds the episode's sensor noise (the environment's reset seed).

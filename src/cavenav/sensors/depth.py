@@ -3,19 +3,21 @@
 SPEC section 2: ``D_norm = (D_raw - D_min) / (D_max - D_min)`` clipped to [0, 1], written
 as 8 bits, dark = near, bright = far; a ray that hits nothing counts as D_max.
 
-File settings, chosen by measurement on S4 frames (640x480, 2 cores, one frame each):
+File settings, chosen by measurement: the 73 frames of `cavenav run S4` (640x480, 2 cores),
+mean time and size per frame:
 
 | file | chosen: time, size | other settings measured |
 | --- | --- | --- |
-| colour PNG | zlib level 1, run-length: 33 ms, 813 kB | level 1: 51 ms, 823 kB; 0: 20 ms, 922 kB |
-| depth PNG | zlib level 1, run-length: 6 ms, 50 kB | level 1: 6 ms, 54 kB; 6: 19 ms, 34 kB |
-| depth EXR | no compression: 6 ms, 1237 kB | ZIP: 24 ms, 1178 kB; HTJ2K: 11 ms, 488 kB |
+| colour PNG | zlib level 1, run-length: 36 ms, 770 kB | level 1: 52 ms, 788 kB; 0: 21 ms, 922 kB |
+| depth PNG | zlib level 1, run-length: 5 ms, 40 kB | level 1: 6 ms, 44 kB; 6: 14 ms, 28 kB |
+| depth EXR | no compression: 6 ms, 1237 kB | ZIP: 22 ms, 998 kB; HTJ2K: 11 ms, 402 kB |
 
-The sensor noise makes colour and metric depth nearly incompressible: run-length coding
-(zlib's Z_RLE, no string search) gets as small as any level, faster. ZIP saves 5 % of an
-EXR for four times the time; HTJ2K, lossless and 60 % smaller, is left as an option
-(`EXR_COMPRESSIONS`) because readers built on OpenEXR before 3.4 (OpenCV, Blender 4)
-cannot open it.
+The sensor noise makes colour and metric depth hard to compress: run-length coding
+(zlib's Z_RLE, no string search) gets as small as level 6, faster. ZIP saves a fifth of an
+EXR for three times the time, on a step whose encoding already competes with the ray cast
+for two cores; HTJ2K, lossless and a third of the size, is an option (`EXR_COMPRESSIONS`,
+``--exr-compression``) rather than the default because readers built on OpenEXR before
+3.4 (OpenCV, Blender 4) cannot open it.
 """
 
 from __future__ import annotations
