@@ -12,7 +12,7 @@ the median time of:
 - fresh step: the full step the first time at each pose, right after the geometric pilot
               decided there, as an episode meets it. It once cost a third more than
               the repeats: not cold caches but the pilot's BLAS threads, still spinning
-              on both cores when the cast began (see `cavenav.threads`)
+              on both cores when the cast began (its product is now a numba kernel)
 - set-up:     building the rig once per cave: the per-triangle light table (rays from
               every triangle) and the backscatter table, cold (an empty cache; a
               later process reads the light table from the cache instead)
@@ -30,12 +30,8 @@ import statistics
 import tempfile
 import time
 
-import numpy as np
-from threadpoolctl import threadpool_limits
-
 from cavenav.kinematics import apply
 from cavenav.pilots.geometric import GeometricPilot
-from cavenav.sensors.camera import camera_to_world
 from cavenav.sensors.rig import SensorConfig, SensorRig
 from cavenav.world.collision import VehicleBody, clearance, swept_collision
 from cavenav.world.raycast import RayCaster
@@ -63,6 +59,7 @@ def bench(name: str, poses: int, repeats: int) -> tuple[float, float, float, flo
     body = VehicleBody()
     pilot = GeometricPilot()
     pose = scenario.start
+    frame_rays = rig.config.camera.width * rig.config.camera.height
     rig.observe(pose)  # compile the kernels, warm the caches
     bare, full, fresh = [], [], []
     for _ in range(poses):
@@ -75,10 +72,9 @@ def bench(name: str, poses: int, repeats: int) -> tuple[float, float, float, flo
             swept_collision(caster, body, pose, nxt, gap)
 
         fresh.append(_ms(step))  # right after the pilot, as in an episode
-        with threadpool_limits(limits=1, user_api="blas"):  # no BLAS threads left spinning
-            world = camera_to_world(pose).astype(np.float32)
-            dirs = rig.config.camera.directions.reshape(-1, 3) @ world.T
-        rays, _ = caster._rays(rig.camera_position(pose), dirs)
+        # The forward frame's rays at this pose, as the step just cast them (computing
+        # them here with a numpy product would leave BLAS threads spinning on the cores).
+        rays = caster._o3d.core.Tensor.from_numpy(rig._rays[:frame_rays].copy())
         for _ in range(repeats):
             bare.append(_ms(lambda rays=rays: caster._scene.cast_rays(rays)))
             full.append(_ms(step))

@@ -6,6 +6,7 @@ import atexit
 import os
 import shutil
 import tempfile
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -50,6 +51,19 @@ def box_room(extents=(4.0, 20.0, 4.0), centre=(0.0, 0.0, 0.0)) -> CaveMesh:
     """A closed rectangular room: walls at +-x/2, +-y/2, +-z/2 around ``centre``."""
     box = trimesh.creation.box(extents=extents)
     return make_mesh(box.vertices + np.asarray(centre), box.faces, "box-room")
+
+
+def write_room(folder: Path, start_y: float = 8.0) -> Path:
+    """A scenario file: a closed 8 x 20 x 7 m hall, exit 2 m before its far wall."""
+    folder.mkdir(parents=True, exist_ok=True)
+    trimesh.creation.box(extents=(8.0, 20.0, 7.0)).export(folder / "room.ply")
+    path = folder / f"room{'' if start_y == 8.0 else '-bad'}.toml"
+    path.write_text(
+        '# a test corridor\nmesh = "room.ply"\n'
+        f"[start]\nposition = [0.0, {start_y}, 0.0]\n"
+        "[[exit]]\npoint = [0.0, -6.0, 0.0]\nnormal = [0.0, -1.0, 0.0]\nradius = 3.0\n"
+    )
+    return path
 
 
 @pytest.fixture

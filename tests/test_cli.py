@@ -14,7 +14,7 @@ from PIL import Image
 
 from cavenav.world.scenarios import SCENARIOS
 
-from .test_sweep import write_room
+from .conftest import write_room
 
 
 def wide() -> dict[str, str]:

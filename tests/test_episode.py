@@ -193,12 +193,14 @@ def test_frames_are_written_behind_the_loop_and_a_line_names_only_frames_on_disk
     )
     folder = run_folder.RunFolder(tmp_path / "run")
     step = {"step": 0}
-    folder.record(step, env.observation, [], {"status": "running", "steps": 1})
-    # record() returned with the frames still being encoded: nothing names them yet.
-    assert set(step["frames"]) == {"rgb", "depth_png", "depth_exr"}
-    assert (tmp_path / "run" / "steps.jsonl").read_text() == ""
-    assert not list((tmp_path / "run" / "frames").iterdir())
-    disk_is_slow.set()
+    try:
+        folder.record(step, env.observation, [], {"status": "running", "steps": 1})
+        # record() returned with the frames still being encoded: nothing names them yet.
+        assert set(step["frames"]) == {"rgb", "depth_png", "depth_exr"}
+        assert (tmp_path / "run" / "steps.jsonl").read_text() == ""
+        assert not list((tmp_path / "run" / "frames").iterdir())
+    finally:
+        disk_is_slow.set()
     folder.flush()
     (line,) = run_folder.read_jsonl(tmp_path / "run" / "steps.jsonl")
     assert line["frames"] == step["frames"]

@@ -13,8 +13,8 @@ from pathlib import Path
 import pytest
 from scipy.stats import binomtest
 
+from .conftest import write_room
 from .test_cli import table_rows
-from .test_sweep import write_room
 
 
 def cavenav(*args: str) -> subprocess.CompletedProcess[str]:

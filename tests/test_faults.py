@@ -266,6 +266,61 @@ def test_a_disk_that_stays_full_leaves_the_last_summary_which_agrees_with_the_st
     assert not list(run_dir.rglob("*.tmp"))
 
 
+def test_a_step_lost_after_the_loop_flew_on_is_taken_back_with_those_after_it(
+    room_scenario, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # Step 0's summary waits on a slow disk, then finds it full: by then the loop has
+    # queued the next steps (and waits for room in the queue).
+    real_write, calls, disk = run_folder.write_json, [], threading.Event()
+
+    def slow_then_full(*args: object) -> None:
+        calls.append(1)
+        if len(calls) == 2:
+            disk.wait(60)
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        real_write(*args)
+
+    monkeypatch.setattr(run_folder, "write_json", slow_then_full)
+    threading.Timer(0.5, disk.set).start()
+    run_dir = tmp_path / "run"
+    with pytest.raises(RecordingError, match="No space left on device"):
+        run_episode(room_scenario, GeometricPilot(), EpisodeConfig(plots=False), run_dir)
+    summary = assert_agrees(run_dir, "crashed")
+    assert summary["steps"] == 0
+
+
+def test_a_writer_that_fails_otherwise_ends_the_run_naming_the_error(
+    room_scenario, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    def broken(*args: object) -> None:
+        raise TypeError("cannot write float128 to JSON")
+
+    monkeypatch.setattr(run_folder.RunFolder, "append_step", broken)
+    run_dir = tmp_path / "run"
+    with pytest.raises(RecordingError, match="TypeError: cannot write float128"):
+        run_episode(room_scenario, GeometricPilot(), EpisodeConfig(plots=False), run_dir)
+    summary = assert_agrees(run_dir, "crashed")
+    assert summary["steps"] == 0 and "TypeError: cannot write float128" in summary["failure"]
+
+
+def test_ctrl_c_while_the_loop_waits_for_the_writer_keeps_summary_and_steps_equal(
+    room_scenario, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    real_put, calls = run_folder._StepWriter.put, []
+
+    def put(self: object, step: object) -> None:
+        calls.append(1)
+        if len(calls) == 3:  # Ctrl-C while waiting for room in the queue
+            raise KeyboardInterrupt
+        real_put(self, step)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(run_folder._StepWriter, "put", put)
+    run_dir = tmp_path / "run"
+    with pytest.raises(KeyboardInterrupt):
+        run_episode(room_scenario, GeometricPilot(), EpisodeConfig(plots=False), run_dir)
+    assert assert_agrees(run_dir, "interrupted")["steps"] == 2
+
+
 @pytest.mark.slow
 def test_the_command_line_says_the_disk_is_full_in_one_line_and_exits_1(
     tmp_path: Path,
@@ -481,10 +536,11 @@ def test_the_warm_up_compiles_every_cached_kernel_so_no_step_has_to() -> None:
     # inside a newcomer's first step instead (about a minute).
     script = (
         "import numba\n"
+        "from cavenav.pilots import geometric\n"
         "from cavenav.sensors import kernels\n"
-        "from cavenav.sensors.warmup import warm_up\n"
+        "from cavenav.episode.warmup import warm_up\n"
         "warm_up()\n"
-        "for name, f in vars(kernels).items():\n"
+        "for name, f in [*vars(kernels).items(), *vars(geometric).items()]:\n"
         "    if isinstance(f, numba.core.registry.CPUDispatcher) and "
         "type(f._cache).__name__ != 'NullCache':\n"
         "        print(name, len(f.signatures))\n"
@@ -495,5 +551,5 @@ def test_the_warm_up_compiles_every_cached_kernel_so_no_step_has_to() -> None:
         )
         assert done.returncode == 0, done.stderr
     compiled = dict(line.split() for line in done.stdout.splitlines())
-    assert {"shade_frame", "shade_grid", "fill_rays", "splat_particles"} <= compiled.keys()
+    assert {"shade_frame", "shade_grid", "splat_particles", "free_lengths"} <= compiled.keys()
     assert [name for name, count in compiled.items() if count == "0"] == []

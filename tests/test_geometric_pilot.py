@@ -9,7 +9,7 @@ import pytest
 
 from cavenav.actions import DEFAULT_SPACE, parse_action
 from cavenav.pilots.base import Pilot
-from cavenav.pilots.geometric import GeometricPilot
+from cavenav.pilots.geometric import GeometricPilot, GeometricPilotConfig
 from cavenav.sensors.rig import SensorRig
 from cavenav.types import Observation, Pose
 from cavenav.world.raycast import RayCaster
@@ -72,3 +72,14 @@ def test_never_reverses_by_spinning_past_half_a_circle() -> None:
     pilot = GeometricPilot()
     turned = sum(pilot.decide(synthetic(1.0)).action.yaw_deg for _ in range(8))
     assert abs(turned) <= 180
+
+
+@pytest.mark.parametrize("setting", [{"stride": 0}, {"stride": -5}, {"columns": 0}])
+def test_a_sampling_stride_below_one_is_refused_where_it_is_set(setting: dict) -> None:
+    from cavenav.errors import ConfigError
+    from cavenav.shield import DepthMemory
+
+    with pytest.raises(ConfigError, match="stride"):
+        GeometricPilotConfig(**setting)
+    with pytest.raises(ConfigError, match="stride"):
+        DepthMemory(**setting)

@@ -89,3 +89,20 @@ def test_obj_with_nan_vertices(tmp_path: Path) -> None:
     path.write_text("v 0 0 0\nv 1 0 0\nv 0 nan 1\nf 1 2 3\n")
     with pytest.raises(MeshError, match="NaN"):
         load_mesh(path)
+
+
+# ------------------------------------------------------------------ footprint
+
+
+def test_a_vertex_no_triangle_uses_leaves_the_footprint_raster_as_it_was() -> None:
+    # Meshes from files often carry stray vertices: one far away must neither stretch the
+    # map's grid (shrinking the cave to a dot) nor mark a cell of its own.
+    from cavenav.episode.plots import footprint_raster
+
+    disc = trimesh.creation.cylinder(radius=2.0, height=0.5, sections=32)
+    mesh = make_mesh(disc.vertices, disc.faces, "disc")
+    stray = make_mesh(np.vstack([disc.vertices, [[1e9, -1e9, 0.0]]]), disc.faces, "stray")
+    covered, extent = footprint_raster(mesh)
+    stray_covered, stray_extent = footprint_raster(stray)
+    assert stray_extent == extent
+    np.testing.assert_array_equal(stray_covered, covered)

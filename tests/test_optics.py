@@ -212,7 +212,23 @@ def test_a_new_process_reads_the_lighting_table_from_disk_and_renders_the_same_f
     np.testing.assert_array_equal(render(tube, Optics(), pose).rgb, cold.rgb)
     assert np.load(stored).shape == (len(tube.faces), 2, 6)
     render(tube, Optics(rock_colour=(0.3, 0.3, 0.3)), pose)
-    assert len(list((tmp_path / "lighting").glob("*.npy"))) == 2
+    render(tube, Optics(), pose, seed=1)
+    render(tube, Optics(water="turbid"), pose)
+    assert len(list((tmp_path / "lighting").glob("*.npy"))) == 4
+    # Code that computes tables differently (a new albedo, a new kernel) never reads the
+    # tables the old code stored: it computes and stores its own.
+    new_process()
+    monkeypatch.setattr(lighting, "_source_digest", lambda: "changed code")
+    compute, computed = lighting._surface_table, []
+
+    def counted(*args: object) -> np.ndarray:
+        computed.append(args)
+        return compute(*args)
+
+    monkeypatch.setattr(lighting, "_surface_table", counted)
+    np.testing.assert_array_equal(render(tube, Optics(), pose).rgb, cold.rgb)
+    assert len(computed) == 1
+    assert len(list((tmp_path / "lighting").glob("*.npy"))) == 5
 
 
 # ------------------------------------------------------------------ rock, snow, camera

@@ -11,7 +11,6 @@ import time
 from pathlib import Path
 
 import pytest
-import trimesh
 from scipy.stats import binomtest
 
 from cavenav.errors import ConfigError
@@ -20,18 +19,7 @@ from cavenav.evaluation.results import aggregate, compare, outcome
 from cavenav.evaluation.sweep import EpisodeJob, SweepConfig, parse_seeds, read_rows, run_sweep
 from cavenav.pilots.factory import PilotSpec, VLMOptions
 
-
-def write_room(folder: Path, start_y: float = 8.0) -> Path:
-    """A scenario file: a closed 8 x 20 x 7 m hall, exit 2 m before its far wall."""
-    folder.mkdir(parents=True, exist_ok=True)
-    trimesh.creation.box(extents=(8.0, 20.0, 7.0)).export(folder / "room.ply")
-    path = folder / f"room{'' if start_y == 8.0 else '-bad'}.toml"
-    path.write_text(
-        '# a test corridor\nmesh = "room.ply"\n'
-        f"[start]\nposition = [0.0, {start_y}, 0.0]\n"
-        "[[exit]]\npoint = [0.0, -6.0, 0.0]\nnormal = [0.0, -1.0, 0.0]\nradius = 3.0\n"
-    )
-    return path
+from .conftest import write_room
 
 
 @pytest.fixture

@@ -36,7 +36,7 @@ from rich.progress import (
 from rich.table import Table
 
 from cavenav.errors import CavenavError
-from cavenav.sensors.depth import DEPTH_RANGE_M
+from cavenav.sensors.depth import DEPTH_RANGE_M, EXR_COMPRESSIONS
 
 app = typer.Typer(
     add_completion=False,
@@ -54,12 +54,8 @@ class Sounder(StrEnum):
     beam = "beam"
 
 
-class ExrCompression(StrEnum):
-    """Depth EXR compressions, all lossless (measured in `cavenav.sensors.depth`)."""
-
-    none = "none"
-    zip = "zip"
-    htj2k = "htj2k"
+# Depth EXR compressions, all lossless (measured in `cavenav.sensors.depth`).
+ExrCompression = StrEnum("ExrCompression", {name: name for name in EXR_COMPRESSIONS})
 
 
 class Backend(StrEnum):
@@ -245,7 +241,7 @@ def run(
             help="depth EXR compression, all lossless: none (fastest; any reader), zip (a "
             "fifth smaller), or htj2k (two thirds smaller; readers need OpenEXR 3.4 or later)"
         ),
-    ] = ExrCompression.none,
+    ] = ExrCompression["none"],
     shield: Annotated[
         bool, typer.Option(help="safety shield between pilot and vehicle (cavenav.shield)")
     ] = False,
@@ -796,12 +792,13 @@ def _metres(value: float | None) -> str:
 
 @app.command()
 def warmup() -> None:
-    """Compile the sensor kernels into numba's cache (once per machine; make setup runs it)."""
-    from cavenav.sensors.warmup import warm_up
+    """Compile the sensor and pilot kernels into numba's cache (once per machine; make setup
+    runs it)."""
+    from cavenav.episode.warmup import warm_up
 
-    with console.status("loading the sensor kernels (the first time on a machine: compiling)"):
+    with console.status("loading the kernels (the first time on a machine: compiling)"):
         seconds = warm_up()
-    console.print(f"sensor kernels ready ({seconds:.1f} s)")
+    console.print(f"sensor and pilot kernels ready ({seconds:.1f} s)")
 
 
 @app.command()

@@ -32,11 +32,35 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from cavenav.actions import DEFAULT_SPACE, ActionSpace, format_action
+from cavenav.errors import ConfigError
 from cavenav.sensors.depth import denormalise_depth
-from cavenav.threads import one_blas_thread
 from cavenav.types import DEFAULT_RULES, Action, Observation, Rules, VehicleBody
 
-__all__ = ["DepthMemory", "SeenFrame", "Shield", "ShieldConfig", "Verdict", "move_points"]
+__all__ = [
+    "DepthMemory",
+    "SeenFrame",
+    "Shield",
+    "ShieldConfig",
+    "Verdict",
+    "move_points",
+    "sampling_stride",
+]
+
+
+def sampling_stride(width: int, stride: int | None, columns: int) -> int:
+    """Every how many pixels a depth image ``width`` wide is read: ``stride``, or, when
+    None, as many as keep about ``columns`` of its columns (so that readers tuned at
+    640x480 read an 84x84 image whole rather than a handful of its pixels).
+
+    Raises:
+        ConfigError: a stride or a column count below 1.
+    """
+    if (stride is not None and stride < 1) or columns < 1:
+        raise ConfigError(
+            f"stride {stride} and columns {columns}: give a stride of at least 1 (or None) "
+            "and at least 1 column"
+        )
+    return stride if stride is not None else max(1, width // columns)
 
 
 def _yaw_matrix(yaw_deg: float) -> np.ndarray:
@@ -163,6 +187,7 @@ class DepthMemory:
             max_range_m: surfaces farther than this are not remembered as points.
             columns: see ``stride``.
         """
+        sampling_stride(640, stride, columns)  # refuse a bad setting here, not mid-episode
         self.frames_kept = frames
         self.stride = stride
         self.columns = columns
@@ -181,7 +206,7 @@ class DepthMemory:
 
     def _frame(self, obs: Observation) -> SeenFrame:
         h, w = obs.depth_png.shape
-        s = self.stride or max(1, w // self.columns)
+        s = sampling_stride(w, self.stride, self.columns)
         d_max = obs.depth_range[1]
         focal = 0.5 * w / math.tan(math.radians(obs.hfov_deg) / 2)
         # Surface points at every s-th pixel, as the geometric pilot has always kept them.
@@ -290,7 +315,6 @@ class Shield:
         self._observation = None
         self._last = None
 
-    @one_blas_thread
     def observe(self, observation: Observation) -> None:
         """Take in a new observation; the memory moves by the action executed before it,
         or, when the observation does not say, by the last action this shield judged."""
@@ -300,7 +324,6 @@ class Shield:
         self.memory.update(observation, moved_by)
         self._observation = observation
 
-    @one_blas_thread
     def judge(self, proposed: Action) -> Verdict:
         """The nearest action to ``proposed`` that keeps every rule (hold if none does)."""
         if self._observation is None:

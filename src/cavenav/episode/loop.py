@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import contextlib
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -29,7 +29,7 @@ from cavenav.errors import CavenavError, PilotFailure, RecordingError
 from cavenav.pilots.base import Pilot
 from cavenav.sensors.depth import ExrCompression
 from cavenav.sensors.rig import SensorConfig
-from cavenav.types import DEFAULT_RULES, Pose, Rules, VehicleBody
+from cavenav.types import DEFAULT_RULES, Observation, Pose, Rules, VehicleBody
 from cavenav.world.scenarios import Scenario
 from cavenav.wrappers import SafetyShield
 
@@ -124,10 +124,9 @@ def run_episode(
         if run_dir is not None
         else None
     )
-    marks: dict[int, tuple] = {}  # where the log stood before each step still being written
-    pilot.reset()
     status = "crashed"
     try:
+        pilot.reset()
         if folder:
             _write(folder.write_json, folder.path, "summary.json", log.summary("running"))
         while log.termination is None:
@@ -152,24 +151,22 @@ def run_episode(
                 )
                 exchanges = decision.exchanges
             if folder:
-                marks[record["step"]] = mark
-                _record(folder, log, marks, folder.record, record, observation, exchanges,
-                        log.summary("running"))  # fmt: skip
+                _hand_over(folder, log, mark, record, observation, exchanges)
             if on_step:
                 on_step(record)
         if folder:
-            _record(folder, log, marks, folder.flush)
+            _settle(folder, log)
         status = "finished"
     except KeyboardInterrupt:
         status = "interrupted"
         if folder:  # keep the steps flown: they are queued, whole
             with contextlib.suppress(RecordingError):
-                _record(folder, log, marks, folder.flush)
+                _settle(folder, log)
         raise
     except Exception as exc:
-        if folder and not isinstance(exc, RecordingError):
+        if folder:  # a lost step was reported once: settling again finds nothing new
             with contextlib.suppress(RecordingError):
-                _record(folder, log, marks, folder.flush)
+                _settle(folder, log)
         log.crashed(
             f"{type(exc).__name__}: {exc}" if not isinstance(exc, CavenavError) else str(exc)
         )
@@ -184,29 +181,55 @@ def run_episode(
     )
 
 
-def _record(
-    folder: RunFolder, log: EpisodeLog, marks: dict[int, tuple], write: Callable[..., None],
-    *args: Any,
-) -> None:  # fmt: skip
-    """Record through ``folder``; a step the writer lost is taken back from the log too.
+def _hand_over(
+    folder: RunFolder,
+    log: EpisodeLog,
+    mark: tuple,
+    record: dict[str, Any],
+    observation: Observation,
+    exchanges: Sequence[Mapping[str, Any]],
+) -> None:
+    """Queue the step just logged for ``folder``, with the log's ``mark`` from before it.
 
-    The run folder writes steps behind the loop: a step that could not be written (a full
-    disk) surfaces a step or two later, and the log forgets it and everything after it,
-    so that the summary agrees with the folder.
+    The folder writes steps behind the loop: a step it could not write (a full disk)
+    surfaces a step or a few later, and is taken back from the log with all after it
+    (`_taken_back`). A step that never reached the queue (Ctrl-C while the queue was
+    full) is taken back at once: either way the summary agrees with the folder.
 
     Raises:
         RecordingError: a step could not be written.
     """
     try:
-        _write(write, folder.path, *args)
+        folder.record(record, observation, exchanges, log.summary("running"), undo=mark)
     except LostStep as lost:
-        log.rewind(marks[lost.step])
-        marks.clear()
-        if isinstance(lost.error, OSError):
-            raise _recording_error(folder.path, lost.error) from None
-        raise lost.error from None
-    for step in [s for s in marks if s < len(log.steps) - 4]:
-        del marks[step]  # written long ago: the writer's queue holds at most 4 steps
+        raise _taken_back(folder, log, lost) from lost.error
+    except KeyboardInterrupt:
+        log.rewind(mark)
+        raise
+
+
+def _settle(folder: RunFolder, log: EpisodeLog) -> None:
+    """Wait until the folder holds every step handed over (see `_hand_over`).
+
+    Raises:
+        RecordingError: a step could not be written.
+    """
+    try:
+        folder.flush()
+    except LostStep as lost:
+        raise _taken_back(folder, log, lost) from lost.error
+
+
+def _taken_back(folder: RunFolder, log: EpisodeLog, lost: LostStep) -> RecordingError:
+    """Forget the lost step and those after it; the error to end the episode with."""
+    log.rewind(lost.undo)  # type: ignore[arg-type]
+    error = lost.error
+    why = (
+        error.strerror or error
+        if isinstance(error, OSError)
+        else f"{type(error).__name__}: {error}"
+    )
+    return RecordingError(f"cannot write the run folder {folder.path}: {why}")
 
 
 def _write(write: Callable[..., None], where: Path, *args: Any) -> None:
@@ -214,8 +237,6 @@ def _write(write: Callable[..., None], where: Path, *args: Any) -> None:
     try:
         write(*args)
     except OSError as exc:
-        raise _recording_error(where, exc) from None
-
-
-def _recording_error(where: Path, exc: OSError) -> RecordingError:
-    return RecordingError(f"cannot write the run folder {where}: {exc.strerror or exc}")
+        raise RecordingError(
+            f"cannot write the run folder {where}: {exc.strerror or exc}"
+        ) from None

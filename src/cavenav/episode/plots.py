@@ -65,20 +65,26 @@ def footprint_raster(
     Matplotlib draws a `tripcolor` of the mesh one path per triangle: 0.6 s at 87,000
     triangles and 31 s at 3 million. Here each triangle tests the centres of the cells
     of its bounding box, all triangles with the same box size at once: 0.35 s and 0.9 s.
-    A cell counts as covered when its centre lies within half a cell of a triangle, so
-    thin triangles and the seams between them leave no gaps.
+    A triangle covers the cells of its corners and, when its box spans more than two
+    cells either way, the cells of the box whose centre lies inside the triangle grown by
+    moving each edge outward by half a cell (further than half a cell at sharp corners,
+    never past the box), so thin triangles and the seams between them leave no gaps.
+    Vertices that no triangle uses neither widen the grid nor mark a cell.
 
     Returns:
         ``covered``, (nx, ny) bool indexed [x, y], and its (left, right, bottom, top).
     """
     xy = mesh.vertices[:, :2].astype(np.float64)
-    lo, hi = xy.min(axis=0), xy.max(axis=0)
+    used = np.zeros(len(xy), bool)
+    used[mesh.faces] = True  # a mask: 0.02 s at 3 million triangles, np.unique takes 5 s
+    lo, hi = xy[used].min(axis=0), xy[used].max(axis=0)
     cell = max(float((hi - lo).max()) / cells, 1e-9)
     shape = np.maximum(np.ceil((hi - lo) / cell).astype(int), 1) + 1
     covered = np.zeros(shape, bool)
     position = (xy - lo) / cell  # of each vertex, in cells
-    corner = np.floor(position).astype(np.int32)
-    covered[corner[:, 0], corner[:, 1]] = True  # the cells of every triangle's corners
+    # Unused vertices may lie anywhere: clipped into the grid so the cast cannot overflow.
+    corner = np.floor(np.clip(position, 0, shape - 1)).astype(np.int32)
+    covered[corner[used, 0], corner[used, 1]] = True  # the cells of every triangle's corners
     # That is all a triangle within 2x2 cells (a fine mesh's) covers, bar a sliver of a
     # cell, under a pixel of the figure. Larger ones test the cells of their box.
     first = corner[mesh.faces].min(axis=1)

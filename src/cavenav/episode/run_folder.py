@@ -33,7 +33,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from cavenav.errors import ConfigError, RecordingError
-from cavenav.sensors.depth import ExrCompression, save_png, write_exr
+from cavenav.sensors.depth import EXR_COMPRESSIONS, ExrCompression, save_png, write_exr
 from cavenav.types import Observation
 
 if TYPE_CHECKING:
@@ -172,18 +172,19 @@ def _finite(value: Any) -> Any:
     return value
 
 
-@dataclass
 class LostStep(Exception):
-    """A step the background writer could not write: it and every later step are lost.
+    """A step the run folder's writer could not write; the steps queued after it are
+    dropped, so the folder ends at the step before ``step``.
 
-    The folder ends at the step before ``step`` (see `RunFolder`); ``error`` is why.
+    Attributes:
+        step: the step's number.
+        error: why (a full disk is an OSError).
+        undo: what the caller handed `RunFolder.record` with the step, to take it back.
     """
 
-    step: int
-    error: BaseException
-
-    def __str__(self) -> str:
-        return f"step {self.step} could not be written: {self.error}"
+    def __init__(self, step: int, error: BaseException, undo: object):
+        super().__init__(f"step {step} could not be written: {error}")
+        self.step, self.error, self.undo = step, error, undo
 
 
 @dataclass(frozen=True)
@@ -194,6 +195,7 @@ class _Step:
     obs: Observation
     exchanges: Sequence[Mapping[str, Any]]
     summary: Mapping[str, Any]
+    undo: object
 
 
 class _StepWriter:
@@ -202,44 +204,48 @@ class _StepWriter:
     them.
 
     The queue holds at most ``depth`` steps (about 2.4 MB each at 640x480): a loop that
-    outruns the disk waits. After the first step that fails, later ones are dropped.
+    outruns the disk waits. After the first step that fails, later ones are dropped; the
+    failure is reported once, by the next `put` or `flush`.
     """
 
-    def __init__(self, write: Callable[[_Step], None], depth: int):
+    def __init__(self, write: Callable[[_Step], None], depth: int = 4):
         self._write = write
         self._queue: queue.Queue[_Step | None] = queue.Queue(maxsize=depth)
-        self.failed: LostStep | None = None
+        self._failed = False
+        self._unreported: LostStep | None = None
         self._thread = threading.Thread(target=self._run, name="cavenav-run-folder", daemon=True)
         self._thread.start()
 
     def _run(self) -> None:
         while (step := self._queue.get()) is not None:
-            if self.failed is None:
+            if not self._failed:
                 try:
                     self._write(step)
-                except BaseException as exc:  # noqa: BLE001 - handed to the loop's thread
-                    self.failed = LostStep(step.record["step"], exc)
+                except BaseException as exc:  # noqa: BLE001 - reported on the loop's thread
+                    self._failed = True
+                    self._unreported = LostStep(step.record["step"], exc, step.undo)
             self._queue.task_done()
         self._queue.task_done()
 
     def put(self, step: _Step) -> None:
-        self._raise_failure()
+        self._report()
         self._queue.put(step)
 
     def flush(self) -> None:
         """Wait until every queued step is written (or dropped)."""
         self._queue.join()
-        self._raise_failure()
+        self._report()
 
     def close(self) -> None:
-        """Write what is queued, then end the thread."""
+        """Write what is queued, then end the thread (a failure is no longer reported)."""
         if self._thread.is_alive():
             self._queue.put(None)
             self._thread.join()
 
-    def _raise_failure(self) -> None:
-        if self.failed is not None:
-            raise self.failed
+    def _report(self) -> None:
+        lost, self._unreported = self._unreported, None
+        if lost is not None:
+            raise lost
 
 
 class RunFolder:
@@ -252,9 +258,9 @@ class RunFolder:
     the two). A step that cannot be written whole (a full disk) is taken back: its frames
     removed and steps.jsonl cut back, so the folder ends at the last whole step.
 
-    With ``background`` (the default) steps are written in order on a thread of their
-    own (`_StepWriter`): `record` returns once the step is queued, and reports a step
-    that could not be written at a later call, or at `flush`, as `LostStep`.
+    Steps are written in order on a thread of their own (`_StepWriter`): `record`
+    returns once the step is queued and reports a step that could not be written at a
+    later call, or at `flush`, as `LostStep`.
     """
 
     def __init__(
@@ -264,10 +270,16 @@ class RunFolder:
         save_exr: bool = True,
         *,
         exr_compression: ExrCompression = "none",
-        background: bool = True,
-        queue_depth: int = 4,
     ):
-        """``path`` must not exist, or be an empty folder (as `new_run_dir` makes it)."""
+        """``path`` must not exist, or be an empty folder (as `new_run_dir` makes it).
+
+        Raises:
+            ConfigError: an EXR compression that is not one of `EXR_COMPRESSIONS`.
+        """
+        if exr_compression not in EXR_COMPRESSIONS:
+            raise ConfigError(
+                f"EXR compression {exr_compression!r}: choose one of {', '.join(EXR_COMPRESSIONS)}"
+            )
         self.path = Path(path)
         self.save_frames = save_frames
         self.save_exr = save_exr
@@ -280,7 +292,7 @@ class RunFolder:
         # Unbuffered bytes: a line is one write, and a failed one can be cut back exactly.
         self._steps = open(self.path / "steps.jsonl", "ab", buffering=0)  # noqa: SIM115
         self._stored: dict[str, str] = {}
-        self._writer = _StepWriter(self._write_step, queue_depth) if background else None
+        self._writer = _StepWriter(self._write_step)
 
     def frame_names(self, step: int) -> dict[str, str]:
         """The paths, relative to the run folder, of the frames step ``step`` writes."""
@@ -354,22 +366,22 @@ class RunFolder:
         obs: Observation,
         exchanges: Sequence[Mapping[str, Any]],
         summary: Mapping[str, Any],
+        undo: object = None,
     ) -> None:
-        """Write one whole step: frames, model exchanges, its line, then ``summary``.
+        """Queue one whole step: frames, model exchanges, its line, then ``summary``.
 
         ``step`` gains the names of its frames (``step["frames"]``) at once. None of the
-        arguments may change afterwards: a background writer reads them later.
+        arguments may change afterwards: the writer reads them later.
+
+        Args:
+            undo: anything; a `LostStep` for this step carries it back (the loop hands
+                its log's mark, to take the step back from the log too).
 
         Raises:
-            LostStep: (background) this or an earlier step could not be written.
-            OSError: (not background) the step could not be written; it was taken back.
+            LostStep: an earlier step could not be written.
         """
         step["frames"] = self.frame_names(step["step"])
-        queued = _Step(step, obs, exchanges, summary)
-        if self._writer is None:
-            self._write_step(queued)
-        else:
-            self._writer.put(queued)
+        self._writer.put(_Step(step, obs, exchanges, summary, undo))
 
     def flush(self) -> None:
         """Wait until every recorded step is on disk.
@@ -377,8 +389,7 @@ class RunFolder:
         Raises:
             LostStep: a step could not be written; the folder ends before it.
         """
-        if self._writer is not None:
-            self._writer.flush()
+        self._writer.flush()
 
     def _write_step(self, queued: _Step) -> None:
         step = queued.record
@@ -439,9 +450,9 @@ class RunFolder:
         A summary that cannot be written (the disk is still full) leaves the last one,
         which agrees with steps.jsonl.
         """
-        if self._writer is not None:
-            self._writer.close()  # the loop has flushed it; a failure is already reported
         try:
+            with interrupts_deferred():  # the writer must be done before the last summary
+                self._writer.close()
             if plots:
                 from cavenav.episode.plots import plot_episode
 

@@ -23,14 +23,13 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field, replace
 
+import numba
 import numpy as np
 from scipy import ndimage
 
 from cavenav.actions import DEFAULT_SPACE, ActionSpace, format_action
 from cavenav.sensors.depth import denormalise_depth
-from cavenav.sensors.kernels import free_lengths
-from cavenav.shield import DepthMemory, clearance_of_move
-from cavenav.threads import one_blas_thread
+from cavenav.shield import DepthMemory, clearance_of_move, sampling_stride
 from cavenav.types import DEFAULT_RULES, Action, Decision, Observation, Rules, VehicleBody
 
 __all__ = ["GeometricPilot", "GeometricPilotConfig"]
@@ -39,6 +38,34 @@ __all__ = ["GeometricPilot", "GeometricPilotConfig"]
 # 41-degree vertical view (left and up positive).
 _BEARINGS = np.arange(-25.0, 25.01, 2.5)
 _ELEVATIONS = np.arange(-18.0, 18.01, 3.0)
+
+
+@numba.njit(cache=True)
+def free_lengths(
+    points: np.ndarray,  # (n, 3) float32 surface points seen, in any frame
+    directions: np.ndarray,  # (k, 3) float64 unit directions from that frame's origin
+    radius: float,  # the corridor's radius
+    limit: float,  # the length of a corridor nothing blocks
+) -> np.ndarray:
+    """(k,) float64: how far a cylinder of ``radius`` along each direction stays free of
+    ``points`` (the first point inside it, ahead of the origin), at most ``limit``.
+
+    In numpy this was six passes over an (n, k) array through OpenBLAS, 25 ms for 12,000
+    points and 255 directions, and OpenBLAS left its threads spinning on both cores for
+    the environment's next ray cast (70 ms instead of 48). Here it is one pass without
+    temporaries, on one thread: 5 ms, and nothing left running.
+    """
+    k = directions.shape[0]
+    free = np.full(k, limit)
+    radius2 = radius * radius
+    for i in range(points.shape[0]):
+        px, py, pz = float(points[i, 0]), float(points[i, 1]), float(points[i, 2])
+        norm2 = px * px + py * py + pz * pz
+        for j in range(k):
+            along = px * directions[j, 0] + py * directions[j, 1] + pz * directions[j, 2]
+            if 0.0 < along < free[j] and norm2 - along * along < radius2:
+                free[j] = along
+    return free
 
 
 @dataclass(frozen=True)
@@ -76,6 +103,9 @@ class GeometricPilotConfig:
     memory_frames: int = 8
     body: VehicleBody = field(default_factory=VehicleBody)
     margin_m: float = 0.3
+
+    def __post_init__(self) -> None:
+        sampling_stride(640, self.stride, self.columns)  # refuse a bad setting here
 
 
 @dataclass(frozen=True)
@@ -122,7 +152,7 @@ class GeometricPilot:
     def _measure(self, obs: Observation) -> _Scene:
         cfg = self.config
         h, w = obs.depth_png.shape
-        stride = cfg.stride or max(1, w // cfg.columns)
+        stride = sampling_stride(w, cfg.stride, cfg.columns)
         depth = denormalise_depth(obs.depth_png[::stride, ::stride], *obs.depth_range)
         half_view = obs.hfov_deg / 2
         focal = 0.5 * w / math.tan(math.radians(half_view))
@@ -254,7 +284,6 @@ class GeometricPilot:
                 )
         return candidates[-1], "boxed in: turning in place only"
 
-    @one_blas_thread
     def decide(self, observation: Observation) -> Decision:
         cfg, rules = self.config, self.config.rules
         half_view = observation.hfov_deg / 2

@@ -27,7 +27,6 @@ from pathlib import Path
 from typing import IO, Literal
 
 import numpy as np
-from PIL import Image
 
 __all__ = [
     "DEPTH_RANGE_M",
@@ -71,6 +70,8 @@ EXR_COMPRESSIONS: dict[str, str] = {
 
 def save_png(image: np.ndarray, target: str | Path | IO[bytes]) -> None:
     """Write a uint8 (H, W) or (H, W, 3) image as PNG with the settings measured above."""
+    from PIL import Image  # here: pilots read depth images through this module, not PNGs
+
     Image.fromarray(image).save(target, format="PNG", compress_level=1, compress_type=zlib.Z_RLE)
 
 

@@ -30,6 +30,8 @@ from pathlib import Path
 import numpy as np
 from scipy.ndimage import gaussian_filter
 
+from cavenav.sensors import kernels
+from cavenav.sensors import optics as optics_model
 from cavenav.sensors.camera import CameraIntrinsics
 from cavenav.sensors.kernels import (
     GRAIN_STEP,
@@ -216,12 +218,23 @@ def surface_table(
     return table
 
 
-# Bump when `_surface_table` changes what it computes: tables on disk are then not used.
-SURFACE_TABLE_VERSION = 1
+@lru_cache(maxsize=1)
+def _source_digest() -> str:
+    """Digest of the code that computes a surface table: this module (albedo, patches,
+    crevice radius), the kernels and the optics model.
+
+    Part of every file key, so that any change to that code makes new files instead of
+    serving tables the old code computed, with no version to remember to bump. Read once
+    per process (70 kB, well under a millisecond).
+    """
+    digest = hashlib.blake2b(digest_size=16)
+    for source in (__file__, kernels.__file__, optics_model.__file__):
+        digest.update(Path(source).read_bytes())
+    return digest.hexdigest()
 
 
 def _file_key(key: tuple) -> str:
-    blob = repr((SURFACE_TABLE_VERSION, key)).encode()  # floats' repr is exact
+    blob = repr((_source_digest(), key)).encode()  # floats' repr is exact
     return hashlib.blake2b(blob, digest_size=16).hexdigest()
 
 

@@ -44,19 +44,36 @@ def _defer_plotly_viewer() -> None:
     """Put a stand-in for `_PLOTLY_VIEWER` in `sys.modules` that imports the real module,
     and calls it, the first time one of its functions is called."""
     stand_in = types.ModuleType(_PLOTLY_VIEWER, "loaded on first use (cavenav.world.raycast)")
+    # One forwarder per name, so that the package's bindings can be recognised later.
+    handed_out: dict[str, Callable[..., Any]] = {}
+
+    def load() -> types.ModuleType:
+        if sys.modules.get(_PLOTLY_VIEWER) is stand_in:
+            del sys.modules[_PLOTLY_VIEWER]
+        real = importlib.import_module(_PLOTLY_VIEWER)
+        # Importing a submodule binds it on its package under its own name: here over the
+        # function `draw_plotly` that `open3d.visualization` took from the stand-in, which
+        # would leave `o3d.visualization.draw_plotly(...)` calling a module. Give the
+        # package the real functions for every name it still holds from the stand-in.
+        package = sys.modules.get(_PLOTLY_VIEWER.rpartition(".")[0])
+        if package is not None:
+            for name, forwarder in handed_out.items():
+                if getattr(package, name, None) in (forwarder, real):
+                    setattr(package, name, getattr(real, name))
+        return real
 
     def forward(name: str) -> Callable[..., Any]:
         def call(*args: Any, **kwargs: Any) -> Any:
-            if sys.modules.get(_PLOTLY_VIEWER) is stand_in:
-                del sys.modules[_PLOTLY_VIEWER]
-            return getattr(importlib.import_module(_PLOTLY_VIEWER), name)(*args, **kwargs)
+            return getattr(load(), name)(*args, **kwargs)
 
         return call
 
     def module_getattr(name: str) -> Callable[..., Any]:  # `from ... import name`
         if name.startswith("_"):
             raise AttributeError(name)
-        return forward(name)
+        if name not in handed_out:
+            handed_out[name] = forward(name)
+        return handed_out[name]
 
     stand_in.__getattr__ = module_getattr  # type: ignore[method-assign]
     sys.modules[_PLOTLY_VIEWER] = stand_in
