@@ -120,7 +120,7 @@ def run_episode(
     folder = (
         RunFolder(
             run_dir, config.save_frames, config.save_exr, exr_compression=config.exr_compression
-        )  # fmt: skip
+        )
         if run_dir is not None
         else None
     )
@@ -223,13 +223,7 @@ def _settle(folder: RunFolder, log: EpisodeLog) -> None:
 def _taken_back(folder: RunFolder, log: EpisodeLog, lost: LostStep) -> RecordingError:
     """Forget the lost step and those after it; the error to end the episode with."""
     log.rewind(lost.undo)  # type: ignore[arg-type]
-    error = lost.error
-    why = (
-        error.strerror or error
-        if isinstance(error, OSError)
-        else f"{type(error).__name__}: {error}"
-    )
-    return RecordingError(f"cannot write the run folder {folder.path}: {why}")
+    return _cannot_write(folder.path, lost.error)
 
 
 def _write(write: Callable[..., None], where: Path, *args: Any) -> None:
@@ -237,6 +231,14 @@ def _write(write: Callable[..., None], where: Path, *args: Any) -> None:
     try:
         write(*args)
     except OSError as exc:
-        raise RecordingError(
-            f"cannot write the run folder {where}: {exc.strerror or exc}"
-        ) from None
+        raise _cannot_write(where, exc) from None
+
+
+def _cannot_write(where: Path, error: BaseException) -> RecordingError:
+    """The one line that ends an episode whose run folder cannot be written."""
+    why = (
+        error.strerror or error
+        if isinstance(error, OSError)
+        else f"{type(error).__name__}: {error}"
+    )
+    return RecordingError(f"cannot write the run folder {where}: {why}")

@@ -304,23 +304,17 @@ class RunFolder:
             files["depth_exr"] = f"{stem}_depth.exr"
         return files
 
-    def write_frames(self, step: int, obs: Observation) -> dict[str, str]:
-        """Save the observation's images; returns their paths relative to the run folder."""
-        files = self.frame_names(step)
+    def write_frames(self, files: Mapping[str, str], obs: Observation) -> None:
+        """Save the observation's images under the names `frame_names` gave ``files``."""
         if not files:
-            return files
-        try:
-            self._save_png(files["rgb"], obs.rgb)
-            self._save_png(files["depth_png"], obs.depth_png)
-            if self.save_exr:
-                write_then_rename(
-                    self.path / files["depth_exr"],
-                    lambda t: write_exr(t, obs.depth_m, self.exr_compression),
-                )
-        except BaseException:
-            self._remove(files.values())
-            raise
-        return files
+            return
+        self._save_png(files["rgb"], obs.rgb)
+        self._save_png(files["depth_png"], obs.depth_png)
+        if self.save_exr:
+            write_then_rename(
+                self.path / files["depth_exr"],
+                lambda t: write_exr(t, obs.depth_m, self.exr_compression),
+            )
 
     def _save_png(self, name: str, image: np.ndarray) -> None:
         write_then_rename(self.path / name, lambda tmp: save_png(image, tmp))
@@ -330,16 +324,11 @@ class RunFolder:
             (self.path / name).unlink(missing_ok=True)
 
     def append_step(self, record: dict[str, Any]) -> None:
-        """Append one line to steps.jsonl; a line that fails half-written is cut back."""
+        """Append one line to steps.jsonl (a short write is a full disk: `_write_step`
+        cuts the line back)."""
         line = (json.dumps(_finite(record), default=_json_default) + "\n").encode()
-        end = self._steps.seek(0, os.SEEK_END)
-        try:
-            written = self._steps.write(line)
-            if written != len(line):
-                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
-        except BaseException:
-            self._steps.truncate(end)
-            raise
+        if self._steps.write(line) != len(line):
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
 
     def store_image(self, data_url: str) -> str:
         """Write a data-URL image once, named by its content hash; returns its path.
@@ -392,10 +381,11 @@ class RunFolder:
         self._writer.flush()
 
     def _write_step(self, queued: _Step) -> None:
+        """Write one whole step, or take back all of it that was written."""
         step = queued.record
-        self.write_frames(step["step"], queued.obs)
         end = self._steps.seek(0, os.SEEK_END)
         try:
+            self.write_frames(step["frames"], queued.obs)
             if queued.exchanges:
                 self.record_exchanges(step["step"], queued.exchanges)
             self.append_step(step)
