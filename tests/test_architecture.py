@@ -1,5 +1,5 @@
 """Imports flow one way: types <- world <- sensors <- shield <- pilots <- env <- episode <-
-evaluation <- cli."""
+evaluation <- cli; `files` (how every layer writes a file in place) is a leaf like types."""
 
 from __future__ import annotations
 
@@ -42,6 +42,7 @@ TOP = ("cavenav.evaluation", "cavenav.cli")  # nothing below them imports these
     ("layer", "forbidden"),
     [
         ("types.py", ("cavenav.",)),
+        ("files.py", ("cavenav.",)),
         ("world", ("cavenav.sensors", "cavenav.pilots", "cavenav.env", "cavenav.episode", *TOP)),
         ("sensors", ("cavenav.pilots", "cavenav.env", "cavenav.episode", "cavenav.shield", *TOP)),
         ("shield.py", ("cavenav.world", "cavenav.pilots", "cavenav.env", "cavenav.episode", *TOP)),

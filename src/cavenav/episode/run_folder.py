@@ -33,6 +33,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from cavenav.errors import ConfigError, RecordingError
+from cavenav.files import write_then_rename
 from cavenav.sensors.depth import EXR_COMPRESSIONS, ExrCompression, save_png, write_exr
 from cavenav.types import Observation
 
@@ -105,21 +106,6 @@ def read_jsonl(path: Path) -> list[dict[str, Any]]:
         except json.JSONDecodeError:
             continue
     return records
-
-
-def write_then_rename(path: Path, write: Callable[[Path], object]) -> None:
-    """``write`` into a hidden temporary beside ``path``, then rename it into place.
-
-    Readers (and a record cut short by SIGKILL) see the whole file or none of it; a failed
-    write (a full disk, Ctrl-C) removes its temporary.
-    """
-    tmp = path.with_name(f".{path.name}.tmp")
-    try:
-        write(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
 
 
 def write_atomic(path: Path, text: str) -> None:

@@ -34,6 +34,7 @@ from cavenav.errors import (
     DependencyError,
     RateLimited,
 )
+from cavenav.files import write_then_rename
 
 if TYPE_CHECKING:
     import openai
@@ -462,9 +463,7 @@ class CachedBackend:
             stored["errors"] = tuple(stored.get("errors", ()))
             return Completion(**{**stored, "cached": True, "latency_s": 0.0, "retries": 0})
         completion = self.inner.complete(messages, json_schema)
-        tmp = path.with_suffix(".tmp")
-        tmp.write_text(json.dumps(asdict(completion)))
-        tmp.replace(path)
+        write_then_rename(path, lambda tmp: tmp.write_text(json.dumps(asdict(completion))))
         return completion
 
 

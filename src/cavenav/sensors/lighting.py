@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import hashlib
 import math
-import os
 import threading
 import weakref
 from collections import OrderedDict
@@ -30,6 +29,7 @@ from pathlib import Path
 import numpy as np
 from scipy.ndimage import gaussian_filter
 
+from cavenav.files import write_then_rename
 from cavenav.sensors import kernels
 from cavenav.sensors import optics as optics_model
 from cavenav.sensors.camera import CameraIntrinsics
@@ -251,14 +251,16 @@ def _load_table(path: Path, triangles: int) -> np.ndarray | None:
 
 def _store_table(path: Path, table: np.ndarray) -> None:
     """Keep ``table`` for the next process; a cache that cannot be written is no error."""
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}.tmp")
+
+    def save(tmp: Path) -> None:
+        with open(tmp, "wb") as out:  # np.save would add ".npy" to a path
+            np.save(out, table, allow_pickle=False)
+
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        with open(tmp, "wb") as out:
-            np.save(out, table, allow_pickle=False)
-        tmp.replace(path)
+        write_then_rename(path, save)
     except OSError:
-        tmp.unlink(missing_ok=True)
+        pass
 
 
 def surface_patches(

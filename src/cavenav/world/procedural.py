@@ -24,6 +24,7 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
+from cavenav.files import write_then_rename
 from cavenav.world.mesh import CaveMesh, make_mesh
 
 __all__ = ["GENERATOR_VERSION", "Boulder", "PassageSpec", "build_cave", "cache_dir"]
@@ -130,11 +131,14 @@ def build_cave(spec: PassageSpec, name: str = "cave") -> CaveMesh:
             return make_mesh(data["vertices"], data["faces"], name)
     mesh = _generate(spec, name)
     cache.parent.mkdir(parents=True, exist_ok=True)
-    tmp = cache.with_suffix(f".{os.getpid()}.tmp.npz")
-    np.savez_compressed(
-        tmp, vertices=mesh.vertices.astype(np.float32), faces=mesh.faces.astype(np.int32)
-    )
-    tmp.replace(cache)
+
+    def save(tmp: Path) -> None:
+        with open(tmp, "wb") as out:  # np.savez would add ".npz" to a path
+            np.savez_compressed(
+                out, vertices=mesh.vertices.astype(np.float32), faces=mesh.faces.astype(np.int32)
+            )
+
+    write_then_rename(cache, save)
     with np.load(cache) as data:  # the cached float32 copy, so cold and warm runs agree
         return make_mesh(data["vertices"], data["faces"], name)
 

@@ -1,0 +1,32 @@
+"""Files that appear whole or not at all: the one way cavenav writes a file in place.
+
+Run folders (frames, summaries, images), the cave and lighting caches and the model
+reply cache are all written to a temporary beside their name and renamed into place, so
+a reader, or a process killed half-way, never finds half a file.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+from collections.abc import Callable
+from pathlib import Path
+
+__all__ = ["write_then_rename"]
+
+
+def write_then_rename(path: Path, write: Callable[[Path], object]) -> None:
+    """``write`` into a hidden temporary beside ``path``, then rename it into place.
+
+    A failed write (a full disk, Ctrl-C) removes its temporary. The temporary is named
+    after the writing process and thread, so writers filling one cache at once (a sweep's
+    workers) never write into each other's. ``write`` gets the temporary's path, whose
+    suffix is ``.tmp``: give libraries that add their own suffix an open file instead.
+    """
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}.tmp")
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
