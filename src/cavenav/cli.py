@@ -8,6 +8,8 @@ cavenav eval --seeds 0-19 --out DIR    a pilot over S1-S5 x 20 caves, resumable,
 cavenav compare DIR_A DIR_B            two sweeps paired by cave (McNemar)
 cavenav report DIR                     the HTML report of a sweep or a run folder
 cavenav video RUN                      an MP4 of one episode
+cavenav fly --sim S4 --yes             the same pilots on an ArduSub vehicle over MAVLink
+cavenav fake-sub                       a simulated ArduSub autopilot to fly against
 """
 
 from __future__ import annotations
@@ -278,7 +280,7 @@ def run(
 ) -> None:
     """Fly one episode and write its run folder (summary, steps, frames, plots)."""
     sizes = _sizes(resolution, sounder_resolution)
-    from cavenav.episode.loop import EpisodeConfig, run_episode
+    from cavenav.episode.loop import EpisodeConfig
     from cavenav.episode.run_folder import new_run_dir, prepare_root
     from cavenav.pilots.factory import PilotSpec
     from cavenav.sensors.rig import SensorConfig
@@ -326,6 +328,19 @@ def run(
         f"({cave.mesh.triangle_count:,} triangles)"
     )
     run_dir = new_run_dir(out, cave.name, pilot, cave.seed)
+    _fly_episode(cave, flyer, config, run_dir)
+
+
+def _fly_episode(
+    cave: Any,  # noqa: ANN401 - lazy imports
+    flyer: Any,  # noqa: ANN401
+    config: Any,  # noqa: ANN401
+    run_dir: Path,
+    motion: Any = None,  # noqa: ANN401
+) -> None:
+    """Fly the episode with a progress bar, print its summary, and exit as the README says."""
+    from cavenav.episode.loop import run_episode
+
     with Progress(
         TextColumn("[progress.description]{task.description}"),
         BarColumn(),
@@ -337,7 +352,9 @@ def run(
         # Before the first step: the kernels load (the first run on a machine compiles
         # them, about a minute), the lighting tables are built and the start is checked.
         task = progress.add_task(
-            f"preparing {cave.name}", total=steps, status="sensors, lighting, start check"
+            f"preparing {cave.name}",
+            total=config.max_steps,
+            status="sensors, lighting, start check",
         )
 
         def on_step(record: dict) -> None:
@@ -345,7 +362,7 @@ def run(
             progress.update(task, advance=1, description=f"flying {cave.name}", status=status[:60])
 
         try:
-            result = run_episode(cave, flyer, config, run_dir, on_step)
+            result = run_episode(cave, flyer, config, run_dir, on_step, motion)
         except KeyboardInterrupt:
             progress.stop()
             errors.print(_interrupted(run_dir), soft_wrap=True)
@@ -745,6 +762,191 @@ def video(
     console.print(f"video: [bold]{path}[/]", soft_wrap=True)
 
 
+class FlyMode(StrEnum):
+    """How the bridge drives an ArduSub vehicle (`cavenav.vehicle.mavlink`)."""
+
+    manual = "manual"
+    guided = "guided"
+
+
+# What `cavenav fly` without --sim needs from a real vehicle, and does not have yet.
+REAL_VEHICLE_INPUTS = """\
+cavenav fly without --sim would fly a real vehicle on its own sensors. A pilot needs, each
+step, what the simulator gives it:
+  - a forward colour image (640x480 by default, 53 degrees across),
+  - a forward depth image in metres, registered to it (a stereo pair or a depth camera),
+  - two echo-sounder ranges, up and down (e.g. Blue Robotics Ping2 sonars),
+and the bridge needs the vehicle's pose: LOCAL_POSITION_NED and ATTITUDE (a DVL for
+guided mode; manual mode flies on the depth sensor and dead reckoning).
+cavenav has no driver for these sensors yet. Fly the loop in simulation with
+--sim SCENARIO against `cavenav fake-sub` or ArduSub's SITL, or print the MAVLink
+commands of an action with --dry-run --action TEXT."""
+
+
+@app.command()
+def fly(
+    connect: Annotated[
+        str | None,
+        typer.Option(help="MAVLink address of the vehicle (default udpin:0.0.0.0:14550)"),
+    ] = None,
+    pilot: Annotated[
+        str, typer.Option(help="pilot to fly: geometric, vlm, replay, random")
+    ] = "geometric",
+    sim: Annotated[
+        str | None,
+        typer.Option(
+            help="render this scenario (S1..S5 or a .toml) at the pose the vehicle reports"
+        ),
+    ] = None,
+    mode: Annotated[
+        FlyMode | None,
+        typer.Option(help="manual: ALT_HOLD and sticks; guided: GUIDED and position targets"),
+    ] = None,
+    config: Annotated[
+        Path | None, typer.Option(help="bridge settings (TOML): rates, tolerances, limits")
+    ] = None,
+    yes: Annotated[
+        bool, typer.Option("--yes", help="arm without asking (simulation only)")
+    ] = False,
+    dry_run: Annotated[
+        bool, typer.Option("--dry-run", help="print the MAVLink commands of --action, send none")
+    ] = False,
+    action: Annotated[
+        list[str] | None, typer.Option(help="an action string for --dry-run (repeat for more)")
+    ] = None,
+    seed: Annotated[int, typer.Option(min=0, help="seed of the procedural cave")] = 0,
+    out: Annotated[Path, typer.Option(help="folder that receives the run folder")] = Path("runs"),
+    steps: Annotated[int, typer.Option(min=1, help="step budget")] = 150,
+    frames: Annotated[bool, typer.Option(help="save RGB, depth PNG and EXR of every step")] = True,
+    shield: Annotated[
+        bool, typer.Option(help="safety shield between pilot and vehicle (on by default here)")
+    ] = True,
+    from_: Annotated[Path | None, typer.Option("--from", help="run folder to replay")] = None,
+    backend: BackendOpt = Backend.openai,
+    base_url: BaseUrl = None,
+    model: Model = None,
+    api_key_env: ApiKeyEnv = "OPENAI_API_KEY",
+    timeout: Timeout = 60.0,
+    deadline: Deadline = None,
+    retries: Retries = 4,
+    temperature: Temperature = 0.2,
+    max_tokens: MaxTokens = 1024,
+    detail: Detail = None,
+    requeries: Requeries = 3,
+    history: History = 2,
+    prompt_file: PromptFile = None,
+    structured: Structured = False,
+    price: Price = None,
+    cache: Cache = None,
+    device: Device = "auto",
+) -> None:
+    """Fly a pilot on an ArduSub vehicle over MAVLink (BlueROV2); with --sim, in a cave."""
+    from cavenav.vehicle.mavlink import load_bridge_config
+
+    bridge = load_bridge_config(config, connect=connect, mode=mode.value if mode else None)
+    if dry_run:
+        _print_dry_run(bridge, action or [])
+        return
+    if sim is None:
+        errors.print(REAL_VEHICLE_INPUTS, highlight=False)
+        raise typer.Exit(2)
+    from cavenav.episode.loop import EpisodeConfig
+    from cavenav.episode.run_folder import new_run_dir, prepare_root
+    from cavenav.pilots.factory import PilotSpec
+    from cavenav.sensors.rig import SensorConfig
+    from cavenav.vehicle.mavlink import ArduSubMotion
+    from cavenav.world.scenarios import load_scenario
+
+    spec = PilotSpec(pilot, _vlm_options(locals()), recording=str(from_) if from_ else None)
+    prepare_root(out)
+    flyer = spec.build(seed=seed)
+    with console.status(f"building {sim} (seed {seed})"):
+        cave = load_scenario(sim, seed)
+    sensors = _sensors(cave, SensorConfig())
+    episode = EpisodeConfig(max_steps=steps, save_frames=frames, shield=shield, sensors=sensors)
+    console.print(
+        f"[bold]{cave.name}[/] through MAVLink ({bridge.mode} mode, {bridge.connect}): waiting "
+        "for the vehicle's heartbeat"
+    )
+    run_dir = new_run_dir(out, cave.name, pilot, cave.seed)
+    motion = ArduSubMotion(
+        bridge, run_dir / "mavlink.jsonl", confirm=None if yes else typer.confirm
+    )
+    try:
+        _fly_episode(cave, flyer, episode, run_dir, motion)
+    finally:
+        motion.close()
+    console.print(f"commands:   {run_dir / 'mavlink.jsonl'}", soft_wrap=True)
+
+
+def _print_dry_run(bridge: Any, actions: list[str]) -> None:  # noqa: ANN401
+    from cavenav.actions import format_action, parse_action
+    from cavenav.vehicle.mavlink import describe, plan
+
+    if not actions:
+        raise typer.BadParameter("give the action to describe, e.g. --action 'forward 0.5 m'")
+    for text in actions:
+        command = parse_action(text)
+        console.print(f"[bold]{format_action(command)}[/] ({bridge.mode} mode):")
+        for line in describe(plan(command, bridge), bridge):
+            console.print(f"  {line}", soft_wrap=True, highlight=False)
+
+
+@app.command("fake-sub")
+def fake_sub(
+    connect: Annotated[
+        str, typer.Option(help="where to send (the bridge listens there with udpin)")
+    ] = "udpout:127.0.0.1:14550",
+    noise: Annotated[
+        float, typer.Option(min=0, callback=_finite, help="execution noise (relative gain error)")
+    ] = 0.0,
+    current: Annotated[
+        str, typer.Option(metavar="N,E,D", help="water current, m/s north, east, down")
+    ] = "0,0,0",
+    depth: Annotated[float, typer.Option(min=0, callback=_finite, help="start depth, m")] = 30.0,
+    position: Annotated[
+        bool, typer.Option(help="report LOCAL_POSITION_NED and allow GUIDED (a DVL)")
+    ] = True,
+    pilot_timeout: Annotated[
+        float, typer.Option(min=0.1, callback=_finite, help="FS_PILOT_TIMEOUT, seconds")
+    ] = 3.0,
+    seed: Annotated[int, typer.Option(min=0, help="seed of the execution noise")] = 0,
+) -> None:
+    """A simulated ArduSub autopilot on MAVLink, for `cavenav fly --sim` with no vehicle."""
+    from cavenav.vehicle.fake_sub import FakeSubConfig, FakeSubState, serve
+
+    try:
+        drift = tuple(float(v) for v in current.split(","))
+    except ValueError:
+        drift = ()
+    if len(drift) != 3 or not all(map(math.isfinite, drift)):
+        raise typer.BadParameter(
+            f"{current!r}: give three numbers N,E,D in m/s", param_hint="--current"
+        )
+    settings = FakeSubConfig(
+        address=connect,
+        noise=noise,
+        current_ned_mps=drift,  # type: ignore[arg-type]
+        start_ned=(0.0, 0.0, depth),
+        position_estimate=position,
+        pilot_timeout_s=pilot_timeout,
+        seed=seed,
+    )
+
+    def show(state: FakeSubState) -> None:
+        console.print(
+            f"{'ARMED' if state.armed else 'disarmed':8} {state.mode_name:8} "
+            f"N {state.north:7.2f}  E {state.east:7.2f}  depth {state.down:6.2f}  "
+            f"yaw {state.yaw_deg:7.1f}  sticks {state.sticks}"
+            + ("  [red]pilot-input failsafe[/]" if state.failsafe else ""),
+            highlight=False,
+        )
+
+    console.print(f"fake ArduSub sending to {connect}; Ctrl-C stops it")
+    with contextlib.suppress(KeyboardInterrupt):
+        serve(settings, on_state=show)
+
+
 def _print_summary(summary: dict) -> None:
     table = Table(title="episode summary", show_header=False)
     table.add_column(style="bold")
@@ -835,6 +1037,7 @@ def main() -> None:
     1: an episode ended as a pilot failure, or the run folder could not be written.
     2: bad input (a typer usage error, or a `CavenavError`), refused before anything
        was written.
+    3: `fly`: the vehicle failed the bridge (no heartbeat, refused, a stale link).
     130: interrupted (Ctrl-C); what was recorded so far stays valid.
     """
     warnings.showwarning = _show_warning

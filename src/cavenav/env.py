@@ -26,7 +26,7 @@ from gymnasium import spaces
 
 from cavenav.actions import DEFAULT_SPACE, ActionSpace, format_action, parse_action
 from cavenav.errors import ActionError, ConfigError
-from cavenav.kinematics import apply
+from cavenav.kinematics import Kinematic, Motion, apply, wrap_angle
 from cavenav.sensors.camera import pixel_size
 from cavenav.sensors.rig import SensorConfig, SensorRig
 from cavenav.types import DEFAULT_RULES, Action, Observation, Pose, Rules, VehicleBody
@@ -134,6 +134,7 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
         action_format: Literal["text", "vector"] = "text",
         collision_penalty: float = 10.0,
         render_mode: str | None = None,
+        motion: Motion | None = None,
     ):
         """
         Args:
@@ -152,6 +153,10 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
             action_format: "text" (action strings) or "vector" (four numbers).
             collision_penalty: subtracted from the reward on a collision.
             render_mode: None or "rgb_array" (the forward colour image).
+            motion: who carries out the actions: the kinematics of SPEC section 5 (the
+                default), or a vehicle (`cavenav.vehicle.mavlink.ArduSubMotion`), whose
+                reported pose is then sensed and checked; ``info`` gains ``drift_m`` and
+                ``drift_deg``, how far it ended from the pose the kinematics command.
         """
         if render_mode not in (None, "rgb_array"):
             raise ConfigError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
@@ -166,6 +171,7 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
         self.space = space
         self.action_format = action_format
         self.collision_penalty = collision_penalty
+        self.motion: Motion = motion or Kinematic()
         self._default_scenario = scenario
         self._default_cave_seed = cave_seed
         self._world: _World | None = None
@@ -255,7 +261,7 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
             options.get("cave_seed", self._default_cave_seed),
         )
         self._noise_seed = int(self.np_random.integers(2**31))
-        self.pose = self.scenario.start
+        self.pose = self.motion.start(self.scenario.start)
         self._clearance = clearance(self.caster, self.pose)
         self._progress = self.scenario.progress(self.pose.position)
         self._steps = 0
@@ -277,7 +283,7 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
         started = time.perf_counter()
         command, invalid = self.command(action)
         start = self.pose
-        moved = apply(start, command)
+        moved = self.motion.move(start, command)
         hit = swept_collision(self.caster, self.body, start, moved, self._clearance)
         collision_pose = moved if hit else None
         if not hit:
@@ -297,6 +303,11 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
             "sense": 1e3 * (time.perf_counter() - sensed),
         }
         info = self._info(command, invalid, collision_pose)
+        if not isinstance(self.motion, Kinematic):
+            commanded = apply(start, command)
+            info["commanded_pose"] = commanded.to_dict()
+            info["drift_m"] = float(np.linalg.norm(moved.position - commanded.position))
+            info["drift_deg"] = abs(math.degrees(wrap_angle(moved.psi - commanded.psi)))
         return self._observation_dict(), float(reward), self._ended, False, info
 
     def render(self) -> np.ndarray | None:

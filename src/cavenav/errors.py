@@ -21,6 +21,7 @@ __all__ = [
     "RateLimited",
     "RecordingError",
     "ScenarioError",
+    "VehicleError",
 ]
 
 
@@ -54,6 +55,14 @@ class RecordingError(CavenavError):
     """
 
     exit_status = 1
+
+
+class VehicleError(CavenavError):
+    """A real or simulated vehicle cannot carry out the flight: no heartbeat, a stale link,
+    a refused mode or arming, a segment beyond its cap. The bridge leaves the vehicle
+    with neutral sticks first (`cavenav.vehicle.mavlink`)."""
+
+    exit_status = 3
 
 
 class ActionError(CavenavError, ValueError):

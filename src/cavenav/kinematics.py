@@ -7,15 +7,19 @@
 
 The vehicle first turns in place, then translates along a straight line in the new
 heading; collision checks sweep the body through exactly these two phases.
+
+Who carries an action out is a `Motion`: these kinematics (`Kinematic`, the simulator's
+default) or a vehicle that reports where it got to (`cavenav.vehicle.mavlink`).
 """
 
 from __future__ import annotations
 
 import math
+from typing import Protocol
 
 from cavenav.types import Action, Pose
 
-__all__ = ["apply", "wrap_angle"]
+__all__ = ["Kinematic", "Motion", "apply", "wrap_angle"]
 
 
 def wrap_angle(psi: float) -> float:
@@ -33,3 +37,25 @@ def apply(pose: Pose, action: Action) -> Pose:
         z=pose.z + action.up,
         psi=wrap_angle(psi),
     )
+
+
+class Motion(Protocol):
+    """Carries out actions: the environment asks it where each action took the vehicle."""
+
+    def start(self, pose: Pose) -> Pose:
+        """The vehicle begins at ``pose`` (the scenario's start); where it is."""
+        ...
+
+    def move(self, pose: Pose, action: Action) -> Pose:
+        """Carry out ``action`` from ``pose``; the pose reached."""
+        ...
+
+
+class Kinematic:
+    """`apply`, exactly: the pose commanded is the pose reached."""
+
+    def start(self, pose: Pose) -> Pose:
+        return pose
+
+    def move(self, pose: Pose, action: Action) -> Pose:
+        return apply(pose, action)

@@ -26,6 +26,7 @@ from cavenav.env import CaveNavEnv
 from cavenav.episode.record import TERMINATIONS, EpisodeLog
 from cavenav.episode.run_folder import LostStep, RunFolder
 from cavenav.errors import CavenavError, PilotFailure, RecordingError
+from cavenav.kinematics import Motion
 from cavenav.pilots.base import Pilot
 from cavenav.sensors.depth import ExrCompression
 from cavenav.sensors.rig import SensorConfig
@@ -84,10 +85,12 @@ class EpisodeResult:
         return self.summary["termination"]
 
 
-def make_env(scenario: Scenario | str, config: EpisodeConfig) -> gym.Env:
+def make_env(
+    scenario: Scenario | str, config: EpisodeConfig, motion: Motion | None = None
+) -> gym.Env:
     """The environment an episode of ``config`` flies: budget, then the shield if asked."""
     env: gym.Env = CaveNavEnv(
-        scenario, sensors=config.sensors, body=config.body, rules=config.rules
+        scenario, sensors=config.sensors, body=config.body, rules=config.rules, motion=motion
     )
     env = TimeLimit(env, max_episode_steps=config.max_steps)
     return SafetyShield(env) if config.shield else env
@@ -99,18 +102,21 @@ def run_episode(
     config: EpisodeConfig | None = None,
     run_dir: str | Path | None = None,
     on_step: Callable[[dict[str, Any]], None] | None = None,
+    motion: Motion | None = None,
 ) -> EpisodeResult:
     """Fly ``pilot`` through ``scenario`` until exit, collision, budget or pilot failure.
 
     Args:
         run_dir: where to write the run folder (must not exist); None records nothing.
         on_step: called with each step's record, e.g. to advance a progress bar.
+        motion: who carries out the actions (`CaveNavEnv`'s ``motion``): the kinematics
+            by default, or a vehicle, e.g. over MAVLink (`cavenav fly`).
 
     Raises:
         ScenarioError: the start pose is not inside the passage or touches a wall.
     """
     config = config or EpisodeConfig()
-    env = make_env(scenario, config)
+    env = make_env(scenario, config, motion)
     vehicle: CaveNavEnv = env.unwrapped  # type: ignore[assignment]
     _, info = env.reset(seed=config.seed)  # checks the start before any folder is written
     assert vehicle.pose is not None

@@ -117,6 +117,12 @@ class EpisodeLog:
             progress_m=round(self.progress_m, 4),
             **decision.extra,
         )
+        if "drift_m" in info:  # a vehicle carried the action out (cavenav fly)
+            record.update(
+                commanded_pose=info["commanded_pose"],
+                drift_m=round(info["drift_m"], 4),
+                drift_deg=round(info["drift_deg"], 3),
+            )
         if info.get("shield"):
             record["shield"] = info["shield"]
         if info["invalid_action"]:
@@ -194,8 +200,24 @@ class EpisodeLog:
             "mean_sense_ms": _mean_timing(self.steps[1:] or self.steps, "sense"),
             "mean_pilot_ms": _mean_timing(self.steps, "pilot"),
             "usage": Usage.total(self.usage),
+            **_drift(self.steps),
             **self._meta,
         }
+
+
+def _drift(steps: list[dict[str, Any]]) -> dict[str, float]:
+    """Mean and largest drift between commanded and reached poses, when a vehicle flew."""
+    metres = [s["drift_m"] for s in steps if "drift_m" in s]
+    if not metres:
+        return {}
+    degrees = [s["drift_deg"] for s in steps if "drift_deg" in s]
+    return {
+        "mean_drift_m": round(sum(metres) / len(metres), 4),
+        "max_drift_m": round(max(metres), 4),
+        "mean_drift_deg": round(sum(degrees) / len(degrees), 3),
+        "max_drift_deg": round(max(degrees), 3),
+        "mean_physics_ms": _mean_timing(steps, "physics"),
+    }
 
 
 def _mean_timing(steps: list[dict[str, Any]], key: str) -> float | None:

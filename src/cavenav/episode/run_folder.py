@@ -8,6 +8,7 @@ RUN_DIR/
   topdown.png, side.png   trajectory plots, written at the end
   exchanges.jsonl  (model pilots) every request and raw reply, reasoning included
   images/        the images those requests carried, stored once by content hash
+  mavlink.jsonl  (cavenav fly) every MAVLink message sent to and received from the vehicle
 """
 
 from __future__ import annotations
@@ -257,7 +258,8 @@ class RunFolder:
         *,
         exr_compression: ExrCompression = "none",
     ):
-        """``path`` must not exist, or be an empty folder (as `new_run_dir` makes it).
+        """``path`` must not exist, or be a folder with no run record in it (as
+        `new_run_dir` makes it; `cavenav fly` opens its command log there first).
 
         Raises:
             ConfigError: an EXR compression that is not one of `EXR_COMPRESSIONS`.
@@ -271,8 +273,8 @@ class RunFolder:
         self.save_exr = save_exr
         self.exr_compression = exr_compression
         self.path.mkdir(parents=True, exist_ok=True)
-        if any(self.path.iterdir()):
-            raise RecordingError(f"{self.path} is not empty: a run folder starts empty")
+        if any((self.path / name).exists() for name in ("summary.json", "steps.jsonl", "frames")):
+            raise RecordingError(f"{self.path} holds a run already: a run folder starts empty")
         if save_frames:
             (self.path / "frames").mkdir()
         # Unbuffered bytes: a line is one write, and a failed one can be cut back exactly.

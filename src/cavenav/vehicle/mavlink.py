@@ -1,0 +1,623 @@
+"""Carry out cavenav actions on an ArduSub vehicle (a BlueROV2) over MAVLink.
+
+An action runs the way the kinematics of SPEC section 5 do: the turn first, then one
+straight translation, each a *segment*. Two ways to drive a segment, chosen by the user:
+
+- ``manual``: ALT_HOLD mode, MANUAL_CONTROL sticks at 10 Hz. A segment holds the sticks
+  for its magnitude over a calibrated rate, then neutral sticks for ``settle_s``. Needs
+  only the depth sensor; the distance flown is as good as the calibration.
+- ``guided``: GUIDED mode, ``SET_POSITION_TARGET_LOCAL_NED`` in
+  ``MAV_FRAME_BODY_OFFSET_NED`` (ArduSub rotates the offset by the current heading and
+  reads the yaw as relative in that frame), then wait until the reported pose is within
+  the tolerances. Needs a position estimate (a DVL).
+
+Only standard MAVLink messages and ArduSub's documented behaviour are relied on
+(https://ardupilot.org/sub/docs/modes.html, .../parameters.html: ``SYSID_MYGCS``,
+``FS_PILOT_INPUT``, ``FS_PILOT_TIMEOUT``): the bridge is a ground station (system id 255
+by default), sends its heartbeat at 1 Hz and neutral sticks whenever no segment runs (in
+both modes, so that ArduSub's pilot-input failsafe stays quiet while a pilot thinks, and
+fires when the bridge dies: ArduSub then sets neutral controls and, with
+``FS_PILOT_INPUT = 2``, disarms).
+
+Safety, in this module: no segment while the vehicle's heartbeat is older than
+``heartbeat_timeout_s`` (2.5 s), nor one longer than ``segment_cap_s``; depth targets are
+clamped to ``[min_depth_m, max_depth_m]``; neutral sticks (manual) or a hold at the
+current pose (guided) on any exception and on Ctrl-C; arming only after the operator
+confirms (a flag waives it in simulation); every message sent and received goes to the
+command log as JSON lines. The forward-clearance rule is the safety shield's
+(`cavenav.wrappers.SafetyShield`), which `cavenav fly` puts in front of the pilot.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import threading
+import time
+import tomllib
+from collections.abc import Callable
+from contextlib import suppress
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from cavenav.actions import format_action
+from cavenav.errors import ConfigError, DependencyError, VehicleError
+from cavenav.kinematics import wrap_angle
+from cavenav.types import Action, Pose
+from cavenav.vehicle.frames import NedFrame, NedPose, body_offset
+
+__all__ = [
+    "ArduSubMotion",
+    "BridgeConfig",
+    "Segment",
+    "describe",
+    "load_bridge_config",
+    "plan",
+]
+
+ALT_HOLD, GUIDED = 2, 4  # ArduSub's custom mode numbers (ArduSub/mode.h)
+NEUTRAL = {"x": 0, "y": 0, "z": 500, "r": 0}  # MANUAL_CONTROL: z is 0..1000, 500 neutral
+FRAME_BODY_OFFSET_NED = 9  # MAV_FRAME_BODY_OFFSET_NED
+# SET_POSITION_TARGET_LOCAL_NED type_mask: use x, y, z and yaw; ignore velocity (8, 16,
+# 32), acceleration (64, 128, 256) and yaw rate (2048).
+POSITION_AND_YAW = 8 | 16 | 32 | 64 | 128 | 256 | 2048
+
+
+class BridgeConfig(BaseModel):
+    """How the bridge talks to the vehicle; a TOML file of these keys overrides them.
+
+    Rates are what the vehicle does at ``stick_limit``: calibrate them on yours (hold a
+    stick for a timed run, measure). The defaults suit `cavenav fake-sub`'s defaults.
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
+
+    connect: str = Field(
+        "udpin:0.0.0.0:14550", description="MAVLink address (BlueOS forwards here)"
+    )
+    mode: Literal["manual", "guided"] = "manual"
+    system_id: int = Field(255, ge=1, le=255, description="our system id; ArduSub's SYSID_MYGCS")
+    component_id: int = Field(190, ge=0, le=255, description="MAV_COMP_ID_MISSIONPLANNER")
+    target_system: int = Field(0, ge=0, le=255, description="0: the first submarine heard")
+    heartbeat_timeout_s: float = Field(2.5, gt=0)
+    connect_timeout_s: float = Field(30.0, gt=0)
+    ack_timeout_s: float = Field(3.0, gt=0)
+    control_hz: float = Field(10.0, gt=0, le=50)
+    stick_limit: int = Field(400, ge=50, le=1000, description="strongest stick, of 1000")
+    forward_mps: float = Field(0.4, gt=0, description="forward/back speed at stick_limit")
+    lateral_mps: float = Field(0.4, gt=0, description="sideways speed at stick_limit")
+    vertical_mps: float = Field(0.2, gt=0, description="up/down speed at stick_limit")
+    yaw_dps: float = Field(36.0, gt=0, description="turn rate at stick_limit, deg/s")
+    settle_s: float = Field(0.5, ge=0, description="neutral sticks after a manual segment")
+    position_tolerance_m: float = Field(0.1, gt=0, description="guided: target reached within")
+    yaw_tolerance_deg: float = Field(3.0, gt=0, description="guided: heading reached within")
+    segment_cap_s: float = Field(30.0, gt=0, description="no segment lasts longer")
+    min_depth_m: float = Field(0.3, description="no target shallower (autopilot depth)")
+    max_depth_m: float = Field(100.0, description="no target deeper")
+    disarm_at_end: bool = True
+
+
+def load_bridge_config(path: str | Path | None = None, **overrides: Any) -> BridgeConfig:
+    """The defaults, then the file at ``path`` (TOML, keys of `BridgeConfig`), then
+    ``overrides`` (command-line flags; None leaves a value alone).
+
+    Raises:
+        ConfigError: unreadable TOML, an unknown key or an invalid value, by name.
+    """
+    raw: dict[str, Any] = {}
+    where = "bridge settings"
+    if path is not None:
+        where = str(path)
+        try:
+            raw = tomllib.loads(Path(path).read_text())
+        except FileNotFoundError:
+            raise ConfigError(f"bridge config not found: {path}") from None
+        except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+            raise ConfigError(f"{path}: not valid TOML ({exc})") from None
+    raw.update({k: v for k, v in overrides.items() if v is not None})
+    try:
+        config = BridgeConfig.model_validate(raw)
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        name = ".".join(str(p) for p in first["loc"]) or "(top level)"
+        raise ConfigError(f"{where}: field '{name}': {first['msg']}") from None
+    if config.min_depth_m >= config.max_depth_m:
+        raise ConfigError(f"{where}: min_depth_m must be below max_depth_m")
+    return config
+
+
+# ---------------------------------------------------------------------------- planning
+
+
+@dataclass(frozen=True)
+class Segment:
+    """One phase of an action: the turn, or the translation.
+
+    Attributes:
+        kind: "turn" or "move".
+        sticks: manual: MANUAL_CONTROL's x, y, z, r held for ``duration_s``.
+        target: guided: SET_POSITION_TARGET_LOCAL_NED's fields (body offset frame).
+        duration_s: manual: how long the sticks are held; guided: the expected time.
+    """
+
+    kind: Literal["turn", "move"]
+    duration_s: float
+    sticks: dict[str, int] | None = None
+    target: dict[str, float] | None = None
+
+
+def plan(action: Action, config: BridgeConfig) -> list[Segment]:
+    """The segments that carry out ``action`` in ``config.mode``: a turn, then a move.
+
+    Manual sticks are scaled so that every axis of the move ends together, which keeps
+    the translation a straight line, as in the kinematics.
+
+    Raises:
+        VehicleError: a segment would last longer than ``segment_cap_s``.
+    """
+    forward, right, down, yaw = body_offset(action)
+    limit = config.stick_limit
+    segments = []
+    if yaw:
+        duration = abs(action.yaw_deg) / config.yaw_dps
+        if config.mode == "manual":
+            turn = {**NEUTRAL, "r": round(math.copysign(limit, yaw))}  # r > 0: clockwise
+            segments.append(Segment("turn", duration, sticks=turn))
+        else:
+            segments.append(Segment("turn", duration, target=_target(0.0, 0.0, 0.0, yaw)))
+    times = (
+        abs(forward) / config.forward_mps,
+        abs(right) / config.lateral_mps,
+        abs(down) / config.vertical_mps,
+    )
+    duration = max(times)
+    if duration > 0:
+        if config.mode == "manual":
+            share = [t / duration for t in times]
+            move = {
+                "x": round(math.copysign(limit * share[0], forward)),
+                "y": round(math.copysign(limit * share[1], right)),
+                "z": 500 - round(math.copysign(limit / 2 * share[2], down)) if down else 500,
+                "r": 0,
+            }
+            segments.append(Segment("move", duration, sticks=move))
+        else:
+            segments.append(Segment("move", duration, target=_target(forward, right, down, 0.0)))
+    for segment in segments:
+        if segment.duration_s > config.segment_cap_s:
+            raise VehicleError(
+                f"'{format_action(action)}' needs a {segment.kind} of {segment.duration_s:.1f} s, "
+                f"beyond the cap of {config.segment_cap_s:g} s (segment_cap_s)"
+            )
+    return segments
+
+
+def _target(forward: float, right: float, down: float, yaw: float) -> dict[str, float]:
+    return {
+        "coordinate_frame": FRAME_BODY_OFFSET_NED,
+        "type_mask": POSITION_AND_YAW,
+        "x": forward,
+        "y": right,
+        "z": down,
+        "yaw": yaw,
+    }
+
+
+def describe(segments: list[Segment], config: BridgeConfig) -> list[str]:
+    """The MAVLink commands ``segments`` send, one line each (for ``--dry-run``)."""
+    lines = []
+    for s in segments:
+        if s.sticks is not None:
+            sticks = " ".join(f"{k}={v}" for k, v in s.sticks.items())
+            lines.append(
+                f"{s.kind}: MANUAL_CONTROL {sticks} at {config.control_hz:g} Hz for "
+                f"{s.duration_s:.2f} s, then MANUAL_CONTROL x=0 y=0 z=500 r=0 for "
+                f"{config.settle_s:g} s"
+            )
+        else:
+            assert s.target is not None
+            t = s.target
+            lines.append(
+                f"{s.kind}: SET_POSITION_TARGET_LOCAL_NED frame=MAV_FRAME_BODY_OFFSET_NED "
+                f"type_mask={t['type_mask']} x={t['x']:g} y={t['y']:g} z={t['z']:g} "
+                f"yaw={t['yaw']:.4f} rad, then wait until within "
+                f"{config.position_tolerance_m:g} m and {config.yaw_tolerance_deg:g} deg "
+                f"(about {s.duration_s:.2f} s at the calibrated rates)"
+            )
+    return lines or ["hold: no command (neutral sticks continue)"]
+
+
+# ---------------------------------------------------------------------------- the link
+
+
+@dataclass
+class _Telemetry:
+    """What the vehicle last said, with the monotonic time it arrived."""
+
+    heartbeat_at: float = -math.inf
+    armed: bool = False
+    mode: int | None = None
+    system: int | None = None
+    position: tuple[float, float, float] | None = None
+    position_at: float = -math.inf
+    yaw: float | None = None
+    acks: dict[int, int] = field(default_factory=dict)
+
+
+class _CommandLog:
+    """Every message sent and received, one JSON object per line, flushed as written."""
+
+    def __init__(self, path: Path | None):
+        self._file = open(path, "a", encoding="utf-8") if path else None  # noqa: SIM115
+        self._lock = threading.Lock()
+
+    def write(self, direction: str, message: dict[str, Any]) -> None:
+        if self._file is None:
+            return
+        line = json.dumps({"t": round(time.time(), 4), "dir": direction, **message}, default=str)
+        with self._lock:
+            self._file.write(line + "\n")
+            self._file.flush()
+
+    def close(self) -> None:
+        if self._file is not None:
+            with self._lock:
+                self._file.close()
+                self._file = None
+
+
+class ArduSubLink:
+    """A ground station's connection to one ArduSub vehicle.
+
+    One background thread reads every message, keeps the latest telemetry, sends our
+    heartbeat at 1 Hz and repeats the current sticks at ``control_hz``.
+    """
+
+    def __init__(self, config: BridgeConfig, log_path: Path | None = None):
+        try:
+            from pymavlink import mavutil
+        except ImportError as exc:  # a core dependency; a broken install says so
+            raise DependencyError(f"pymavlink is missing ({exc}): pip install -e .") from None
+        self.config = config
+        self._mavlink = mavutil.mavlink
+        self.log = _CommandLog(log_path)
+        try:
+            self._conn = mavutil.mavlink_connection(
+                config.connect,
+                source_system=config.system_id,
+                source_component=config.component_id,
+            )
+        except Exception as exc:  # pymavlink raises bare OSError/ValueError here
+            raise VehicleError(f"cannot open MAVLink address {config.connect!r}: {exc}") from None
+        self.telemetry = _Telemetry()
+        self._sticks = dict(NEUTRAL)
+        self._send_lock = threading.Lock()
+        self._seen = threading.Condition()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._serve, name="mavlink-link", daemon=True)
+        self._thread.start()
+
+    # ---------------------------------------------------------------- io
+    def _send(self, name: str, **fields: Any) -> None:
+        with self._send_lock:
+            getattr(self._conn.mav, f"{name.lower()}_send")(**fields)
+        self.log.write("sent", {"mavpackettype": name, **fields})
+
+    def _serve(self) -> None:
+        next_heartbeat = next_sticks = 0.0
+        while not self._stop.is_set():
+            now = time.monotonic()
+            if now >= next_heartbeat and self.telemetry.system is not None:
+                self._send(
+                    "HEARTBEAT",
+                    type=self._mavlink.MAV_TYPE_GCS,
+                    autopilot=self._mavlink.MAV_AUTOPILOT_INVALID,
+                    base_mode=0,
+                    custom_mode=0,
+                    system_status=self._mavlink.MAV_STATE_ACTIVE,
+                )
+                next_heartbeat = now + 1.0
+            if now >= next_sticks and self.telemetry.system is not None:
+                self._send_sticks()
+                next_sticks = now + 1.0 / self.config.control_hz
+            try:
+                message = self._conn.recv_match(blocking=True, timeout=0.02)
+            except OSError:  # udpin before a peer spoke, or a closed socket
+                message = None
+            if message is not None and message.get_type() != "BAD_DATA":
+                self._receive(message)
+
+    def _receive(self, message: Any) -> None:
+        kind = message.get_type()
+        self.log.write("received", {"sys": message.get_srcSystem(), **message.to_dict()})
+        t, now = self.telemetry, time.monotonic()
+        with self._seen:
+            if kind == "HEARTBEAT" and message.type == self._mavlink.MAV_TYPE_SUBMARINE:
+                if self.config.target_system in (0, message.get_srcSystem()):
+                    t.system = t.system or message.get_srcSystem()
+                    t.heartbeat_at = now
+                    t.armed = bool(message.base_mode & self._mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
+                    t.mode = message.custom_mode
+            elif message.get_srcSystem() != t.system:
+                return
+            elif kind == "LOCAL_POSITION_NED":
+                t.position, t.position_at = (message.x, message.y, message.z), now
+            elif kind == "ATTITUDE":
+                t.yaw = message.yaw
+            elif kind == "COMMAND_ACK":
+                t.acks[message.command] = message.result
+            self._seen.notify_all()
+
+    def _send_sticks(self) -> None:
+        if self.telemetry.system is None:
+            return
+        self._send("MANUAL_CONTROL", target=self.telemetry.system, buttons=0, **self._sticks)
+
+    def set_sticks(self, sticks: dict[str, int]) -> None:
+        """Hold ``sticks`` from now on (sent at once, then repeated at ``control_hz``)."""
+        self._sticks = dict(sticks)
+        self._send_sticks()
+
+    def wait_for(self, what: str, ready: Callable[[_Telemetry], bool], timeout_s: float) -> None:
+        """Block until ``ready(telemetry)``; a VehicleError naming ``what`` after the timeout."""
+        deadline = time.monotonic() + timeout_s
+        with self._seen:
+            while not ready(self.telemetry):
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise VehicleError(f"{what}: nothing after {timeout_s:g} s")
+                self._seen.wait(min(left, 0.1))
+
+    def check_alive(self) -> None:
+        """Refuse to go on when the vehicle's last heartbeat is older than allowed."""
+        age = time.monotonic() - self.telemetry.heartbeat_at
+        if age > self.config.heartbeat_timeout_s:
+            raise VehicleError(
+                f"the vehicle's last heartbeat is {age:.1f} s old (over "
+                f"{self.config.heartbeat_timeout_s:g} s): refusing to move"
+            )
+
+    # ---------------------------------------------------------------- commands
+    def command(self, name: str, *params: float) -> None:
+        """COMMAND_LONG ``name`` (a MAV_CMD_ name) and wait for its accepted COMMAND_ACK."""
+        number = getattr(self._mavlink, name)
+        self.telemetry.acks.pop(number, None)
+        padded = [*params, *[0.0] * (7 - len(params))]
+        self._send(
+            "COMMAND_LONG",
+            target_system=self.telemetry.system,
+            target_component=1,
+            command=number,
+            confirmation=0,
+            **{f"param{i + 1}": float(p) for i, p in enumerate(padded)},
+        )
+        self.wait_for(
+            f"{name} not acknowledged", lambda t: number in t.acks, self.config.ack_timeout_s
+        )
+        result = self.telemetry.acks[number]
+        if result != self._mavlink.MAV_RESULT_ACCEPTED:
+            meaning = self._mavlink.enums["MAV_RESULT"][result].name
+            raise VehicleError(f"the vehicle refused {name}: {meaning}")
+
+    def set_mode(self, mode: int) -> None:
+        flag = self._mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+        self.command("MAV_CMD_DO_SET_MODE", flag, mode)
+        self.wait_for(
+            f"mode {mode} not reported", lambda t: t.mode == mode, self.config.ack_timeout_s
+        )
+
+    def set_armed(self, armed: bool) -> None:
+        self.command("MAV_CMD_COMPONENT_ARM_DISARM", 1.0 if armed else 0.0)
+        self.wait_for(
+            "the arming state not reported", lambda t: t.armed == armed, self.config.ack_timeout_s
+        )
+
+    def send_target(self, target: dict[str, float]) -> None:
+        self._send(
+            "SET_POSITION_TARGET_LOCAL_NED",
+            time_boot_ms=0,
+            target_system=self.telemetry.system,
+            target_component=1,
+            vx=0.0, vy=0.0, vz=0.0, afx=0.0, afy=0.0, afz=0.0, yaw_rate=0.0,
+            **target,
+        )  # fmt: skip
+
+    def pose(self) -> NedPose:
+        """The latest position and heading the vehicle reported."""
+        t = self.telemetry
+        if t.position is None or t.yaw is None:
+            raise VehicleError("the vehicle has reported no LOCAL_POSITION_NED and ATTITUDE yet")
+        return NedPose(*t.position, yaw=t.yaw)
+
+    def close(self) -> None:
+        """Neutral sticks, then stop the thread and close the socket and the log."""
+        with suppress(VehicleError, OSError):
+            self.set_sticks(NEUTRAL)
+        self._stop.set()
+        self._thread.join(timeout=2.0)
+        self._conn.close()
+        self.log.close()
+
+
+# ---------------------------------------------------------------------------- the motion
+
+
+class ArduSubMotion:
+    """The `cavenav.kinematics.Motion` of a real (or simulated) ArduSub vehicle.
+
+    `start` connects, sets the mode, arms after the operator's confirmation and pairs
+    the reported pose with the scenario's start (`NedFrame`); `move` flies one action
+    and returns the pose the autopilot reports afterwards, in the world frame.
+    """
+
+    def __init__(
+        self,
+        config: BridgeConfig,
+        log_path: Path | None = None,
+        confirm: Callable[[str], bool] | None = None,
+    ):
+        """
+        Args:
+            log_path: the command log (JSON lines), e.g. RUN_DIR/mavlink.jsonl.
+            confirm: asked "arm the vehicle?" before arming; None waives it (simulation).
+        """
+        self.config = config
+        self._log_path = log_path
+        self._confirm = confirm
+        self._link: ArduSubLink | None = None
+        self._frame: NedFrame | None = None
+
+    def start(self, pose: Pose) -> Pose:
+        link = self._connect()
+        self._frame = NedFrame(link.pose(), pose)
+        return pose
+
+    def _connect(self) -> ArduSubLink:
+        if self._link is not None:
+            return self._link
+        config = self.config
+        link = self._link = ArduSubLink(config, self._log_path)
+        link.wait_for(
+            f"no heartbeat from a submarine on {config.connect}",
+            lambda t: t.system is not None,
+            config.connect_timeout_s,
+        )
+        mode = ALT_HOLD if config.mode == "manual" else GUIDED
+        if link.telemetry.mode != mode:
+            link.set_mode(mode)
+        if not link.telemetry.armed:
+            if self._confirm is not None and not self._confirm("arm the vehicle?"):
+                raise VehicleError("the operator declined to arm the vehicle")
+            link.set_armed(True)
+        link.wait_for(
+            "no LOCAL_POSITION_NED and ATTITUDE (the pose needs a position estimate, e.g. a DVL)",
+            lambda t: t.position is not None and t.yaw is not None,
+            config.connect_timeout_s,
+        )
+        return link
+
+    def move(self, pose: Pose, action: Action) -> Pose:
+        link, frame = self._link, self._frame
+        if link is None or frame is None:
+            raise VehicleError("the vehicle is not started: call start() first")
+        action = self._within_depth_limits(link, action)
+        try:
+            for segment in plan(action, self.config):
+                link.check_alive()
+                if segment.sticks is not None:
+                    self._hold_sticks(link, segment)
+                else:
+                    self._reach(link, segment)
+        except BaseException:
+            self._stop_moving(link)
+            raise
+        return frame.to_world(link.pose())
+
+    def _within_depth_limits(self, link: ArduSubLink, action: Action) -> Action:
+        """``action`` with its vertical part cut so that the depth stays within limits."""
+        depth = link.pose().down
+        target = min(max(depth - action.up, self.config.min_depth_m), self.config.max_depth_m)
+        if abs(target - (depth - action.up)) < 1e-9:
+            return action
+        limited = replace(action, up=round(depth - target, 2))
+        link.log.write("note", {"depth_limit": True, "asked": action.up, "flown": limited.up})
+        return limited
+
+    def _hold_sticks(self, link: ArduSubLink, segment: Segment) -> None:
+        assert segment.sticks is not None
+        ends = time.monotonic() + segment.duration_s
+        link.set_sticks(segment.sticks)
+        while (left := ends - time.monotonic()) > 0:
+            time.sleep(min(left, 0.05))
+            link.check_alive()
+        link.set_sticks(NEUTRAL)
+        time.sleep(self.config.settle_s)
+
+    def _reach(self, link: ArduSubLink, segment: Segment) -> None:
+        assert segment.target is not None
+        start = link.pose()
+        north, east = _rotate(segment.target["x"], segment.target["y"], start.yaw)
+        goal = NedPose(
+            start.north + north,
+            start.east + east,
+            start.down + segment.target["z"],
+            wrap_angle(start.yaw + segment.target["yaw"]),
+        )
+        link.send_target(segment.target)
+        config = self.config
+        still = _Stillness(config.position_tolerance_m / 5, config.yaw_tolerance_deg / 5)
+
+        def arrived(t: _Telemetry) -> bool:
+            if t.position is None or t.yaw is None:
+                return False
+            if time.monotonic() - t.heartbeat_at > config.heartbeat_timeout_s:
+                return True  # check_alive below says why
+            off = math.dist(t.position, (goal.north, goal.east, goal.down))
+            turn = abs(math.degrees(wrap_angle(t.yaw - goal.yaw)))
+            on_target = off <= config.position_tolerance_m and turn <= config.yaw_tolerance_deg
+            return on_target or still.settled(t.position, t.yaw, off, turn)
+
+        cap = min(config.segment_cap_s, 3 * segment.duration_s + 5.0)
+        link.wait_for(f"the {segment.kind} target not reached", arrived, cap)
+        link.check_alive()
+        if still.missed:
+            link.log.write("note", {"settled_off_target": segment.kind, **still.missed})
+
+    def _stop_moving(self, link: ArduSubLink) -> None:
+        """Neutral sticks, or in guided mode a target where the vehicle is now."""
+        with suppress(VehicleError, OSError):
+            link.set_sticks(NEUTRAL)
+            if self.config.mode == "guided":
+                link.send_target(_target(0.0, 0.0, 0.0, 0.0))
+
+    def close(self) -> None:
+        """Neutral sticks, disarm (``disarm_at_end``), close the link; safe to repeat."""
+        link, self._link = self._link, None
+        if link is None:
+            return
+        self._stop_moving(link)
+        if self.config.disarm_at_end:
+            with suppress(VehicleError, OSError):
+                link.set_armed(False)
+        link.close()
+
+
+class _Stillness:
+    """Tells when a vehicle that has not reached its target has stopped trying.
+
+    A position controller can settle off its target (a current, a thruster limit, a
+    real vehicle's dead band): then the segment is over where the vehicle stopped, as
+    a diver would judge it, instead of waiting for the cap.
+    """
+
+    def __init__(self, metres: float, degrees: float, for_s: float = 0.5):
+        self.metres, self.degrees, self.for_s = metres, degrees, for_s
+        self._last: tuple[tuple[float, float, float], float, float] | None = None
+        self.missed: dict[str, float] = {}
+
+    def settled(
+        self, position: tuple[float, float, float], yaw: float, off_m: float, off_deg: float
+    ) -> bool:
+        now = time.monotonic()
+        last = self._last
+        moved = last is None or (
+            math.dist(position, last[0]) > self.metres
+            or abs(math.degrees(wrap_angle(yaw - last[1]))) > self.degrees
+        )
+        if moved:
+            self._last = (position, yaw, now)
+            return False
+        assert last is not None
+        if now - last[2] < self.for_s:
+            return False
+        self.missed = {"off_m": round(off_m, 4), "off_deg": round(off_deg, 3)}
+        return True
+
+
+def _rotate(forward: float, right: float, yaw: float) -> tuple[float, float]:
+    """Body (forward, right) as (north, east) at heading ``yaw`` (clockwise from north)."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    return forward * c - right * s, forward * s + right * c

@@ -1,0 +1,429 @@
+"""The MAVLink bridge to ArduSub: frames, plans, settings, and flights through a simulated
+autopilot on 127.0.0.1 (`cavenav.vehicle`)."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from cavenav.actions import parse_action
+from cavenav.episode.loop import EpisodeConfig, run_episode
+from cavenav.episode.run_folder import read_jsonl
+from cavenav.errors import ConfigError, VehicleError
+from cavenav.kinematics import apply
+from cavenav.pilots.geometric import GeometricPilot
+from cavenav.types import Action, Pose
+from cavenav.vehicle.fake_sub import FakeSub, FakeSubConfig
+from cavenav.vehicle.frames import NedFrame, NedPose, body_offset
+from cavenav.vehicle.mavlink import (
+    ArduSubMotion,
+    BridgeConfig,
+    describe,
+    load_bridge_config,
+    plan,
+)
+from cavenav.world.scenarios import load_scenario
+
+angles = st.floats(-math.pi, math.pi - 1e-9)
+metres = st.floats(-50, 50)
+
+
+def close_poses(a: Pose, b: Pose, tol: float = 1e-6) -> bool:
+    turn = (a.psi - b.psi + math.pi) % (2 * math.pi) - math.pi
+    return math.dist(a.position, b.position) < tol and abs(turn) < tol
+
+
+# ---------------------------------------------------------------------------- frames
+
+
+def test_with_no_turn_north_is_minus_y_east_is_minus_x_and_down_is_minus_z() -> None:
+    frame = NedFrame(NedPose(0, 0, 0, 0), Pose(0, 0, 0, 0))
+    assert close_poses(frame.to_world(NedPose(1, 0, 0, 0)), Pose(0, -1, 0, 0))
+    assert close_poses(frame.to_world(NedPose(0, 1, 0, 0)), Pose(-1, 0, 0, 0))
+    assert close_poses(frame.to_world(NedPose(0, 0, 1, 0)), Pose(0, 0, -1, 0))
+    # a right turn: ArduSub's yaw grows clockwise, cavenav's psi counter-clockwise
+    assert close_poses(frame.to_world(NedPose(0, 0, 0, math.pi / 2)), Pose(0, 0, 0, -math.pi / 2))
+
+
+def test_the_start_the_autopilot_reports_is_the_scenarios_start() -> None:
+    start = Pose(3.0, -7.0, -2.0, psi=0.4)
+    reported = NedPose(12.0, 5.0, 30.0, yaw=2.0)
+    frame = NedFrame(reported, start)
+    assert close_poses(frame.to_world(reported), start)
+
+
+@given(angles, angles, metres, metres, metres, st.floats(-3, 3), st.floats(-3, 3))
+def test_a_body_move_reported_by_the_autopilot_is_the_same_move_in_the_world(
+    yaw: float, psi: float, n: float, e: float, d: float, forward: float, right: float
+) -> None:
+    """The pairing turns the autopilot's axes so that its forward is the vehicle's."""
+    start = Pose(1.0, 2.0, -5.0, psi)
+    frame = NedFrame(NedPose(n, e, d, yaw), start)
+    moved = NedPose(
+        n + forward * math.cos(yaw) - right * math.sin(yaw),
+        e + forward * math.sin(yaw) + right * math.cos(yaw),
+        d - 0.5,
+        yaw,
+    )
+    expected = apply(start, Action(forward=forward, right=right, up=0.5))
+    assert close_poses(frame.to_world(moved), expected, 1e-6)
+
+
+@given(angles, angles, metres, metres, metres, angles)
+def test_world_to_ned_and_back_is_the_identity(
+    yaw: float, psi: float, x: float, y: float, z: float, heading: float
+) -> None:
+    frame = NedFrame(NedPose(4.0, -3.0, 20.0, yaw), Pose(0.5, 0.5, -1.0, psi))
+    pose = Pose(x, y, z, heading)
+    assert close_poses(frame.to_world(frame.to_ned(pose)), pose, 1e-6)
+
+
+def test_an_action_in_ardusubs_body_offset_frame_flips_vertical_and_yaw() -> None:
+    forward, right, down, yaw = body_offset(
+        parse_action("forward 0.5 m, strafe left 0.2 m, ascend 0.3 m, turn left 15 deg")
+    )
+    assert (forward, right, down) == (0.5, -0.2, -0.3)
+    assert yaw == pytest.approx(-math.radians(15))
+
+
+# ---------------------------------------------------------------------------- plans
+
+
+def test_manual_turns_first_then_moves_in_a_straight_line() -> None:
+    config = BridgeConfig(stick_limit=400, forward_mps=0.4, lateral_mps=0.2, yaw_dps=30)
+    turn, move = plan(parse_action("forward 1 m, strafe right 0.2 m, turn left 15 deg"), config)
+    assert turn.kind == "turn" and turn.sticks == {"x": 0, "y": 0, "z": 500, "r": -400}
+    assert turn.duration_s == pytest.approx(0.5)
+    assert move.kind == "move" and move.duration_s == pytest.approx(2.5)  # 1 m at 0.4 m/s
+    # the lateral 0.2 m takes 1 s at full stick: 40 % of it over 2.5 s ends together
+    assert move.sticks == {"x": 400, "y": 160, "z": 500, "r": 0}
+
+
+def test_manual_vertical_sticks_are_around_500_up_above() -> None:
+    config = BridgeConfig(stick_limit=400, vertical_mps=0.2)
+    (up,) = plan(parse_action("ascend 0.4 m"), config)
+    (down,) = plan(parse_action("descend 0.4 m"), config)
+    assert up.sticks["z"] == 700 and down.sticks["z"] == 300
+    assert up.duration_s == pytest.approx(2.0)
+
+
+def test_guided_sends_a_relative_yaw_then_a_body_offset_that_holds_the_heading() -> None:
+    turn, move = plan(parse_action("back 0.5 m, turn right 90 deg"), BridgeConfig(mode="guided"))
+    assert turn.target["coordinate_frame"] == 9  # MAV_FRAME_BODY_OFFSET_NED
+    assert (turn.target["x"], turn.target["y"], turn.target["z"]) == (0, 0, 0)
+    assert turn.target["yaw"] == pytest.approx(math.pi / 2)  # clockwise
+    assert (move.target["x"], move.target["yaw"]) == (-0.5, 0.0)
+
+
+def test_hold_plans_nothing_and_says_so() -> None:
+    assert plan(Action(), BridgeConfig()) == []
+    assert "no command" in describe([], BridgeConfig())[0]
+
+
+def test_a_segment_beyond_the_cap_is_refused_before_anything_moves() -> None:
+    with pytest.raises(VehicleError, match="segment_cap_s"):
+        plan(parse_action("turn left 180 deg"), BridgeConfig(yaw_dps=10, segment_cap_s=5))
+
+
+def test_dry_run_lines_name_the_messages() -> None:
+    config = BridgeConfig()
+    lines = describe(plan(parse_action("forward 0.5 m, turn left 15 deg"), config), config)
+    assert lines[0].startswith("turn: MANUAL_CONTROL x=0 y=0 z=500 r=-400 at 10 Hz")
+    assert lines[1].startswith("move: MANUAL_CONTROL x=400")
+    guided = BridgeConfig(mode="guided")
+    (line,) = describe(plan(parse_action("forward 0.5 m"), guided), guided)
+    assert "SET_POSITION_TARGET_LOCAL_NED frame=MAV_FRAME_BODY_OFFSET_NED" in line
+
+
+# ---------------------------------------------------------------------------- settings
+
+
+def test_a_settings_file_overrides_the_defaults_and_flags_override_the_file(tmp_path) -> None:
+    path = tmp_path / "bridge.toml"
+    path.write_text('mode = "guided"\nforward_mps = 0.8\n')
+    config = load_bridge_config(path, connect="udpin:127.0.0.1:15000", mode=None)
+    assert (config.mode, config.forward_mps, config.connect) == (
+        "guided",
+        0.8,
+        "udpin:127.0.0.1:15000",
+    )
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("forward_mps = -1\n", "field 'forward_mps'"),
+        ("forward_mps = nan\n", "field 'forward_mps'"),
+        ("speed = 1\n", "field 'speed'"),
+        ('mode = "auto"\n', "field 'mode'"),
+        ("min_depth_m = 5\nmax_depth_m = 2\n", "min_depth_m must be below max_depth_m"),
+        ("mode = \n", "not valid TOML"),
+    ],
+)
+def test_bad_settings_are_one_line_naming_the_field(tmp_path, text: str, message: str) -> None:
+    path = tmp_path / "bridge.toml"
+    path.write_text(text)
+    with pytest.raises(ConfigError, match=message):
+        load_bridge_config(path)
+
+
+# ---------------------------------------------------------------------------- flights
+# The simulated autopilot runs fast (8 m/s, 720 deg/s at full stick) so that an episode
+# of S4 takes seconds of segments; the bridge is calibrated at half stick to match.
+
+FAST_SUB = {
+    "max_speed_mps": 8.0,
+    "max_vertical_mps": 4.0,
+    "max_yaw_rate_dps": 720.0,
+    "guided_speed_mps": 4.0,
+    "guided_yaw_rate_dps": 360.0,
+    "start_ned": (10.0, -4.0, 30.0),
+    "start_yaw_deg": 70.0,
+    "telemetry_hz": 50.0,
+}
+FAST_BRIDGE = {
+    "stick_limit": 500,
+    "forward_mps": 4.0,
+    "lateral_mps": 4.0,
+    "vertical_mps": 2.0,
+    "yaw_dps": 360.0,
+    "settle_s": 0.1,
+    "position_tolerance_m": 0.05,
+    "yaw_tolerance_deg": 2.0,
+    "connect_timeout_s": 10.0,
+}
+
+
+def free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+@contextmanager
+def autopilot(port: int, **settings: object) -> Iterator[FakeSub]:
+    sub = FakeSub(FakeSubConfig(address=f"udpout:127.0.0.1:{port}", **{**FAST_SUB, **settings}))
+    with sub:
+        yield sub
+
+
+def bridge(port: int, **settings: object) -> BridgeConfig:
+    return BridgeConfig(connect=f"udpin:127.0.0.1:{port}", **{**FAST_BRIDGE, **settings})
+
+
+def fly_s4(tmp_path: Path, mode: str, **sub_settings: object) -> tuple[dict, list[dict]]:
+    port = free_udp_port()
+    motion = ArduSubMotion(bridge(port, mode=mode), tmp_path / "run" / "mavlink.jsonl")
+    (tmp_path / "run").mkdir()
+    config = EpisodeConfig(save_frames=False, plots=False, shield=True)
+    with autopilot(port, **sub_settings):
+        try:
+            result = run_episode(load_scenario("S4", 0), GeometricPilot(), config,
+                                 tmp_path / "run", motion=motion)  # fmt: skip
+        finally:
+            motion.close()
+    return result.summary, result.steps
+
+
+@pytest.mark.slow
+def test_the_geometric_pilot_flies_s4_through_mavlink_in_manual_mode_with_noise(
+    tmp_path: Path,
+) -> None:
+    summary, steps = fly_s4(tmp_path, "manual", noise=0.05, seed=3)
+    assert summary["termination"] == "exit" and summary["collisions"] == 0
+    assert 0 < summary["mean_drift_m"] < 0.2  # noise and timing: never exactly the command
+    log = read_jsonl(tmp_path / "run" / "mavlink.jsonl")
+    sent = {r["mavpackettype"] for r in log if r["dir"] == "sent"}
+    assert {"HEARTBEAT", "MANUAL_CONTROL", "COMMAND_LONG"} <= sent
+    assert any(r["dir"] == "received" and r["mavpackettype"] == "LOCAL_POSITION_NED" for r in log)
+    assert all("drift_m" in s and "commanded_pose" in s for s in steps)
+
+
+@pytest.mark.slow
+def test_the_geometric_pilot_flies_s4_through_mavlink_in_guided_mode(tmp_path: Path) -> None:
+    summary, _ = fly_s4(tmp_path, "guided", noise=0.02, seed=4)
+    assert summary["termination"] == "exit" and summary["collisions"] == 0
+    assert summary["max_drift_m"] < 0.3
+
+
+def test_the_bridge_arms_in_alt_hold_and_disarms_with_neutral_sticks_at_the_end() -> None:
+    port = free_udp_port()
+    with autopilot(port) as sub:
+        motion = ArduSubMotion(bridge(port))
+        start = Pose(1.0, 2.0, -3.0, 0.3)
+        assert motion.start(start) == start
+        state = sub.state()
+        assert state.armed and state.mode_name == "ALT_HOLD"
+        reached = motion.move(start, parse_action("forward 1 m"))
+        assert math.dist(reached.position, apply(start, Action(forward=1.0)).position) < 0.15
+        motion.close()
+        assert wait_until(lambda: not sub.state().armed)
+        assert sub.state().sticks == (0, 0, 500, 0)
+
+
+def test_the_operator_is_asked_before_arming_and_a_no_leaves_it_disarmed() -> None:
+    port = free_udp_port()
+    asked = []
+    with autopilot(port) as sub:
+        motion = ArduSubMotion(bridge(port), confirm=lambda q: asked.append(q) or False)
+        with pytest.raises(VehicleError, match="declined"):
+            motion.start(Pose(0, 0, 0))
+        motion.close()
+        assert asked == ["arm the vehicle?"] and not sub.state().armed
+
+
+def test_no_move_while_the_vehicles_heartbeat_is_stale_and_the_sticks_go_neutral() -> None:
+    port = free_udp_port()
+    with autopilot(port) as sub:
+        motion = ArduSubMotion(bridge(port, heartbeat_timeout_s=0.5))
+        start = motion.start(Pose(0, 0, 0))
+        sub.pause_heartbeat(True)
+        time.sleep(0.6)
+        before = sub.state()
+        with pytest.raises(VehicleError, match="heartbeat is .* old"):
+            motion.move(start, parse_action("forward 1 m"))
+        after = sub.state()
+        assert after.sticks == (0, 0, 500, 0)
+        assert math.dist((before.north, before.east), (after.north, after.east)) < 0.01
+        motion.close()
+
+
+def test_guided_mode_is_refused_by_a_vehicle_with_no_position_estimate() -> None:
+    port = free_udp_port()
+    with autopilot(port, position_estimate=False):
+        motion = ArduSubMotion(bridge(port, mode="guided", ack_timeout_s=1.0))
+        with pytest.raises(VehicleError, match="refused MAV_CMD_DO_SET_MODE"):
+            motion.start(Pose(0, 0, 0))
+        motion.close()
+
+
+def test_depth_targets_are_clamped_to_the_limits() -> None:
+    port = free_udp_port()
+    with autopilot(port, start_ned=(0.0, 0.0, 1.0)):
+        motion = ArduSubMotion(bridge(port, min_depth_m=0.5))
+        start = motion.start(Pose(0, 0, 0))
+        reached = motion.move(start, parse_action("ascend 2 m"))
+        assert reached.z == pytest.approx(0.5, abs=0.1)  # 1 m deep, stopped at 0.5 m
+        motion.close()
+
+
+def wait_until(condition: Callable[[], bool], timeout_s: float = 5.0) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if condition():
+            return True
+        time.sleep(0.02)
+    return condition()
+
+
+# ---------------------------------------------------------------------------- the command
+
+
+def cavenav(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "cavenav.cli", *args],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env={**os.environ, "COLUMNS": "240"},
+    )
+
+
+def test_fly_without_a_simulator_says_what_a_real_vehicle_must_provide() -> None:
+    result = cavenav("fly")
+    assert result.returncode == 2
+    assert "forward depth image" in result.stderr and "--sim" in result.stderr
+
+
+def test_fly_dry_run_prints_the_commands_and_sends_nothing() -> None:
+    result = cavenav(
+        "fly", "--dry-run", "--mode", "guided", "--action", "forward 0.5 m, turn left 15 deg"
+    )
+    assert result.returncode == 0, result.stderr
+    assert "turn: SET_POSITION_TARGET_LOCAL_NED" in result.stdout
+    assert "move: SET_POSITION_TARGET_LOCAL_NED" in result.stdout
+
+
+def test_fly_refuses_a_bad_settings_file_in_one_line(tmp_path: Path) -> None:
+    settings = tmp_path / "bridge.toml"
+    settings.write_text("yaw_dps = 0\n")
+    result = cavenav("fly", "--config", str(settings), "--dry-run", "--action", "hold")
+    assert result.returncode == 2
+    assert result.stderr.strip().splitlines() == [
+        f"error: {settings}: field 'yaw_dps': Input should be greater than 0"
+    ]
+
+
+def start_flying(tmp_path: Path, port: int) -> subprocess.Popen[str]:
+    """`cavenav fly --sim S1` at the calibrated default rates: segments of about a second."""
+    return subprocess.Popen(
+        [sys.executable, "-m", "cavenav.cli", "fly", "--sim", "S1", "--yes", "--no-frames",
+         "--connect", f"udpin:127.0.0.1:{port}", "--out", str(tmp_path), "--steps", "30"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )  # fmt: skip
+
+
+def mid_segment(sub: FakeSub, process: subprocess.Popen[str]) -> None:
+    """Wait until the bridge holds a stick that is not neutral."""
+    assert wait_until(
+        lambda: sub.state().sticks != (0, 0, 500, 0) or process.poll() is not None, 90
+    )
+    assert process.poll() is None, process.communicate()
+
+
+@pytest.mark.slow
+def test_killing_the_bridge_mid_segment_leaves_neutral_sticks_then_a_disarm(
+    tmp_path: Path,
+) -> None:
+    port = free_udp_port()
+    with FakeSub(FakeSubConfig(address=f"udpout:127.0.0.1:{port}", start_ned=(0.0, 0.0, 30.0),
+                               pilot_timeout_s=1.0)) as sub:  # fmt: skip
+        process = start_flying(tmp_path, port)
+        try:
+            mid_segment(sub, process)
+            process.kill()  # SIGKILL: no neutral sticks from the bridge
+            process.wait()
+            assert sub.state().armed  # until the failsafe fires
+            assert wait_until(lambda: sub.state().failsafe, 3)
+            state = sub.state()
+            assert state.sticks == (0, 0, 500, 0) and not state.armed
+        finally:
+            process.kill()
+
+
+@pytest.mark.slow
+def test_ctrl_c_mid_segment_sets_neutral_sticks_at_once_and_keeps_the_record(
+    tmp_path: Path,
+) -> None:
+    port = free_udp_port()
+    with FakeSub(FakeSubConfig(address=f"udpout:127.0.0.1:{port}", start_ned=(0.0, 0.0, 30.0),
+                               pilot_timeout_s=5.0)) as sub:  # fmt: skip
+        process = start_flying(tmp_path, port)
+        try:
+            mid_segment(sub, process)
+            process.send_signal(signal.SIGINT)
+            assert wait_until(lambda: sub.state().sticks == (0, 0, 500, 0), 1.0)
+            _, stderr = process.communicate(timeout=30)
+            assert process.returncode == 130, stderr
+            state = sub.state()
+            assert not state.armed and not state.failsafe  # disarmed by the bridge, at once
+        finally:
+            process.kill()
+    (run_dir,) = tmp_path.iterdir()
+    assert json.loads((run_dir / "summary.json").read_text())["status"] == "interrupted"
+    assert read_jsonl(run_dir / "mavlink.jsonl")
