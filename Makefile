@@ -45,6 +45,7 @@ bench: setup-test
 	$(BIN)/python benchmarks/episode.py
 	$(BIN)/python benchmarks/sweep.py
 	$(BIN)/python benchmarks/env_steps.py
+	$(BIN)/python benchmarks/mavlink_action.py
 
 lint: setup-test
 	$(BIN)/ruff check src tests benchmarks

@@ -940,6 +940,7 @@ def fake_sub(
             f"yaw {state.yaw_deg:7.1f}  sticks {state.sticks}"
             + ("  [red]pilot-input failsafe[/]" if state.failsafe else ""),
             highlight=False,
+            soft_wrap=True,
         )
 
     console.print(f"fake ArduSub sending to {connect}; Ctrl-C stops it")
@@ -981,6 +982,12 @@ def _print_summary(summary: dict) -> None:
             ("transport retries", usage["transport_retries"]),
             ("cost", "-" if usage["cost_usd"] is None else f"${usage['cost_usd']:.4f}"),
         ]
+    if "mean_drift_m" in summary:  # flown on a vehicle (cavenav fly)
+        rows += [
+            ("drift from command", f"{summary['mean_drift_m']:.3f} m mean, "
+             f"{summary['max_drift_m']:.3f} m max, {summary['max_drift_deg']:.1f} deg max"),
+            ("action on the vehicle", f"{summary['mean_physics_ms'] / 1e3:.2f} s mean"),
+        ]  # fmt: skip
     if summary.get("failure"):
         rows.append(("failure", summary["failure"]))
     for key, value in rows:

@@ -92,6 +92,8 @@ class BridgeConfig(BaseModel):
     vertical_mps: float = Field(0.2, gt=0, description="up/down speed at stick_limit")
     yaw_dps: float = Field(36.0, gt=0, description="turn rate at stick_limit, deg/s")
     settle_s: float = Field(0.5, ge=0, description="neutral sticks after a manual segment")
+    guided_mps: float = Field(0.5, gt=0, description="guided: the vehicle's speed (WPNAV_SPEED)")
+    guided_yaw_dps: float = Field(45.0, gt=0, description="guided: the vehicle's turn rate")
     position_tolerance_m: float = Field(0.1, gt=0, description="guided: target reached within")
     yaw_tolerance_deg: float = Field(3.0, gt=0, description="guided: heading reached within")
     segment_cap_s: float = Field(30.0, gt=0, description="no segment lasts longer")
@@ -140,7 +142,8 @@ class Segment:
         kind: "turn" or "move".
         sticks: manual: MANUAL_CONTROL's x, y, z, r held for ``duration_s``.
         target: guided: SET_POSITION_TARGET_LOCAL_NED's fields (body offset frame).
-        duration_s: manual: how long the sticks are held; guided: the expected time.
+        duration_s: manual: how long the sticks are held; guided: the time expected at
+            the vehicle's guided speed and turn rate.
     """
 
     kind: Literal["turn", "move"]
@@ -161,13 +164,12 @@ def plan(action: Action, config: BridgeConfig) -> list[Segment]:
     forward, right, down, yaw = body_offset(action)
     limit = config.stick_limit
     segments = []
-    if yaw:
-        duration = abs(action.yaw_deg) / config.yaw_dps
-        if config.mode == "manual":
-            turn = {**NEUTRAL, "r": round(math.copysign(limit, yaw))}  # r > 0: clockwise
-            segments.append(Segment("turn", duration, sticks=turn))
-        else:
-            segments.append(Segment("turn", duration, target=_target(0.0, 0.0, 0.0, yaw)))
+    if yaw and config.mode == "manual":
+        turn = {**NEUTRAL, "r": round(math.copysign(limit, yaw))}  # r > 0: clockwise
+        segments.append(Segment("turn", abs(action.yaw_deg) / config.yaw_dps, sticks=turn))
+    elif yaw:
+        duration = abs(action.yaw_deg) / config.guided_yaw_dps
+        segments.append(Segment("turn", duration, target=_target(0.0, 0.0, 0.0, yaw)))
     times = (
         abs(forward) / config.forward_mps,
         abs(right) / config.lateral_mps,
@@ -185,6 +187,7 @@ def plan(action: Action, config: BridgeConfig) -> list[Segment]:
             }
             segments.append(Segment("move", duration, sticks=move))
         else:
+            duration = math.hypot(forward, right, down) / config.guided_mps
             segments.append(Segment("move", duration, target=_target(forward, right, down, 0.0)))
     for segment in segments:
         if segment.duration_s > config.segment_cap_s:
@@ -225,7 +228,7 @@ def describe(segments: list[Segment], config: BridgeConfig) -> list[str]:
                 f"type_mask={t['type_mask']} x={t['x']:g} y={t['y']:g} z={t['z']:g} "
                 f"yaw={t['yaw']:.4f} rad, then wait until within "
                 f"{config.position_tolerance_m:g} m and {config.yaw_tolerance_deg:g} deg "
-                f"(about {s.duration_s:.2f} s at the calibrated rates)"
+                f"(about {s.duration_s:.2f} s at the guided speed and turn rate)"
             )
     return lines or ["hold: no command (neutral sticks continue)"]
 
