@@ -3,7 +3,8 @@
 Each test starts a fake sub that sends to a free local port, where a ground station listens
 with ``udpin`` (as a GCS behind BlueOS does), and checks one thing ArduSub documents: what
 its HEARTBEAT says, how it acknowledges commands, how the sticks, the pilot-input failsafe
-and GUIDED targets move it. Rates are fast so that each test takes about a second.
+and GUIDED targets move it. Speeds are checked against the velocities it reports and the
+time it reports, not the test's clock, so that a loaded machine does not fail them.
 """
 
 from __future__ import annotations
@@ -25,16 +26,17 @@ from cavenav.vehicle.fake_sub import (
     GUIDED,
     MANUAL,
     NEUTRAL_STICKS,
-    POSHOLD,
     STABILIZE,
     FakeSub,
     FakeSubConfig,
     FakeSubState,
     serve,
 )
+from cavenav.vehicle.frames import body_to_ned
 
 MAV = mavutil.mavlink
 GCS_ID = 255
+ARMED = MAV.MAV_MODE_FLAG_SAFETY_ARMED
 FAST = {
     "max_speed_mps": 4.0,
     "max_vertical_mps": 2.0,
@@ -45,10 +47,9 @@ FAST = {
     "telemetry_hz": 20.0,
 }
 # type_mask: fly to a position (velocity, acceleration and yaw rate ignored), with or
-# without the yaw; or fly a velocity.
+# without the yaw.
 POSITION_AND_YAW = 0b1001_1111_1000
 POSITION_ONLY = 0b1101_1111_1000
-VELOCITY_ONLY = 0b1101_1100_0111
 
 
 def free_udp_port() -> int:
@@ -59,6 +60,10 @@ def free_udp_port() -> int:
 
 def angle_between_deg(a: float, b: float) -> float:
     return abs((a - b + 180.0) % 360.0 - 180.0)
+
+
+def velocity(message: Any) -> tuple[float, float, float]:
+    return message.vx, message.vy, message.vz
 
 
 @dataclass(frozen=True)
@@ -74,7 +79,7 @@ class Link:
         return self.sub.config.system_id
 
     def receive(
-        self, kind: str, timeout: float = 2.0, where: Callable[[Any], bool] = lambda m: True
+        self, kind: str, timeout: float = 3.0, where: Callable[[Any], bool] = lambda m: True
     ) -> Any:
         """The next message of ``kind`` that satisfies ``where``, or None by the deadline."""
         deadline = time.monotonic() + timeout
@@ -84,29 +89,36 @@ class Link:
                 return message
         return None
 
-    def command(self, command: int, *params: float) -> Any:
-        """Send a COMMAND_LONG and return its COMMAND_ACK."""
+    def count(self, kind: str, seconds: float) -> int:
+        """How many messages of ``kind`` arrive in the next ``seconds``."""
+        count, deadline = 0, time.monotonic() + seconds
+        while self.receive(kind, timeout=deadline - time.monotonic()) is not None:
+            count += 1
+        return count
+
+    def command(self, command: int, *params: float, text: str | None = None) -> Any:
+        """Send a COMMAND_LONG and return its COMMAND_ACK, after the STATUSTEXT ``text``
+        (ArduSub sends the warning before the acknowledgement) if there is one."""
         padded = [*params, *[0.0] * (7 - len(params))]
         self.gcs.mav.command_long_send(self.system_id, 1, command, 0, *padded)
+        return self._ack(command, text)
+
+    def set_mode(self, mode: int, text: str | None = None) -> Any:
+        """Send a SET_MODE message and return its COMMAND_ACK (command = message id 11)."""
+        self.gcs.mav.set_mode_send(self.system_id, MAV.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, mode)
+        return self._ack(MAV.MAVLINK_MSG_ID_SET_MODE, text)
+
+    def _ack(self, command: int, text: str | None) -> Any:
+        if text is not None:
+            assert self.receive("STATUSTEXT", where=lambda m: m.text == text), f"no {text!r}"
         ack = self.receive("COMMAND_ACK", where=lambda m: m.command == command)
         assert ack is not None, f"no COMMAND_ACK for command {command}"
         return ack
 
-    def set_mode(self, mode: int) -> Any:
-        """Send a SET_MODE message and return its COMMAND_ACK (command = message id 11)."""
-        self.gcs.mav.set_mode_send(self.system_id, MAV.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, mode)
-        ack = self.receive("COMMAND_ACK", where=lambda m: m.command == MAV.MAVLINK_MSG_ID_SET_MODE)
-        assert ack is not None, "no COMMAND_ACK for SET_MODE"
-        return ack
-
-    def heartbeat_now(self) -> Any:
-        """Ask for a HEARTBEAT (MAV_CMD_REQUEST_MESSAGE) instead of waiting up to a second,
-        and return the first that comes; the COMMAND_ACK follows it."""
-        request = MAV.MAV_CMD_REQUEST_MESSAGE
-        self.gcs.mav.command_long_send(self.system_id, 1, request, 0, 0, 0, 0, 0, 0, 0, 0)
-        heartbeat = self.receive("HEARTBEAT")
-        ack = self.receive("COMMAND_ACK", where=lambda m: m.command == request)
-        assert ack is not None and ack.result == MAV.MAV_RESULT_ACCEPTED
+    def heartbeat(self, where: Callable[[Any], bool]) -> Any:
+        """The next HEARTBEAT (1 Hz) that satisfies ``where``; fails if none comes."""
+        heartbeat = self.receive("HEARTBEAT", where=where)
+        assert heartbeat is not None, "no such HEARTBEAT"
         return heartbeat
 
     def arm(self) -> None:
@@ -116,19 +128,18 @@ class Link:
     def sticks(self, x: int = 0, y: int = 0, z: int = 500, r: int = 0, target: int = 0) -> None:
         self.gcs.mav.manual_control_send(target or self.system_id, x, y, z, r, 0)
 
-    def hold_sticks(
-        self, seconds: float, x: int = 0, y: int = 0, z: int = 500, r: int = 0
-    ) -> float:
-        """Send the sticks at 20 Hz for ``seconds``, then neutral, as a bridge would; returns
-        how long they were in effect."""
-        start = time.monotonic()
-        while time.monotonic() - start < seconds:
-            self.sticks(x, y, z, r)
-            time.sleep(0.05)
+    def hold_sticks_until(self, kind: str, where: Callable[[Any], bool], **sticks: int) -> Any:
+        """Send the sticks at 20 Hz, as a bridge would, until a message of ``kind`` that
+        satisfies ``where`` comes; then neutral sticks. Fails if none comes in 5 s."""
+        deadline = time.monotonic() + 5.0
+        message = None
+        while message is None and time.monotonic() < deadline:
+            self.sticks(**sticks)
+            message = self.receive(kind, timeout=0.05, where=where)
         self.sticks()
-        held = time.monotonic() - start
+        assert message is not None, f"no {kind} as expected while holding {sticks}"
         wait_until(self.sub, lambda s: s.sticks == NEUTRAL_STICKS)
-        return held
+        return message
 
     def target(self, frame: int, mask: int, x: float, y: float, z: float, yaw: float = 0.0):
         self.gcs.mav.set_position_target_local_ned_send(
@@ -137,7 +148,7 @@ class Link:
 
 
 def wait_until(
-    sub: FakeSub, condition: Callable[[FakeSubState], bool], timeout: float = 2.0
+    sub: FakeSub, condition: Callable[[FakeSubState], bool], timeout: float = 5.0
 ) -> FakeSubState:
     """Poll the fake sub's state until ``condition`` holds; fail with the last state."""
     deadline = time.monotonic() + timeout
@@ -159,6 +170,12 @@ def holds_throughout(sub: FakeSub, condition: Callable[[FakeSubState], bool], se
     return True
 
 
+def at(state: FakeSubState, north: float, east: float, down: float, yaw_deg: float) -> bool:
+    """``state`` is at the pose (to float32 precision, as MAVLink carries targets)."""
+    close = math.dist((state.north, state.east, state.down), (north, east, down)) < 1e-5
+    return close and angle_between_deg(state.yaw_deg, yaw_deg) < 1e-4
+
+
 @pytest.fixture
 def launch() -> Iterator[Callable[..., Link]]:
     """Start fake subs (FAST, plus overrides) each with its own ground station; all are
@@ -173,7 +190,7 @@ def launch() -> Iterator[Callable[..., Link]]:
         sub = FakeSub(FakeSubConfig(address=f"udpout:127.0.0.1:{port}", **{**FAST, **overrides}))
         links.append(Link(gcs, sub, None))
         sub.start()
-        heartbeat = gcs.wait_heartbeat(timeout=2.0)
+        heartbeat = gcs.wait_heartbeat(timeout=3.0)
         assert heartbeat is not None, "the fake sub sent no HEARTBEAT"
         return Link(gcs, sub, heartbeat)
 
@@ -191,25 +208,22 @@ def test_the_heartbeat_shows_a_submarine_its_mode_and_whether_it_is_armed(launch
     assert first.autopilot == MAV.MAV_AUTOPILOT_ARDUPILOTMEGA
     assert first.custom_mode == MANUAL  # ArduSub boots in MANUAL
     assert first.base_mode & MAV.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
-    assert not first.base_mode & MAV.MAV_MODE_FLAG_SAFETY_ARMED
+    assert not first.base_mode & (ARMED | MAV.MAV_MODE_FLAG_GUIDED_ENABLED)
     assert first.system_status == MAV.MAV_STATE_STANDBY
 
     link.arm()
-    armed = link.heartbeat_now()
-    assert armed.base_mode & MAV.MAV_MODE_FLAG_SAFETY_ARMED
+    assert link.set_mode(GUIDED).result == MAV.MAV_RESULT_ACCEPTED
+    armed = link.heartbeat(lambda m: m.base_mode & ARMED)
     assert armed.system_status == MAV.MAV_STATE_ACTIVE
+    assert armed.custom_mode == GUIDED
+    assert armed.base_mode & MAV.MAV_MODE_FLAG_GUIDED_ENABLED
 
 
 def test_arming_and_disarming_are_acknowledged_and_take_effect(launch) -> None:
     link = launch(pilot_failsafe="off")
     assert link.command(MAV.MAV_CMD_COMPONENT_ARM_DISARM, 1).result == MAV.MAV_RESULT_ACCEPTED
     assert link.sub.state().armed
-
-    link.gcs.mav.command_int_send(
-        link.system_id, 1, 0, MAV.MAV_CMD_COMPONENT_ARM_DISARM, 0, 0, 0, 0, 0, 0, 0, 0, 0
-    )
-    ack = link.receive("COMMAND_ACK", where=lambda m: m.command == MAV.MAV_CMD_COMPONENT_ARM_DISARM)
-    assert ack.result == MAV.MAV_RESULT_ACCEPTED
+    assert link.command(MAV.MAV_CMD_COMPONENT_ARM_DISARM, 0).result == MAV.MAV_RESULT_ACCEPTED
     assert not link.sub.state().armed
 
     # ArduPilot accepts a disarm when already disarmed, and knows only 0 and 1.
@@ -227,24 +241,21 @@ def test_the_mode_changes_by_set_mode_and_by_do_set_mode(launch) -> None:
     ack = link.receive("COMMAND_ACK", where=lambda m: m.command == MAV.MAV_CMD_DO_SET_MODE)
     assert ack.result == MAV.MAV_RESULT_ACCEPTED
     assert link.sub.state().mode_name == "STABILIZE"
-    assert link.heartbeat_now().custom_mode == STABILIZE
+    assert link.heartbeat(lambda m: m.custom_mode == STABILIZE)
 
     flag = MAV.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
-    link.gcs.mav.command_long_send(
-        link.system_id, 1, MAV.MAV_CMD_DO_SET_MODE, 0, flag, 5, 0, 0, 0, 0, 0
-    )
-    assert link.receive("STATUSTEXT", where=lambda m: m.text == "No such mode 5") is not None
-    ack = link.receive("COMMAND_ACK", where=lambda m: m.command == MAV.MAV_CMD_DO_SET_MODE)
-    assert ack.result == MAV.MAV_RESULT_FAILED
+    for unknown in (5, 16):  # no mode 5; POSHOLD (16) is not emulated
+        text = f"No such mode {unknown}"
+        ack = link.command(MAV.MAV_CMD_DO_SET_MODE, flag, unknown, text=text)
+        assert ack.result == MAV.MAV_RESULT_FAILED
     assert link.command(MAV.MAV_CMD_DO_SET_MODE, 0, MANUAL).result == MAV.MAV_RESULT_DENIED
     assert link.sub.state().mode == STABILIZE
 
 
 def test_without_a_position_estimate_there_is_no_guided_and_no_local_position(launch) -> None:
     link = launch(position_estimate=False, pilot_failsafe="off")
-    assert link.set_mode(GUIDED).result == MAV.MAV_RESULT_FAILED
-    flag = MAV.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
-    assert link.command(MAV.MAV_CMD_DO_SET_MODE, flag, POSHOLD).result == MAV.MAV_RESULT_FAILED
+    text = "Mode change failed: GUIDED requires position"
+    assert link.set_mode(GUIDED, text=text).result == MAV.MAV_RESULT_FAILED
     assert link.sub.state().mode == MANUAL
 
     seen = set()
@@ -257,59 +268,70 @@ def test_without_a_position_estimate_there_is_no_guided_and_no_local_position(la
     assert "LOCAL_POSITION_NED" not in seen
 
 
-def test_telemetry_reports_the_pose_at_the_telemetry_rate(launch) -> None:
+def test_telemetry_reports_the_pose_at_the_requested_rates(launch) -> None:
     link = launch(start_ned=(1.0, -2.0, 3.0), start_yaw_deg=-90.0, pilot_failsafe="off")
     position = link.receive("LOCAL_POSITION_NED")
     assert (position.x, position.y, position.z) == pytest.approx((1.0, -2.0, 3.0))
-    assert (position.vx, position.vy, position.vz) == (0.0, 0.0, 0.0)
+    assert velocity(position) == (0.0, 0.0, 0.0)
     assert link.receive("ATTITUDE").yaw == pytest.approx(-math.pi / 2)
 
-    count = 0
-    deadline = time.monotonic() + 0.5
-    while link.receive("ATTITUDE", timeout=deadline - time.monotonic()) is not None:
-        count += 1
-    assert 6 <= count <= 14  # 20 Hz for 0.5 s
+    # Counts in a window: wide enough for a loaded machine, apart enough to tell the rates.
+    assert 7 <= link.count("ATTITUDE", 1.0) <= 24  # 20 Hz by default
+    interval = MAV.MAV_CMD_SET_MESSAGE_INTERVAL
+    ack = link.command(interval, MAV.MAVLINK_MSG_ID_ATTITUDE, 250_000)  # 4 Hz
+    assert ack.result == MAV.MAV_RESULT_ACCEPTED
+    assert 1 <= link.count("ATTITUDE", 1.0) <= 6
+    ack = link.command(interval, MAV.MAVLINK_MSG_ID_LOCAL_POSITION_NED, -1)  # stop it
+    assert ack.result == MAV.MAV_RESULT_ACCEPTED
+    assert link.count("LOCAL_POSITION_NED", 0.5) == 0
 
 
-def test_the_forward_stick_flies_along_the_heading(launch) -> None:
+def test_the_sticks_fly_along_the_heading_at_their_speeds(launch) -> None:
     link = launch()
     link.sticks()
     link.arm()
-    start = link.sub.state()
 
-    held = link.hold_sticks(0.5, x=500)  # half stick: 2 m/s
-    ahead = link.sub.state()
-    assert ahead.north - start.north == pytest.approx(2.0 * held, rel=0.15)
-    assert ahead.east == pytest.approx(start.east, abs=0.02)
-    assert ahead.down == start.down
+    # Half forward stick: 2 m/s north, reported and integrated over the fake's own time.
+    moving: list[Any] = []
 
-    link.hold_sticks(0.5, r=500)  # half yaw stick: 180 deg/s clockwise, toward east
-    turned = link.sub.state()
-    assert 60.0 < turned.yaw_deg < 120.0
+    def moved_for_300_ms(message: Any) -> bool:
+        if message.vx > 0.0:
+            moving.append(message)
+        return bool(moving) and message.time_boot_ms >= moving[0].time_boot_ms + 300
 
-    held = link.hold_sticks(0.5, x=500)
-    after = link.sub.state()
-    north, east = after.north - turned.north, after.east - turned.east
-    assert math.hypot(north, east) == pytest.approx(2.0 * held, rel=0.15)
-    assert angle_between_deg(math.degrees(math.atan2(east, north)), after.yaw_deg) < 1.0
-    assert east > 0.9 * math.hypot(north, east)
+    later = link.hold_sticks_until("LOCAL_POSITION_NED", moved_for_300_ms, x=500)
+    first = moving[0]
+    assert all(velocity(m) == pytest.approx((2.0, 0.0, 0.0)) for m in moving)
+    elapsed = (later.time_boot_ms - first.time_boot_ms) / 1000.0
+    assert (later.x - first.x) / elapsed == pytest.approx(2.0, rel=0.02)
+    assert (later.y, later.z) == pytest.approx((first.y, first.z))
+
+    # Half yaw stick: 180 deg/s clockwise, toward east.
+    turning = link.hold_sticks_until("ATTITUDE", lambda m: m.yawspeed > 0.0, r=500)
+    assert turning.yawspeed == pytest.approx(math.pi)
+    link.hold_sticks_until("ATTITUDE", lambda m: m.yaw > math.radians(60.0), r=500)
+    heading = link.sub.state().yaw_deg
+    assert 60.0 < heading < 180.0
+
+    # Forward and right now go along and across the heading, throttle up goes up.
+    across = link.hold_sticks_until(
+        "LOCAL_POSITION_NED", lambda m: m.vx != 0.0 or m.vy != 0.0, x=500, y=250, z=750
+    )
+    expected = body_to_ned(2.0, 1.0, math.radians(heading))
+    assert velocity(across) == pytest.approx((*expected, -1.0), abs=1e-5)
 
 
 def test_sticks_from_another_system_or_aimed_elsewhere_are_ignored(launch) -> None:
     link = launch(pilot_failsafe="off")
-    link.arm()
     link.gcs.mav.srcSystem = 200  # not SYSID_MYGCS
-    for _ in range(5):
-        link.sticks(x=1000)
+    link.sticks(x=1000)
     link.gcs.mav.srcSystem = GCS_ID
-    for _ in range(5):
-        link.sticks(x=1000, target=link.system_id + 1)
-    link.sticks(y=-250)  # the one that counts, and arrives after the others
+    link.sticks(x=1000, target=link.system_id + 1)
+    link.arm()  # acknowledged after the sticks above were handled
+    assert link.sub.state().sticks == NEUTRAL_STICKS
 
-    state = wait_until(link.sub, lambda s: s.manual_controls > 0)
-    assert state.manual_controls == 1
-    assert state.sticks == (0, -250, 500, 0)
-    assert state.north == pytest.approx(0.0, abs=0.05)
+    link.sticks(y=-250)
+    assert wait_until(link.sub, lambda s: s.sticks == (0, -250, 500, 0))
 
 
 def test_lost_pilot_input_neutralises_the_sticks_and_disarms_once(launch) -> None:
@@ -340,9 +362,9 @@ def test_a_warning_failsafe_only_neutralises_the_sticks(launch) -> None:
     state = wait_until(link.sub, lambda s: s.failsafe)
     assert state.armed
     assert state.sticks == NEUTRAL_STICKS
-    heartbeat = link.heartbeat_now()
-    assert heartbeat.system_status == MAV.MAV_STATE_CRITICAL  # as ArduSub in any failsafe
-    assert heartbeat.base_mode & MAV.MAV_MODE_FLAG_SAFETY_ARMED
+    # ArduSub reports CRITICAL in any failsafe.
+    heartbeat = link.heartbeat(lambda m: m.system_status == MAV.MAV_STATE_CRITICAL)
+    assert heartbeat.base_mode & ARMED
 
 
 def test_with_the_failsafe_off_the_last_sticks_stay_in_effect(launch) -> None:
@@ -359,27 +381,29 @@ def test_a_body_offset_target_with_a_relative_yaw_is_reached_in_body_axes(launch
     link.arm()
     # 2 m forward (east), 1 m right (south), 0.5 m down, and a quarter turn clockwise.
     link.target(MAV.MAV_FRAME_BODY_OFFSET_NED, POSITION_AND_YAW, 2.0, 1.0, 0.5, math.pi / 2)
-
-    pending = wait_until(link.sub, lambda s: s.guided_target is not None)
-    assert pending.guided_target == pytest.approx((-1.0, 2.0, 5.5, -180.0))
-    assert pending.position_targets == 1
-    reached = wait_until(link.sub, lambda s: s.guided_target is None)
-    assert (reached.north, reached.east, reached.down) == pytest.approx((-1.0, 2.0, 5.5))
-    assert angle_between_deg(reached.yaw_deg, 180.0) < 1e-4  # MAVLink's yaw is a float32
+    wait_until(link.sub, lambda s: at(s, -1.0, 2.0, 5.5, 180.0))
 
 
-def test_a_target_without_a_yaw_keeps_the_heading_and_counts_only_in_guided(launch) -> None:
+def test_a_local_offset_target_takes_an_absolute_yaw(launch) -> None:
+    link = launch(start_yaw_deg=90.0, pilot_failsafe="off")
+    assert link.set_mode(GUIDED).result == MAV.MAV_RESULT_ACCEPTED
+    link.arm()
+    # The offset is north, east, down whatever the heading; the yaw is the heading to end at.
+    link.target(MAV.MAV_FRAME_LOCAL_OFFSET_NED, POSITION_AND_YAW, 1.0, -0.5, -1.0, -math.pi / 4)
+    wait_until(link.sub, lambda s: at(s, 1.0, -0.5, 4.0, -45.0))
+
+
+def test_a_local_target_without_a_yaw_keeps_the_heading_and_counts_only_in_guided(
+    launch,
+) -> None:
     link = launch(start_yaw_deg=30.0, pilot_failsafe="off")
     link.arm()
     link.target(MAV.MAV_FRAME_LOCAL_NED, POSITION_ONLY, 1.0, -1.0, 4.0)  # in MANUAL: ignored
     assert link.set_mode(GUIDED).result == MAV.MAV_RESULT_ACCEPTED  # handled after the target
-    assert link.sub.state().position_targets == 0
+    assert holds_throughout(link.sub, lambda s: at(s, 0.0, 0.0, 5.0, 30.0), 0.2)
 
     link.target(MAV.MAV_FRAME_LOCAL_NED, POSITION_ONLY, 1.0, -1.0, 4.0, yaw=2.0)
-    wait_until(link.sub, lambda s: s.position_targets == 1)
-    reached = wait_until(link.sub, lambda s: s.guided_target is None)
-    assert (reached.north, reached.east, reached.down) == pytest.approx((1.0, -1.0, 4.0))
-    assert reached.yaw_deg == pytest.approx(30.0)
+    wait_until(link.sub, lambda s: at(s, 1.0, -1.0, 4.0, 30.0))
 
 
 def test_a_target_sent_while_disarmed_is_dropped(launch) -> None:
@@ -387,59 +411,26 @@ def test_a_target_sent_while_disarmed_is_dropped(launch) -> None:
     assert link.set_mode(GUIDED).result == MAV.MAV_RESULT_ACCEPTED
     link.target(MAV.MAV_FRAME_LOCAL_OFFSET_NED, POSITION_ONLY, 1.0, 0.0, 0.0)
     # ArduSub resets its waypoint controller while disarmed: the target is forgotten.
-    dropped = wait_until(link.sub, lambda s: s.position_targets == 1 and s.guided_target is None)
     link.arm()
-    assert holds_throughout(link.sub, lambda s: s.north == dropped.north == 0.0, 0.2)
-
-
-def test_a_body_velocity_target_flies_along_the_heading(launch) -> None:
-    link = launch(start_yaw_deg=90.0, pilot_failsafe="off")
-    link.set_mode(GUIDED)
-    link.arm()
-    link.gcs.mav.set_position_target_local_ned_send(
-        0,
-        link.system_id,
-        1,
-        MAV.MAV_FRAME_BODY_NED,
-        VELOCITY_ONLY,
-        0,
-        0,
-        0,
-        2.0,
-        0,
-        0,
-        0,
-        0,
-        0,
-        0,
-        0,
-    )
-    moved = wait_until(link.sub, lambda s: s.east > 0.4)
-    assert moved.north == pytest.approx(0.0, abs=1e-9)
-    assert moved.guided_target is None  # a velocity has no target to reach
+    assert holds_throughout(link.sub, lambda s: at(s, 0.0, 0.0, 5.0, 0.0), 0.3)
 
 
 def test_a_current_drifts_the_vehicle_unless_a_controller_holds_against_it(launch) -> None:
     link = launch(current_ned_mps=(1.0, 0.5, 0.4), pilot_failsafe="off")
+    # Each LOCAL_POSITION_NED after an acknowledgement was measured in the new state.
+    drifting = link.receive("LOCAL_POSITION_NED", where=lambda m: m.time_boot_ms >= 100)
+    assert velocity(drifting) == pytest.approx((1.0, 0.5, 0.4))  # disarmed, it drifts
+
     assert link.set_mode(ALT_HOLD).result == MAV.MAV_RESULT_ACCEPTED
     link.arm()
-    before, since = link.sub.state(), time.monotonic()
-    time.sleep(0.4)
-    after, elapsed = link.sub.state(), time.monotonic() - since
-    assert after.north - before.north == pytest.approx(1.0 * elapsed, abs=0.1)
-    assert after.east - before.east == pytest.approx(0.5 * elapsed, abs=0.05)
-    assert after.down == before.down  # ALT_HOLD holds the depth
-
-    assert link.set_mode(GUIDED).result == MAV.MAV_RESULT_ACCEPTED
-    link.target(MAV.MAV_FRAME_LOCAL_OFFSET_NED, POSITION_ONLY, 0.5, 0.0, 0.0)
-    reached = wait_until(link.sub, lambda s: s.position_targets == 1 and s.guided_target is None)
-    assert holds_throughout(link.sub, lambda s: s == reached, 0.3)
+    alt_hold = link.receive("LOCAL_POSITION_NED")
+    assert velocity(alt_hold) == pytest.approx((1.0, 0.5, 0.0))  # ALT_HOLD holds the depth
 
     assert link.set_mode(MANUAL).result == MAV.MAV_RESULT_ACCEPTED
-    deeper = wait_until(link.sub, lambda s: s.down > reached.down + 0.04)  # 0.4 m/s down
-    assert deeper.north > reached.north
+    assert velocity(link.receive("LOCAL_POSITION_NED")) == pytest.approx((1.0, 0.5, 0.4))
 
-    assert link.set_mode(POSHOLD).result == MAV.MAV_RESULT_ACCEPTED
+    assert link.set_mode(GUIDED).result == MAV.MAV_RESULT_ACCEPTED
+    assert velocity(link.receive("LOCAL_POSITION_NED")) == (0.0, 0.0, 0.0)
     held = link.sub.state()
     assert holds_throughout(link.sub, lambda s: s == held, 0.2)
 
@@ -450,10 +441,12 @@ def test_noise_misses_a_guided_target_by_a_bounded_amount_repeatable_by_seed(lau
         link.set_mode(GUIDED)
         link.arm()
         link.target(MAV.MAV_FRAME_BODY_OFFSET_NED, POSITION_ONLY, 2.0, 0.0, 0.0)
-    ends = [
-        wait_until(link.sub, lambda s: s.position_targets == 1 and s.guided_target is None)
-        for link in links
-    ]
+    for link in links:  # moved, then stopped: the goal is reached
+        stopped = link.receive(
+            "LOCAL_POSITION_NED", where=lambda m: m.x > 1.0 and velocity(m) == (0.0, 0.0, 0.0)
+        )
+        assert stopped is not None
+    ends = [link.sub.state() for link in links]
     misses = [(s.north - 2.0, s.east, s.down - 5.0) for s in ends]
     assert misses[0] == pytest.approx(misses[1], abs=1e-9)
     assert 1e-4 < math.dist(misses[0], (0.0, 0.0, 0.0)) < 5 * 0.1 * 2.0 * math.sqrt(3)
@@ -463,7 +456,7 @@ def test_stop_returns_promptly_and_leaves_no_thread(launch) -> None:
     link = launch()
     started = time.monotonic()
     link.sub.stop()
-    assert time.monotonic() - started < 0.5
+    assert time.monotonic() - started < 2.0
     assert not [t for t in threading.enumerate() if t.name == "fake-sub"]
     link.sub.stop()  # again: nothing happens
 
@@ -482,7 +475,7 @@ def test_a_paused_heartbeat_leaves_the_telemetry_running(launch) -> None:
     assert "ATTITUDE" in kinds
     assert "HEARTBEAT" not in kinds
     link.sub.pause_heartbeat(False)
-    assert link.receive("HEARTBEAT", timeout=1.2) is not None
+    assert link.receive("HEARTBEAT") is not None
 
 
 def test_serve_reports_the_state_until_stopped() -> None:
@@ -491,34 +484,37 @@ def test_serve_reports_the_state_until_stopped() -> None:
     server = threading.Thread(target=serve, args=(config, stop, states.append, 0.05))
     server.start()
     try:
-        deadline = time.monotonic() + 2.0
+        deadline = time.monotonic() + 3.0
         while len(states) < 2 and time.monotonic() < deadline:
             time.sleep(0.01)
     finally:
         stop.set()
-        server.join(timeout=1.0)
+        server.join(timeout=3.0)
     assert not server.is_alive()
     assert len(states) >= 2 and states[0].mode == MANUAL and not states[0].armed
 
 
 @pytest.mark.parametrize(
-    "bad",
+    ("bad", "name"),
     [
-        {"max_speed_mps": 0.0},
-        {"guided_yaw_rate_dps": -1.0},
-        {"physics_hz": math.inf},
-        {"noise": -0.1},
-        {"noise": math.nan},
-        {"pilot_failsafe": "surface"},
-        {"current_ned_mps": (0.0, 0.0)},
-        {"start_ned": (0.0, math.nan, 5.0)},
-        {"system_id": 0},
-        {"gcs_system_id": 256},
-        {"address": ""},
+        ({"max_speed_mps": 0.0}, "max_speed_mps"),
+        ({"guided_yaw_rate_dps": -1.0}, "guided_yaw_rate_dps"),
+        ({"physics_hz": math.inf}, "physics_hz"),
+        ({"noise": -0.1}, "noise"),
+        ({"noise": math.nan}, "noise"),
+        ({"pilot_failsafe": "surface"}, "pilot_failsafe"),
+        ({"current_ned_mps": (0.0, 0.0)}, "current_ned_mps"),
+        ({"start_ned": (0.0, math.nan, 5.0)}, "start_ned"),
+        ({"system_id": 0}, "system_id"),
+        ({"gcs_system_id": 256}, "gcs_system_id"),
+        ({"address": " "}, "address"),
+        ({"speed": 1.0}, "speed"),
     ],
 )
-def test_a_bad_config_value_is_a_config_error(bad: dict[str, Any]) -> None:
-    with pytest.raises(ConfigError):
+def test_a_bad_config_value_is_a_config_error_naming_the_field(
+    bad: dict[str, Any], name: str
+) -> None:
+    with pytest.raises(ConfigError, match=f"'{name}"):
         FakeSubConfig(**bad)
 
 

@@ -10,6 +10,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -34,6 +35,7 @@ from cavenav.vehicle.mavlink import (
     describe,
     load_bridge_config,
     plan,
+    target_fields,
 )
 from cavenav.world.scenarios import load_scenario
 
@@ -120,12 +122,21 @@ def test_manual_vertical_sticks_are_around_500_up_above() -> None:
     assert up.duration_s == pytest.approx(2.0)
 
 
-def test_guided_sends_a_relative_yaw_then_a_body_offset_that_holds_the_heading() -> None:
+def test_guided_turns_then_moves_holding_the_heading() -> None:
     turn, move = plan(parse_action("back 0.5 m, turn right 90 deg"), BridgeConfig(mode="guided"))
-    assert turn.target["coordinate_frame"] == 9  # MAV_FRAME_BODY_OFFSET_NED
-    assert (turn.target["x"], turn.target["y"], turn.target["z"]) == (0, 0, 0)
-    assert turn.target["yaw"] == pytest.approx(math.pi / 2)  # clockwise
-    assert (move.target["x"], move.target["yaw"]) == (-0.5, 0.0)
+    assert turn.target == {"forward": 0, "right": 0, "down": 0, "turn": pytest.approx(math.pi / 2)}
+    assert move.target == {"forward": -0.5, "right": 0, "down": 0, "turn": 0}
+
+
+def test_guided_targets_are_offsets_turned_by_the_heading_with_an_absolute_yaw() -> None:
+    """Not a relative yaw in MAV_FRAME_BODY_OFFSET_NED: ArduSub can turn that the wrong way."""
+    heading_east = NedPose(3.0, 4.0, 20.0, yaw=math.pi / 2)
+    forward = target_fields({"forward": 1.0, "right": 0.5, "down": -0.2, "turn": 0.0}, heading_east)
+    assert forward["coordinate_frame"] == 7  # MAV_FRAME_LOCAL_OFFSET_NED
+    assert (forward["x"], forward["y"], forward["z"]) == pytest.approx((-0.5, 1.0, -0.2))
+    assert forward["yaw"] == pytest.approx(math.pi / 2)
+    left = target_fields({"forward": 0, "right": 0, "down": 0, "turn": -math.pi / 4}, heading_east)
+    assert left["yaw"] == pytest.approx(math.pi / 4)
 
 
 def test_hold_plans_nothing_and_says_so() -> None:
@@ -145,7 +156,7 @@ def test_dry_run_lines_name_the_messages() -> None:
     assert lines[1].startswith("move: MANUAL_CONTROL x=400")
     guided = BridgeConfig(mode="guided")
     (line,) = describe(plan(parse_action("forward 0.5 m"), guided), guided)
-    assert "SET_POSITION_TARGET_LOCAL_NED frame=MAV_FRAME_BODY_OFFSET_NED" in line
+    assert "SET_POSITION_TARGET_LOCAL_NED frame=MAV_FRAME_LOCAL_OFFSET_NED" in line
 
 
 # ---------------------------------------------------------------------------- settings
@@ -261,36 +272,67 @@ def test_the_geometric_pilot_flies_s4_through_mavlink_in_guided_mode(tmp_path: P
     assert summary["max_drift_m"] < 0.3
 
 
+@contextmanager
+def flying(port: int, **settings: object) -> Iterator[ArduSubMotion]:
+    """A bridge to the autopilot on ``port``, closed whatever the test does."""
+    motion = ArduSubMotion(bridge(port, **settings))
+    try:
+        yield motion
+    finally:
+        motion.close()
+
+
+# 1 m/s at the bridge's stick limit: a sleep that overshoots 50 ms costs 5 cm
+GENTLE = {"stick_limit": 125, "forward_mps": 1.0, "vertical_mps": 0.5}
+
+
 def test_the_bridge_arms_in_alt_hold_and_disarms_with_neutral_sticks_at_the_end() -> None:
     port = free_udp_port()
     with autopilot(port) as sub:
-        motion = ArduSubMotion(bridge(port))
-        start = Pose(1.0, 2.0, -3.0, 0.3)
-        assert motion.start(start) == start
-        state = sub.state()
-        assert state.armed and state.mode_name == "ALT_HOLD"
-        reached = motion.move(start, parse_action("forward 1 m"))
-        assert math.dist(reached.position, apply(start, Action(forward=1.0)).position) < 0.15
-        motion.close()
+        with flying(port, **GENTLE) as motion:
+            start = Pose(1.0, 2.0, -3.0, 0.3)
+            assert motion.start(start) == start
+            state = sub.state()
+            assert state.armed and state.mode_name == "ALT_HOLD"
+            reached = motion.move(start, parse_action("forward 1 m"))
+            assert math.dist(reached.position, apply(start, Action(forward=1.0)).position) < 0.2
         assert wait_until(lambda: not sub.state().armed)
         assert sub.state().sticks == (0, 0, 500, 0)
+
+
+def test_a_vehicle_armed_before_the_bridge_came_is_left_armed() -> None:
+    port = free_udp_port()
+    with autopilot(port) as sub:
+        with flying(port, disarm_at_end=False) as first:
+            first.start(Pose(0, 0, 0))
+        with flying(port) as second:
+            second.start(Pose(0, 0, 0))
+        assert sub.state().armed
+
+
+def test_no_vehicle_is_one_line_and_closing_after_it_is_clean() -> None:
+    with (
+        flying(free_udp_port(), connect_timeout_s=0.3) as motion,
+        pytest.raises(VehicleError, match="no heartbeat from a submarine"),
+    ):
+        motion.start(Pose(0, 0, 0))
+    motion.close()  # again: nothing left to close
 
 
 def test_the_operator_is_asked_before_arming_and_a_no_leaves_it_disarmed() -> None:
     port = free_udp_port()
     asked = []
     with autopilot(port) as sub:
-        motion = ArduSubMotion(bridge(port), confirm=lambda q: asked.append(q) or False)
-        with pytest.raises(VehicleError, match="declined"):
-            motion.start(Pose(0, 0, 0))
-        motion.close()
+        with flying(port) as motion:
+            motion._confirm = lambda q: asked.append(q) or False
+            with pytest.raises(VehicleError, match="declined"):
+                motion.start(Pose(0, 0, 0))
         assert asked == ["arm the vehicle?"] and not sub.state().armed
 
 
-def test_no_move_while_the_vehicles_heartbeat_is_stale_and_the_sticks_go_neutral() -> None:
+def test_no_move_while_the_vehicles_heartbeat_is_stale() -> None:
     port = free_udp_port()
-    with autopilot(port) as sub:
-        motion = ArduSubMotion(bridge(port, heartbeat_timeout_s=0.5))
+    with autopilot(port) as sub, flying(port, heartbeat_timeout_s=0.5) as motion:
         start = motion.start(Pose(0, 0, 0))
         sub.pause_heartbeat(True)
         time.sleep(0.6)
@@ -298,28 +340,37 @@ def test_no_move_while_the_vehicles_heartbeat_is_stale_and_the_sticks_go_neutral
         with pytest.raises(VehicleError, match="heartbeat is .* old"):
             motion.move(start, parse_action("forward 1 m"))
         after = sub.state()
-        assert after.sticks == (0, 0, 500, 0)
         assert math.dist((before.north, before.east), (after.north, after.east)) < 0.01
-        motion.close()
+
+
+def test_a_heartbeat_lost_mid_segment_stops_the_segment_with_neutral_sticks() -> None:
+    port = free_udp_port()
+    with autopilot(port) as sub, flying(port, heartbeat_timeout_s=0.5, **GENTLE) as motion:
+        start = motion.start(Pose(0, 0, 0))
+        threading.Timer(0.3, sub.pause_heartbeat, (True,)).start()
+        started = time.monotonic()
+        with pytest.raises(VehicleError, match="heartbeat is .* old"):
+            motion.move(start, parse_action("forward 1 m, turn left 90 deg"))  # about 3 s
+        assert time.monotonic() - started < 2.5
+        assert wait_until(lambda: sub.state().sticks == (0, 0, 500, 0), 1.0)
 
 
 def test_guided_mode_is_refused_by_a_vehicle_with_no_position_estimate() -> None:
     port = free_udp_port()
-    with autopilot(port, position_estimate=False):
-        motion = ArduSubMotion(bridge(port, mode="guided", ack_timeout_s=1.0))
-        with pytest.raises(VehicleError, match="refused MAV_CMD_DO_SET_MODE"):
-            motion.start(Pose(0, 0, 0))
-        motion.close()
+    with (
+        autopilot(port, position_estimate=False),
+        flying(port, mode="guided", ack_timeout_s=1.0) as motion,
+        pytest.raises(VehicleError, match="refused MAV_CMD_DO_SET_MODE"),
+    ):
+        motion.start(Pose(0, 0, 0))
 
 
 def test_depth_targets_are_clamped_to_the_limits() -> None:
     port = free_udp_port()
-    with autopilot(port, start_ned=(0.0, 0.0, 1.0)):
-        motion = ArduSubMotion(bridge(port, min_depth_m=0.5))
-        start = motion.start(Pose(0, 0, 0))
-        reached = motion.move(start, parse_action("ascend 2 m"))
+    with autopilot(port, start_ned=(0.0, 0.0, 1.0)), flying(port, min_depth_m=0.5, **GENTLE) as m:
+        start = m.start(Pose(0, 0, 0))
+        reached = m.move(start, parse_action("ascend 2 m"))
         assert reached.z == pytest.approx(0.5, abs=0.1)  # 1 m deep, stopped at 0.5 m
-        motion.close()
 
 
 def wait_until(condition: Callable[[], bool], timeout_s: float = 5.0) -> bool:

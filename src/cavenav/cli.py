@@ -776,8 +776,8 @@ step, what the simulator gives it:
   - a forward colour image (640x480 by default, 53 degrees across),
   - a forward depth image in metres, registered to it (a stereo pair or a depth camera),
   - two echo-sounder ranges, up and down (e.g. Blue Robotics Ping2 sonars),
-and the bridge needs the vehicle's pose: LOCAL_POSITION_NED and ATTITUDE (a DVL for
-guided mode; manual mode flies on the depth sensor and dead reckoning).
+and the bridge needs the vehicle's pose, LOCAL_POSITION_NED and ATTITUDE, in both modes
+(a DVL or another position estimate).
 cavenav has no driver for these sensors yet. Fly the loop in simulation with
 --sim SCENARIO against `cavenav fake-sub` or ArduSub's SITL, or print the MAVLink
 commands of an action with --dry-run --action TEXT."""

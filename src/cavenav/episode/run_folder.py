@@ -258,8 +258,8 @@ class RunFolder:
         *,
         exr_compression: ExrCompression = "none",
     ):
-        """``path`` must not exist, or be a folder with no run record in it (as
-        `new_run_dir` makes it; `cavenav fly` opens its command log there first).
+        """``path`` must not exist, or be an empty folder (as `new_run_dir` makes it) but
+        for the command log `cavenav fly` opens there first.
 
         Raises:
             ConfigError: an EXR compression that is not one of `EXR_COMPRESSIONS`.
@@ -273,8 +273,8 @@ class RunFolder:
         self.save_exr = save_exr
         self.exr_compression = exr_compression
         self.path.mkdir(parents=True, exist_ok=True)
-        if any((self.path / name).exists() for name in ("summary.json", "steps.jsonl", "frames")):
-            raise RecordingError(f"{self.path} holds a run already: a run folder starts empty")
+        if {entry.name for entry in self.path.iterdir()} - {"mavlink.jsonl"}:
+            raise RecordingError(f"{self.path} is not empty: a run folder starts empty")
         if save_frames:
             (self.path / "frames").mkdir()
         # Unbuffered bytes: a line is one write, and a failed one can be cut back exactly.

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 from cavenav.kinematics import wrap_angle
 from cavenav.types import Action, Pose
 
-__all__ = ["NedFrame", "NedPose", "body_offset"]
+__all__ = ["NedFrame", "NedPose", "body_offset", "body_to_ned"]
 
 
 @dataclass(frozen=True)
@@ -93,3 +93,9 @@ def body_offset(action: Action) -> tuple[float, float, float, float]:
     """``action`` in ArduSub's body-offset NED frame: (forward, right, down) metres and
     the yaw change in radians, clockwise."""
     return action.forward, action.right, -action.up, -math.radians(action.yaw_deg)
+
+
+def body_to_ned(forward: float, right: float, yaw: float) -> tuple[float, float]:
+    """(north, east) of a horizontal body vector at heading ``yaw`` (rad, clockwise from north)."""
+    cos_yaw, sin_yaw = math.cos(yaw), math.sin(yaw)
+    return forward * cos_yaw - right * sin_yaw, forward * sin_yaw + right * cos_yaw

@@ -6,10 +6,16 @@ straight translation, each a *segment*. Two ways to drive a segment, chosen by t
 - ``manual``: ALT_HOLD mode, MANUAL_CONTROL sticks at 10 Hz. A segment holds the sticks
   for its magnitude over a calibrated rate, then neutral sticks for ``settle_s``. Needs
   only the depth sensor; the distance flown is as good as the calibration.
-- ``guided``: GUIDED mode, ``SET_POSITION_TARGET_LOCAL_NED`` in
-  ``MAV_FRAME_BODY_OFFSET_NED`` (ArduSub rotates the offset by the current heading and
-  reads the yaw as relative in that frame), then wait until the reported pose is within
-  the tolerances. Needs a position estimate (a DVL).
+- ``guided``: GUIDED mode, ``SET_POSITION_TARGET_LOCAL_NED``: the body offset turned
+  by the heading the vehicle reports, in ``MAV_FRAME_LOCAL_OFFSET_NED``, with an absolute
+  yaw; then wait until the reported pose is within the tolerances (or the vehicle has
+  settled). Not ``MAV_FRAME_BODY_OFFSET_NED`` with its relative yaw: ArduSub's
+  ``ModeGuided::guided_set_yaw_state`` picks the turn's direction as if that yaw were
+  absolute, so a relative turn can go the wrong way. Needs a position estimate (a DVL).
+
+Both modes read the pose from ``LOCAL_POSITION_NED`` and ``ATTITUDE`` (requested at
+``telemetry_hz`` with ``MAV_CMD_SET_MESSAGE_INTERVAL``): ALT_HOLD itself needs only the
+depth sensor, but the loop places each observation at the reported pose.
 
 Only standard MAVLink messages and ArduSub's documented behaviour are relied on
 (https://ardupilot.org/sub/docs/modes.html, .../parameters.html: ``SYSID_MYGCS``,
@@ -20,10 +26,12 @@ fires when the bridge dies: ArduSub then sets neutral controls and, with
 ``FS_PILOT_INPUT = 2``, disarms).
 
 Safety, in this module: no segment while the vehicle's heartbeat is older than
-``heartbeat_timeout_s`` (2.5 s), nor one longer than ``segment_cap_s``; depth targets are
+``heartbeat_timeout_s`` (2.5 s), while it is disarmed or in another mode than ours, nor
+one longer than ``segment_cap_s``; depth targets (``LOCAL_POSITION_NED``'s down) are
 clamped to ``[min_depth_m, max_depth_m]``; neutral sticks (manual) or a hold at the
 current pose (guided) on any exception and on Ctrl-C; arming only after the operator
-confirms (a flag waives it in simulation); every message sent and received goes to the
+confirms (a flag waives it in simulation), and at the end disarming only a vehicle the
+bridge armed; every message sent and received goes to the
 command log as JSON lines. The forward-clearance rule is the safety shield's
 (`cavenav.wrappers.SafetyShield`), which `cavenav fly` puts in front of the pilot.
 """
@@ -47,7 +55,7 @@ from cavenav.actions import format_action
 from cavenav.errors import ConfigError, DependencyError, VehicleError
 from cavenav.kinematics import wrap_angle
 from cavenav.types import Action, Pose
-from cavenav.vehicle.frames import NedFrame, NedPose, body_offset
+from cavenav.vehicle.frames import NedFrame, NedPose, body_offset, body_to_ned
 
 __all__ = [
     "ArduSubMotion",
@@ -56,11 +64,12 @@ __all__ = [
     "describe",
     "load_bridge_config",
     "plan",
+    "target_fields",
 ]
 
 ALT_HOLD, GUIDED = 2, 4  # ArduSub's custom mode numbers (ArduSub/mode.h)
 NEUTRAL = {"x": 0, "y": 0, "z": 500, "r": 0}  # MANUAL_CONTROL: z is 0..1000, 500 neutral
-FRAME_BODY_OFFSET_NED = 9  # MAV_FRAME_BODY_OFFSET_NED
+FRAME_LOCAL_OFFSET_NED = 7  # MAV_FRAME_LOCAL_OFFSET_NED: NED offset from the vehicle
 # SET_POSITION_TARGET_LOCAL_NED type_mask: use x, y, z and yaw; ignore velocity (8, 16,
 # 32), acceleration (64, 128, 256) and yaw rate (2048).
 POSITION_AND_YAW = 8 | 16 | 32 | 64 | 128 | 256 | 2048
@@ -85,6 +94,7 @@ class BridgeConfig(BaseModel):
     heartbeat_timeout_s: float = Field(2.5, gt=0)
     connect_timeout_s: float = Field(30.0, gt=0)
     ack_timeout_s: float = Field(3.0, gt=0)
+    telemetry_hz: float = Field(10.0, gt=0, le=50, description="ATTITUDE and position rate")
     control_hz: float = Field(10.0, gt=0, le=50)
     stick_limit: int = Field(400, ge=50, le=1000, description="strongest stick, of 1000")
     forward_mps: float = Field(0.4, gt=0, description="forward/back speed at stick_limit")
@@ -169,7 +179,7 @@ def plan(action: Action, config: BridgeConfig) -> list[Segment]:
         segments.append(Segment("turn", abs(action.yaw_deg) / config.yaw_dps, sticks=turn))
     elif yaw:
         duration = abs(action.yaw_deg) / config.guided_yaw_dps
-        segments.append(Segment("turn", duration, target=_target(0.0, 0.0, 0.0, yaw)))
+        segments.append(Segment("turn", duration, target=_offset(0.0, 0.0, 0.0, yaw)))
     times = (
         abs(forward) / config.forward_mps,
         abs(right) / config.lateral_mps,
@@ -188,7 +198,7 @@ def plan(action: Action, config: BridgeConfig) -> list[Segment]:
             segments.append(Segment("move", duration, sticks=move))
         else:
             duration = math.hypot(forward, right, down) / config.guided_mps
-            segments.append(Segment("move", duration, target=_target(forward, right, down, 0.0)))
+            segments.append(Segment("move", duration, target=_offset(forward, right, down, 0.0)))
     for segment in segments:
         if segment.duration_s > config.segment_cap_s:
             raise VehicleError(
@@ -198,14 +208,22 @@ def plan(action: Action, config: BridgeConfig) -> list[Segment]:
     return segments
 
 
-def _target(forward: float, right: float, down: float, yaw: float) -> dict[str, float]:
+def _offset(forward: float, right: float, down: float, turn: float) -> dict[str, float]:
+    return {"forward": forward, "right": right, "down": down, "turn": turn}
+
+
+def target_fields(offset: dict[str, float], at: NedPose) -> dict[str, Any]:
+    """SET_POSITION_TARGET_LOCAL_NED's fields for a body ``offset`` (forward, right,
+    down metres; turn radians clockwise) from the pose ``at``: the offset turned by its
+    heading, in MAV_FRAME_LOCAL_OFFSET_NED, and the absolute yaw to end at."""
+    north, east = body_to_ned(offset["forward"], offset["right"], at.yaw)
     return {
-        "coordinate_frame": FRAME_BODY_OFFSET_NED,
+        "coordinate_frame": FRAME_LOCAL_OFFSET_NED,
         "type_mask": POSITION_AND_YAW,
-        "x": forward,
-        "y": right,
-        "z": down,
-        "yaw": yaw,
+        "x": north,
+        "y": east,
+        "z": offset["down"],
+        "yaw": wrap_angle(at.yaw + offset["turn"]),
     }
 
 
@@ -224,9 +242,10 @@ def describe(segments: list[Segment], config: BridgeConfig) -> list[str]:
             assert s.target is not None
             t = s.target
             lines.append(
-                f"{s.kind}: SET_POSITION_TARGET_LOCAL_NED frame=MAV_FRAME_BODY_OFFSET_NED "
-                f"type_mask={t['type_mask']} x={t['x']:g} y={t['y']:g} z={t['z']:g} "
-                f"yaw={t['yaw']:.4f} rad, then wait until within "
+                f"{s.kind}: SET_POSITION_TARGET_LOCAL_NED frame=MAV_FRAME_LOCAL_OFFSET_NED "
+                f"type_mask={POSITION_AND_YAW}: forward={t['forward']:g} right={t['right']:g} "
+                f"down={t['down']:g} m turned by the heading, yaw = heading "
+                f"{t['turn']:+.4f} rad (absolute), then wait until within "
                 f"{config.position_tolerance_m:g} m and {config.yaw_tolerance_deg:g} deg "
                 f"(about {s.duration_s:.2f} s at the guided speed and turn rate)"
             )
@@ -248,6 +267,7 @@ class _Telemetry:
     position_at: float = -math.inf
     yaw: float | None = None
     acks: dict[int, int] = field(default_factory=dict)
+    failure: BaseException | None = None  # what stopped the link thread
 
 
 class _CommandLog:
@@ -298,6 +318,7 @@ class ArduSubLink:
         self.telemetry = _Telemetry()
         self._sticks = dict(NEUTRAL)
         self._send_lock = threading.Lock()
+        self._sticks_lock = threading.Lock()  # the sticks read and sent as one
         self._seen = threading.Condition()
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._serve, name="mavlink-link", daemon=True)
@@ -310,6 +331,14 @@ class ArduSubLink:
         self.log.write("sent", {"mavpackettype": name, **fields})
 
     def _serve(self) -> None:
+        try:
+            self._exchange()
+        except BaseException as exc:  # a full disk under the log, a pymavlink surprise
+            self.telemetry.failure = exc
+            with self._seen:
+                self._seen.notify_all()
+
+    def _exchange(self) -> None:
         next_heartbeat = next_sticks = 0.0
         while not self._stop.is_set():
             now = time.monotonic()
@@ -339,8 +368,9 @@ class ArduSubLink:
         t, now = self.telemetry, time.monotonic()
         with self._seen:
             if kind == "HEARTBEAT" and message.type == self._mavlink.MAV_TYPE_SUBMARINE:
-                if self.config.target_system in (0, message.get_srcSystem()):
-                    t.system = t.system or message.get_srcSystem()
+                wanted = t.system or self.config.target_system
+                if wanted in (0, message.get_srcSystem()):
+                    t.system = message.get_srcSystem()
                     t.heartbeat_at = now
                     t.armed = bool(message.base_mode & self._mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
                     t.mode = message.custom_mode
@@ -354,39 +384,60 @@ class ArduSubLink:
                 t.acks[message.command] = message.result
             self._seen.notify_all()
 
-    def _send_sticks(self) -> None:
-        if self.telemetry.system is None:
-            return
-        self._send("MANUAL_CONTROL", target=self.telemetry.system, buttons=0, **self._sticks)
+    def _send_sticks(self, sticks: dict[str, int] | None = None) -> None:
+        """Send the sticks held (or hold ``sticks`` first): never an older set after it."""
+        with self._sticks_lock:
+            if sticks is not None:
+                self._sticks = dict(sticks)
+            if self.telemetry.system is not None:
+                self._send(
+                    "MANUAL_CONTROL", target=self.telemetry.system, buttons=0, **self._sticks
+                )
 
     def set_sticks(self, sticks: dict[str, int]) -> None:
         """Hold ``sticks`` from now on (sent at once, then repeated at ``control_hz``)."""
-        self._sticks = dict(sticks)
-        self._send_sticks()
+        self._send_sticks(sticks)
 
     def wait_for(self, what: str, ready: Callable[[_Telemetry], bool], timeout_s: float) -> None:
         """Block until ``ready(telemetry)``; a VehicleError naming ``what`` after the timeout."""
         deadline = time.monotonic() + timeout_s
         with self._seen:
             while not ready(self.telemetry):
+                self._check_thread()
                 left = deadline - time.monotonic()
                 if left <= 0:
                     raise VehicleError(f"{what}: nothing after {timeout_s:g} s")
                 self._seen.wait(min(left, 0.1))
 
-    def check_alive(self) -> None:
-        """Refuse to go on when the vehicle's last heartbeat is older than allowed."""
-        age = time.monotonic() - self.telemetry.heartbeat_at
+    def _check_thread(self) -> None:
+        failure = self.telemetry.failure
+        if failure is not None:
+            raise VehicleError(f"the MAVLink link stopped: {type(failure).__name__}: {failure}")
+
+    def check_alive(self, mode: int) -> None:
+        """Refuse to go on when the vehicle's last heartbeat is older than allowed, or it
+        is no longer armed in ``mode`` (a failsafe, another ground station)."""
+        self._check_thread()
+        t = self.telemetry
+        age = time.monotonic() - t.heartbeat_at
         if age > self.config.heartbeat_timeout_s:
             raise VehicleError(
                 f"the vehicle's last heartbeat is {age:.1f} s old (over "
                 f"{self.config.heartbeat_timeout_s:g} s): refusing to move"
+            )
+        if not t.armed or t.mode != mode:
+            state = "armed" if t.armed else "disarmed"
+            raise VehicleError(
+                f"the vehicle is {state} in mode {t.mode}, not armed in mode {mode} "
+                "(a failsafe or another ground station): refusing to move"
             )
 
     # ---------------------------------------------------------------- commands
     def command(self, name: str, *params: float) -> None:
         """COMMAND_LONG ``name`` (a MAV_CMD_ name) and wait for its accepted COMMAND_ACK."""
         number = getattr(self._mavlink, name)
+        if self.telemetry.system is None:
+            raise VehicleError(f"{name}: no vehicle has been heard")
         self.telemetry.acks.pop(number, None)
         padded = [*params, *[0.0] * (7 - len(params))]
         self._send(
@@ -402,7 +453,8 @@ class ArduSubLink:
         )
         result = self.telemetry.acks[number]
         if result != self._mavlink.MAV_RESULT_ACCEPTED:
-            meaning = self._mavlink.enums["MAV_RESULT"][result].name
+            entry = self._mavlink.enums["MAV_RESULT"].get(result)
+            meaning = entry.name if entry else f"result {result}"
             raise VehicleError(f"the vehicle refused {name}: {meaning}")
 
     def set_mode(self, mode: int) -> None:
@@ -418,7 +470,20 @@ class ArduSubLink:
             "the arming state not reported", lambda t: t.armed == armed, self.config.ack_timeout_s
         )
 
+    def request_telemetry(self) -> None:
+        """Ask for ATTITUDE and LOCAL_POSITION_NED at ``telemetry_hz`` (a vehicle streams
+        what its SRn_ parameters or another ground station asked for otherwise)."""
+        interval_us = 1e6 / self.config.telemetry_hz
+        for message in ("ATTITUDE", "LOCAL_POSITION_NED"):
+            number = getattr(self._mavlink, f"MAVLINK_MSG_ID_{message}")
+            try:
+                self.command("MAV_CMD_SET_MESSAGE_INTERVAL", number, interval_us)
+            except VehicleError as refused:  # the stream rates it has may do
+                self.log.write("note", {"telemetry_request": message, "refused": str(refused)})
+
     def send_target(self, target: dict[str, float]) -> None:
+        if self.telemetry.system is None:
+            return
         self._send(
             "SET_POSITION_TARGET_LOCAL_NED",
             time_boot_ms=0,
@@ -437,12 +502,14 @@ class ArduSubLink:
 
     def close(self) -> None:
         """Neutral sticks, then stop the thread and close the socket and the log."""
-        with suppress(VehicleError, OSError):
-            self.set_sticks(NEUTRAL)
-        self._stop.set()
-        self._thread.join(timeout=2.0)
-        self._conn.close()
-        self.log.close()
+        try:
+            with suppress(VehicleError, OSError):
+                self.set_sticks(NEUTRAL)
+        finally:
+            self._stop.set()
+            self._thread.join(timeout=2.0)
+            self._conn.close()
+            self.log.close()
 
 
 # ---------------------------------------------------------------------------- the motion
@@ -472,6 +539,7 @@ class ArduSubMotion:
         self._confirm = confirm
         self._link: ArduSubLink | None = None
         self._frame: NedFrame | None = None
+        self._armed_here = False  # disarm at the end only a vehicle the bridge armed
 
     def start(self, pose: Pose) -> Pose:
         link = self._connect()
@@ -488,19 +556,24 @@ class ArduSubMotion:
             lambda t: t.system is not None,
             config.connect_timeout_s,
         )
-        mode = ALT_HOLD if config.mode == "manual" else GUIDED
-        if link.telemetry.mode != mode:
-            link.set_mode(mode)
+        link.request_telemetry()
+        if link.telemetry.mode != self._mode:
+            link.set_mode(self._mode)
         if not link.telemetry.armed:
             if self._confirm is not None and not self._confirm("arm the vehicle?"):
                 raise VehicleError("the operator declined to arm the vehicle")
             link.set_armed(True)
+            self._armed_here = True
         link.wait_for(
             "no LOCAL_POSITION_NED and ATTITUDE (the pose needs a position estimate, e.g. a DVL)",
             lambda t: t.position is not None and t.yaw is not None,
             config.connect_timeout_s,
         )
         return link
+
+    @property
+    def _mode(self) -> int:
+        return ALT_HOLD if self.config.mode == "manual" else GUIDED
 
     def move(self, pose: Pose, action: Action) -> Pose:
         link, frame = self._link, self._frame
@@ -509,11 +582,17 @@ class ArduSubMotion:
         action = self._within_depth_limits(link, action)
         try:
             for segment in plan(action, self.config):
-                link.check_alive()
+                link.check_alive(self._mode)
                 if segment.sticks is not None:
                     self._hold_sticks(link, segment)
                 else:
                     self._reach(link, segment)
+            ended = time.monotonic()
+            link.wait_for(
+                "no LOCAL_POSITION_NED after the action",
+                lambda t: t.position_at >= ended,
+                self.config.heartbeat_timeout_s,
+            )
         except BaseException:
             self._stop_moving(link)
             raise
@@ -535,23 +614,25 @@ class ArduSubMotion:
         link.set_sticks(segment.sticks)
         while (left := ends - time.monotonic()) > 0:
             time.sleep(min(left, 0.05))
-            link.check_alive()
+            link.check_alive(self._mode)
         link.set_sticks(NEUTRAL)
         time.sleep(self.config.settle_s)
 
     def _reach(self, link: ArduSubLink, segment: Segment) -> None:
         assert segment.target is not None
         start = link.pose()
-        north, east = _rotate(segment.target["x"], segment.target["y"], start.yaw)
+        target = target_fields(segment.target, start)
         goal = NedPose(
-            start.north + north,
-            start.east + east,
-            start.down + segment.target["z"],
-            wrap_angle(start.yaw + segment.target["yaw"]),
-        )
-        link.send_target(segment.target)
+            start.north + target["x"], start.east + target["y"], start.down + target["z"],
+            target["yaw"],
+        )  # fmt: skip
+        link.send_target(target)
         config = self.config
-        still = _Stillness(config.position_tolerance_m / 5, config.yaw_tolerance_deg / 5)
+        still = _Stillness(
+            config.position_tolerance_m / 5,
+            config.yaw_tolerance_deg / 5,
+            not_before=time.monotonic() + segment.duration_s,
+        )
 
         def arrived(t: _Telemetry) -> bool:
             if t.position is None or t.yaw is None:
@@ -565,7 +646,7 @@ class ArduSubMotion:
 
         cap = min(config.segment_cap_s, 3 * segment.duration_s + 5.0)
         link.wait_for(f"the {segment.kind} target not reached", arrived, cap)
-        link.check_alive()
+        link.check_alive(self._mode)
         if still.missed:
             link.log.write("note", {"settled_off_target": segment.kind, **still.missed})
 
@@ -573,19 +654,21 @@ class ArduSubMotion:
         """Neutral sticks, or in guided mode a target where the vehicle is now."""
         with suppress(VehicleError, OSError):
             link.set_sticks(NEUTRAL)
-            if self.config.mode == "guided":
-                link.send_target(_target(0.0, 0.0, 0.0, 0.0))
+            if self.config.mode == "guided" and link.telemetry.position is not None:
+                link.send_target(target_fields(_offset(0.0, 0.0, 0.0, 0.0), link.pose()))
 
     def close(self) -> None:
         """Neutral sticks, disarm (``disarm_at_end``), close the link; safe to repeat."""
         link, self._link = self._link, None
         if link is None:
             return
-        self._stop_moving(link)
-        if self.config.disarm_at_end:
-            with suppress(VehicleError, OSError):
-                link.set_armed(False)
-        link.close()
+        try:
+            self._stop_moving(link)
+            if self.config.disarm_at_end and self._armed_here:
+                with suppress(VehicleError, OSError):
+                    link.set_armed(False)
+        finally:
+            link.close()
 
 
 class _Stillness:
@@ -596,8 +679,11 @@ class _Stillness:
     a diver would judge it, instead of waiting for the cap.
     """
 
-    def __init__(self, metres: float, degrees: float, for_s: float = 0.5):
+    def __init__(self, metres: float, degrees: float, not_before: float, for_s: float = 0.5):
+        """Settled: moved less than ``metres`` and ``degrees`` for ``for_s`` seconds, and
+        not before the monotonic time ``not_before`` (a slow start is no stop)."""
         self.metres, self.degrees, self.for_s = metres, degrees, for_s
+        self.not_before = not_before
         self._last: tuple[tuple[float, float, float], float, float] | None = None
         self.missed: dict[str, float] = {}
 
@@ -614,13 +700,7 @@ class _Stillness:
             self._last = (position, yaw, now)
             return False
         assert last is not None
-        if now - last[2] < self.for_s:
+        if now - last[2] < self.for_s or now < self.not_before:
             return False
         self.missed = {"off_m": round(off_m, 4), "off_deg": round(off_deg, 3)}
         return True
-
-
-def _rotate(forward: float, right: float, yaw: float) -> tuple[float, float]:
-    """Body (forward, right) as (north, east) at heading ``yaw`` (clockwise from north)."""
-    c, s = math.cos(yaw), math.sin(yaw)
-    return forward * c - right * s, forward * s + right * c
