@@ -5,6 +5,8 @@ from __future__ import annotations
 import atexit
 import os
 import shutil
+import subprocess
+import sys
 import tempfile
 from pathlib import Path
 
@@ -51,6 +53,23 @@ def box_room(extents=(4.0, 20.0, 4.0), centre=(0.0, 0.0, 0.0)) -> CaveMesh:
     """A closed rectangular room: walls at +-x/2, +-y/2, +-z/2 around ``centre``."""
     box = trimesh.creation.box(extents=extents)
     return make_mesh(box.vertices + np.asarray(centre), box.faces, "box-room")
+
+
+def wide() -> dict[str, str]:
+    """The environment, with a terminal wide enough that a table row prints on one line."""
+    return {**os.environ, "COLUMNS": "240"}
+
+
+def cavenav(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess[str]:
+    """Run the command line as a user would, in a fresh process."""
+    return subprocess.run(
+        [sys.executable, "-m", "cavenav.cli", *args],
+        capture_output=True,
+        text=True,
+        cwd=cwd,
+        timeout=300,
+        env=wide(),
+    )
 
 
 def write_room(folder: Path, start_y: float = 8.0) -> Path:

@@ -3,9 +3,6 @@
 from __future__ import annotations
 
 import json
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -14,23 +11,7 @@ from PIL import Image
 
 from cavenav.world.scenarios import SCENARIOS
 
-from .conftest import write_room
-
-
-def wide() -> dict[str, str]:
-    """The environment, with a terminal wide enough that a table row prints on one line."""
-    return {**os.environ, "COLUMNS": "240"}
-
-
-def cavenav(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "cavenav.cli", *args],
-        capture_output=True,
-        text=True,
-        cwd=cwd,
-        timeout=300,
-        env=wide(),
-    )
+from .conftest import cavenav, write_room
 
 
 def table_rows(stdout: str) -> list[list[str]]:

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import signal
 import socket
 import subprocess
@@ -38,6 +37,8 @@ from cavenav.vehicle.mavlink import (
     target_fields,
 )
 from cavenav.world.scenarios import load_scenario
+
+from .conftest import cavenav
 
 angles = st.floats(-math.pi, math.pi - 1e-9)
 metres = st.floats(-50, 50)
@@ -385,16 +386,6 @@ def wait_until(condition: Callable[[], bool], timeout_s: float = 5.0) -> bool:
 # ---------------------------------------------------------------------------- the command
 
 
-def cavenav(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "cavenav.cli", *args],
-        capture_output=True,
-        text=True,
-        timeout=120,
-        env={**os.environ, "COLUMNS": "240"},
-    )
-
-
 def test_fly_without_a_simulator_says_what_a_real_vehicle_must_provide() -> None:
     result = cavenav("fly")
     assert result.returncode == 2
@@ -431,6 +422,16 @@ def start_flying(tmp_path: Path, port: int) -> subprocess.Popen[str]:
     )  # fmt: skip
 
 
+def calibrated_autopilot(port: int, pilot_timeout_s: float) -> FakeSub:
+    """The fake sub at its defaults, which the bridge's defaults are calibrated to."""
+    config = FakeSubConfig(
+        address=f"udpout:127.0.0.1:{port}",
+        start_ned=(0.0, 0.0, 30.0),
+        pilot_timeout_s=pilot_timeout_s,
+    )
+    return FakeSub(config)
+
+
 def mid_segment(sub: FakeSub, process: subprocess.Popen[str]) -> None:
     """Wait until the bridge holds a stick that is not neutral."""
     assert wait_until(
@@ -444,8 +445,7 @@ def test_killing_the_bridge_mid_segment_leaves_neutral_sticks_then_a_disarm(
     tmp_path: Path,
 ) -> None:
     port = free_udp_port()
-    with FakeSub(FakeSubConfig(address=f"udpout:127.0.0.1:{port}", start_ned=(0.0, 0.0, 30.0),
-                               pilot_timeout_s=1.0)) as sub:  # fmt: skip
+    with calibrated_autopilot(port, pilot_timeout_s=1.0) as sub:
         process = start_flying(tmp_path, port)
         try:
             mid_segment(sub, process)
@@ -464,8 +464,7 @@ def test_ctrl_c_mid_segment_sets_neutral_sticks_at_once_and_keeps_the_record(
     tmp_path: Path,
 ) -> None:
     port = free_udp_port()
-    with FakeSub(FakeSubConfig(address=f"udpout:127.0.0.1:{port}", start_ned=(0.0, 0.0, 30.0),
-                               pilot_timeout_s=5.0)) as sub:  # fmt: skip
+    with calibrated_autopilot(port, pilot_timeout_s=5.0) as sub:
         process = start_flying(tmp_path, port)
         try:
             mid_segment(sub, process)

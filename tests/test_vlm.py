@@ -21,7 +21,8 @@ from cavenav.pilots.replay import ReplayPilot
 from cavenav.pilots.vlm import VLMPilot
 from cavenav.world.scenarios import load_scenario
 
-from .test_cli import printed_summary, wide
+from .conftest import wide
+from .test_cli import printed_summary
 from .vlm_server import FakeVLM
 
 QUICK = dict(timeout_s=0.8, max_retries=3, backoff_s=0.01, backoff_cap_s=0.2)
