@@ -96,6 +96,15 @@ class Link:
             count += 1
         return count
 
+    def kinds(self, seconds: float) -> set[str]:
+        """The types of message that arrive in the next ``seconds``."""
+        seen, deadline = set(), time.monotonic() + seconds
+        while (left := deadline - time.monotonic()) > 0.0:
+            message = self.gcs.recv_match(blocking=True, timeout=left)
+            if message is not None:
+                seen.add(message.get_type())
+        return seen
+
     def command(self, command: int, *params: float, text: str | None = None) -> Any:
         """Send a COMMAND_LONG and return its COMMAND_ACK, after the STATUSTEXT ``text``
         (ArduSub sends the warning before the acknowledgement) if there is one."""
@@ -258,12 +267,7 @@ def test_without_a_position_estimate_there_is_no_guided_and_no_local_position(la
     assert link.set_mode(GUIDED, text=text).result == MAV.MAV_RESULT_FAILED
     assert link.sub.state().mode == MANUAL
 
-    seen = set()
-    deadline = time.monotonic() + 0.5
-    while (left := deadline - time.monotonic()) > 0.0:
-        message = link.gcs.recv_match(blocking=True, timeout=left)
-        if message is not None:
-            seen.add(message.get_type())
+    seen = link.kinds(0.5)
     assert "ATTITUDE" in seen
     assert "LOCAL_POSITION_NED" not in seen
 
@@ -466,12 +470,7 @@ def test_a_paused_heartbeat_leaves_the_telemetry_running(launch) -> None:
     link.sub.pause_heartbeat(True)
     while link.gcs.recv_match(blocking=False) is not None:  # what was sent before the pause
         pass
-    kinds = set()
-    deadline = time.monotonic() + 1.2
-    while (left := deadline - time.monotonic()) > 0.0:
-        message = link.gcs.recv_match(blocking=True, timeout=left)
-        if message is not None:
-            kinds.add(message.get_type())
+    kinds = link.kinds(1.2)
     assert "ATTITUDE" in kinds
     assert "HEARTBEAT" not in kinds
     link.sub.pause_heartbeat(False)

@@ -26,7 +26,7 @@ from gymnasium import spaces
 
 from cavenav.actions import DEFAULT_SPACE, ActionSpace, format_action, parse_action
 from cavenav.errors import ActionError, ConfigError
-from cavenav.kinematics import Kinematic, Motion, apply, wrap_angle
+from cavenav.kinematics import Kinematic, Motion, apply, turn_deg
 from cavenav.sensors.camera import pixel_size
 from cavenav.sensors.rig import SensorConfig, SensorRig
 from cavenav.types import DEFAULT_RULES, Action, Observation, Pose, Rules, VehicleBody
@@ -307,7 +307,7 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
             commanded = apply(start, command)
             info["commanded_pose"] = commanded.to_dict()
             info["drift_m"] = float(np.linalg.norm(moved.position - commanded.position))
-            info["drift_deg"] = abs(math.degrees(wrap_angle(moved.psi - commanded.psi)))
+            info["drift_deg"] = turn_deg(moved.psi, commanded.psi)
         return self._observation_dict(), float(reward), self._ended, False, info
 
     def render(self) -> np.ndarray | None:

@@ -6,6 +6,8 @@ sees one precise line instead of a traceback from deep inside a library.
 
 from __future__ import annotations
 
+from typing import Any
+
 __all__ = [
     "ActionError",
     "BackendAuthError",
@@ -22,7 +24,16 @@ __all__ = [
     "RecordingError",
     "ScenarioError",
     "VehicleError",
+    "invalid_field",
 ]
+
+
+def invalid_field(error: Any, where: str) -> ConfigError:
+    """The first problem of a pydantic ``ValidationError`` as one line, "WHERE: field
+    'a.b': message": settings files and settings objects report a bad value the same way."""
+    first = error.errors()[0]
+    name = ".".join(str(part) for part in first["loc"]) or "(top level)"
+    return ConfigError(f"{where}: field '{name}': {first['msg']}")
 
 
 class CavenavError(Exception):

@@ -19,12 +19,17 @@ from typing import Protocol
 
 from cavenav.types import Action, Pose
 
-__all__ = ["Kinematic", "Motion", "apply", "wrap_angle"]
+__all__ = ["Kinematic", "Motion", "apply", "turn_deg", "wrap_angle"]
 
 
 def wrap_angle(psi: float) -> float:
     """Wrap an angle in radians to [-pi, pi)."""
     return (psi + math.pi) % (2.0 * math.pi) - math.pi
+
+
+def turn_deg(psi: float, other: float) -> float:
+    """The smallest turn between two headings in radians, in degrees (0 to 180)."""
+    return abs(math.degrees(wrap_angle(psi - other)))
 
 
 def apply(pose: Pose, action: Action) -> Pose:

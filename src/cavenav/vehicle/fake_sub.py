@@ -39,7 +39,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from pymavlink import mavutil
 
-from cavenav.errors import ConfigError
+from cavenav.errors import ConfigError, invalid_field
 from cavenav.kinematics import wrap_angle
 from cavenav.vehicle.frames import body_to_ned
 
@@ -130,11 +130,7 @@ class FakeSubConfig(BaseModel):
         try:
             super().__init__(**values)
         except ValidationError as error:
-            first = error.errors()[0]
-            name = ".".join(str(part) for part in first["loc"])
-            raise ConfigError(
-                f"fake sub setting '{name}': {first['msg']} (got {first['input']!r})"
-            ) from None
+            raise invalid_field(error, "fake sub settings") from None
 
 
 @dataclass(frozen=True)

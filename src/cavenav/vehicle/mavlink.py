@@ -52,8 +52,8 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from cavenav.actions import format_action
-from cavenav.errors import ConfigError, DependencyError, VehicleError
-from cavenav.kinematics import wrap_angle
+from cavenav.errors import ConfigError, DependencyError, VehicleError, invalid_field
+from cavenav.kinematics import turn_deg, wrap_angle
 from cavenav.types import Action, Pose
 from cavenav.vehicle.frames import NedFrame, NedPose, body_offset, body_to_ned
 
@@ -133,9 +133,7 @@ def load_bridge_config(path: str | Path | None = None, **overrides: Any) -> Brid
     try:
         config = BridgeConfig.model_validate(raw)
     except ValidationError as exc:
-        first = exc.errors()[0]
-        name = ".".join(str(p) for p in first["loc"]) or "(top level)"
-        raise ConfigError(f"{where}: field '{name}': {first['msg']}") from None
+        raise invalid_field(exc, where) from None
     if config.min_depth_m >= config.max_depth_m:
         raise ConfigError(f"{where}: min_depth_m must be below max_depth_m")
     return config
@@ -353,7 +351,7 @@ class ArduSubLink:
                 )
                 next_heartbeat = now + 1.0
             if now >= next_sticks and self.telemetry.system is not None:
-                self._send_sticks()
+                self.set_sticks()
                 next_sticks = now + 1.0 / self.config.control_hz
             try:
                 message = self._conn.recv_match(blocking=True, timeout=0.02)
@@ -384,8 +382,10 @@ class ArduSubLink:
                 t.acks[message.command] = message.result
             self._seen.notify_all()
 
-    def _send_sticks(self, sticks: dict[str, int] | None = None) -> None:
-        """Send the sticks held (or hold ``sticks`` first): never an older set after it."""
+    def set_sticks(self, sticks: dict[str, int] | None = None) -> None:
+        """Hold ``sticks`` from now on and send them at once (None: send again the sticks
+        held, as the link does at ``control_hz``); under one lock, so an older set is never
+        sent after a newer one."""
         with self._sticks_lock:
             if sticks is not None:
                 self._sticks = dict(sticks)
@@ -393,10 +393,6 @@ class ArduSubLink:
                 self._send(
                     "MANUAL_CONTROL", target=self.telemetry.system, buttons=0, **self._sticks
                 )
-
-    def set_sticks(self, sticks: dict[str, int]) -> None:
-        """Hold ``sticks`` from now on (sent at once, then repeated at ``control_hz``)."""
-        self._send_sticks(sticks)
 
     def wait_for(self, what: str, ready: Callable[[_Telemetry], bool], timeout_s: float) -> None:
         """Block until ``ready(telemetry)``; a VehicleError naming ``what`` after the timeout."""
@@ -640,7 +636,7 @@ class ArduSubMotion:
             if time.monotonic() - t.heartbeat_at > config.heartbeat_timeout_s:
                 return True  # check_alive below says why
             off = math.dist(t.position, (goal.north, goal.east, goal.down))
-            turn = abs(math.degrees(wrap_angle(t.yaw - goal.yaw)))
+            turn = turn_deg(t.yaw, goal.yaw)
             on_target = off <= config.position_tolerance_m and turn <= config.yaw_tolerance_deg
             return on_target or still.settled(t.position, t.yaw, off, turn)
 
@@ -693,8 +689,7 @@ class _Stillness:
         now = time.monotonic()
         last = self._last
         moved = last is None or (
-            math.dist(position, last[0]) > self.metres
-            or abs(math.degrees(wrap_angle(yaw - last[1]))) > self.degrees
+            math.dist(position, last[0]) > self.metres or turn_deg(yaw, last[1]) > self.degrees
         )
         if moved:
             self._last = (position, yaw, now)
