@@ -58,7 +58,7 @@ def test_scenarios_lists_the_five_topologies_and_example_files() -> None:
     listed = table_rows(done.stdout)
     assert [row[0] for row in listed] == [*SCENARIOS, *(f"examples/{f.name}" for f in files)]
     assert [row[0] for row in listed[:5]] == ["S1", "S2", "S3", "S4", "S5"]
-    for (_, kind, description), path in zip(listed[5:], files, strict=True):
+    for (_, kind, description), path in zip(listed[len(SCENARIOS) :], files, strict=True):
         first_comment = next(x for x in path.read_text().splitlines() if x.startswith("#"))
         assert kind == "scenario file" and description == first_comment.lstrip("# ").strip()
 

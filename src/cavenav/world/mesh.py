@@ -5,7 +5,8 @@ does not apply, glTF is y-up by definition, artist tiles are open at their porta
 module turns any of them into a `CaveMesh` in metres with z up, or raises one `MeshError`
 line that names the problem. Most formats carry no unit at all, so `check_units` looks at
 the passage itself and warns when it is implausibly large or small for the vehicle,
-naming the likely unit and the ``scale`` that fixes it.
+naming the likely unit and the ``scale`` that fixes it. Tiles drawn to be chained become
+one cave with `place_mesh` and `join_meshes`; `open_portals` finds where a mesh is open.
 """
 
 from __future__ import annotations
@@ -23,13 +24,18 @@ from cavenav.types import VehicleBody
 __all__ = [
     "MESH_SUFFIXES",
     "PLAUSIBLE_PASSAGE_M",
+    "SEAM_WELD_M",
     "TYPICAL_PASSAGE_M",
     "CaveMesh",
+    "Portal",
     "check_units",
+    "join_meshes",
     "likely_scale",
     "load_mesh",
     "make_mesh",
+    "open_portals",
     "passage_size",
+    "place_mesh",
     "sphere_directions",
 ]
 
@@ -271,3 +277,150 @@ def check_units(mesh: CaveMesh, point: np.ndarray | None = None) -> None:
         CavenavWarning,
         stacklevel=2,
     )
+
+
+# ------------------------------------------------------------------ open portals and chains
+
+# Vertices closer than this are one vertex when edges are matched: files repeat a vertex
+# once per face or material (exactly), and chained tiles share their seams (see
+# `join_meshes`). A micrometre is far below any feature of a cave and far above rounding.
+_SAME_VERTEX_M = 1e-6
+
+# How near rim vertices of two pieces must be for `join_meshes` to weld them. The OSRF
+# tiles' portal rims agree to 2.5 cm (the same 80-vertex ring, 2.1-2.6 m from its centre,
+# drawn anew for each tile) with 18 cm between rim vertices, so 5 cm closes every seam
+# and never gathers two different rim vertices of one ring.
+SEAM_WELD_M = 0.05
+
+
+@dataclass(frozen=True, eq=False)
+class Portal:
+    """An opening of an open mesh: one closed loop of boundary edges.
+
+    Attributes:
+        centre: (3,) the loop's centre, the mean of its edges weighted by their length.
+        normal: (3,) unit normal of the loop's best-fit plane, pointing out of the
+            passage (away from the walls that end at the loop).
+        radius: the farthest loop vertex from ``centre`` across that plane, metres: a disc
+            of this radius covers the whole opening.
+        loop: (k, 3) the loop's vertices, in no particular order.
+    """
+
+    centre: np.ndarray
+    normal: np.ndarray
+    radius: float
+    loop: np.ndarray
+
+
+def _merged_faces(mesh: CaveMesh) -> np.ndarray:
+    """(m, 3) faces with coincident vertices (within `_SAME_VERTEX_M`) given one index."""
+    key = np.round(mesh.vertices / _SAME_VERTEX_M).astype(np.int64)
+    _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
+    return first[inverse.ravel()][mesh.faces]
+
+
+def _boundary_edges(faces: np.ndarray) -> np.ndarray:
+    """(e, 2) vertex indices of the edges that belong to one face only."""
+    edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
+    edges = edges[edges[:, 0] != edges[:, 1]]  # degenerate faces
+    unique, count = np.unique(edges, axis=0, return_counts=True)
+    return unique[count == 1]
+
+
+def open_portals(mesh: CaveMesh) -> list[Portal]:
+    """Every opening of ``mesh``: each connected loop of boundary edges, largest first.
+
+    A tube open at both ends has two; a closed (watertight) mesh none; a crack in an
+    artist's mesh is listed too, as a small one. The OSRF tiles' portals are rings 2.1 to
+    2.6 m from their centre, 2 m above the tile's origin in the planes x = +-10 m or
+    y = +-10 m: the middles of the sides of a 20 m square, so tiles on a 20 m grid chain.
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    faces = _merged_faces(mesh)
+    edges = _boundary_edges(faces)
+    if len(edges) == 0:
+        return []
+    n = len(mesh.vertices)
+    graph = coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n))
+    _, label = connected_components(graph, directed=False)
+    portals: list[Portal] = []
+    for component in np.unique(label[edges[:, 0]]):
+        loop_edges = edges[label[edges[:, 0]] == component]
+        loop = mesh.vertices[np.unique(loop_edges)]
+        a, b = mesh.vertices[loop_edges[:, 0]], mesh.vertices[loop_edges[:, 1]]
+        length = np.linalg.norm(b - a, axis=1)
+        centre = (0.5 * (a + b) * length[:, None]).sum(axis=0) / max(length.sum(), 1e-12)
+        normal = np.linalg.svd(loop - centre)[2][-1]  # least-spread direction: the plane's
+        # The walls ending at the loop lie behind it: point the normal away from them.
+        touching = np.isin(faces, np.unique(loop_edges)).any(axis=1)
+        behind = mesh.vertices[faces[touching]].mean(axis=(0, 1)) - centre
+        normal = -normal if behind @ normal > 0 else normal
+        across = (loop - centre) - np.outer((loop - centre) @ normal, normal)
+        radius = float(np.linalg.norm(across, axis=1).max())
+        portals.append(Portal(centre=centre, normal=normal, radius=radius, loop=loop))
+    return sorted(portals, key=lambda p: -p.radius)
+
+
+def place_mesh(
+    mesh: CaveMesh, offset: tuple[float, float, float] = (0.0, 0.0, 0.0), yaw_deg: float = 0.0
+) -> CaveMesh:
+    """``mesh`` turned by ``yaw_deg`` about the vertical through its origin, then moved by
+    ``offset`` (metres).
+
+    Positive yaw turns counter-clockwise seen from above, the sense in which a positive
+    `Pose` yaw turns the vehicle left: turned by 90 degrees, a tile's +y portal faces -x.
+    """
+    a = math.radians(yaw_deg)
+    c, s = math.cos(a), math.sin(a)
+    turn = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    vertices = mesh.vertices @ turn.T + np.asarray(offset, np.float64)
+    return CaveMesh(vertices=vertices, faces=mesh.faces, name=mesh.name, scale=mesh.scale)
+
+
+def join_meshes(meshes: list[CaveMesh], weld_m: float = SEAM_WELD_M) -> CaveMesh:
+    """One mesh of several placed pieces (see `place_mesh`), their seams welded.
+
+    Tiles drawn to be chained meet portal to portal, but each draws its own rim, and the
+    rims of two tiles disagree by up to a few centimetres: a hairline ring through which a
+    camera ray could see out. Rim vertices of different pieces closer than ``weld_m`` are
+    gathered into one point (the earliest piece's), with any rim vertex of theirs as close
+    (the OSRF rims repeat a vertex 2 mm apart at each diagonal), which closes the seam:
+    the joined mesh has open portals only where no piece meets another. Nothing else
+    moves, not even near-duplicates on a rim that meets nothing.
+
+    The name is the pieces' names joined by '+'; the scale is the first piece's.
+
+    Raises:
+        MeshError: no pieces.
+    """
+    if not meshes:
+        raise MeshError("no meshes to join")
+    if len(meshes) == 1:
+        return meshes[0]
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    offsets = np.cumsum([0] + [len(m.vertices) for m in meshes[:-1]])
+    # Coincident copies of a vertex share one index, so that moving it moves them all.
+    merged = [_merged_faces(m) + k for m, k in zip(meshes, offsets, strict=True)]
+    faces = np.concatenate(merged)
+    vertices = np.concatenate([m.vertices for m in meshes])
+    rim = np.concatenate([np.unique(_boundary_edges(f)) for f in merged])  # piece by piece
+    piece = np.searchsorted(offsets, rim, side="right") - 1
+    pairs = cKDTree(vertices[rim]).query_pairs(weld_m, output_type="ndarray")
+    if weld_m > 0 and len(pairs):
+        n = len(rim)
+        graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+        _, cluster = connected_components(graph, directed=False)
+        _, first = np.unique(cluster, return_index=True)  # each cluster's earliest member
+        low = np.full(len(first), len(meshes))
+        high = np.full(len(first), -1)
+        np.minimum.at(low, cluster, piece)
+        np.maximum.at(high, cluster, piece)
+        seam = high[cluster] > low[cluster]  # clusters that join two pieces
+        vertices[rim[seam]] = vertices[rim[first[cluster[seam]]]]
+    name = "+".join(m.name for m in meshes)
+    return make_mesh(vertices, faces, name, scale=meshes[0].scale)

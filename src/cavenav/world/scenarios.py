@@ -2,7 +2,10 @@
 
 The five topologies of SPEC section 6 are families of caves registered by name (S1-S5): a
 seed draws one cave of the family, and a `Difficulty` turns its knobs (the width of the
-constrictions, the angle of the bend, the number of boulders, ...). Seeds in
+constrictions, the angle of the bend, the number of boulders, ...). Three harder families
+follow them: ``crawl`` (a crawlway too narrow for any standoff), ``maze`` (blind side
+branches that look like the way on) and ``long`` (230 m chaining the five, with a
+`Scenario.step_budget` to match). Seeds in
 `HELD_OUT_SEEDS` are the test split. Any user mesh becomes a scenario through a small TOML
 file, and so does a family at a chosen difficulty (see `load_scenario_file`).
 """
@@ -14,7 +17,7 @@ import json
 import math
 import numbers
 import tomllib
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field, fields, replace
 from functools import cached_property
 from pathlib import Path
@@ -23,12 +26,13 @@ from typing import Annotated, Any, Literal, TypeVar
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 from scipy.ndimage import gaussian_filter1d
+from scipy.spatial import cKDTree
 
 from cavenav.errors import ConfigError, ScenarioError
 from cavenav.types import Pose
 from cavenav.world.collision import VehicleBody
 from cavenav.world.mesh import CaveMesh, check_units, load_mesh, sphere_directions
-from cavenav.world.procedural import Boulder, PassageSpec, build_cave, resample
+from cavenav.world.procedural import Boulder, Branch, PassageSpec, build_cave, resample
 from cavenav.world.raycast import RayCaster
 
 __all__ = [
@@ -49,9 +53,9 @@ __all__ = [
 
 @dataclass(frozen=True)
 class ExitPortal:
-    """The goal: a disc-bounded plane at the cave's exit.
+    """A disc-bounded plane across a portal of the cave: an exit (the goal) or an entrance.
 
-    The vehicle has exited once its centre lies on the outer side of the plane through
+    The vehicle has passed it once its centre lies on the outer side of the plane through
     ``point`` with outward ``normal``, no farther than ``radius`` from ``point`` across it.
     """
 
@@ -79,9 +83,16 @@ class Scenario:
 
     Attributes:
         centreline: (n, 3) points along the passage from the start to the exit, where
-            known (procedural caves); progress is then measured along it.
+            known (procedural caves, mesh files that give one); progress is then
+            measured along it.
         difficulty: the knobs a procedural cave was built with (``Difficulty()`` for the
             family's defaults); None for a cave read from a mesh.
+        entrances: portals the vehicle came in by (normals pointing out of the cave):
+            leaving through one is never success. Procedural caves are closed behind the
+            start and have none.
+        step_budget: the number of steps a fair episode of this cave gets, for a cave
+            too long for the SPEC's 150 (the harder families: a few steps per metre of
+            passage, see their builders); None leaves the caller's default of 150.
     """
 
     name: str
@@ -94,10 +105,16 @@ class Scenario:
     centreline: np.ndarray | None = None
     difficulty: Difficulty | None = None
     sensors: Mapping[str, Any] = field(default_factory=dict)  # the file's [sensors] table
+    entrances: tuple[ExitPortal, ...] = ()
+    step_budget: int | None = None
 
     def exited(self, position: np.ndarray) -> bool:
         """Whether ``position`` lies past any exit portal."""
         return any(portal.reached(position) for portal in self.exits)
+
+    def left_through_entrance(self, position: np.ndarray) -> bool:
+        """Whether ``position`` lies past any entrance portal: out the way it came in."""
+        return any(portal.reached(position) for portal in self.entrances)
 
     def exit_distance(self, position: np.ndarray) -> float:
         """Distance still to go before the nearest exit plane (negative once past it)."""
@@ -166,13 +183,16 @@ class Difficulty:
     a sweep never reports a difficulty it did not fly. Each cell gives the family's default
     and the values it accepts; '-' where the family has no such knob:
 
-    | family | constriction_m | undulation_m | bend_deg | obstacles | obstacle_scale | roughness_m |
-    | --- | --- | --- | --- | --- | --- | --- |
-    | S1 | 3.6 [1, 7] | - | - | - | - | 0.3 [0, 1] |
-    | S2 | 3.8 [1, 6.4] | 4 [0, 8] | - | - | - | 0.3 [0, 1] |
-    | S3 | - | - | - | 2 [0, 8] | 1 (0, 1.5] | 0.3 [0, 1] |
-    | S4 | - | - | 90 (0, 150] | - | - | 0.3 [0, 1] |
-    | S5 | - | - | - | 7 [0, 20] | 1 (0, 1.5] | 0.3 [0, 1] |
+    | family | constriction_m | undulation_m | bend_deg | obstacles | obstacle_scale | branches | roughness_m |
+    | --- | --- | --- | --- | --- | --- | --- | --- |
+    | S1 | 3.6 [1, 7] | - | - | - | - | - | 0.3 [0, 1] |
+    | S2 | 3.8 [1, 6.4] | 4 [0, 8] | - | - | - | - | 0.3 [0, 1] |
+    | S3 | - | - | - | 2 [0, 8] | 1 (0, 1.5] | - | 0.3 [0, 1] |
+    | S4 | - | - | 90 (0, 150] | - | - | - | 0.3 [0, 1] |
+    | S5 | - | - | - | 7 [0, 20] | 1 (0, 1.5] | - | 0.3 [0, 1] |
+    | crawl | 1.5 [1, 2.5] | - | - | - | - | - | 0.08 [0, 0.15] |
+    | maze | - | - | - | - | - | 4 [0, 5] | 0.3 [0, 0.6] |
+    | long | 3.6 [1, 6.4] | 4 [0, 8] | - | - | 1 (0, 1.5] | - | 0.3 [0, 1] |
 
     Why these limits: a constriction under 1 m leaves the 0.46 x 0.34 m vehicle too little
     room once the rough walls bulge into it, and one wider than the passage would be a
@@ -182,26 +202,36 @@ class Difficulty:
     is shortened so that its closed end stays behind the exit plane); S3 has room for 8
     boulders in its 45 m and S5 for 20 in its 60 m; boulders grown past 1.5 times close the
     passage. Above about 0.6 m of roughness the walls may pinch narrow constrictions shut.
+    The crawl is 1.7-2.5 m across between its pinches, so its pinches stop at 2.5 m, and
+    its walls stay smooth (at most 0.15 m of roughness: 3 standard deviations on both walls
+    still leave a 1 m pinch 0.1 m); the maze has room for 5 branches along its 60-70 m,
+    with at least 1 + 3 x roughness_m of rock around each, hence its 0.6 m of roughness.
 
     Attributes:
-        constriction_m: width of the narrowest constrictions in metres (S1, S2): the dips
-            are made as deep as it takes to leave this width (the height is unchanged).
-        undulation_m: peak-to-peak height of the vertical undulations in metres (S2).
+        constriction_m: width of the narrowest constrictions in metres (S1, S2, long's
+            five): the dips are made as deep as it takes to leave this width (the height
+            is unchanged). crawl: the width of its three pinches, the narrowest it gets.
+        undulation_m: peak-to-peak height of the vertical undulations in metres (S2,
+            long's rise and fall).
         bend_deg: the turn of the bend in degrees (S4): the second leg runs along x and
             the first comes in at this angle to it.
         obstacles: number of boulders. S3: alternately frontal (in line with the start)
             and lateral (from the other wall), spread from 13 m to 41 m. S5: rocks on the
             walls and floor, spread evenly.
-        obstacle_scale: factor on every boulder's semi-axes, not on its centre (S3, S5).
+        obstacle_scale: factor on every boulder's semi-axes, not on its centre (S3, S5,
+            long).
+        branches: number of blind side branches of the maze, alternately left and right,
+            every other one as wide as the way on or wider.
         roughness_m: amplitude (standard deviation) of the wall noise in metres, every
             family: `PassageSpec.roughness`.
-    """
+    """  # noqa: E501 - the table's header row, kept equal to difficulty_table()
 
     constriction_m: float | None = None
     undulation_m: float | None = None
     bend_deg: float | None = None
     obstacles: int | None = None
     obstacle_scale: float | None = None
+    branches: int | None = None
     roughness_m: float | None = None
 
     def __post_init__(self) -> None:
@@ -255,7 +285,7 @@ class Difficulty:
 
 KNOBS: tuple[str, ...] = tuple(f.name for f in fields(Difficulty))
 _KNOB_LIST = ", ".join(KNOBS)
-_COUNT_KNOBS = frozenset({"obstacles"})  # whole numbers; every other knob is a real number
+_COUNT_KNOBS = frozenset({"obstacles", "branches"})  # whole numbers; the rest are real numbers
 
 
 def parse_difficulty(items: Sequence[str]) -> Difficulty:
@@ -315,7 +345,7 @@ def difficulty_table() -> str:
     return "\n".join(lines)
 
 
-# ------------------------------------------------------------------ procedural S1-S5
+# ------------------------------------------------------------------ procedural families
 
 
 def _vec3(v: np.ndarray) -> tuple[float, float, float]:
@@ -360,6 +390,20 @@ def _straighten_ends(
     return gaussian_filter1d(out, sigma=4, mode="nearest")
 
 
+def _winding(s: np.ndarray, heading: np.ndarray, length: float) -> tuple[np.ndarray, np.ndarray]:
+    """The plan (x, y) of a passage along -y that turns by ``heading`` (radians, positive
+    to +x) at stations ``s``: straight near the start and, so that the exit runs along
+    the axis the grid is cut across, over the last 8 m. The start is at the origin."""
+    heading = _straighten_ends(s, heading, length)
+    heading[s > length - 8] = 0.0
+    heading = gaussian_filter1d(heading, 6, mode="nearest")
+    heading[s > length - 3] = 0.0
+    step = s[1] - s[0]
+    x = np.cumsum(np.sin(heading)) * step
+    y = -np.cumsum(np.cos(heading)) * step
+    return x - np.interp(0.0, s, x), y - np.interp(0.0, s, y)
+
+
 def _scaled(radii: tuple[float, float, float], scale: float) -> tuple[float, float, float]:
     """Semi-axes times ``obstacle_scale`` (exact at the default 1.0)."""
     return radii[0] * scale, radii[1] * scale, radii[2] * scale
@@ -367,11 +411,16 @@ def _scaled(radii: tuple[float, float, float], scale: float) -> tuple[float, flo
 
 @dataclass(frozen=True)
 class _Layout:
-    """A generated passage before meshing: spec plus where the vehicle starts."""
+    """A generated passage before meshing: spec plus where the vehicle starts.
+
+    ``step_budget`` is `Scenario.step_budget`: None for S1-S5, which the SPEC's 150
+    steps fit.
+    """
 
     spec: PassageSpec
     start: Pose
     description: str
+    step_budget: int | None = None
 
 
 def _layout_from_profiles(
@@ -384,17 +433,33 @@ def _layout_from_profiles(
     *,
     roughness: float,
     boulders: tuple[Boulder, ...] = (),
+    branches: tuple[Branch, ...] = (),
     start_offset: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    steps_per_m: float | None = None,
     description: str = "",
 ) -> _Layout:
+    """The layout of a passage sampled at stations ``s`` (0 at the start, ``length`` at
+    the exit); ``steps_per_m`` gives a step budget for that many steps per metre of
+    centre-line from the start to the exit, rounded up to a multiple of 10."""
     exit_index = int(np.searchsorted(s, length))
     start_index = int(np.searchsorted(s, 0.0))
     heading = points[start_index + 1] - points[start_index]
     start = Pose.facing(points[start_index] + np.asarray(start_offset), heading)
     spec = PassageSpec(
-        points, half_width, half_height, boulders, exit_index, roughness=roughness, seed=seed
+        points,
+        half_width,
+        half_height,
+        boulders,
+        exit_index,
+        roughness=roughness,
+        seed=seed,
+        branches=branches,
     )
-    return _Layout(spec, start, description)
+    budget = None
+    if steps_per_m is not None:
+        passage = np.linalg.norm(np.diff(points[start_index : exit_index + 1], axis=0), axis=1)
+        budget = 10 * math.ceil(steps_per_m * float(passage.sum()) / 10)
+    return _Layout(spec, start, description, budget)
 
 
 def _s1(rng: np.random.Generator, seed: int, knobs: Mapping[str, float]) -> _Layout:
@@ -523,25 +588,20 @@ def _s4(rng: np.random.Generator, seed: int, knobs: Mapping[str, float]) -> _Lay
     )
 
 
-def _s5(rng: np.random.Generator, seed: int, knobs: Mapping[str, float]) -> _Layout:
-    length = 60.0
-    s = np.arange(-4.0, length + 4.0, 0.25)
-    heading = _straighten_ends(s, 0.55 * _smooth_noise(s, 14.0, rng), length)
-    heading[s > length - 8] = 0.0
-    heading = gaussian_filter1d(heading, 6, mode="nearest")
-    heading[s > length - 3] = 0.0
-    step = s[1] - s[0]
-    x = np.cumsum(np.sin(heading)) * step
-    y = -np.cumsum(np.cos(heading)) * step
-    x, y = x - np.interp(0.0, s, x), y - np.interp(0.0, s, y)
-    z = _straighten_ends(s, 1.2 * _smooth_noise(s, 11.0, rng), length)
-    points = np.stack([x, y, z], axis=1)
-    half_w = 3.3 + 0.7 * _smooth_noise(s, 9.0, rng)
-    half_h = 2.8 + 0.3 * _smooth_noise(s, 9.0, rng)
+def _rocks(
+    rng: np.random.Generator,
+    s: np.ndarray,
+    stations: np.ndarray,
+    points: np.ndarray,
+    half_w: np.ndarray,
+    half_h: np.ndarray,
+    scale: float,
+) -> list[Boulder]:
+    """S5's rocks, one within 2 m of each station: every third on the floor, the others
+    against a wall, 0.8-1.25 m across times ``scale``."""
     tangent = np.gradient(points, axis=0)
-    count, scale = int(knobs["obstacles"]), knobs["obstacle_scale"]
     boulders = []
-    for k, at in enumerate(np.linspace(9.0, length - 9.0, count)):
+    for k, at in enumerate(stations):
         i = int(np.searchsorted(s, at + rng.uniform(-2, 2)))
         t = tangent[i] / np.linalg.norm(tangent[i])
         left = np.array([-t[1], t[0], 0.0]) / max(np.hypot(t[0], t[1]), 1e-9)
@@ -554,6 +614,20 @@ def _s5(rng: np.random.Generator, seed: int, knobs: Mapping[str, float]) -> _Lay
             centre = points[i] + side * left * (half_w[i] - 0.2 * r)
             centre = centre + np.array([0.0, 0.0, rng.uniform(-0.8, 0.8)])
         boulders.append(Boulder(_vec3(centre), _scaled((r, r * 1.1, r * 0.9), scale)))
+    return boulders
+
+
+def _s5(rng: np.random.Generator, seed: int, knobs: Mapping[str, float]) -> _Layout:
+    length = 60.0
+    s = np.arange(-4.0, length + 4.0, 0.25)
+    x, y = _winding(s, 0.55 * _smooth_noise(s, 14.0, rng), length)
+    z = _straighten_ends(s, 1.2 * _smooth_noise(s, 11.0, rng), length)
+    points = np.stack([x, y, z], axis=1)
+    half_w = 3.3 + 0.7 * _smooth_noise(s, 9.0, rng)
+    half_h = 2.8 + 0.3 * _smooth_noise(s, 9.0, rng)
+    count, scale = int(knobs["obstacles"]), knobs["obstacle_scale"]
+    stations = np.linspace(9.0, length - 9.0, count)
+    boulders = _rocks(rng, s, stations, points, half_w, half_h, scale)
     return _layout_from_profiles(
         s,
         points,
@@ -569,6 +643,236 @@ def _s5(rng: np.random.Generator, seed: int, knobs: Mapping[str, float]) -> _Lay
     )
 
 
+# ------------------------------------------------------------------ harder families
+
+
+def _crawl(rng: np.random.Generator, seed: int, knobs: Mapping[str, float]) -> _Layout:
+    length = float(rng.integers(42, 59))  # whole metres
+    s = np.arange(-4.0, length + 4.0, 0.25)
+    # Meanders every 18-26 m, made irregular: the heading swings some 25 degrees either
+    # way and never reaches 90 (at most 65), so the passage never doubles back on itself.
+    meander = 0.45 * np.sin(2 * np.pi * s / rng.uniform(18.0, 26.0) + rng.uniform(0, 2 * np.pi))
+    x, y = _winding(s, meander + 0.4 * _smooth_noise(s, 12.0, rng), length)
+    z = _straighten_ends(s, 0.7 * _smooth_noise(s, 14.0, rng), length)
+    points = np.stack([x, y, z], axis=1)
+    narrowest = knobs["constriction_m"]
+    # 1.7-2.5 m across between the pinches, never under the pinches' width; each pinch
+    # centred on a sample, so that the narrowest width is the knob's to the millimetre.
+    # 1.5-2.2 m high: with 1.5 m at the pinches and 0.08 m of wall noise, the vehicle's
+    # 0.30 m half-diagonal keeps 0.2 m from the walls even where they bulge 3 standard
+    # deviations in from both sides.
+    width = np.maximum(np.clip(2.1 + 0.3 * _smooth_noise(s, 8.0, rng), 1.7, 2.5), narrowest)
+    pinches = [round(4 * (length * k / 4 + rng.uniform(-3, 3))) / 4 for k in (1, 2, 3)]
+    half_w = 0.5 * (width - _dips(s, pinches, 1.0, sigma=1.2) * (width - narrowest))
+    half_h = 0.5 * np.clip(1.8 + 0.3 * _smooth_noise(s, 10.0, rng), 1.5, 2.2)
+    return _layout_from_profiles(
+        s,
+        points,
+        half_w,
+        half_h,
+        length,
+        seed,
+        roughness=knobs["roughness_m"],
+        steps_per_m=7.0,
+        description=f"crawlway: a {length:.0f} m winding passage 1.7-2.5 m across and "
+        f"1.5-2.2 m high, pinched to {narrowest:.1f} m across in three places",
+    )
+
+
+def _heading_left(tangent: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Horizontal unit forward and left vectors of a (3,) tangent."""
+    forward = np.array([tangent[0], tangent[1], 0.0])
+    forward /= np.linalg.norm(forward)
+    return forward, np.array([-forward[1], forward[0], 0.0])
+
+
+def _blind_tube(
+    rng: np.random.Generator,
+    junction: np.ndarray,
+    forward: np.ndarray,
+    left: np.ndarray,
+    angle: float,
+    length: float,
+    half_width: float,
+    half_height: float,
+) -> Branch:
+    """A blind passage from ``junction``, ``angle`` radians to the left of ``forward``
+    (negative: right), curving up to 25 degrees farther away as it goes, ending closed."""
+    t = np.arange(0.0, length + 1e-9, 0.25)
+    bend = math.copysign(rng.uniform(0.0, math.radians(25)), angle) * (t / length) ** 2
+    heading = angle + bend
+    step = np.stack([np.cos(heading), np.sin(heading)], axis=1) * 0.25
+    ahead, aside = np.vstack([np.zeros(2), np.cumsum(step, axis=0)[:-1]]).T
+    points = junction + ahead[:, None] * forward + aside[:, None] * left
+    points[:, 2] += rng.uniform(-1.0, 1.0) * t / length  # a gentle slope up or down
+    return Branch(points, np.full(len(t), half_width), np.full(len(t), half_height))
+
+
+def _own_part(branch: Branch, clear_from: float) -> np.ndarray:
+    """The branch's points past ``clear_from`` metres: out of the passage it leaves."""
+    return branch.centreline[int(math.ceil(clear_from / 0.25)) :]
+
+
+def _keeps_rock(
+    points: np.ndarray,
+    half_width: float,
+    tubes: Sequence[tuple[np.ndarray, np.ndarray]],
+    gap: float,
+) -> bool:
+    """Whether a tube of ``points`` and ``half_width`` keeps ``gap`` metres of rock from
+    each of ``tubes``, given as ((m, 3) points, (m,) half-widths)."""
+    for other, other_hw in tubes:
+        if len(points) == 0 or len(other) == 0:
+            continue
+        dist, i = cKDTree(other).query(points)
+        if np.any(dist < half_width + other_hw[i] + gap):
+            return False
+    return True
+
+
+def _maze(rng: np.random.Generator, seed: int, knobs: Mapping[str, float]) -> _Layout:
+    count = int(knobs["branches"])
+    length = float(rng.integers(48, 56) + 3 * count)  # 60-67 m with the default 4 branches
+    s = np.arange(-4.0, length + 4.0, 0.25)
+    x = _straighten_ends(s, 1.5 * _smooth_noise(s, 18.0, rng), length)
+    z = _straighten_ends(s, 0.6 * _smooth_noise(s, 14.0, rng), length)
+    points = np.stack([x, -s, z], axis=1)
+    half_w = 2.9 + 0.3 * _smooth_noise(s, 10.0, rng)
+    half_h = 2.7 + 0.2 * _smooth_noise(s, 10.0, rng)
+    roughness = knobs["roughness_m"]
+    gap = 1.0 + 3.0 * roughness  # rock between two passages, against 3 sigma of wall noise
+    exit_y = -length
+    main = (points, half_w)
+    placed: list[tuple[np.ndarray, np.ndarray]] = []  # each branch's own part
+    branches: list[Branch] = []
+    side = 1.0 if rng.random() < 0.5 else -1.0
+    # Junctions spread from 10 m to 22 m before the exit (a single one halfway along).
+    stations = np.linspace(10.0, length - 22.0, count) if count > 1 else [length / 2 - 6] * count
+    for k, station in enumerate(stations):
+        j = int(np.searchsorted(s, station + rng.uniform(-1.5, 1.5)))
+        forward, left = _heading_left(points[j + 1] - points[j - 1])
+        # Every other branch as wide as the passage or wider: the tempting ones.
+        factor = rng.uniform(1.0, 1.2) if k % 2 == 0 else rng.uniform(0.7, 0.95)
+        hw, hh = factor * half_w[j], rng.uniform(0.85, 1.05) * half_h[j]
+        for attempt in range(200):
+            # The third of up to 4 (a wide one) leaves at a shallow angle, in view as the
+            # vehicle comes up to the junction: the real temptation (with 5, the junctions
+            # are too close for its length). The others leave steeply; with no room, at
+            # any angle.
+            low, high = (24.0, 38.0) if k == 2 and count <= 4 else (35.0, 90.0)
+            angle = math.radians(rng.uniform(low, high) if attempt < 100 else rng.uniform(24, 90))
+            clear_from = (half_w[j] + hw + gap) / math.sin(angle)
+            blind = rng.uniform(max(6.0, clear_from + 2.0), max(15.0, clear_from + 2.0))
+            branch = _blind_tube(rng, points[j], forward, left, side * angle, blind, hw, hh)
+            own = _own_part(branch, clear_from)
+            if (
+                _keeps_rock(own, hw, [main, *placed], gap)
+                and branch.centreline[:, 1].min() > exit_y + hw + gap + 1.5
+            ):
+                break
+        else:  # not met in seeds 0-399 and 1000-1399 at 4 or 5 branches and 0.3 or 0.6 m
+            raise ScenarioError(
+                f"maze seed {seed}: no room for side branch {k + 1} of {count}; "
+                "try fewer branches or smoother walls"
+            )
+        branches.append(branch)
+        placed.append((own, np.full(len(own), hw)))
+        side = -side
+    description = (
+        f"a {length:.0f} m passage with {count} blind side branches, every other one as "
+        "wide as the way on or wider; one exit"
+    )
+    return _layout_from_profiles(
+        s,
+        points,
+        half_w,
+        half_h,
+        length,
+        seed,
+        roughness=roughness,
+        branches=tuple(branches),
+        steps_per_m=4.0,
+        description=description,
+    )
+
+
+def _window(u: np.ndarray, start: float, end: float) -> np.ndarray:
+    """1 between stations ``start`` and ``end``, 0 outside, eased over about 2 m."""
+    box = ((u >= start) & (u <= end)).astype(float)
+    return gaussian_filter1d(box, sigma=2.0 / (u[1] - u[0]), mode="nearest")
+
+
+# The long cave's plan (metres along the passage): leg A runs along -y with constrictions
+# (S1, 0-35), a rise and fall with two more (S2, from 35 on) and a frontal and a lateral
+# boulder (S3, 70-100). Two sharp 90-degree bends 16 m apart turn it around (S4), and leg
+# B winds back along +y among rocks (S5) to an exit 12 m beyond the start's closed end,
+# which keeps that end behind the exit plane. Folded so, 228 m fit a grid of about
+# 30 x 120 x 15 m: 7 M voxels, which mesh in seconds.
+_LEG_A, _ACROSS, _PAST_START = 100.0, 16.0, 12.0
+_LONG = _LEG_A + _ACROSS + (_LEG_A + _PAST_START)
+_LEG_B = _LEG_A + _ACROSS  # where leg B begins
+
+
+def _long_centreline(
+    rng: np.random.Generator, u: np.ndarray, side: float, undulation: float
+) -> tuple[np.ndarray, float]:
+    """(n, 3) points at stations ``u``, turning toward ``side`` (+-x), and the period of
+    the rise and fall (30-34 m, one full swing of ``undulation`` metres peak to peak)."""
+    x = np.where(u <= _LEG_A, 0.0, side * np.minimum(u - _LEG_A, _ACROSS))
+    y = np.where(u <= _LEG_A, -u, np.where(u < _LEG_B, -_LEG_A, u - _LEG_B - _LEG_A))
+    x = x + 1.2 * _smooth_noise(u, 16.0, rng) * _window(u, 4.0, 62.0)
+    leg_b = _window(u, _LEG_B + 6, _LONG - 8)  # straight out of the bend and to the exit
+    x = x + side * 1.5 * _smooth_noise(u, 14.0, rng) * leg_b
+    period = rng.uniform(30.0, 34.0)
+    swing = np.where((u >= 35.0) & (u <= 35.0 + period), np.sin(2 * np.pi * (u - 35) / period), 0)
+    z = undulation / 2 * gaussian_filter1d(swing, 4, mode="nearest")
+    z = z + 1.0 * _smooth_noise(u, 11.0, rng) * leg_b
+    return np.stack([x, y, z], axis=1), period
+
+
+def _long(rng: np.random.Generator, seed: int, knobs: Mapping[str, float]) -> _Layout:
+    u = np.arange(-4.0, _LONG + 4.0, 0.25)
+    side = 1.0 if rng.random() < 0.5 else -1.0
+    narrowest, undulation = knobs["constriction_m"], knobs["undulation_m"]
+    points, period = _long_centreline(rng, u, side, undulation)
+    # Each stretch as wide and high as its family, eased into the next over a few metres.
+    stretches = [u < 35, u < 70, u <= _LEG_A, u < _LEG_B]
+    base_w = gaussian_filter1d(np.select(stretches, [3.5, 3.2, 3.5, 2.9], 3.3), 8, mode="nearest")
+    base_h = gaussian_filter1d(np.select(stretches, [3.0, 2.9, 3.0, 2.7], 2.8), 8, mode="nearest")
+    base_w = base_w + 0.7 * _smooth_noise(u, 9.0, rng) * (u >= _LEG_B)
+    base_h = base_h + 0.3 * _smooth_noise(u, 9.0, rng) * (u >= _LEG_B)
+    # Necks on the 0.25 m grid, where the stretch is flat: the narrowest is the knob's.
+    necks_1 = [round(4 * (c + rng.uniform(-2, 2))) / 4 for c in (9.0, 18.0, 27.0)]
+    necks_2 = [round(4 * (35 + period * f + rng.uniform(-1.5, 1.5))) / 4 for f in (0.25, 0.75)]
+    half_w = base_w - np.maximum(
+        _dips(u, necks_1, _dip_depth(3.5, narrowest)),
+        _dips(u, necks_2, _dip_depth(3.2, narrowest)),
+    )
+    half_h = base_h - np.maximum(_dips(u, necks_1[1:2], 1.0), _dips(u, necks_2, 0.8))
+
+    scale = knobs["obstacle_scale"]
+    wall = 1.0 if rng.random() < 0.5 else -1.0  # S3's: frontal off one wall, lateral from the other
+    frontal = Boulder((-wall * 0.9, -rng.uniform(76, 80), 0.0), _scaled((1.7, 1.5, 1.7), scale))
+    lateral = Boulder((wall * 3.6, -rng.uniform(86, 90), -0.3), _scaled((2.3, 1.8, 1.9), scale))
+    stations = np.linspace(_LEG_B + 9, _LONG - 9, 8)
+    rocks = _rocks(rng, u, stations, points, half_w, half_h, scale)
+    return _layout_from_profiles(
+        u,
+        points,
+        half_w,
+        half_h,
+        _LONG,
+        seed,
+        roughness=knobs["roughness_m"],
+        boulders=(frontal, lateral, *rocks),
+        steps_per_m=3.0,
+        description=f"a {_LONG:.0f} m cave chaining the five: constrictions to about "
+        f"{narrowest:.1f} m, a rise and fall of about {undulation:g} m, a frontal and a "
+        "lateral boulder, two sharp 90-degree bends that turn it around, then a winding "
+        "passage with rocks",
+    )
+
+
 # Why each range ends where it does, for the message that refuses a value outside it.
 _LIMITS = {
     "constriction_m": "under 1 m the 0.46 x 0.34 m vehicle has no room once the rough walls "
@@ -577,7 +881,9 @@ _LIMITS = {
     "bend_deg": "past 150 degrees the two legs fold into one chamber",
     "obstacles": "counts start at 0, and more boulders do not fit along the passage",
     "obstacle_scale": "boulders grown past 1.5 times close the passage",
-    "roughness_m": "past 1 m the walls close the passage",
+    "branches": "counts start at 0, and more branches do not fit along the passage",
+    "roughness_m": "past 1 m the walls may close the passage (the crawl's past 0.15 m), and "
+    "past 0.6 m the maze's branches would need more rock between them than there is room for",
 }
 _ROUGHNESS = _Range(0.3, 0.0, 1.0)  # PassageSpec.roughness: 0.3 m looks like rock
 _OBSTACLE_SCALE = _Range(1.0, 0.0, 1.5, low_open=True)
@@ -585,9 +891,14 @@ _OBSTACLE_SCALE = _Range(1.0, 0.0, 1.5, low_open=True)
 
 @dataclass(frozen=True)
 class _Factory:
-    """One family: its builder, a line for listings, and its knobs with defaults and ranges."""
+    """One family: its builder, a line for listings, and its knobs with defaults and ranges.
+
+    ``number`` seeds the family's generator with the cave seed: S1-S5 are 1-5, and a new
+    family takes the next free number, so that no two families draw the same numbers.
+    """
 
     name: str
+    number: int
     build: Callable[[np.random.Generator, int, Mapping[str, float]], _Layout]
     summary: str
     knobs: Mapping[str, _Range]
@@ -622,60 +933,111 @@ class _Factory:
         cave bit for bit.
         """
         knobs = self.resolve(difficulty)
-        return self.build(np.random.default_rng([seed, int(self.name[1:])]), seed, knobs)
+        return self.build(np.random.default_rng([seed, self.number]), seed, knobs)
 
 
-SCENARIOS: dict[str, _Factory] = {
-    f.name: f
-    for f in (
-        _Factory(
-            "S1",
-            _s1,
-            "constrictions: narrow passage, clearance-aware planning",
-            {"constriction_m": _Range(3.6, 1.0, 7.0), "roughness_m": _ROUGHNESS},
-        ),
-        _Factory(
-            "S2",
-            _s2,
-            "undulations: narrow passage rising and falling, 3D manoeuvring",
-            {
-                "constriction_m": _Range(3.8, 1.0, 6.4),
-                "undulation_m": _Range(4.0, 0.0, 8.0),
-                "roughness_m": _ROUGHNESS,
-            },
-        ),
-        _Factory(
-            "S3",
-            _s3,
-            "obstacles: straight passage, frontal and lateral obstacle",
-            {
-                "obstacles": _Range(2, 0, 8),
-                "obstacle_scale": _OBSTACLE_SCALE,
-                "roughness_m": _ROUGHNESS,
-            },
-        ),
-        _Factory(
-            "S4",
-            _s4,
-            "bend: a sharp 90-degree turn",
-            {"bend_deg": _Range(90.0, 0.0, 150.0, low_open=True), "roughness_m": _ROUGHNESS},
-        ),
-        _Factory(
-            "S5",
-            _s5,
-            "irregular: winding passage with rocks spread along it",
-            {
-                "obstacles": _Range(7, 0, 20),
-                "obstacle_scale": _OBSTACLE_SCALE,
-                "roughness_m": _ROUGHNESS,
-            },
-        ),
-    )
-}
+class _Families(Mapping[str, _Factory]):
+    """The registered families by name, looked up whatever the case ("s1", "CRAWL").
+
+    Iterates over the names as registered, in order: the SPEC's S1-S5, then the harder
+    families.
+    """
+
+    def __init__(self, *families: _Factory) -> None:
+        self._by_key = {family.name.casefold(): family for family in families}
+
+    def __getitem__(self, name: str) -> _Factory:
+        if not isinstance(name, str):
+            raise KeyError(name)
+        return self._by_key[name.casefold()]
+
+    def __iter__(self) -> Iterator[str]:
+        return (family.name for family in self._by_key.values())
+
+    def __len__(self) -> int:
+        return len(self._by_key)
+
+
+SCENARIOS: Mapping[str, _Factory] = _Families(
+    _Factory(
+        "S1",
+        1,
+        _s1,
+        "constrictions: narrow passage, clearance-aware planning",
+        {"constriction_m": _Range(3.6, 1.0, 7.0), "roughness_m": _ROUGHNESS},
+    ),
+    _Factory(
+        "S2",
+        2,
+        _s2,
+        "undulations: narrow passage rising and falling, 3D manoeuvring",
+        {
+            "constriction_m": _Range(3.8, 1.0, 6.4),
+            "undulation_m": _Range(4.0, 0.0, 8.0),
+            "roughness_m": _ROUGHNESS,
+        },
+    ),
+    _Factory(
+        "S3",
+        3,
+        _s3,
+        "obstacles: straight passage, frontal and lateral obstacle",
+        {
+            "obstacles": _Range(2, 0, 8),
+            "obstacle_scale": _OBSTACLE_SCALE,
+            "roughness_m": _ROUGHNESS,
+        },
+    ),
+    _Factory(
+        "S4",
+        4,
+        _s4,
+        "bend: a sharp 90-degree turn",
+        {"bend_deg": _Range(90.0, 0.0, 150.0, low_open=True), "roughness_m": _ROUGHNESS},
+    ),
+    _Factory(
+        "S5",
+        5,
+        _s5,
+        "irregular: winding passage with rocks spread along it",
+        {
+            "obstacles": _Range(7, 0, 20),
+            "obstacle_scale": _OBSTACLE_SCALE,
+            "roughness_m": _ROUGHNESS,
+        },
+    ),
+    _Factory(
+        "crawl",
+        6,
+        _crawl,
+        "crawlway: 40-60 m winding passage 1.2-2.5 m across, no room for a standoff",
+        {"constriction_m": _Range(1.5, 1.0, 2.5), "roughness_m": _Range(0.08, 0.0, 0.15)},
+    ),
+    _Factory(
+        "maze",
+        7,
+        _maze,
+        "maze: passage with blind side branches as wide as the way on; one exit",
+        {"branches": _Range(4, 0, 5), "roughness_m": _Range(0.3, 0.0, 0.6)},
+    ),
+    _Factory(
+        "long",
+        8,
+        _long,
+        "long: 230 m chaining constrictions, undulations, boulders, bends and rocks",
+        {
+            "constriction_m": _Range(3.6, 1.0, 6.4),
+            "undulation_m": _Range(4.0, 0.0, 8.0),
+            "obstacle_scale": _OBSTACLE_SCALE,
+            "roughness_m": _ROUGHNESS,
+        },
+    ),
+)
 
 
 def procedural_scenario(name: str, seed: int = 0, difficulty: Difficulty | None = None) -> Scenario:
-    """Build S1..S5 for ``seed`` at ``difficulty`` (None: the family's defaults).
+    """Build a family of `SCENARIOS` (S1..S5, crawl, maze, long; any case) for ``seed`` at
+    ``difficulty`` (None: the family's defaults).
 
     The same name, seed and difficulty always give the same cave, and the defaults give
     the plain family's. The scenario records the difficulty (``Difficulty()`` for the
@@ -686,13 +1048,14 @@ def procedural_scenario(name: str, seed: int = 0, difficulty: Difficulty | None 
         ScenarioError: an unknown name, a negative seed, or a knob the family lacks or
             outside its range.
     """
-    key = name.upper()
-    if key not in SCENARIOS:
+    if name not in SCENARIOS:
         raise ScenarioError(f"unknown scenario '{name}'; choose one of {', '.join(SCENARIOS)}")
     if not (isinstance(seed, int | np.integer) and seed >= 0):
         raise ScenarioError(f"seed {seed!r}: a cave's seed is a whole number, 0 or more")
     difficulty = Difficulty() if difficulty is None else difficulty
-    layout = SCENARIOS[key].layout(seed, difficulty)
+    family = SCENARIOS[name]
+    key = family.name  # as registered: "S1", "crawl"
+    layout = family.layout(seed, difficulty)
     spec = layout.spec
     tangent = spec.centreline[spec.exit_index + 1] - spec.centreline[spec.exit_index - 1]
     tangent /= np.linalg.norm(tangent)
@@ -713,6 +1076,7 @@ def procedural_scenario(name: str, seed: int = 0, difficulty: Difficulty | None 
         seed,
         centreline=centreline,
         difficulty=difficulty,
+        step_budget=layout.step_budget,
     )
 
 
@@ -731,6 +1095,12 @@ class _StartModel(BaseModel):
     yaw_deg: float = Field(0.0, description="0 heads along -y; positive turns left")
 
 
+def _nonzero_normal(v: tuple[float, float, float], kind: str) -> tuple[float, float, float]:
+    if math.hypot(*v) < 1e-9:
+        raise ValueError(f"{kind} normal must not be the zero vector")
+    return v
+
+
 class _ExitModel(BaseModel):
     model_config = _STRICT
     point: tuple[float, float, float]
@@ -740,9 +1110,27 @@ class _ExitModel(BaseModel):
     @field_validator("normal")
     @classmethod
     def _nonzero(cls, v: tuple[float, float, float]) -> tuple[float, float, float]:
-        if math.hypot(*v) < 1e-9:
-            raise ValueError("exit normal must not be the zero vector")
-        return v
+        return _nonzero_normal(v, "exit")
+
+
+class _EntranceModel(_ExitModel):
+    """A portal the vehicle came in by: the same disc-bounded plane as an exit."""
+
+    @field_validator("normal")
+    @classmethod
+    def _nonzero(cls, v: tuple[float, float, float]) -> tuple[float, float, float]:
+        return _nonzero_normal(v, "entrance")
+
+
+class _MeshPieceModel(BaseModel):
+    """One piece of a chained cave: a mesh file, turned about the vertical, then moved."""
+
+    model_config = _STRICT
+    path: str = Field(description="relative to the scenario file")
+    offset: tuple[float, float, float] = Field((0.0, 0.0, 0.0), description="metres")
+    yaw_deg: float = Field(0.0, description="about the vertical; positive turns +y toward -x")
+    scale: float | None = Field(None, gt=0, description="metres per unit (default: the file's)")
+    up_axis: Literal["x", "y", "z"] | None = None
 
 
 class _SensorsModel(BaseModel):
@@ -761,29 +1149,63 @@ class _ScenarioFileModel(BaseModel):
     model_config = _STRICT
     name: str | None = None
     description: str = ""
-    mesh: str
-    scale: float | None = Field(None, gt=0, description="metres per mesh unit")
+    mesh: list[_MeshPieceModel] = Field(
+        min_length=1, description='one file (mesh = "path") or [[mesh]] pieces to chain'
+    )
+    scale: float | None = Field(None, gt=0, description="metres per mesh unit, every piece")
     up_axis: Literal["x", "y", "z"] | None = None
     start: _StartModel
     exit: list[_ExitModel] = Field(description="one portal or a list of them")
+    entrance: list[_EntranceModel] = Field(
+        default_factory=list, description="the portals the vehicle came in by, if open"
+    )
+    centreline: list[tuple[float, float, float]] | None = Field(
+        None, min_length=2, description="[[x, y, z], ...] from the start to the exit"
+    )
+    step_budget: int | None = Field(
+        None, strict=True, gt=0, description="steps an episode gets (default 150)"
+    )
     optics: dict[str, Any] = Field(
         default_factory=dict, description="water and light; see cavenav.sensors.optics"
     )
     sensors: _SensorsModel = Field(default_factory=_SensorsModel)
 
-    @field_validator("exit", mode="before")
+    @field_validator("exit", "entrance", mode="before")
     @classmethod
     def _as_list(cls, v: Any) -> Any:
         # One [exit] table or several [[exit]]: validated as a list either way, so that
         # an error names the field at fault, not "Input should be a valid dictionary".
         return [v] if isinstance(v, dict) else v
 
+    @field_validator("mesh", mode="before")
+    @classmethod
+    def _as_pieces(cls, v: Any) -> Any:
+        # mesh = "path" is one piece where the file's origin is the cave's.
+        if isinstance(v, str):
+            return [{"path": v}]
+        if isinstance(v, dict):
+            return [v]
+        if not isinstance(v, list):
+            raise ValueError('give mesh = "path", or [[mesh]] tables with path, offset, yaw_deg')
+        return v
+
+    @field_validator("centreline")
+    @classmethod
+    def _has_length(
+        cls, v: list[tuple[float, float, float]] | None
+    ) -> list[tuple[float, float, float]] | None:
+        if v is not None and np.ptp(np.asarray(v), axis=0).max() < 1e-6:
+            raise ValueError("the centre line's points all coincide: give the passage's")
+        return v
+
 
 class _FamilyFileModel(BaseModel):
     model_config = _STRICT
     name: str | None = None
     description: str = ""
-    family: str = Field(description="S1..S5, built at the seed the file is loaded with")
+    family: str = Field(
+        description="a family (S1..S5, crawl, maze, long), built at the seed the file is given"
+    )
     difficulty: dict[str, Any] = Field(default_factory=dict, description="see Difficulty")
     optics: dict[str, Any] = Field(
         default_factory=dict, description="water and light; see cavenav.sensors.optics"
@@ -793,9 +1215,9 @@ class _FamilyFileModel(BaseModel):
     @field_validator("family")
     @classmethod
     def _known(cls, v: str) -> str:
-        if v.upper() not in SCENARIOS:
+        if v not in SCENARIOS:
             raise ValueError(f"unknown family '{v}'; choose one of {', '.join(SCENARIOS)}")
-        return v.upper()
+        return SCENARIOS[v].name
 
 
 def load_scenario_file(
@@ -823,6 +1245,27 @@ def load_scenario_file(
         resolution = [160, 120]     # forward camera, default [640, 480]; the horizontal
                                     # field of view (53 deg) is kept at any size
         sounder_resolution = [32, 24]   # each echo sounder's depth camera
+        [[entrance]]                # optional: the portal it came in by, if open;
+        point = [0.0, 10.0, 2.0]    # leaving through it is never success
+        normal = [0.0, 1.0, 0.0]    # pointing out of the cave
+        radius = 3.0
+        centreline = [[0.0, 10.0, 2.0], [0.0, -10.0, 2.0]]   # optional: progress is
+                                    # measured along it (metres, from start to exit)
+
+    A cave of several meshes lists them as pieces instead of ``mesh = "path"``; each is
+    turned by ``yaw_deg`` about the vertical through its own origin (positive turns +y
+    toward -x, as the start's yaw turns the vehicle left), then moved by ``offset``, and
+    the rims where pieces meet are welded (`cavenav.world.mesh.join_meshes`). Start,
+    exits, entrances and centre line are in the joined cave's coordinates::
+
+        [[mesh]]
+        path = "meshes/cave_straight_20m.dae"
+        [[mesh]]
+        path = "meshes/cave_L_20m.dae"
+        offset = [0.0, -20.0, 0.0]  # metres, default [0, 0, 0]
+        yaw_deg = 90.0              # default 0
+        scale = 1.0                 # optional, per piece (default: the top-level scale)
+        up_axis = "z"               # optional, per piece
 
     A family file names a procedural family instead of a mesh, start and exit, and is
     built at ``seed``: "hard S1" kept as a file, to sweep seeds over::
@@ -884,13 +1327,14 @@ def _validated(model: type[_Model], raw: dict[str, Any], path: Path) -> _Model:
 
 
 def _mesh_scenario(path: Path, model: _ScenarioFileModel) -> Scenario:
-    mesh = load_mesh(path.parent / model.mesh, scale=model.scale, up_axis=model.up_axis)
+    mesh = _chained_mesh(path, model)
     check_units(mesh, np.array(model.start.position))  # warns of a mesh in cm, mm, ...
     start = Pose(*model.start.position, psi=math.radians(model.start.yaw_deg))
-    portals = model.exit
-    if not portals:
+    if not model.exit:
         raise ConfigError(f"{path}: give at least one [[exit]]")
-    exits = tuple(ExitPortal(p.point, p.normal, p.radius) for p in portals)
+    exits = tuple(ExitPortal(p.point, p.normal, p.radius) for p in model.exit)
+    entrances = tuple(ExitPortal(p.point, p.normal, p.radius) for p in model.entrance)
+    centreline = None if model.centreline is None else np.array(model.centreline, np.float64)
     return Scenario(
         model.name or path.stem,
         mesh,
@@ -898,8 +1342,28 @@ def _mesh_scenario(path: Path, model: _ScenarioFileModel) -> Scenario:
         exits,
         model.description,
         optics=model.optics,
+        centreline=centreline,
         sensors=model.sensors.model_dump(exclude_none=True),
+        entrances=entrances,
+        step_budget=model.step_budget,
     )
+
+
+def _chained_mesh(path: Path, model: _ScenarioFileModel) -> CaveMesh:
+    """The file's mesh, or its pieces placed and joined; a file used twice is read once."""
+    from cavenav.world.mesh import join_meshes, place_mesh
+
+    read: dict[tuple[Path, float | None, str | None], CaveMesh] = {}
+    pieces: list[CaveMesh] = []
+    for piece in model.mesh:
+        scale = model.scale if piece.scale is None else piece.scale
+        up_axis = piece.up_axis or model.up_axis
+        key = (path.parent / piece.path, scale, up_axis)
+        if key not in read:
+            read[key] = load_mesh(key[0], scale=scale, up_axis=up_axis)
+        moved = any(piece.offset) or piece.yaw_deg % 360.0 != 0.0
+        pieces.append(place_mesh(read[key], piece.offset, piece.yaw_deg) if moved else read[key])
+    return join_meshes(pieces)
 
 
 def _family_scenario(
@@ -926,9 +1390,9 @@ def _family_scenario(
 def load_scenario(
     name_or_path: str, seed: int = 0, difficulty: Difficulty | None = None
 ) -> Scenario:
-    """S1..S5 by name, or a scenario TOML file by path, built with ``seed`` and
-    ``difficulty`` where it is a family (see `load_scenario_file`)."""
-    if name_or_path.upper() in SCENARIOS:
+    """A family by name (S1..S5, crawl, maze, long) or a scenario TOML file by path,
+    built with ``seed`` and ``difficulty`` where it is a family (see `load_scenario_file`)."""
+    if name_or_path in SCENARIOS:
         return procedural_scenario(name_or_path, seed, difficulty)
     path = Path(name_or_path)
     if path.suffix.lower() == ".toml" or path.exists():
