@@ -1,5 +1,5 @@
-"""Imports flow one way: types <- world <- sensors <- shield <- pilots <- env <- episode <-
-evaluation <- cli; `files` (how every layer writes a file in place) is a leaf like types;
+"""Imports flow one way: types <- world <- sensors <- shield, cave_map <- pilots <- env <-
+episode <- evaluation <- cli; `files` (how every layer writes a file in place) is a leaf like types;
 `vehicle` (the MAVLink bridge) knows only types, actions and kinematics: the environment
 takes it as a `Motion` without importing it."""
 
@@ -48,6 +48,10 @@ TOP = ("cavenav.evaluation", "cavenav.cli")  # nothing below them imports these
         ("world", ("cavenav.sensors", "cavenav.pilots", "cavenav.env", "cavenav.episode", *TOP)),
         ("sensors", ("cavenav.pilots", "cavenav.env", "cavenav.episode", "cavenav.shield", *TOP)),
         ("shield.py", ("cavenav.world", "cavenav.pilots", "cavenav.env", "cavenav.episode", *TOP)),
+        (
+            "cave_map.py",
+            ("cavenav.world", "cavenav.pilots", "cavenav.env", "cavenav.episode", *TOP),
+        ),
         ("pilots", ("cavenav.world", "cavenav.env", "cavenav.episode", "cavenav.wrappers", *TOP)),
         ("env.py", ("cavenav.pilots", "cavenav.episode", "cavenav.vehicle", *TOP)),
         ("episode", ("cavenav.vehicle", *TOP)),
