@@ -8,11 +8,13 @@ import numpy as np
 import pytest
 
 from cavenav.actions import DEFAULT_SPACE, parse_action
+from cavenav.episode.loop import EpisodeConfig, run_episode
 from cavenav.pilots.base import Pilot
 from cavenav.pilots.geometric import GeometricPilot, GeometricPilotConfig
 from cavenav.sensors.rig import SensorRig
 from cavenav.types import Observation, Pose
 from cavenav.world.raycast import RayCaster
+from cavenav.world.scenarios import ExitPortal, Scenario
 
 from .conftest import box_room
 from .conftest import synthetic_observation as synthetic
@@ -68,10 +70,55 @@ def test_turns_toward_the_open_side() -> None:
     assert decision.action.yaw_deg > 0
 
 
-def test_never_reverses_by_spinning_past_half_a_circle() -> None:
+def test_boxed_in_it_searches_one_way_round_never_back_and_forth() -> None:
+    # The loop it once fell into: at 180 degrees the search flipped, the next step flipped
+    # it back, and it alternated left and right on one spot for hundreds of steps.
     pilot = GeometricPilot()
-    turned = sum(pilot.decide(synthetic(1.0)).action.yaw_deg for _ in range(8))
-    assert abs(turned) <= 180
+    turns = [pilot.decide(synthetic(1.0)).action.yaw_deg for _ in range(10)]
+    assert all(turn == turns[0] for turn in turns) and turns[0] != 0
+    assert abs(sum(turns)) >= 360
+
+
+def corridor(extents: tuple[float, float, float], start_y: float, exit_y: float) -> Scenario:
+    """A closed box along y; the exit plane at ``exit_y``, facing out toward its end."""
+    outward = 1.0 if exit_y > start_y else -1.0
+    return Scenario(
+        name="corridor",
+        mesh=box_room(extents=extents),
+        start=Pose(0.0, start_y, 0.0, 0.0),  # heading -y
+        exits=(ExitPortal((0.0, exit_y, 0.0), (0.0, outward, 0.0), 3.0),),
+    )
+
+
+def test_a_dead_end_is_searched_then_backed_out_of() -> None:
+    # Facing a passage that ends blind 20 m ahead; the exit is behind the start.
+    cave = corridor((6.0, 40.0, 5.0), start_y=0.0, exit_y=17.0)
+    result = run_episode(cave, GeometricPilot(), EpisodeConfig(max_steps=150, plots=False))
+    assert result.termination == "exit"
+    ys = [pose.y for pose in result.poses]
+    assert min(ys) < -14.0  # it went to look
+    backing = [s["justification"] for s in result.steps if "dead end" in s["justification"]]
+    assert backing, "it never said it was backing out of a dead end"
+
+
+def test_a_passage_just_wider_than_the_body_is_traversed() -> None:
+    # 0.9 m square: 0.28 m to spare either side of the 0.34 m wide body, 0.33 m above and
+    # below it. The full corridor margin reads it as blocked; the crawlway margin fits.
+    cave = corridor((0.9, 16.0, 0.9), start_y=7.0, exit_y=-5.0)
+    result = run_episode(cave, GeometricPilot(), EpisodeConfig(max_steps=120, plots=False))
+    assert result.termination == "exit", result.summary["termination"]
+    assert result.summary["collisions"] == 0
+    assert "crawlway" in result.steps[0]["justification"]
+
+
+def test_a_passage_narrower_than_the_full_margin_is_flown_without_stopping() -> None:
+    # 1.15 m square: wide enough that the full corridor reads open ahead, too narrow for
+    # the full 0.6 m keep-clear margin from every wall. It once turned 5 degrees left and
+    # right on the spot until the episode ended.
+    cave = corridor((1.15, 24.0, 1.15), start_y=11.0, exit_y=-9.0)
+    result = run_episode(cave, GeometricPilot(), EpisodeConfig(max_steps=150, plots=False))
+    assert result.termination == "exit", result.summary["termination"]
+    assert result.summary["collisions"] == 0
 
 
 @pytest.mark.parametrize("setting", [{"stride": 0}, {"stride": -5}, {"columns": 0}])

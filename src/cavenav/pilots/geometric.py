@@ -6,21 +6,31 @@ action string and a justification in words (situation, constraints, choice). It 
 the prompt's strategy (SPEC section 3), so it is the yardstick a VLM pilot must beat:
 
 1. Read the depth image as a point cloud in the camera frame and measure, for bearings
-   across the field of view, how far a corridor the vehicle's size stays free.
-2. Steer toward the middle of the farthest-reaching bearings (the passage's continuation);
-   when nothing in view reaches far, turn toward the roomier side (45 or 90 degrees)
-   and keep turning the same way rather than reversing.
-3. Centre vertically between ceiling and floor, following the passage's slope ahead.
-4. Cap forward motion by the standoff rules: none within 1.5 m of an obstacle ahead,
+   across the field of view, how far a corridor the vehicle's size stays free: the body's
+   section plus a margin, and where nothing new passes that or the walls are already
+   nearer than the margin, plus a thin margin only (a crawlway the body fits through,
+   flown with small steps and centring shifts).
+2. Steer toward the middle of the farthest-reaching bearings (the passage's continuation)
+   that lead somewhere new: the pilot's map of what it saw and where it flew
+   (`cavenav.cave_map`, placed by dead reckoning) tells a new direction from the way back.
+3. When nothing new is in view, turn toward an unexplored opening the map remembers;
+   failing that, search by turning in place one way (never back and forth) through a full
+   circle; only then is it a dead end, and the pilot backs out along the way it came,
+   taking the first unexplored opening it passes. Turning back and forth on one spot
+   (a heading it cannot take) starts that search too.
+4. Centre vertically between ceiling and floor, following the passage's slope ahead.
+5. Cap forward motion by the standoff rules: none within 1.5 m of an obstacle ahead,
    0.1-0.2 m (with a turn or a shift) below the 2.0 m standoff, otherwise 0.5-1.0 m.
-5. Shrink the move until it keeps its half-diagonal plus a margin from every surface in
+6. Shrink the move until it keeps its half-diagonal plus a margin from every surface in
    the safety shield's memory of recent depth images (`cavenav.shield`: the same memory
-   and the same move clearance that ``--shield`` judges any pilot with).
+   and the same move clearance that ``--shield`` judges any pilot with); where the walls
+   are already nearer, a move that brings it no nearer, down to a crawlway's margin.
 """
 
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass, field, replace
 
 import numba
@@ -28,6 +38,7 @@ import numpy as np
 from scipy import ndimage
 
 from cavenav.actions import DEFAULT_SPACE, ActionSpace, format_action
+from cavenav.cave_map import CaveMap, Opening
 from cavenav.sensors.depth import denormalise_depth
 from cavenav.shield import DepthMemory, clearance_of_move, sampling_stride
 from cavenav.types import DEFAULT_RULES, Action, Decision, Observation, Rules, VehicleBody
@@ -38,6 +49,11 @@ __all__ = ["GeometricPilot", "GeometricPilotConfig"]
 # 41-degree vertical view (left and up positive).
 _BEARINGS = np.arange(-25.0, 25.01, 2.5)
 _ELEVATIONS = np.arange(-18.0, 18.01, 3.0)
+# A move along a rough wall may pass this much closer to it than where it starts.
+_CLOSER_TOLERANCE_M = 0.05
+# This many turns in place in a row that add up to less than a search's turn are
+# dithering between two headings it cannot take: it searches instead.
+_DITHER_STEPS = 6
 
 
 @numba.njit(cache=True)
@@ -77,9 +93,11 @@ class GeometricPilotConfig:
 
     Attributes:
         rules: standoff, no-forward distance and the forward step inside the standoff.
-        corridor_half_width_m: half-width of the corridor tested along a bearing: the
-            vehicle's half-width (0.17 m) plus a margin for rough walls.
-        corridor_half_height_m: the same vertically (half-height 0.125 m plus margin).
+        corridor_margin_m: how much wider than the body's section (its half-diagonal
+            across, 0.21 m) the corridor tested along a bearing is: room for rough walls.
+        tight_margin_m: the thinner margin of a crawlway, read where no corridor of the
+            full margin leads anywhere new or a surface is nearer than ``margin_m``
+            allows; moves there keep this margin from every surface too.
         open_range_m: a bearing free this far counts as the passage's continuation.
         stride: use every n-th pixel of the depth image; None follows the image's
             width to keep about `columns` of them: 5 at 640x480 (128x96 points), 2 at
@@ -95,8 +113,8 @@ class GeometricPilotConfig:
     """
 
     rules: Rules = DEFAULT_RULES
-    corridor_half_width_m: float = 0.6
-    corridor_half_height_m: float = 0.5
+    corridor_margin_m: float = 0.3
+    tight_margin_m: float = 0.1
     open_range_m: float = 8.0
     stride: int | None = None
     columns: int = 128
@@ -107,26 +125,55 @@ class GeometricPilotConfig:
     def __post_init__(self) -> None:
         sampling_stride(640, self.stride, self.columns)  # refuse a bad setting here
 
+    def corridor_radius(self, tight: bool = False) -> float:
+        """Radius of the corridor tested along a bearing: the body's section plus a margin."""
+        section = 0.5 * math.hypot(self.body.width, self.body.height)
+        return section + (self.tight_margin_m if tight else self.corridor_margin_m)
+
+
+@dataclass(frozen=True)
+class _ViewOpening:
+    """A far-reaching opening in view (degrees, metres; left and up positive)."""
+
+    bearing: float  # its middle
+    elevation: float
+    free_m: float  # the farthest free length among its directions
+    size: float  # the sum of its directions' free lengths: how big it looks
+    visited: bool  # whether it leads back along the path flown
+    tight: bool  # seen with the crawlway's thin margin only
+
 
 @dataclass(frozen=True)
 class _Scene:
     """What the pilot measured in one depth image (metres, degrees; left and up positive)."""
 
     free: np.ndarray  # (bearings, elevations) free corridor length along each direction
-    target: tuple[float, float]  # (bearing, elevation) of the middle of the widest opening
+    tight_free: np.ndarray | None  # the same for the crawlway corridor, when it was needed
+    openings: tuple[_ViewOpening, ...]  # largest first: full-margin ones, then crawlways
     ahead_m: float  # free corridor straight ahead
-    nearest_m: float  # nearest remembered surface point, from the vehicle's centre
+    nearest_m: float  # nearest remembered surface point beside or ahead, from the centre
     nearest_left: bool  # whether it lies to the left
     cloud: np.ndarray  # (n, 3) remembered surface points, body frame
-    beside_m: float  # sideways distance of the nearer wall over the next 5 m
+    beside_m: float  # sideways distance of the nearer wall over the next 2 m
     left_offset_m: float  # sideways distance of the walls beside and up to 8 m ahead
     right_offset_m: float
     left_room_m: float  # mean depth of the left and right thirds of the image
     right_room_m: float
 
 
+@dataclass(frozen=True)
+class _Heading:
+    """Where the pilot decided to go before sizing the move."""
+
+    yaw: float
+    elevation: float
+    target_free: float  # free corridor along the new heading (0 when only turning)
+    tight: bool  # through a crawlway: thin margins, small steps
+    situation: str
+
+
 class GeometricPilot:
-    """A reactive passage follower; see the module docstring for the strategy."""
+    """A passage follower with a memory; see the module docstring for the strategy."""
 
     name = "geometric"
 
@@ -135,18 +182,25 @@ class GeometricPilot:
     ):
         self.config = config or GeometricPilotConfig()
         self.space = space
-        self._last: Action | None = None  # the action it chose last
-        self._turning_in_place = 0.0  # degrees turned since the last forward motion
         self.memory = DepthMemory(frames=self.config.memory_frames)  # the shield's memory
+        self.map = CaveMap()  # where it has been and what it saw free
         bearings, elevations = np.meshgrid(_BEARINGS, _ELEVATIONS, indexing="ij")
         b, e = np.radians(bearings.ravel()), np.radians(elevations.ravel())
         # (k, 3) unit directions in (forward, left, up) for every (bearing, elevation).
         self._directions = np.stack([np.cos(e) * np.cos(b), np.cos(e) * np.sin(b), np.sin(e)], 1)
+        self.reset()
 
     def reset(self) -> None:
-        self._last = None
-        self._turning_in_place = 0.0
+        self._last: Action | None = None  # the action it chose last
+        self._recent: deque[Action] = deque(maxlen=_DITHER_STEPS)  # its latest actions
+        self._search_from: np.ndarray | None = None  # map position where a search began
+        self._searched_deg = 0.0  # degrees turned by that search
+        self._search_side = 1.0  # its direction: left
+        self._backing_out = False  # a dead end was searched all round: going back
+        self._dead_ends: list[np.ndarray] = []  # map positions of dead ends found
+        self._rejected: list[np.ndarray] = []  # remembered openings found impassable
         self.memory.reset()
+        self.map.reset()
 
     # ------------------------------------------------------------------ perception
     def _measure(self, obs: Observation) -> _Scene:
@@ -163,49 +217,78 @@ class GeometricPilot:
         d_max = obs.depth_range[1]
         surface = depth < 0.995 * d_max  # no-hit pixels read as D_max and block nothing
 
-        # Free length of a cylinder of the corridor's radius along every direction.
-        points = np.stack([forward[surface], left[surface], up[surface]], axis=1)
-        radius = cfg.corridor_half_width_m
-        free = free_lengths(points, self._directions, float(radius), float(d_max))
-        free = free.reshape(len(_BEARINGS), len(_ELEVATIONS))
         # Remember what was seen: surfaces beside the vehicle are out of view now but were
-        # in view a few steps ago. The memory (the safety shield's) keeps them in the body
-        # frame (forward, left, up from the centre), moved by each executed action, or by
+        # in view a few steps ago (the safety shield's memory, in the body frame), and the
+        # map of free space and the path flown. Both move by each executed action, or by
         # the one chosen when the observation does not say.
         moved_by = obs.previous_action if obs.previous_action is not None else self._last
         self.memory.update(obs, moved_by)
+        self.map.update(obs, moved_by)
         cloud = self.memory.cloud
+
+        # Free length of a corridor the body fits along every direction: with the full
+        # margin, and where that finds nothing new, with the crawlway's thin one.
+        points = np.stack([forward[surface], left[surface], up[surface]], axis=1)
+
+        def free_for(tight: bool) -> np.ndarray:
+            radius = float(cfg.corridor_radius(tight))
+            free = free_lengths(points, self._directions, radius, float(d_max))
+            return free.reshape(len(_BEARINGS), len(_ELEVATIONS))
+
+        free, tight_free = free_for(False), None
+        openings = self._openings(free, obs.camera_offset_m, tight=False)
+        # In a crawlway (a surface nearer than the full keep-clear margin) the full
+        # corridor fits nowhere but along the axis, and a slight offset reads it blocked:
+        # only the thin margin's corridors tell the way on.
+        crawling = bool(len(cloud)) and float(np.linalg.norm(cloud, axis=1).min()) < (
+            cfg.body.bounding_radius + cfg.margin_m
+        )
+        if crawling or all(o.visited for o in openings):
+            tight_free = free_for(True)
+            tight_openings = self._openings(tight_free, obs.camera_offset_m, tight=True)
+            openings = tight_openings if crawling else openings + tight_openings
+
         # "At the vehicle's height" follows the passage's slope, so that a ceiling or floor
         # ahead of a descent or a climb is not mistaken for a side wall.
-        bearing, elevation = self._target(free)
+        elevation = openings[0].elevation if openings else 0.0
         slope = math.tan(math.radians(elevation))
         at_height = (
             np.abs(cloud[:, 2] - slope * np.maximum(cloud[:, 0], 0.0))
-            < cfg.corridor_half_height_m + 0.3
+            < 0.5 * cfg.body.height + cfg.corridor_margin_m + 0.3
         )
         beside = at_height & (cloud[:, 0] > -1.5) & (cloud[:, 0] < 8.0)
-        beside &= ~((np.abs(cloud[:, 1]) < radius) & (cloud[:, 0] > 1.0))  # ahead, not beside
+        # Ahead, not beside: nearer the axis than a crawlway's corridor, beyond the bow.
+        beside &= ~((np.abs(cloud[:, 1]) < cfg.corridor_radius(tight=True)) & (cloud[:, 0] > 1.0))
         span = 8.0 * math.tan(math.radians(half_view))  # an unseen wall is at least this far
 
-        def wall_offsets(window: np.ndarray) -> tuple[float, float]:
+        def wall_offsets(
+            window: np.ndarray, unseen: tuple[float, float] = (span, span)
+        ) -> tuple[float, float]:
             # The 5th percentile: the wall, not the single most protruding knob of rock.
             lefts, rights = (
                 cloud[window & (cloud[:, 1] > 0), 1],
                 -cloud[window & (cloud[:, 1] < 0), 1],
             )
             return (
-                float(np.percentile(lefts, 5)) if lefts.size else span,
-                float(np.percentile(rights, 5)) if rights.size else span,
+                float(np.percentile(lefts, 5)) if lefts.size else unseen[0],
+                float(np.percentile(rights, 5)) if rights.size else unseen[1],
             )
 
         left_offset, right_offset = wall_offsets(beside)  # to steer toward the middle
-        beside_now = wall_offsets(beside & (cloud[:, 0] < 5.0))  # for the standoff: next 5 m
-        distance = np.linalg.norm(cloud, axis=1)
-        nearest = int(np.argmin(distance)) if len(cloud) else -1
+        # For the standoff: what lies beside the body and the longest move (1 m) ahead;
+        # a side the recent images do not show there (out of view at the start, or
+        # creeping: eight images cover 1.6 m) is taken to continue the wall seen up to
+        # 5 m ahead. Surfaces behind the body's middle fall behind as it moves on.
+        not_behind = cloud[:, 0] > -0.25
+        soon = wall_offsets(beside & not_behind & (cloud[:, 0] < 5.0))
+        beside_now = wall_offsets(beside & not_behind & (cloud[:, 0] < 2.0), soon)
+        distance = np.where(not_behind, np.linalg.norm(cloud, axis=1), np.inf)
+        nearest = int(np.argmin(distance)) if not_behind.any() else -1
         third = depth.shape[1] // 3
         return _Scene(
             free=free,
-            target=(bearing, elevation),
+            tight_free=tight_free,
+            openings=tuple(openings),
             ahead_m=float(free[len(_BEARINGS) // 2, len(_ELEVATIONS) // 2]),
             nearest_m=float(distance[nearest]) if nearest >= 0 else d_max,
             nearest_left=bool(cloud[nearest, 1] > 0) if nearest >= 0 else True,
@@ -217,33 +300,56 @@ class GeometricPilot:
             right_room_m=float(depth[:, -third:].mean()),
         )
 
+    def _openings(
+        self, free: np.ndarray, camera_offset_m: float, tight: bool
+    ) -> list[_ViewOpening]:
+        """The far-reaching openings in ``free``, largest first, each marked new or visited.
+
+        Directions that reach far are grouped into connected openings, so that two gaps
+        either side of a boulder are never averaged into a bearing straight at it. An
+        opening leads back when a point 8 m into it (or as far as it reaches) lies on the
+        path flown.
+        """
+        best = float(free.max())
+        if best < self._open_beyond_m:
+            return []
+        reach = free >= min(self.config.open_range_m, 0.85 * best)
+        labels, count = ndimage.label(reach)
+        found = []
+        for label in range(1, count + 1):
+            members = labels == label
+            bi, ei = np.nonzero(members)
+            bearing, elevation = _BEARINGS[bi].mean(), _ELEVATIONS[ei].mean()
+            if not members[
+                np.argmin(np.abs(_BEARINGS - bearing)), np.argmin(np.abs(_ELEVATIONS - elevation))
+            ]:
+                # A curved opening whose middle is blocked: take its member nearest the middle.
+                k = np.argmin(np.hypot(_BEARINGS[bi] - bearing, _ELEVATIONS[ei] - elevation))
+                bearing, elevation = _BEARINGS[bi[k]], _ELEVATIONS[ei[k]]
+            reaches = float(free[members].max())
+            b, e = math.radians(bearing), math.radians(elevation)
+            far = min(reaches, 8.0) * np.array(
+                [math.cos(e) * math.cos(b), math.cos(e) * math.sin(b), math.sin(e)]
+            )
+            far[0] += camera_offset_m
+            visited = self._explored(self.map.to_map(far[None])[0])
+            size = float(free[members].sum())
+            found.append(
+                _ViewOpening(float(bearing), float(elevation), reaches, size, visited, tight)
+            )
+        return sorted(found, key=lambda o: -o.size)
+
+    @property
+    def _open_beyond_m(self) -> float:
+        """An opening must stay free this far: less is a wall to turn away from."""
+        return max(self.config.rules.no_forward_within_m + 1.0, 0.35 * self.config.open_range_m)
+
     # ------------------------------------------------------------------ decision
     def _snap_up(self, metres: float) -> float:
         lo, hi = self.space.vertical_range_m
         if abs(metres) < 0.5 * lo:
             return 0.0
         return math.copysign(round(min(max(abs(metres), lo), hi), 2), metres)
-
-    def _target(self, free: np.ndarray) -> tuple[float, float]:
-        """(bearing, elevation) in the middle of the widest far-reaching opening.
-
-        Directions that reach far are grouped into connected openings, so that two gaps
-        either side of a boulder are never averaged into a bearing straight at it.
-        """
-        best = float(free.max())
-        reach = free >= min(self.config.open_range_m, 0.85 * best)
-        labels, count = ndimage.label(reach)
-        sizes = ndimage.sum(free, labels, index=np.arange(1, count + 1))
-        members = labels == 1 + int(np.argmax(sizes))
-        bi, ei = np.nonzero(members)
-        bearing, elevation = _BEARINGS[bi].mean(), _ELEVATIONS[ei].mean()
-        if not members[
-            np.argmin(np.abs(_BEARINGS - bearing)), np.argmin(np.abs(_ELEVATIONS - elevation))
-        ]:
-            # A curved opening whose middle is blocked: take its member nearest the middle.
-            k = np.argmin(np.hypot(_BEARINGS[bi] - bearing, _ELEVATIONS[ei] - elevation))
-            bearing, elevation = _BEARINGS[bi[k]], _ELEVATIONS[ei[k]]
-        return float(bearing), float(elevation)
 
     def _free_along(self, free: np.ndarray, bearing: float, elevation: float) -> float:
         i = int(np.argmin(np.abs(_BEARINGS - bearing)))
@@ -263,12 +369,137 @@ class GeometricPilot:
                 return float(yaw)
         return float(options[0])
 
-    def _keep_clear(self, action: Action, cloud: np.ndarray) -> tuple[Action, str]:
-        """Shrink ``action`` until its move keeps a margin from every remembered surface.
+    def _turn_toward(self, bearing: float) -> float:
+        """The admissible yaw nearest ``bearing``, at most 90 degrees: a big turn is made
+        in steps, looking at each."""
+        options = [y for a in self.space.yaw_deg for y in (a, -a) if 0 < abs(y) <= 90]
+        return float(min(options, key=lambda y: (abs(y - bearing), -abs(y))))
+
+    def _heading(self, scene: _Scene, half_view: float) -> _Heading:
+        """Where to go: new ground in view, else new ground remembered, else search round,
+        else back out of the dead end."""
+
+        def follow(opening: _ViewOpening, why: str) -> _Heading:
+            free = scene.tight_free if opening.tight else scene.free
+            assert free is not None
+            yaw = self._choose_yaw(free, opening.bearing, opening.elevation, half_view)
+            target_free = self._free_along(free, yaw, opening.elevation)
+            where = _bearing_words(opening.bearing, opening.elevation)
+            crawl = " through a crawlway the body just fits" if opening.tight else ""
+            return _Heading(
+                yaw,
+                opening.elevation,
+                target_free,
+                opening.tight,
+                f"{why} {opening.free_m:.1f} m toward {where}{crawl}",
+            )
+
+        def turn(yaw: float, situation: str) -> _Heading:
+            return _Heading(yaw, 0.0, 0.0, False, situation)
+
+        if self._dithering() and self._search_from is None:
+            self._start_search(scene)  # look round for a way it can take
+            self._recent.clear()
+        # A search that has moved the vehicle 2 m from where it began found a way on.
+        origin = self._search_from
+        if origin is not None and np.linalg.norm(self.map.position - origin) > 2.0:
+            self._search_from, self._searched_deg = None, 0.0
+        # While searching or backing out, a new opening must reach far: the short
+        # diagonals of the chamber it is turning in are no way on.
+        strict = self._backing_out or self._search_from is not None
+        reach = self.config.open_range_m if strict else 0.0
+        new = [o for o in scene.openings if not o.visited and o.free_m >= reach]
+        if new:
+            self._backing_out = False
+            self._search_from, self._searched_deg = None, 0.0
+            return follow(new[0], "the passage continues")
+        remembered = self._unexplored(half_view)
+        if remembered is not None:
+            return turn(
+                self._turn_toward(remembered.bearing_deg),
+                f"nothing new in view; an unexplored opening seen before lies "
+                f"{_bearing_words(remembered.bearing_deg, 0.0)}",
+            )
+        if self._backing_out or self._searched_deg >= 360.0:
+            # Searched all round and found nothing new: a dead end; go back the way it came.
+            if not self._backing_out and not self._explored(self.map.position, dead_ends_only=True):
+                self._dead_ends.append(self.map.position.copy())
+            self._backing_out = True
+            ways_back = [o for o in scene.openings if o.visited] or list(scene.openings)
+            if ways_back:
+                return follow(ways_back[0], "dead end: backing out along the way it came,")
+            back = [o for o in self.map.openings() if self._explored(np.asarray(o.end))]
+            if back:
+                way = min(back, key=lambda o: abs(o.bearing_deg))
+                return turn(
+                    self._turn_toward(way.bearing_deg),
+                    f"dead end: turning to the way it came, {_bearing_words(way.bearing_deg, 0)}",
+                )
+        # Search: turn in place one way, never back and forth, until a full circle is seen.
+        if self._search_from is None:
+            self._start_search(scene)
+        self._searched_deg += 45.0
+        best = float(scene.free.max())
+        what = (
+            "the only way on in view leads back"
+            if scene.openings
+            else f"no direction in view stays free beyond {best:.1f} m"
+        )
+        return turn(
+            self._search_side * 45.0, f"{what}; searching round ({self._searched_deg:.0f} deg)"
+        )
+
+    def _start_search(self, scene: _Scene) -> None:
+        self._search_from, self._searched_deg = self.map.position.copy(), 0.0
+        self._search_side = 1.0 if scene.left_room_m >= scene.right_room_m else -1.0
+
+    def _dithering(self) -> bool:
+        """Whether its latest actions turned back and forth on one spot."""
+        recent = self._recent
+        return (
+            len(recent) == recent.maxlen
+            and not any(a.forward or a.right or a.up for a in recent)
+            and abs(sum(a.yaw_deg for a in recent)) < 45.0
+        )
+
+    def _explored(self, point: np.ndarray, dead_ends_only: bool = False) -> bool:
+        """Whether a map point lies in a dead end searched all round (the vehicle stops
+        short of its end wall, out of the path's reach) or on the path flown."""
+        if any(np.linalg.norm(point - end) < 5.0 for end in self._dead_ends):
+            return True
+        return not dead_ends_only and bool(self.map.visited(point[None])[0])
+
+    def _unexplored(self, half_view: float) -> Opening | None:
+        """The nearest-bearing opening the map remembers that leads somewhere new.
+
+        One that lies in view now while the view finds no way through it is impassable
+        (a crack too narrow for the body): it is set aside for good.
+        """
+        for opening in sorted(self.map.openings(), key=lambda o: abs(o.bearing_deg)):
+            end = np.asarray(opening.end)
+            if self._explored(end) or any(np.linalg.norm(end - r) < 2.0 for r in self._rejected):
+                continue
+            if abs(opening.bearing_deg) <= half_view - 5.0:
+                self._rejected.append(end)
+                continue
+            return opening
+        return None
+
+    def _keep_clear(self, action: Action, cloud: np.ndarray, tight: bool) -> tuple[Action, str]:
+        """Shrink ``action`` until its move keeps a margin from every remembered surface:
+        the body's half-diagonal plus ``margin_m``, or in a crawlway the reach of its
+        corners when it turns plus ``tight_margin_m``.
 
         Returns the action to take and, if it had to be changed, why.
         """
-        margin = self.config.body.bounding_radius + self.config.margin_m
+        cfg, body = self.config, self.config.body
+        reach = 0.5 * math.hypot(body.length, body.width) + cfg.tight_margin_m
+        margin = reach if tight else body.bounding_radius + cfg.margin_m
+        # Already closer than that (a passage narrower than the margin): any move that
+        # brings the body no closer will do, down to the crawlway's margin.
+        here = clearance_of_move(cloud, Action())
+        if here < margin:
+            margin = max(reach, here - _CLOSER_TOLERANCE_M)
         candidates = [action]
         if action.right:
             candidates.append(replace(action, right=0.0))
@@ -285,35 +516,15 @@ class GeometricPilot:
         return candidates[-1], "boxed in: turning in place only"
 
     def decide(self, observation: Observation) -> Decision:
-        cfg, rules = self.config, self.config.rules
+        cfg = self.config
+        rules = cfg.rules
         half_view = observation.hfov_deg / 2
         scene = self._measure(observation)
         d_top, d_bottom = observation.d_top, observation.d_bottom
+        heading = self._heading(scene, half_view)
+        yaw, elevation, target_free = heading.yaw, heading.elevation, heading.target_free
 
-        best = float(scene.free.max())
-        elevation = 0.0
-        if best < max(rules.no_forward_within_m + 1.0, 0.35 * cfg.open_range_m):
-            # Nothing in view reaches far: turn 45 degrees toward the roomier side. Keep
-            # turning the way the last blocked turn went (no dithering), but never more
-            # than half a circle in place, which would reverse the direction of travel.
-            roomier = 1.0 if scene.left_room_m >= scene.right_room_m else -1.0
-            side = roomier
-            if self._turning_in_place:
-                side = math.copysign(1.0, self._turning_in_place)
-                if abs(self._turning_in_place) >= 180.0:
-                    side = -side
-            yaw = side * 45.0
-            target_free = 0.0
-            situation = f"no direction in view stays free beyond {best:.1f} m"
-        else:
-            bearing, elevation = scene.target
-            yaw = self._choose_yaw(scene.free, bearing, elevation, half_view)
-            target_free = self._free_along(scene.free, yaw, elevation)
-            situation = (
-                f"the passage continues {best:.1f} m toward {_bearing_words(bearing, elevation)}"
-            )
-
-        # The standoff counts walls beside the next metres of path: they will be beside us.
+        # The standoff counts walls beside the next move's path: they will be beside us.
         nearest = min(d_top, d_bottom, scene.nearest_m, scene.ahead_m, scene.beside_m)
         if target_free < rules.no_forward_within_m or abs(yaw) > half_view:
             forward = 0.0
@@ -342,34 +553,44 @@ class GeometricPilot:
         up = self._snap_up(float(np.clip(up, -1.0, 1.0)))
 
         # Lateral: shift away from a wall seen closer than the standoff when the other
-        # side has more room; never toward a side whose wall is out of view.
+        # side has more room (0.2 m more: back to the middle, where the standoff may hold
+        # again); never toward a side whose wall is out of view.
         right = 0.0
-        near_side = "left" if scene.left_offset_m < scene.right_offset_m else "right"
+        left_is_nearer = scene.left_offset_m < scene.right_offset_m
         near_offset = min(scene.left_offset_m, scene.right_offset_m)
         gap = abs(scene.left_offset_m - scene.right_offset_m)
-        if near_offset < rules.standoff_m and gap > 0.6 and abs(yaw) <= 20:
-            magnitude = 0.5 if gap > 2.0 else 0.2 if gap > 1.0 else 0.1
-            right = magnitude if near_side == "left" else -magnitude
-        # Below the standoff, forward motion must come with a turn or a shift.
+        if near_offset < rules.standoff_m and gap > 0.2 and abs(yaw) <= 20:
+            # Never nearer the far wall than a crawlway's margin: the wall beside the
+            # body is out of view and known only as far as it was seen ahead.
+            room = max(scene.left_offset_m, scene.right_offset_m) - cfg.corridor_radius(True)
+            wanted = 0.5 if gap > 2.0 else 0.2 if gap > 1.0 else 0.1
+            magnitude = max((m for m in self.space.lateral_m if m <= min(wanted, room)), default=0)
+            right = magnitude if left_is_nearer else -magnitude
+        # Below the standoff, forward motion must come with a turn or a shift: in a
+        # crawlway a 5-degree turn, which costs no room, elsewhere a shift away from the
+        # nearer wall.
         if forward > 0 and nearest < rules.standoff_m and not (yaw or right or up):
-            right = 0.1 if scene.right_room_m >= scene.left_room_m else -0.1
+            if heading.tight:
+                yaw = -5.0 if scene.right_room_m >= scene.left_room_m else 5.0
+            else:
+                right = 0.1 if left_is_nearer else -0.1
         if not (forward or right or up or yaw):  # never idle: look for a way on
             yaw = 20.0 if scene.left_room_m >= scene.right_room_m else -20.0
 
         action, shielded = self._keep_clear(
-            Action(forward=forward, right=right, up=up, yaw_deg=yaw), scene.cloud
+            Action(forward=forward, right=right, up=up, yaw_deg=yaw), scene.cloud, heading.tight
         )
         if shielded:
             constraint += f"; {shielded}"
         action = self.space.validate(action)
         yaw, up, right = action.yaw_deg, action.up, action.right
-        self._turning_in_place = (self._turning_in_place + yaw) if action.forward == 0 else 0.0
         self._last = action
+        self._recent.append(action)
         text = format_action(action)
         justification = (
-            f"Situation: {situation}; free straight ahead {scene.ahead_m:.1f} m; ceiling "
-            f"{d_top:.1f} m, floor {d_bottom:.1f} m; nearest surface {scene.nearest_m:.1f} m "
-            f"{'left' if scene.nearest_left else 'right'}. "
+            f"Situation: {heading.situation}; free straight ahead {scene.ahead_m:.1f} m; "
+            f"ceiling {d_top:.1f} m, floor {d_bottom:.1f} m; nearest surface "
+            f"{scene.nearest_m:.1f} m {'left' if scene.nearest_left else 'right'}. "
             f"Constraints: {constraint}. Choice: {text}{_why(yaw, up, right)}."
         )
         return Decision(
