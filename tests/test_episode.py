@@ -1,4 +1,4 @@
-"""The closed loop, its four endings, and the run folder it leaves behind."""
+"""The closed loop, its six endings, and the run folder it leaves behind."""
 
 from __future__ import annotations
 
@@ -16,7 +16,7 @@ from cavenav.episode.loop import EpisodeConfig, run_episode
 from cavenav.errors import PilotFailure
 from cavenav.sensors.depth import read_exr
 from cavenav.types import Action, Decision, Observation, Usage
-from cavenav.world.scenarios import Scenario
+from cavenav.world.scenarios import ExitPortal, Scenario
 
 SUMMARY_FIELDS = {
     "scenario",
@@ -82,6 +82,48 @@ def test_running_out_of_steps_is_a_truncation(room_scenario: Scenario) -> None:
     assert result.termination == "budget"
     assert result.summary["truncated"] and not result.summary["terminated"]
     assert result.summary["steps"] == 5
+
+
+def test_leaving_through_the_entrance_is_a_failure_not_an_exit(room_scenario: Scenario) -> None:
+    entrance = ExitPortal((0.0, 9.0, 0.0), (0.0, 1.0, 0.0), 3.0)  # 1 m behind the start
+    cave = replace(room_scenario, entrances=(entrance,))
+    result = run_episode(cave, Scripted(Action(forward=-1.0)), FAST)
+    assert result.termination == "exited_entrance" and not result.success
+    assert result.summary["terminated"] and result.summary["steps"] == 1
+    assert result.summary["entrances"][0]["point"] == (0.0, 9.0, 0.0)
+
+
+class Alternating:
+    """A pilot caught in the geometric pilot's old loop: left, right, left, right."""
+
+    name = "alternating"
+
+    def reset(self) -> None:
+        self.calls = 0
+
+    def decide(self, observation: Observation) -> Decision:
+        self.calls += 1
+        action = Action(yaw_deg=45 if self.calls % 2 else -45)
+        return Decision(action, format_action(action), "looping")
+
+
+def test_a_pilot_going_nowhere_ends_stuck_after_the_steps_allowed(
+    room_scenario: Scenario,
+) -> None:
+    config = EpisodeConfig(max_steps=100, stuck_after=12, plots=False)
+    result = run_episode(room_scenario, Alternating(), config)
+    assert result.termination == "stuck" and not result.success
+    assert result.summary["steps"] == 12
+    assert result.summary["truncated"] and not result.summary["terminated"]
+    never = run_episode(room_scenario, Alternating(), replace(config, stuck_after=None))
+    assert never.termination == "budget" and never.summary["steps"] == 100
+
+
+def test_slow_headway_is_not_being_stuck(room_scenario: Scenario) -> None:
+    # 0.1 m a step: new progress of 0.5 m every 5 steps, well within 12.
+    config = EpisodeConfig(max_steps=40, stuck_after=12, plots=False)
+    result = run_episode(room_scenario, Scripted(Action(forward=0.1)), config)
+    assert result.termination == "budget"
 
 
 def test_a_pilot_that_fails_for_good_ends_as_pilot_failure(room_scenario: Scenario) -> None:

@@ -199,6 +199,29 @@ def test_structured_mode_sends_a_fixed_key_schema(server: FakeVLM) -> None:
     assert schema["required"] == ["situation", "constraints", "action", "justification"]
 
 
+def test_map_image_sends_the_pilots_own_map_and_explains_it(server: FakeVLM) -> None:
+    config = OpenAIConfig(model="fake-vlm", base_url=server.base_url, **QUICK)
+    pilot = VLMPilot(OpenAIBackend(config), PromptConfig(map_image=True, history=0))
+    run_episode(
+        load_scenario("S4"), pilot, EpisodeConfig(max_steps=3, save_frames=False, plots=False)
+    )
+    assert "# Your map" in server.requests[0]["messages"][0]["content"]
+    content = server.requests[2]["messages"][1]["content"]
+    images = [p for p in content if p["type"] == "image_url"]
+    texts = [p["text"] for p in content if p["type"] == "text"]
+    assert len(images) == 3  # colour, depth, then the map
+    assert any(t.startswith("Your map (heading up). Flown ") for t in texts)
+    # Without the flag, neither the picture nor the paragraph.
+    run_episode(
+        load_scenario("S4"),
+        VLMPilot(OpenAIBackend(config), PromptConfig(history=0)),
+        EpisodeConfig(max_steps=1, save_frames=False, plots=False),
+    )
+    plain = server.requests[-1]
+    assert "# Your map" not in plain["messages"][0]["content"]
+    assert sum(p["type"] == "image_url" for p in plain["messages"][1]["content"]) == 2
+
+
 @pytest.mark.slow
 def test_cli_runs_the_vlm_pilot_and_replays_it(server: FakeVLM, tmp_path: Path) -> None:
     base = [

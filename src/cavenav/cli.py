@@ -4,7 +4,7 @@ cavenav run S4                         fly S4 with the geometric pilot
 cavenav run examples/osrf_cave_L.toml  fly a user mesh described by a scenario file
 cavenav render S4 --water turbid       contact sheet of the views along the passage
 cavenav scenarios                      list what can be flown
-cavenav eval --seeds 0-19 --out DIR    a pilot over S1-S5 x 20 caves, resumable, with a report
+cavenav eval --seeds 0-19 --out DIR    families x 20 caves each, resumable, with a report
 cavenav compare DIR_A DIR_B            two sweeps paired by cave (McNemar)
 cavenav report DIR                     the HTML report of a sweep or a run folder
 cavenav video RUN                      an MP4 of one episode
@@ -204,9 +204,29 @@ Requeries = Annotated[int, typer.Option(min=0, help="re-queries after an unusabl
 History = Annotated[int, typer.Option(min=0, help="earlier observations sent (K)")]
 PromptFile = Annotated[Path | None, typer.Option(help="your own system-prompt template")]
 Structured = Annotated[bool, typer.Option(help="ask for a JSON schema with fixed keys")]
+MapImage = Annotated[
+    bool,
+    typer.Option(
+        "--map-image",
+        help="send a top-down picture of the pilot's own map (what it saw, where it flew) "
+        "with every step: the memory ablation",
+    ),
+]
 Price = Annotated[str | None, typer.Option(help="USD per million tokens, 'input,output'")]
 Cache = Annotated[Path | None, typer.Option(help="reply cache folder (keyed by request hash)")]
 Device = Annotated[str, typer.Option(help="transformers device: auto, cpu, cuda")]
+Steps = Annotated[
+    int | None,
+    typer.Option(min=1, help="step budget (default: the scenario's; 150 for S1-S5)"),
+]
+StuckAfter = Annotated[
+    int,
+    typer.Option(
+        min=0,
+        help="end as 'stuck' after this many steps without headway (new progress toward "
+        "the exit or new ground); 0: never",
+    ),
+]
 
 
 def _vlm_options(flags: dict[str, Any], **overrides: Any) -> Any:  # noqa: ANN401
@@ -226,16 +246,19 @@ def _vlm_options(flags: dict[str, Any], **overrides: Any) -> Any:  # noqa: ANN40
 
 @app.command()
 def run(
-    scenario: Annotated[str, typer.Argument(help="S1..S5, or the path of a scenario .toml file")],
+    scenario: Annotated[
+        str, typer.Argument(help="a family (S1..S5, crawl, maze, long) or a scenario .toml file")
+    ],
     pilot: Annotated[
         str, typer.Option(help="pilot to fly: geometric, vlm, replay, random")
     ] = "geometric",
     seed: Annotated[
         int,
-        typer.Option(min=0, help="seed of the procedural cave (S1..S5) and of the random pilot"),
+        typer.Option(min=0, help="seed of the procedural cave and of the random pilot"),
     ] = 0,
     out: Annotated[Path, typer.Option(help="folder that receives the run folder")] = Path("runs"),
-    steps: Annotated[int, typer.Option(min=1, help="step budget")] = 150,
+    steps: Steps = None,
+    stuck_after: StuckAfter = 50,
     frames: Annotated[bool, typer.Option(help="save RGB, depth PNG and EXR of every step")] = True,
     exr_compression: Annotated[
         ExrCompression,
@@ -274,6 +297,7 @@ def run(
     history: History = 2,
     prompt_file: PromptFile = None,
     structured: Structured = False,
+    map_image: MapImage = False,
     price: Price = None,
     cache: Cache = None,
     device: Device = "auto",
@@ -295,7 +319,7 @@ def run(
         from cavenav.pilots.replay import recorded_scenario
 
         recorded, recorded_seed = recorded_scenario(str(from_))
-        if recorded != scenario.upper() and Path(scenario).stem not in recorded:
+        if recorded.casefold() != scenario.casefold() and Path(scenario).stem not in recorded:
             console.print(
                 f"[yellow]note:[/] the recording flew {recorded}, replaying in {scenario}"
             )
@@ -318,6 +342,7 @@ def run(
     )
     config = EpisodeConfig(
         max_steps=steps,
+        stuck_after=stuck_after or None,
         save_frames=frames,
         exr_compression=exr_compression.value,
         shield=shield,
@@ -339,7 +364,7 @@ def _fly_episode(
     motion: Any = None,  # noqa: ANN401
 ) -> None:
     """Fly the episode with a progress bar, print its summary, and exit as the README says."""
-    from cavenav.episode.loop import run_episode
+    from cavenav.episode.loop import run_episode, step_budget
 
     with Progress(
         TextColumn("[progress.description]{task.description}"),
@@ -353,7 +378,7 @@ def _fly_episode(
         # them, about a minute), the lighting tables are built and the start is checked.
         task = progress.add_task(
             f"preparing {cave.name}",
-            total=config.max_steps,
+            total=step_budget(cave, config),
             status="sensors, lighting, start check",
         )
 
@@ -402,9 +427,11 @@ def _remove_if_empty(folder: Path) -> None:
 
 @app.command()
 def render(
-    scenario: Annotated[str, typer.Argument(help="S1..S5, or the path of a scenario .toml file")],
+    scenario: Annotated[
+        str, typer.Argument(help="a family (S1..S5, crawl, maze, long) or a scenario .toml file")
+    ],
     water: WaterOpt = None,
-    seed: Annotated[int, typer.Option(min=0, help="seed of the procedural cave (S1..S5)")] = 0,
+    seed: Annotated[int, typer.Option(min=0, help="seed of the procedural cave")] = 0,
     views: Annotated[int, typer.Option(min=1, max=24, help="poses along the passage")] = 6,
     out: Annotated[
         Path | None, typer.Option(help="PNG to write (default: render-SCENARIO-WATER.png)")
@@ -502,7 +529,8 @@ class FramesMode(StrEnum):
 @app.command("eval")
 def eval_(
     scenarios: Annotated[
-        str, typer.Option(help="comma-separated S1..S5 (each a family) or scenario files")
+        str,
+        typer.Option(help="comma-separated families (S1..S5, crawl, maze, long) or scenario files"),
     ] = "S1,S2,S3,S4,S5",
     seeds: Annotated[
         str, typer.Option(help="caves of each family: 0-19, or 0,3,1000-1019 (test split 1000+)")
@@ -524,7 +552,8 @@ def eval_(
     frames: Annotated[
         FramesMode, typer.Option(help="all: PNG + EXR; png: no EXR; none: no images")
     ] = FramesMode.all,
-    steps: Annotated[int, typer.Option(min=1, help="step budget of each episode")] = 150,
+    steps: Steps = None,
+    stuck_after: StuckAfter = 50,
     shield: Annotated[bool, typer.Option(help="safety shield between pilot and vehicle")] = False,
     report: Annotated[bool, typer.Option(help="write the HTML report at the end")] = True,
     difficulty: DifficultyOpt = None,
@@ -553,6 +582,7 @@ def eval_(
     history: History = 2,
     prompt_file: PromptFile = None,
     structured: Structured = False,
+    map_image: MapImage = False,
     price: Price = None,
     cache: Cache = None,
     device: Device = "auto",
@@ -587,6 +617,7 @@ def eval_(
         seeds=parse_seeds(seeds),
         pilot=spec,
         steps=steps,
+        stuck_after=stuck_after or None,
         shield=shield,
         frames=frames.value,
         difficulty=parse_difficulty(difficulty or []).to_dict(),
@@ -639,7 +670,7 @@ def _scenario_list(text: str) -> tuple[str, ...]:
     from cavenav.world.scenarios import SCENARIOS
 
     names = [part.strip() for part in text.split(",") if part.strip()]
-    return tuple(name.upper() if name.upper() in SCENARIOS else name for name in names)
+    return tuple(SCENARIOS[name].name if name in SCENARIOS else name for name in names)
 
 
 def _executor(workers: int | None, concurrency: int, ray_address: str | None) -> Any:
@@ -795,7 +826,7 @@ def fly(
     sim: Annotated[
         str | None,
         typer.Option(
-            help="render this scenario (S1..S5 or a .toml) at the pose the vehicle reports"
+            help="render this scenario (a family or a .toml) at the pose the vehicle reports"
         ),
     ] = None,
     mode: Annotated[
@@ -816,7 +847,8 @@ def fly(
     ] = None,
     seed: Annotated[int, typer.Option(min=0, help="seed of the procedural cave")] = 0,
     out: Annotated[Path, typer.Option(help="folder that receives the run folder")] = Path("runs"),
-    steps: Annotated[int, typer.Option(min=1, help="step budget")] = 150,
+    steps: Steps = None,
+    stuck_after: StuckAfter = 50,
     frames: Annotated[bool, typer.Option(help="save RGB, depth PNG and EXR of every step")] = True,
     shield: Annotated[
         bool, typer.Option(help="safety shield between pilot and vehicle (on by default here)")
@@ -836,6 +868,7 @@ def fly(
     history: History = 2,
     prompt_file: PromptFile = None,
     structured: Structured = False,
+    map_image: MapImage = False,
     price: Price = None,
     cache: Cache = None,
     device: Device = "auto",
@@ -863,7 +896,13 @@ def fly(
     with console.status(f"building {sim} (seed {seed})"):
         cave = load_scenario(sim, seed)
     sensors = _sensors(cave, SensorConfig())
-    episode = EpisodeConfig(max_steps=steps, save_frames=frames, shield=shield, sensors=sensors)
+    episode = EpisodeConfig(
+        max_steps=steps,
+        stuck_after=stuck_after or None,
+        save_frames=frames,
+        shield=shield,
+        sensors=sensors,
+    )
     console.print(
         f"[bold]{cave.name}[/] through MAVLink ({bridge.mode} mode, {bridge.connect}): waiting "
         "for the vehicle's heartbeat"

@@ -97,10 +97,11 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
     inadmissible action does not raise: the vehicle holds, ``info["invalid_action"]``
     says why, and the step counts toward the budget.
 
-    Episode: ``terminated`` when the vehicle passes an exit portal or touches a surface
-    (the whole swept move is checked; after a collision the vehicle stays at its last
-    safe pose); ``truncated`` only through Gymnasium's ``TimeLimit`` (150 steps when
-    made with ``gymnasium.make``).
+    Episode: ``terminated`` when the vehicle passes an exit portal, leaves through the
+    cave's entrance (a mesh scenario's ``[entrance]``: a failure, never success) or
+    touches a surface (the whole swept move is checked; after a collision the vehicle
+    stays at its last safe pose); ``truncated`` only through Gymnasium's ``TimeLimit``
+    (150 steps when made with ``gymnasium.make``).
 
     Reward: metres made good toward the exit during the step, measured along the
     passage's centre line where the cave has one (procedural caves) and otherwise as the
@@ -108,12 +109,13 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
     collision. Turning in place earns nothing; backing up costs what it loses.
 
     Info: ``pose`` (x, y, z, yaw_deg), ``clearance_m`` (exact distance to the nearest
-    surface), ``collision``, ``exit``, ``action`` (the action executed, canonical),
-    ``invalid_action`` (the reason, or None), ``progress_m`` (made good since the
-    start), ``collision_pose`` and ``scenario``/``cave_seed``. Timings stay out of
-    ``info``, which must be deterministic; they are in `timings_ms`.
+    surface), ``collision``, ``exit``, ``entrance`` (left through the entrance),
+    ``action`` (the action executed, canonical), ``invalid_action`` (the reason, or
+    None), ``progress_m`` (made good since the start), ``collision_pose`` and
+    ``scenario``/``cave_seed``. Timings stay out of ``info``, which must be
+    deterministic; they are in `timings_ms`.
 
-    Reset options (for that reset only): ``scenario`` (S1..S5, a scenario file's path,
+    Reset options (for that reset only): ``scenario`` (a family name, a scenario file's path,
     or a `Scenario`), ``cave_seed`` (which cave of a procedural family). Seeds are drawn
     from ``self.np_random``: the sensor noise of the episode, and the cave itself when
     the environment was made with ``cave_seed=None`` (seeds below `TRAINING_SEEDS`).
@@ -209,6 +211,7 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
         self._progress = 0.0
         self._steps = 0
         self._ended = False
+        self._left_by_entrance = False
         self._noise_seed = 0
 
     # ------------------------------------------------------------------ the cave
@@ -232,10 +235,10 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
             key: tuple[str, int | None] = (f"object:{id(scenario)}", scenario.seed)
         else:
             name = str(scenario)
-            procedural = name.upper() in SCENARIOS
+            procedural = name in SCENARIOS
             if procedural and cave_seed is None:
                 cave_seed = int(self.np_random.integers(TRAINING_SEEDS))
-            key = (name.upper() if procedural else name, cave_seed if procedural else None)
+            key = (SCENARIOS[name].name if procedural else name, cave_seed if procedural else None)
         if self._world is not None and self._world.key == key:
             return self._world
         cave = scenario if isinstance(scenario, Scenario) else load_scenario(key[0], key[1] or 0)
@@ -265,7 +268,7 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
         self._clearance = clearance(self.caster, self.pose)
         self._progress = self.scenario.progress(self.pose.position)
         self._steps = 0
-        self._ended = False
+        self._ended = self._left_by_entrance = False
         started = time.perf_counter()
         self.observation = self._world.rig.observe(self.pose, 0, self._noise_seed)
         self.timings_ms = {"sense": 1e3 * (time.perf_counter() - started)}
@@ -278,7 +281,7 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
             raise gym.error.ResetNeeded("Call reset before using step method.")
         if self._ended:
             raise gym.error.ResetNeeded(
-                "The episode has ended (exit or collision): call reset before step."
+                "The episode has ended (exit, entrance or collision): call reset before step."
             )
         started = time.perf_counter()
         command, invalid = self.command(action)
@@ -290,11 +293,14 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
             self.pose = moved
             self._clearance = clearance(self.caster, moved)
         exited = not hit and self.scenario.exited(self.pose.position)
+        self._left_by_entrance = (
+            not hit and not exited and self.scenario.left_through_entrance(self.pose.position)
+        )
         progress = self.scenario.progress(self.pose.position)
         reward = progress - self._progress - (self.collision_penalty if hit else 0.0)
         self._progress = progress
         self._steps += 1
-        self._ended = hit or exited
+        self._ended = hit or exited or self._left_by_entrance
         sensed = time.perf_counter()
         observation = self._world.rig.observe(self.pose, self._steps, self._noise_seed)
         self.observation = replace(observation, previous_action=command)
@@ -352,7 +358,8 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
             "pose": self.pose.to_dict(),
             "clearance_m": float(self._clearance),
             "collision": collision_pose is not None,
-            "exit": self._ended and collision_pose is None,
+            "exit": self._ended and collision_pose is None and not self._left_by_entrance,
+            "entrance": self._left_by_entrance,
             "action": format_action(executed),
             "invalid_action": invalid,
             "progress_m": float(self._progress),

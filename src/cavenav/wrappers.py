@@ -2,7 +2,7 @@
 
 `SafetyShield` stands between any pilot and the vehicle (see `cavenav.shield` for the
 rules); it judges from the observations only, so it behaves the same in front of a real
-vehicle.
+vehicle. `StuckLimit` ends an episode that has stopped getting anywhere, whoever flies it.
 """
 
 from __future__ import annotations
@@ -16,7 +16,13 @@ from cavenav.env import CaveNavEnv
 from cavenav.shield import Shield, ShieldConfig
 from cavenav.types import Action
 
-__all__ = ["SafetyShield"]
+__all__ = ["SafetyShield", "StuckLimit"]
+
+# Headway, for `StuckLimit`: the best progress toward the exit grows by this much, or the
+# vehicle enters a cube of this side it never was in (a side passage explored is headway;
+# flying back over old ground, or to and fro on one spot, is not).
+STUCK_PROGRESS_M = 0.5
+GROUND_CELL_M = 2.0
 
 
 class SafetyShield(gym.Wrapper):
@@ -58,3 +64,46 @@ class SafetyShield(gym.Wrapper):
         self.shield.observe(self._base.observation)
         info["shield"] = verdict.to_dict() if verdict is not None and verdict.intervened else None
         return obs, reward, terminated, truncated, info
+
+
+class StuckLimit(gym.Wrapper):
+    """Truncates an episode after ``steps`` steps in a row without headway.
+
+    Headway is `STUCK_PROGRESS_M` more progress toward the exit than ever before, or a
+    `GROUND_CELL_M` cube of the cave entered for the first time; turning on one spot,
+    going to and fro, or circling over old ground makes none. The step that ends it has
+    ``truncated`` and ``info["stuck"]`` true (false on every other step).
+    """
+
+    def __init__(self, env: gym.Env, steps: int):
+        super().__init__(env)
+        if steps < 1:
+            raise ValueError(f"StuckLimit needs at least 1 step, got {steps}")
+        self.steps = steps
+
+    def reset(self, **kwargs: Any) -> tuple[Any, dict[str, Any]]:
+        obs, info = self.env.reset(**kwargs)
+        self._best = info["progress_m"]
+        self._ground = {_cell(info["pose"])}
+        self._without_headway = 0
+        return obs, {**info, "stuck": False}
+
+    def step(self, action: Any) -> tuple[Any, float, bool, bool, dict]:  # noqa: ANN401
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        cell = _cell(info["pose"])
+        if info["progress_m"] >= self._best + STUCK_PROGRESS_M or cell not in self._ground:
+            self._best = max(self._best, info["progress_m"])
+            self._ground.add(cell)
+            self._without_headway = 0
+        else:
+            self._without_headway += 1
+        info["stuck"] = not terminated and self._without_headway >= self.steps
+        return obs, reward, terminated, truncated or info["stuck"], info
+
+
+def _cell(pose: dict[str, float]) -> tuple[int, int, int]:
+    return (
+        int(pose["x"] // GROUND_CELL_M),
+        int(pose["y"] // GROUND_CELL_M),
+        int(pose["z"] // GROUND_CELL_M),
+    )

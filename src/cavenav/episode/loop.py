@@ -5,9 +5,12 @@ the pilot for each action, hands it to the environment (behind the safety shield
 asked), and lets the recorders keep what happened: the `EpisodeLog` (records and
 summary), the run folder, the progress callback.
 
-Each episode ends in exactly one of four ways: ``exit`` (the exit portal was reached),
-``collision`` (the body touched a surface along the move), ``budget`` (out of steps:
-Gymnasium's truncation) or ``pilot_failure`` (the pilot could not produce a valid action).
+Each episode ends in exactly one of six ways: ``exit`` (the exit portal was reached),
+``collision`` (the body touched a surface along the move), ``exited_entrance`` (it left
+the cave the way it came in: a failure), ``budget`` (out of steps: Gymnasium's
+truncation), ``stuck`` (no headway for `EpisodeConfig.stuck_after` steps: turning on the
+spot, going to and fro, or circling over old ground) or ``pilot_failure`` (the pilot could
+not produce a valid action).
 """
 
 from __future__ import annotations
@@ -15,7 +18,7 @@ from __future__ import annotations
 import contextlib
 import time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -32,9 +35,19 @@ from cavenav.sensors.depth import ExrCompression
 from cavenav.sensors.rig import SensorConfig
 from cavenav.types import DEFAULT_RULES, Observation, Pose, Rules, VehicleBody
 from cavenav.world.scenarios import Scenario
-from cavenav.wrappers import SafetyShield
+from cavenav.wrappers import SafetyShield, StuckLimit
 
-__all__ = ["TERMINATIONS", "EpisodeConfig", "EpisodeResult", "make_env", "run_episode"]
+__all__ = [
+    "DEFAULT_STEPS",
+    "TERMINATIONS",
+    "EpisodeConfig",
+    "EpisodeResult",
+    "make_env",
+    "run_episode",
+    "step_budget",
+]
+
+DEFAULT_STEPS = 150  # SPEC's budget, for a scenario that names none
 
 
 @dataclass(frozen=True)
@@ -42,7 +55,8 @@ class EpisodeConfig:
     """Settings of one episode.
 
     Attributes:
-        max_steps: step budget (SPEC: 150).
+        max_steps: step budget; None gives the scenario's own (`Scenario.step_budget`:
+            SPEC's 150 for S1-S5, more for the long families), see `step_budget`.
         rules: the strategy's distances; the standoff counts "steps below standoff".
         save_frames: write the RGB and depth PNG of every step; sweeps can turn this off.
         save_exr: with the frames, the depth in metres as OpenEXR (1.24 MB of the 2.05 MB
@@ -52,9 +66,14 @@ class EpisodeConfig:
         plots: draw topdown.png and side.png at the end.
         shield: put the safety shield between the pilot and the vehicle.
         seed: seeds the episode's sensor noise (the environment's reset seed).
+        stuck_after: end the episode as ``stuck`` after this many steps in a row without
+            headway (`cavenav.wrappers.StuckLimit`): neither 0.5 m more progress toward
+            the exit than ever before nor a 2 m cube of the cave entered for the first
+            time. 50 leaves room to explore a side passage and come back out of it; None
+            never ends an episode so.
     """
 
-    max_steps: int = 150
+    max_steps: int | None = None
     rules: Rules = DEFAULT_RULES
     save_frames: bool = True
     save_exr: bool = True
@@ -62,6 +81,7 @@ class EpisodeConfig:
     plots: bool = True
     shield: bool = False
     seed: int = 0
+    stuck_after: int | None = 50
     sensors: SensorConfig = field(default_factory=SensorConfig)
     body: VehicleBody = field(default_factory=VehicleBody)
 
@@ -85,14 +105,21 @@ class EpisodeResult:
         return self.summary["termination"]
 
 
-def make_env(
-    scenario: Scenario | str, config: EpisodeConfig, motion: Motion | None = None
-) -> gym.Env:
-    """The environment an episode of ``config`` flies: budget, then the shield if asked."""
+def step_budget(scenario: Scenario, config: EpisodeConfig) -> int:
+    """The steps an episode of ``config`` gets in ``scenario``: ``config.max_steps`` when
+    set, else the scenario's own budget, else `DEFAULT_STEPS`."""
+    return config.max_steps or scenario.step_budget or DEFAULT_STEPS
+
+
+def make_env(scenario: Scenario, config: EpisodeConfig, motion: Motion | None = None) -> gym.Env:
+    """The environment an episode of ``config`` flies: budget, the stuck limit, then the
+    shield if asked."""
     env: gym.Env = CaveNavEnv(
         scenario, sensors=config.sensors, body=config.body, rules=config.rules, motion=motion
     )
-    env = TimeLimit(env, max_episode_steps=config.max_steps)
+    env = TimeLimit(env, max_episode_steps=step_budget(scenario, config))
+    if config.stuck_after:
+        env = StuckLimit(env, config.stuck_after)
     return SafetyShield(env) if config.shield else env
 
 
@@ -104,7 +131,7 @@ def run_episode(
     on_step: Callable[[dict[str, Any]], None] | None = None,
     motion: Motion | None = None,
 ) -> EpisodeResult:
-    """Fly ``pilot`` through ``scenario`` until exit, collision, budget or pilot failure.
+    """Fly ``pilot`` through ``scenario`` until one of the six endings (module docstring).
 
     Args:
         run_dir: where to write the run folder (must not exist); None records nothing.
@@ -116,6 +143,7 @@ def run_episode(
         ScenarioError: the start pose is not inside the passage or touches a wall.
     """
     config = config or EpisodeConfig()
+    config = replace(config, max_steps=step_budget(scenario, config))  # recorded as flown
     env = make_env(scenario, config, motion)
     vehicle: CaveNavEnv = env.unwrapped  # type: ignore[assignment]
     _, info = env.reset(seed=config.seed)  # checks the start before any folder is written

@@ -24,7 +24,9 @@ from cavenav.world.scenarios import Scenario
 
 __all__ = ["TERMINATIONS", "EpisodeLog"]
 
-TERMINATIONS = ("exit", "collision", "budget", "pilot_failure")
+TERMINATIONS = ("exit", "collision", "budget", "pilot_failure", "exited_entrance", "stuck")
+_TERMINATED = ("exit", "collision", "exited_entrance", "pilot_failure")  # the rest truncate
+
 _TWIST_KEYS = ("linear_x", "linear_y", "linear_z", "angular_z")
 
 
@@ -67,6 +69,7 @@ class EpisodeLog:
             "triangles": scenario.mesh.triangle_count,
             "start_pose": scenario.start.to_dict(),
             "exits": [asdict(portal) for portal in scenario.exits],
+            "entrances": [asdict(portal) for portal in scenario.entrances],
             "config": asdict(config),
         }
 
@@ -104,6 +107,10 @@ class EpisodeLog:
             self.clearances.append(info["clearance_m"])
             if info["exit"]:
                 self.termination = "exit"
+            elif info.get("entrance"):
+                self.termination = "exited_entrance"
+        if self.termination is None and info.get("stuck"):
+            self.termination = "stuck"
         if self.termination is None and truncated:
             self.termination = "budget"
         self.progress_m = info["progress_m"]
@@ -177,8 +184,8 @@ class EpisodeLog:
             "status": status,
             "success": self.termination == "exit",
             "termination": self.termination,
-            "terminated": self.termination in ("exit", "collision", "pilot_failure"),
-            "truncated": self.termination == "budget",
+            "terminated": self.termination in _TERMINATED,
+            "truncated": self.termination in ("budget", "stuck"),
             "collisions": int(self.collision_pose is not None),
             "shield": self.shielded,
             "shield_interventions": interventions,

@@ -67,7 +67,7 @@ def _rebuild_scenario(summary: Mapping[str, Any]) -> Any:
     from cavenav.world.scenarios import SCENARIOS, Difficulty, load_scenario
 
     name, seed = summary.get("scenario"), summary.get("seed")
-    if not isinstance(name, str) or name.upper() not in SCENARIOS or seed is None:
+    if not isinstance(name, str) or name not in SCENARIOS or seed is None:
         return None
     try:
         knobs = summary.get("difficulty") or {}

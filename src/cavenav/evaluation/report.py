@@ -41,6 +41,7 @@ _OUTCOME_CLASS = {
     "stuck": "warn",
     "oscillating": "warn",
     "pilot_failure": "warn",
+    "exited_entrance": "warn",
 }
 _EMPTY = "—"  # shown for a missing value
 

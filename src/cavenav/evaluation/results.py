@@ -8,10 +8,12 @@ Outcomes (the failure taxonomy, one per episode):
     success        the vehicle passed the exit portal
     collision      it touched a surface
     pilot_failure  the pilot could not produce a valid action (e.g. persistent bad replies)
+    exited_entrance  it left the cave through its entrance, the way it came in
     budget         out of steps while still making headway: the last `WINDOW` steps got
                    past the farthest point reached before them (too slow, not lost)
-    stuck          out of steps having barely moved during the last `WINDOW` steps
-    oscillating    out of steps having moved during the last `WINDOW` steps without making
+    stuck          out of steps, or ended by the driver for want of headway (termination
+                   ``stuck``), having barely moved during the last `WINDOW` steps
+    oscillating    the same, having moved during the last `WINDOW` steps without making
                    headway: back and forth, or round in circles
     error          the episode raised an error (recorded in its summary), its worker died,
                    or the model server failed it (no answer in time, a refused key, a
@@ -51,6 +53,7 @@ OUTCOMES = (
     "success",
     "collision",
     "pilot_failure",
+    "exited_entrance",
     "budget",
     "stuck",
     "oscillating",
@@ -116,7 +119,7 @@ def outcome(summary: Mapping[str, Any], steps: Sequence[Mapping[str, Any]]) -> s
     termination = summary.get("termination")
     if termination == "exit":
         return "success"
-    if termination in ("collision", "pilot_failure"):
+    if termination in ("collision", "pilot_failure", "exited_entrance"):
         return str(termination)
     moves = [s for s in steps if s.get("action")]
     window, earlier = moves[-WINDOW:], moves[:-WINDOW]
@@ -127,7 +130,7 @@ def outcome(summary: Mapping[str, Any], steps: Sequence[Mapping[str, Any]]) -> s
     # not the last: near a bend the nearest centre-line point jumps as the vehicle circles.
     reached = max(float(s["progress_m"]) for s in earlier or window[:1])
     headway = max(float(s["progress_m"]) for s in window) - reached
-    if headway >= HEADWAY_M * share:
+    if headway >= HEADWAY_M * share and termination != "stuck":
         return "budget"
     positions = np.array([[s["pose"][k] for k in "xyz"] for s in window])
     moved = float(np.linalg.norm(np.diff(positions, axis=0), axis=1).sum())

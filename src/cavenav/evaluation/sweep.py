@@ -65,7 +65,7 @@ class SweepConfig:
     """What a sweep flies; everything that changes its results, nothing about how it runs.
 
     Attributes:
-        scenarios: S1..S5 or scenario-file paths; each is a family when procedural.
+        scenarios: family names (S1..S5, crawl, maze, long) or scenario-file paths.
         seeds: caves drawn from each family (development seeds below 1000, test split
             from 1000; see `cavenav.world.scenarios.HELD_OUT_SEEDS`).
         difficulty: `Difficulty` knobs, each set on the families that have it.
@@ -78,7 +78,8 @@ class SweepConfig:
     scenarios: tuple[str, ...]
     seeds: tuple[int, ...]
     pilot: PilotSpec = field(default_factory=PilotSpec)
-    steps: int = 150
+    steps: int | None = None  # None: each scenario's own budget
+    stuck_after: int | None = 50
     shield: bool = False
     frames: str = "all"
     difficulty: Mapping[str, float] = field(default_factory=dict)
@@ -92,9 +93,9 @@ class SweepConfig:
         if not self.seeds:
             raise ConfigError("give at least one seed, e.g. --seeds 0-19")
         knobs = Difficulty.from_dict(self.difficulty).to_dict()  # fails here, not in a worker
-        files = [s for s in self.scenarios if s.upper() not in SCENARIOS]
+        files = [s for s in self.scenarios if s not in SCENARIOS]
         for knob in knobs:
-            if not files and not any(knob in SCENARIOS[s.upper()].knobs for s in self.scenarios):
+            if not files and not any(knob in SCENARIOS[s].knobs for s in self.scenarios):
                 raise ConfigError(
                     f"difficulty knob {knob} applies to none of {', '.join(self.scenarios)}"
                 )
@@ -103,7 +104,7 @@ class SweepConfig:
         """The knobs ``scenario`` takes: a sweep over several families sets each knob on
         the families that have it (constriction_m on S1 and S2, bend_deg on S4, ...)."""
         knobs = Difficulty.from_dict(self.difficulty)
-        family = SCENARIOS.get(scenario.upper())
+        family = SCENARIOS.get(scenario)
         if family is None:  # a scenario file: its family, if any, judges the knobs
             return knobs
         return Difficulty.from_dict({k: v for k, v in knobs.to_dict().items() if k in family.knobs})
@@ -115,7 +116,12 @@ class SweepConfig:
             "scenarios": list(self.scenarios),
             "seeds": list(self.seeds),
             "pilot": self.pilot.to_dict(),
-            "episode": {"steps": self.steps, "shield": self.shield, "frames": self.frames},
+            "episode": {
+                "steps": self.steps,
+                "stuck_after": self.stuck_after,
+                "shield": self.shield,
+                "frames": self.frames,
+            },
             "difficulty": dict(self.difficulty),
             "sensors": json.loads(json.dumps(self.sensors)),
             "created_at": datetime.now(UTC).isoformat(timespec="seconds"),
@@ -133,6 +139,7 @@ class SweepConfig:
                 pilot["name"], VLMOptions(**pilot.get("options", {})), pilot.get("recording")
             ),
             steps=data["episode"]["steps"],
+            stuck_after=data["episode"].get("stuck_after"),  # none before stuck endings
             shield=data["episode"]["shield"],
             frames=data["episode"]["frames"],
             difficulty=data.get("difficulty", {}),
@@ -226,6 +233,9 @@ def prepare(config: SweepConfig, folder: Path) -> list[EpisodeJob]:
             recorded = json.loads(settings.read_text(encoding="utf-8"))
         except json.JSONDecodeError:
             raise ConfigError(f"{settings} is not valid JSON; use another --out") from None
+        # Read back through SweepConfig, so that settings added since the sweep began
+        # take the values it was flown with (no stuck endings, no map image).
+        recorded = {**recorded, **SweepConfig.from_dict(recorded).to_dict()}
         if _identity(recorded) != _identity(wanted):
             raise ConfigError(
                 f"{folder} holds a sweep with another configuration "
@@ -295,6 +305,7 @@ class EpisodeWorker:
         )
         return EpisodeConfig(
             max_steps=self.config.steps,
+            stuck_after=self.config.stuck_after,
             save_frames=self.config.frames != "none",
             save_exr=self.config.frames == "all",
             shield=self.config.shield,

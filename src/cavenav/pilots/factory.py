@@ -42,6 +42,7 @@ class VLMOptions:
     history: int = 2
     prompt_file: str | None = None
     structured: bool = False
+    map_image: bool = False  # a top-down picture of the pilot's map with each step
     price: str | None = None  # "input,output" USD per million tokens
     cache: str | None = None  # reply cache folder
     device: str = "auto"  # transformers only
@@ -162,6 +163,7 @@ def _vlm_pilot(options: VLMOptions, check: bool) -> Pilot:
         history=options.history,
         system_file=Path(options.prompt_file) if options.prompt_file else None,
         structured=options.structured,
+        map_image=options.map_image,
     )
     return VLMPilot(
         engine,

@@ -32,6 +32,9 @@ class PromptConfig:
         history: number of earlier observations sent (K; 0 allowed).
         system_file: a user's own system-prompt template instead of the packaged one.
         structured: ask for a JSON object with fixed keys (for servers with JSON schemas).
+        map_image: send a top-down picture of the pilot's map with each current
+            observation (`cavenav.cave_map`), and explain it in the system prompt.
+        map_span_m: how many metres across that picture is.
     """
 
     space: ActionSpace = field(default_factory=lambda: DEFAULT_SPACE)
@@ -39,6 +42,8 @@ class PromptConfig:
     history: int = 2
     system_file: Path | None = None
     structured: bool = False
+    map_image: bool = False
+    map_span_m: float = 32.0
 
     def fields(
         self, depth_range: tuple[float, float] = DEPTH_RANGE_M, hfov_deg: float | None = None
@@ -75,6 +80,7 @@ class PromptConfig:
             "yaw_deg": listing(space.yaw_deg),
             "vertical_min_m": _num(space.vertical_range_m[0]),
             "vertical_max_m": _num(space.vertical_range_m[1]),
+            "map_span_m": _num(self.map_span_m),
         }
 
 
@@ -115,6 +121,8 @@ def render_system(
         text = _render(path.read_text(encoding="utf-8"), fields, str(path))
     else:
         text = _render(_template("system.md"), fields, "system.md")
+    if config.map_image:
+        text += "\n\n" + _render(_template("map.md"), fields, "map.md")
     if config.structured:
         text += "\n\n" + _template("structured.md")
     return text

@@ -22,11 +22,12 @@ import numpy as np
 from PIL import Image
 
 from cavenav.actions import format_action
+from cavenav.cave_map import CaveMap
 from cavenav.errors import ActionError, BackendAuthError, BackendError, PilotFailure
 from cavenav.pilots.backends import Backend, Completion, Message, request_hash
 from cavenav.pilots.prompt import STRUCTURED_SCHEMA, PromptConfig, render_repair, render_system
 from cavenav.pilots.reply import parse_reply
-from cavenav.types import Decision, Observation, Usage
+from cavenav.types import Action, Decision, Observation, Usage
 
 __all__ = ["EncodedObservation", "Exchange", "VLMPilot", "build_messages", "png_data_url"]
 
@@ -130,12 +131,14 @@ def build_messages(
     current: EncodedObservation,
     history: list[EncodedObservation],
     detail: str | None = None,
+    map_view: tuple[str, str] | None = None,
 ) -> list[Message]:
     """OpenAI-format messages: system prompt, then one user turn with every image.
 
     Each observation is introduced by its sounder readings ("unknown" where not
     measured) and by what its images are; one without a depth image gets a sentence
-    saying so (`NO_DEPTH_TEXT`) in place of the image.
+    saying so (`NO_DEPTH_TEXT`) in place of the image. ``map_view`` is the pilot's map
+    as (a line of text, a picture's data URL), sent after the current images.
     """
     content: list[dict[str, Any]] = []
     for k, seen in enumerate(history):
@@ -145,10 +148,16 @@ def build_messages(
             *_introduce(seen, f"Earlier observation ({when})", detail),
             {"type": "text", "text": f"Action taken after it: {seen.action}"},
         ]
-    content += [
-        *_introduce(current, "Current observation", detail),
-        {"type": "text", "text": "Think step by step, then give the final one-pair dictionary."},
-    ]
+    content += _introduce(current, "Current observation", detail)
+    if map_view is not None:
+        words, url = map_view
+        content += [
+            {"type": "text", "text": f"Your map (heading up). {words}"},
+            _image(url, detail),
+        ]
+    content.append(
+        {"type": "text", "text": "Think step by step, then give the final one-pair dictionary."}
+    )
     return [{"role": "system", "content": system}, {"role": "user", "content": content}]
 
 
@@ -185,11 +194,18 @@ class VLMPilot:
         self._history: deque[EncodedObservation] = deque(maxlen=max(self.prompt.history, 0) or None)
         if self.prompt.history == 0:
             self._history = deque(maxlen=0)
+        # The map of `--map-image`: built from the observations, moved by the actions
+        # executed (or, when an observation does not say, the one this pilot chose).
+        self.map = CaveMap() if self.prompt.map_image else None
+        self._last: Action | None = None
         if check:
             backend.check()
 
     def reset(self) -> None:
         self._history.clear()
+        self._last = None
+        if self.map is not None:
+            self.map.reset()
 
     def _cost(self, prompt_tokens: int, completion_tokens: int) -> float | None:
         if self.price_per_mtok is None:
@@ -215,7 +231,12 @@ class VLMPilot:
             last = self._history[-1]
             self._history[-1] = replace(last, action=format_action(observation.previous_action))
         system = self._system_for(observation)
-        messages = build_messages(system, current, list(self._history), self.detail)
+        map_view = None
+        if self.map is not None:
+            self.map.update(observation, observation.previous_action or self._last)
+            span = self.prompt.map_span_m
+            map_view = (self.map.describe(), png_data_url(self.map.top_down(span_m=span)))
+        messages = build_messages(system, current, list(self._history), self.detail, map_view)
         schema = STRUCTURED_SCHEMA if self.prompt.structured else None
         exchanges: list[Exchange] = []
         reason = ""
@@ -237,6 +258,7 @@ class VLMPilot:
                 ]
                 continue
             exchanges.append(Exchange(list(messages), completion))
+            self._last = parsed.action
             self._history.append(
                 EncodedObservation(
                     current.rgb_url,
