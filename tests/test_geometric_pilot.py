@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import inspect
+import math
 
 import numpy as np
 import pytest
@@ -12,7 +13,7 @@ from cavenav.episode.loop import EpisodeConfig, run_episode
 from cavenav.pilots.base import Pilot
 from cavenav.pilots.geometric import GeometricPilot, GeometricPilotConfig
 from cavenav.sensors.rig import SensorRig
-from cavenav.types import Observation, Pose
+from cavenav.types import Action, Observation, Pose
 from cavenav.world.raycast import RayCaster
 from cavenav.world.scenarios import ExitPortal, Scenario
 
@@ -77,6 +78,21 @@ def test_boxed_in_it_searches_one_way_round_never_back_and_forth() -> None:
     turns = [pilot.decide(synthetic(1.0)).action.yaw_deg for _ in range(10)]
     assert all(turn == turns[0] for turn in turns) and turns[0] != 0
     assert abs(sum(turns)) >= 360
+
+
+def test_turning_back_and_forth_on_one_spot_becomes_a_one_way_search(monkeypatch) -> None:
+    # Hemmed in so that only its turns are carried out, it would turn toward the way on,
+    # overshoot and turn back for ever; six such turns in place start the search instead.
+    def turns_only(self, action: Action, cloud, tight: bool) -> tuple[Action, str]:
+        return Action(yaw_deg=action.yaw_deg), "hemmed in: turning only"
+
+    monkeypatch.setattr(GeometricPilot, "_keep_clear", turns_only)
+    pilot, heading, turns = GeometricPilot(), 0.0, []
+    for _ in range(16):
+        yaw = pilot.decide(observe((4, 14, 4), Pose(0, 0, 0, math.radians(heading)))).action.yaw_deg
+        heading += yaw
+        turns.append(yaw)
+    assert any(turns[i : i + 4] == [turns[i]] * 4 and abs(turns[i]) == 45 for i in range(10))
 
 
 def corridor(extents: tuple[float, float, float], start_y: float, exit_y: float) -> Scenario:
