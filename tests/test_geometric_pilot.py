@@ -89,7 +89,8 @@ def test_turning_back_and_forth_on_one_spot_becomes_a_one_way_search(monkeypatch
     monkeypatch.setattr(GeometricPilot, "_keep_clear", turns_only)
     pilot, heading, turns = GeometricPilot(), 0.0, []
     for _ in range(16):
-        yaw = pilot.decide(observe((4, 14, 4), Pose(0, 0, 0, math.radians(heading)))).action.yaw_deg
+        view = observe((4, 14, 4), Pose(0, 0, 0, math.radians(heading)))  # a wall 7 m ahead
+        yaw = pilot.decide(view).action.yaw_deg
         heading += yaw
         turns.append(yaw)
     assert any(turns[i : i + 4] == [turns[i]] * 4 and abs(turns[i]) == 45 for i in range(10))

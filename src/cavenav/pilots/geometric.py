@@ -413,7 +413,9 @@ class GeometricPilot:
             self._backing_out = False
             self._search_from, self._searched_deg = None, 0.0
             return follow(new[0], "the passage continues")
-        remembered = self._unexplored(half_view)
+        remembered, in_view = self._unexplored(scene, half_view)
+        if in_view is not None:
+            return follow(in_view, "an unexplored opening seen before continues")
         if remembered is not None:
             return turn(
                 self._turn_toward(remembered.bearing_deg),
@@ -469,21 +471,34 @@ class GeometricPilot:
             return True
         return not dead_ends_only and bool(self.map.visited(point[None])[0])
 
-    def _unexplored(self, half_view: float) -> Opening | None:
-        """The nearest-bearing opening the map remembers that leads somewhere new.
+    def _set_aside(self, point: np.ndarray) -> bool:
+        """Whether a map point lies in an opening found impassable."""
+        return any(np.linalg.norm(point - r) < 2.0 for r in self._rejected)
 
-        One that lies in view now while the view finds no way through it is impassable
-        (a crack too narrow for the body): it is set aside for good.
+    def _unexplored(
+        self, scene: _Scene, half_view: float
+    ) -> tuple[Opening | None, _ViewOpening | None]:
+        """The nearest-bearing opening the map remembers that leads somewhere new, and
+        the opening in view that continues it when it lies in view.
+
+        One that lies in view while the view finds no opening along it is impassable (a
+        crack too narrow for the body): it is set aside for good.
         """
         for opening in sorted(self.map.openings(), key=lambda o: abs(o.bearing_deg)):
             end = np.asarray(opening.end)
-            if self._explored(end) or any(np.linalg.norm(end - r) < 2.0 for r in self._rejected):
+            if self._explored(end) or self._set_aside(end):
                 continue
-            if abs(opening.bearing_deg) <= half_view - 5.0:
-                self._rejected.append(end)
-                continue
-            return opening
-        return None
+            if abs(opening.bearing_deg) > half_view - 5.0:
+                return opening, None
+            along = [
+                o
+                for o in scene.openings
+                if not o.visited and abs(o.bearing - opening.bearing_deg) <= 10.0
+            ]
+            if along:
+                return opening, along[0]
+            self._rejected.append(end)
+        return None, None
 
     def _keep_clear(self, action: Action, cloud: np.ndarray, tight: bool) -> tuple[Action, str]:
         """Shrink ``action`` until its move keeps a margin from every remembered surface:
@@ -496,10 +511,11 @@ class GeometricPilot:
         reach = 0.5 * math.hypot(body.length, body.width) + cfg.tight_margin_m
         margin = reach if tight else body.bounding_radius + cfg.margin_m
         # Already closer than that (a passage narrower than the margin): any move that
-        # brings the body no closer will do, down to the crawlway's margin.
+        # brings the body no closer will do, down to the crawlway's margin; nearer still
+        # (a wall it drifted to), only one that brings it no nearer at all.
         here = clearance_of_move(cloud, Action())
         if here < margin:
-            margin = max(reach, here - _CLOSER_TOLERANCE_M)
+            margin = max(reach, here - _CLOSER_TOLERANCE_M) if here >= reach else here - 1e-6
         candidates = [action]
         if action.right:
             candidates.append(replace(action, right=0.0))
