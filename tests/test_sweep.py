@@ -8,6 +8,7 @@ import os
 import signal
 import threading
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -96,6 +97,23 @@ def test_another_configuration_in_the_same_folder_is_refused(room: str, tmp_path
     (tmp_path / "other" / "notes.txt").write_text("mine")
     with pytest.raises(ConfigError, match="not empty and holds no sweep.json"):
         run_sweep(sweep(room), tmp_path / "other", InProcess())
+
+
+def test_a_sweep_begun_before_stuck_endings_resumes_with_the_options_it_was_flown_with(
+    room: str, tmp_path: Path
+) -> None:
+    # sweep.json as written before episodes could end stuck: 150 steps, no stuck_after.
+    out = tmp_path / "sweep"
+    old = SweepConfig((room,), (0,), steps=None, stuck_after=None, frames="none").to_dict()
+    old["episode"]["steps"] = 150
+    del old["episode"]["stuck_after"]
+    (out / "episodes").mkdir(parents=True)
+    (out / "sweep.json").write_text(json.dumps(old))
+    today = SweepConfig((room,), (0,), steps=None, stuck_after=50, frames="none")
+    with pytest.raises(ConfigError, match="add --stuck-after 0"):
+        run_sweep(today, out, InProcess())
+    rows = run_sweep(replace(today, stuck_after=None), out, InProcess())
+    assert len(rows) == 1
 
 
 def test_a_failing_episode_is_recorded_and_the_sweep_goes_on(room: str, tmp_path: Path) -> None:

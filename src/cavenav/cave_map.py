@@ -28,7 +28,7 @@ from cavenav.sensors.depth import denormalise_depth
 from cavenav.shield import sampling_stride
 from cavenav.types import Action, Observation
 
-__all__ = ["CaveMap", "MapConfig", "Opening"]
+__all__ = ["FREE", "OCCUPIED", "UNKNOWN", "CaveMap", "MapConfig", "Opening"]
 
 UNKNOWN, FREE, OCCUPIED = 0, 1, 2
 
@@ -330,7 +330,7 @@ class CaveMap:
     def describe(self) -> str:
         """One line for a prompt: distance flown and the openings known, new or not."""
         openings = self.openings()
-        new = [o for o in openings if not o.visited]
+        new = sorted((o for o in openings if not o.visited), key=lambda o: abs(o.bearing_deg))
         words = ", ".join(f"{_side(o.bearing_deg)} ({o.free_m:.0f} m)" for o in new[:4])
         return (
             f"Flown {self.travelled_m:.1f} m. Unexplored openings seen: {words or 'none'}; "

@@ -100,8 +100,10 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
     Episode: ``terminated`` when the vehicle passes an exit portal, leaves through the
     cave's entrance (a mesh scenario's ``[entrance]``: a failure, never success) or
     touches a surface (the whole swept move is checked; after a collision the vehicle
-    stays at its last safe pose); ``truncated`` only through Gymnasium's ``TimeLimit``
-    (150 steps when made with ``gymnasium.make``).
+    stays at its last safe pose); ``truncated`` only through wrappers: Gymnasium's
+    ``TimeLimit`` (150 steps when made with ``gymnasium.make``, whatever the scenario's
+    own ``step_budget``: pass ``max_episode_steps`` for the longer families) and
+    `cavenav.wrappers.StuckLimit` where you add it.
 
     Reward: metres made good toward the exit during the step, measured along the
     passage's centre line where the cave has one (procedural caves) and otherwise as the

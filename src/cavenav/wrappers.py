@@ -69,9 +69,9 @@ class SafetyShield(gym.Wrapper):
 class StuckLimit(gym.Wrapper):
     """Truncates an episode after ``steps`` steps in a row without headway.
 
-    Headway is `STUCK_PROGRESS_M` more progress toward the exit than ever before, or a
-    `GROUND_CELL_M` cube of the cave entered for the first time; turning on one spot,
-    going to and fro, or circling over old ground makes none. The step that ends it has
+    Headway is `STUCK_PROGRESS_M` more progress toward the exit than the best counted
+    before, or a `GROUND_CELL_M` cube of the cave entered for the first time; turning on
+    one spot, going to and fro, or circling over old ground makes none. The step that ends it has
     ``truncated`` and ``info["stuck"]`` true (false on every other step).
     """
 
@@ -80,6 +80,9 @@ class StuckLimit(gym.Wrapper):
         if steps < 1:
             raise ValueError(f"StuckLimit needs at least 1 step, got {steps}")
         self.steps = steps
+        self._best = 0.0  # the best progress counted as headway, metres
+        self._ground: set[tuple[int, int, int]] = set()  # the cubes entered
+        self._without_headway = 0
 
     def reset(self, **kwargs: Any) -> tuple[Any, dict[str, Any]]:
         obs, info = self.env.reset(**kwargs)

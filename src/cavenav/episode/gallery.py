@@ -40,14 +40,17 @@ class GalleryView:
 
 
 def passage_poses(
-    scenario: Scenario, count: int = 6, max_steps: int = 150, before_exit_m: float = 7.0
+    scenario: Scenario, count: int = 6, max_steps: int | None = None, before_exit_m: float = 7.0
 ) -> list[tuple[Pose, float]]:
     """``count`` poses evenly spaced along the geometric pilot's path, with their distances.
 
-    The path stops ``before_exit_m`` short of the exit, so the last view frames the opening.
+    The path stops ``before_exit_m`` short of the exit, so the last view frames the opening;
+    it gets ``max_steps`` steps, by default the scenario's budget.
     """
     flight = run_episode(
-        scenario, GeometricPilot(), EpisodeConfig(max_steps=max_steps, plots=False)
+        scenario,
+        GeometricPilot(),
+        EpisodeConfig(max_steps=max_steps, plots=False, stuck_after=None),
     )
     inside = [p for p in flight.poses if scenario.exit_distance(p.position) > before_exit_m]
     poses = inside or flight.poses[:1]

@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from cavenav import __version__
-from cavenav.episode.loop import EpisodeConfig, run_episode
+from cavenav.episode.loop import DEFAULT_STEPS, EpisodeConfig, run_episode
 from cavenav.episode.run_folder import prepare_root, write_json
 from cavenav.errors import ConfigError
 from cavenav.evaluation.results import episode_row, server_failed, write_results
@@ -131,17 +131,24 @@ class SweepConfig:
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> SweepConfig:
         """The configuration a sweep.json describes (compare, report, resumed sweeps)."""
-        pilot = data["pilot"]
+        pilot, episode = data["pilot"], data["episode"]
+        # A sweep begun before scenarios had budgets of their own and episodes could end
+        # stuck: its 150 steps are the budget every scenario it could fly now gets by
+        # default, and it never ended an episode stuck.
+        before_stuck_endings = "stuck_after" not in episode
+        steps = episode["steps"]
+        if before_stuck_endings and steps == DEFAULT_STEPS:
+            steps = None
         return cls(
             scenarios=tuple(data["scenarios"]),
             seeds=tuple(data["seeds"]),
             pilot=PilotSpec(
                 pilot["name"], VLMOptions(**pilot.get("options", {})), pilot.get("recording")
             ),
-            steps=data["episode"]["steps"],
-            stuck_after=data["episode"].get("stuck_after"),  # none before stuck endings
-            shield=data["episode"]["shield"],
-            frames=data["episode"]["frames"],
+            steps=steps,
+            stuck_after=None if before_stuck_endings else episode["stuck_after"],
+            shield=episode["shield"],
+            frames=episode["frames"],
             difficulty=data.get("difficulty", {}),
             sensors=data.get("sensors", {}),
         )
@@ -237,10 +244,15 @@ def prepare(config: SweepConfig, folder: Path) -> list[EpisodeJob]:
         # take the values it was flown with (no stuck endings, no map image).
         recorded = {**recorded, **SweepConfig.from_dict(recorded).to_dict()}
         if _identity(recorded) != _identity(wanted):
+            hint = (
+                " (it was flown without stuck endings: add --stuck-after 0)"
+                if recorded["episode"]["stuck_after"] is None and config.stuck_after
+                else ""
+            )
             raise ConfigError(
                 f"{folder} holds a sweep with another configuration "
                 f"({_first_difference(_identity(recorded), _identity(wanted))}); "
-                "re-run with the same options to resume it, or choose another --out"
+                f"re-run with the same options to resume it{hint}, or choose another --out"
             )
     elif folder.exists() and any(folder.iterdir()):
         raise ConfigError(f"{folder} is not empty and holds no sweep.json; choose another --out")
