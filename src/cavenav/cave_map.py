@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from cavenav.sensors.depth import denormalise_depth
+from cavenav.sensors.depth import denormalise_depth, pixel_slopes
 from cavenav.shield import sampling_stride
 from cavenav.types import Action, Observation
 
@@ -151,14 +151,13 @@ class CaveMap:
         h, w = obs.depth_png.shape
         s = sampling_stride(w, None, self.config.columns)
         depth = denormalise_depth(obs.depth_png[s // 2 :: s, s // 2 :: s], *obs.depth_range)
-        v, u = np.mgrid[s // 2 : h : s, s // 2 : w : s].astype(np.float64) + 0.5
-        focal = 0.5 * w / math.tan(math.radians(obs.hfov_deg) / 2)
+        leftward, upward = pixel_slopes((h, w), obs.hfov_deg, s, first=s // 2, dtype=np.float64)
         d_max = obs.depth_range[1]
         reach = np.minimum(depth, self.config.max_range_m).astype(np.float64)
         surface = (depth < 0.995 * d_max) & (depth <= self.config.max_range_m)
         camera = np.array([obs.camera_offset_m, 0.0, 0.0])
         ends = np.stack(
-            [camera[0] + reach, -(u - 0.5 * w) / focal * reach, -(v - 0.5 * h) / focal * reach],
+            [camera[0] + reach, leftward * reach, upward * reach],
             axis=-1,
         ).reshape(-1, 3)
         # The sounders: free up to the ceiling and the floor, and a surface at each (a

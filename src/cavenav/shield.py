@@ -33,7 +33,7 @@ import numpy as np
 
 from cavenav.actions import DEFAULT_SPACE, ActionSpace, format_action
 from cavenav.errors import ConfigError
-from cavenav.sensors.depth import denormalise_depth
+from cavenav.sensors.depth import denormalise_depth, pixel_slopes
 from cavenav.types import DEFAULT_RULES, Action, Observation, Rules, VehicleBody
 
 __all__ = [
@@ -211,13 +211,13 @@ class DepthMemory:
         focal = 0.5 * w / math.tan(math.radians(obs.hfov_deg) / 2)
         # Surface points at every s-th pixel, as the geometric pilot has always kept them.
         depth = denormalise_depth(obs.depth_png[::s, ::s], *obs.depth_range)
-        v, u = np.mgrid[0:h:s, 0:w:s].astype(np.float32) + 0.5
+        leftward, upward = pixel_slopes((h, w), obs.hfov_deg, s)
         keep = (depth < 0.995 * d_max) & (depth < self.max_range_m)
         points = np.stack(
             [
                 depth[keep] + obs.camera_offset_m,
-                (-(u - 0.5 * w) / focal * depth)[keep],
-                (-(v - 0.5 * h) / focal * depth)[keep],
+                (leftward * depth)[keep],
+                (upward * depth)[keep],
             ],
             axis=1,
         ).astype(np.float32)

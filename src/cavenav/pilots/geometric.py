@@ -39,7 +39,7 @@ from scipy import ndimage
 
 from cavenav.actions import DEFAULT_SPACE, ActionSpace, format_action
 from cavenav.cave_map import CaveMap, Opening
-from cavenav.sensors.depth import denormalise_depth
+from cavenav.sensors.depth import denormalise_depth, pixel_slopes
 from cavenav.shield import DepthMemory, clearance_of_move, sampling_stride
 from cavenav.types import DEFAULT_RULES, Action, Decision, Observation, Rules, VehicleBody
 
@@ -209,11 +209,8 @@ class GeometricPilot:
         stride = sampling_stride(w, cfg.stride, cfg.columns)
         depth = denormalise_depth(obs.depth_png[::stride, ::stride], *obs.depth_range)
         half_view = obs.hfov_deg / 2
-        focal = 0.5 * w / math.tan(math.radians(half_view))
-        v, u = np.mgrid[0:h:stride, 0:w:stride].astype(np.float32) + 0.5
-        forward = depth
-        left = -(u - 0.5 * w) / focal * depth
-        up = -(v - 0.5 * h) / focal * depth
+        leftward, upward = pixel_slopes((h, w), obs.hfov_deg, stride)
+        forward, left, up = depth, leftward * depth, upward * depth
         d_max = obs.depth_range[1]
         surface = depth < 0.995 * d_max  # no-hit pixels read as D_max and block nothing
 

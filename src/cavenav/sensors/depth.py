@@ -22,6 +22,7 @@ for two cores; HTJ2K, lossless and a third of the size, is an option (`EXR_COMPR
 
 from __future__ import annotations
 
+import math
 import zlib
 from pathlib import Path
 from typing import IO, Literal
@@ -33,6 +34,7 @@ __all__ = [
     "EXR_COMPRESSIONS",
     "denormalise_depth",
     "normalise_depth",
+    "pixel_slopes",
     "read_exr",
     "save_png",
     "write_exr",
@@ -57,6 +59,22 @@ def denormalise_depth(
 ) -> np.ndarray:
     """Inverse of `normalise_depth` up to 8-bit quantisation: (H, W) uint8 -> float32 metres."""
     return (d_min + depth_png.astype(np.float32) / 255.0 * (d_max - d_min)).astype(np.float32)
+
+
+def pixel_slopes(
+    shape: tuple[int, int],
+    hfov_deg: float,
+    stride: int,
+    first: int = 0,
+    dtype: type[np.floating] = np.float32,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Leftward and upward metres per metre of planar depth at every ``stride``-th pixel
+    of an (H, W) image from ``first``: multiplied by the depth there, a pixel's point in
+    the camera frame (forward, left, up), square pixels of a pinhole of ``hfov_deg``."""
+    h, w = shape
+    focal = 0.5 * w / math.tan(math.radians(hfov_deg) / 2)
+    v, u = np.mgrid[first:h:stride, first:w:stride].astype(dtype) + 0.5
+    return -(u - 0.5 * w) / focal, -(v - 0.5 * h) / focal
 
 
 ExrCompression = Literal["none", "zip", "htj2k"]
