@@ -22,8 +22,9 @@ at a time; what remains are two float32 arrays of the grid (field and noise).
 from __future__ import annotations
 
 import hashlib
+import math
 import os
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -34,7 +35,16 @@ from scipy.spatial import cKDTree
 from cavenav.files import write_then_rename
 from cavenav.world.mesh import CaveMesh, make_mesh
 
-__all__ = ["GENERATOR_VERSION", "Boulder", "Branch", "PassageSpec", "build_cave", "cache_dir"]
+__all__ = [
+    "GENERATOR_VERSION",
+    "Boulder",
+    "Branch",
+    "PassageSpec",
+    "build_cave",
+    "cache_dir",
+    "cpu_independent",
+    "gaussian_smooth",
+]
 
 # Bump whenever the generator's output changes, so cached meshes are rebuilt.
 GENERATOR_VERSION = 1
@@ -124,6 +134,42 @@ class PassageSpec:
             ).encode()
         )
         return h.hexdigest()[:16]
+
+
+def cpu_independent(function: Callable[[float], float], x: np.ndarray) -> np.ndarray:
+    """``function`` (``math.sin``, ``math.exp``, ...) of every element of ``x``, through the C
+    library rather than numpy's ufunc.
+
+    numpy picks its kernels by CPU: on a machine with AVX-512 its ``exp`` (and possibly
+    others in later releases) differs from the C library's in the last bits, and a seed
+    then draws a slightly different cave (another digest, another mesh). The C library's
+    answer does not depend on the SIMD level, and equals numpy's where numpy has no SIMD
+    kernel, so caves keep the digests they always had. Layout arrays are a few thousand
+    elements: this costs about a millisecond.
+
+    Returns:
+        float64 array of the shape of ``x``.
+    """
+    x = np.asarray(x, np.float64)
+    return np.fromiter(map(function, x.ravel().tolist()), np.float64, x.size).reshape(x.shape)
+
+
+def gaussian_smooth(values: np.ndarray, sigma: float) -> np.ndarray:
+    """``scipy.ndimage.gaussian_filter1d(values, sigma, mode="nearest")``, bit for bit where
+    numpy has no SIMD ``exp``, and the same on every CPU.
+
+    scipy computes the Gaussian's weights with numpy's ``exp``, which AVX-512 machines
+    compute differently in the last bits (see `cpu_independent`); the weights here come
+    from the C library, in scipy's own order of operations (a radius of 4 sigma).
+
+    Returns:
+        (n,) float64, ``values`` smoothed along their one axis.
+    """
+    radius = int(4.0 * float(sigma) + 0.5)
+    x = np.arange(-radius, radius + 1)
+    weights = cpu_independent(math.exp, -0.5 / (sigma * sigma) * x**2)
+    weights = weights / weights.sum()
+    return ndimage.correlate1d(values, weights[::-1], mode="nearest")
 
 
 def resample(points: np.ndarray, spacing: float) -> tuple[np.ndarray, np.ndarray]:

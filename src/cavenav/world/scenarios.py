@@ -25,14 +25,21 @@ from typing import Annotated, Any, Literal, TypeVar
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
-from scipy.ndimage import gaussian_filter1d
 from scipy.spatial import cKDTree
 
 from cavenav.errors import ConfigError, ScenarioError
 from cavenav.types import Pose
 from cavenav.world.collision import VehicleBody
 from cavenav.world.mesh import CaveMesh, check_units, load_mesh, sphere_directions
-from cavenav.world.procedural import Boulder, Branch, PassageSpec, build_cave, resample
+from cavenav.world.procedural import (
+    Boulder,
+    Branch,
+    PassageSpec,
+    build_cave,
+    cpu_independent,
+    gaussian_smooth,
+    resample,
+)
 from cavenav.world.raycast import RayCaster
 
 __all__ = [
@@ -358,14 +365,14 @@ def _smooth_noise(s: np.ndarray, wavelength: float, rng: np.random.Generator) ->
     values = rng.uniform(-1.0, 1.0, len(knots))
     curve = np.interp(s, knots, values)
     step = float(s[1] - s[0])
-    return gaussian_filter1d(curve, sigma=0.35 * wavelength / step, mode="nearest") * 1.6
+    return gaussian_smooth(curve, 0.35 * wavelength / step) * 1.6
 
 
 def _dips(s: np.ndarray, centres: list[float], depth: float, sigma: float = 1.6) -> np.ndarray:
     """Sum of Gaussian narrowings of ``depth`` metres centred at ``centres``."""
     out = np.zeros_like(s)
     for c in centres:
-        out = np.maximum(out, depth * np.exp(-0.5 * ((s - c) / sigma) ** 2))
+        out = np.maximum(out, depth * cpu_independent(math.exp, -0.5 * ((s - c) / sigma) ** 2))
     return out
 
 
@@ -387,7 +394,7 @@ def _straighten_ends(
     out = values.copy()
     out[s < 2.0] = head
     out[s > length - margin] = tail
-    return gaussian_filter1d(out, sigma=4, mode="nearest")
+    return gaussian_smooth(out, 4)
 
 
 def _winding(s: np.ndarray, heading: np.ndarray, length: float) -> tuple[np.ndarray, np.ndarray]:
@@ -396,11 +403,11 @@ def _winding(s: np.ndarray, heading: np.ndarray, length: float) -> tuple[np.ndar
     the axis the grid is cut across, over the last 8 m. The start is at the origin."""
     heading = _straighten_ends(s, heading, length)
     heading[s > length - 8] = 0.0
-    heading = gaussian_filter1d(heading, 6, mode="nearest")
+    heading = gaussian_smooth(heading, 6)
     heading[s > length - 3] = 0.0
     step = s[1] - s[0]
-    x = np.cumsum(np.sin(heading)) * step
-    y = -np.cumsum(np.cos(heading)) * step
+    x = np.cumsum(cpu_independent(math.sin, heading)) * step
+    y = -np.cumsum(cpu_independent(math.cos, heading)) * step
     return x - np.interp(0.0, s, x), y - np.interp(0.0, s, y)
 
 
@@ -465,9 +472,8 @@ def _layout_from_profiles(
 def _s1(rng: np.random.Generator, seed: int, knobs: Mapping[str, float]) -> _Layout:
     length = 55.0
     s = np.arange(-4.0, length + 4.0, 0.25)
-    x = _straighten_ends(
-        s, 1.6 * np.sin(2 * np.pi * s / rng.uniform(26, 34) + rng.uniform(0, 6.3)), length
-    )
+    phase = 2 * np.pi * s / rng.uniform(26, 34) + rng.uniform(0, 6.3)
+    x = _straighten_ends(s, 1.6 * cpu_independent(math.sin, phase), length)
     z = _straighten_ends(s, 0.5 * _smooth_noise(s, 12.0, rng), length)
     points = np.stack([x, -s, z], axis=1)
     necks = [c + rng.uniform(-2, 2) for c in (15.0, 29.0, 42.0)]
@@ -494,7 +500,7 @@ def _s2(rng: np.random.Generator, seed: int, knobs: Mapping[str, float]) -> _Lay
     # peak; larger undulations are steeper (see Difficulty).
     period = rng.uniform(30, 34)
     amplitude = knobs["undulation_m"] / 2
-    z = _straighten_ends(s, amplitude * np.sin(2 * np.pi * s / period), length)
+    z = _straighten_ends(s, amplitude * cpu_independent(math.sin, 2 * np.pi * s / period), length)
     points = np.stack([x, -s, z], axis=1)
     # Constrictions on the slopes, between a crest and a trough.
     necks = [period * (k / 2 + 0.5) + rng.uniform(-1.5, 1.5) for k in (0, 1)]
@@ -651,7 +657,9 @@ def _crawl(rng: np.random.Generator, seed: int, knobs: Mapping[str, float]) -> _
     s = np.arange(-4.0, length + 4.0, 0.25)
     # Meanders every 18-26 m, made irregular: the heading swings some 25 degrees either
     # way and never reaches 90 (at most 65), so the passage never doubles back on itself.
-    meander = 0.45 * np.sin(2 * np.pi * s / rng.uniform(18.0, 26.0) + rng.uniform(0, 2 * np.pi))
+    meander = 0.45 * cpu_independent(
+        math.sin, 2 * np.pi * s / rng.uniform(18.0, 26.0) + rng.uniform(0, 2 * np.pi)
+    )
     x, y = _winding(s, meander + 0.4 * _smooth_noise(s, 12.0, rng), length)
     z = _straighten_ends(s, 0.7 * _smooth_noise(s, 14.0, rng), length)
     points = np.stack([x, y, z], axis=1)
@@ -701,7 +709,7 @@ def _blind_tube(
     t = np.arange(0.0, length + 1e-9, 0.25)
     bend = math.copysign(rng.uniform(0.0, math.radians(25)), angle) * (t / length) ** 2
     heading = angle + bend
-    step = np.stack([np.cos(heading), np.sin(heading)], axis=1) * 0.25
+    step = np.stack([cpu_independent(f, heading) for f in (math.cos, math.sin)], axis=1) * 0.25
     ahead, aside = np.vstack([np.zeros(2), np.cumsum(step, axis=0)[:-1]]).T
     points = junction + ahead[:, None] * forward + aside[:, None] * left
     points[:, 2] += rng.uniform(-1.0, 1.0) * t / length  # a gentle slope up or down
@@ -799,7 +807,7 @@ def _maze(rng: np.random.Generator, seed: int, knobs: Mapping[str, float]) -> _L
 def _window(u: np.ndarray, start: float, end: float) -> np.ndarray:
     """1 between stations ``start`` and ``end``, 0 outside, eased over about 2 m."""
     box = ((u >= start) & (u <= end)).astype(float)
-    return gaussian_filter1d(box, sigma=2.0 / (u[1] - u[0]), mode="nearest")
+    return gaussian_smooth(box, 2.0 / (u[1] - u[0]))
 
 
 # The long cave's plan (metres along the passage): leg A runs along -y with constrictions
@@ -824,8 +832,9 @@ def _long_centreline(
     leg_b = _window(u, _LEG_B + 6, _LONG - 8)  # straight out of the bend and to the exit
     x = x + side * 1.5 * _smooth_noise(u, 14.0, rng) * leg_b
     period = rng.uniform(30.0, 34.0)
-    swing = np.where((u >= 35.0) & (u <= 35.0 + period), np.sin(2 * np.pi * (u - 35) / period), 0)
-    z = undulation / 2 * gaussian_filter1d(swing, 4, mode="nearest")
+    wave = cpu_independent(math.sin, 2 * np.pi * (u - 35) / period)
+    swing = np.where((u >= 35.0) & (u <= 35.0 + period), wave, 0)
+    z = undulation / 2 * gaussian_smooth(swing, 4)
     z = z + 1.0 * _smooth_noise(u, 11.0, rng) * leg_b
     return np.stack([x, y, z], axis=1), period
 
@@ -837,8 +846,8 @@ def _long(rng: np.random.Generator, seed: int, knobs: Mapping[str, float]) -> _L
     points, period = _long_centreline(rng, u, side, undulation)
     # Each stretch as wide and high as its family, eased into the next over a few metres.
     stretches = [u < 35, u < 70, u <= _LEG_A, u < _LEG_B]
-    base_w = gaussian_filter1d(np.select(stretches, [3.5, 3.2, 3.5, 2.9], 3.3), 8, mode="nearest")
-    base_h = gaussian_filter1d(np.select(stretches, [3.0, 2.9, 3.0, 2.7], 2.8), 8, mode="nearest")
+    base_w = gaussian_smooth(np.select(stretches, [3.5, 3.2, 3.5, 2.9], 3.3), 8)
+    base_h = gaussian_smooth(np.select(stretches, [3.0, 2.9, 3.0, 2.7], 2.8), 8)
     base_w = base_w + 0.7 * _smooth_noise(u, 9.0, rng) * (u >= _LEG_B)
     base_h = base_h + 0.3 * _smooth_noise(u, 9.0, rng) * (u >= _LEG_B)
     # Necks on the 0.25 m grid, where the stretch is flat: the narrowest is the knob's.
