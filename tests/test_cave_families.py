@@ -7,6 +7,7 @@ import math
 import os
 import subprocess
 import sys
+import warnings
 from dataclasses import replace
 
 import numpy as np
@@ -14,10 +15,11 @@ import pytest
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from cavenav.errors import ScenarioError
+from cavenav.errors import CavenavWarning, ScenarioError
 from cavenav.world import scenarios as scenarios_module
 from cavenav.world.collision import VehicleBody
 from cavenav.world.mesh import CaveMesh
+from cavenav.world.procedural import PassageSpec, build_cave
 from cavenav.world.raycast import RayCaster
 from cavenav.world.scenarios import (
     SCENARIOS,
@@ -318,3 +320,41 @@ def test_the_long_caves_knobs_reach_every_stretch() -> None:
     )
     radii = np.array([b.radii for b in harder.spec.boulders])
     assert np.allclose(radii, 1.5 * np.array([b.radii for b in plain.spec.boulders]))
+
+
+# ------------------------------------------------------------------ the mesh cache
+
+
+def _small_tube() -> PassageSpec:
+    """A straight 6 m tube, 2 m across, along -y: meshed in well under a second."""
+    y = -np.arange(0.0, 6.01, 0.25)
+    centreline = np.stack([np.zeros_like(y), y, np.zeros_like(y)], axis=1)
+    ones = np.ones(len(y))
+    return PassageSpec(centreline, ones, ones, exit_index=len(y) - 8, roughness=0.1, voxel=0.25)
+
+
+@pytest.mark.parametrize("damage", [b"", b"not a zip archive", b"PK\x03\x04 cut short"])
+def test_a_damaged_cached_cave_is_built_again_with_one_warning(
+    damage: bytes, tmp_path, monkeypatch
+) -> None:
+    monkeypatch.setenv("CAVENAV_CACHE", str(tmp_path))
+    fresh = build_cave(_small_tube(), "tube")
+    (cached,) = tmp_path.glob("tube-*.npz")
+    cached.write_bytes(damage)
+    with pytest.warns(CavenavWarning, match="is damaged.*building it again"):
+        rebuilt = build_cave(_small_tube(), "tube")
+    assert np.array_equal(rebuilt.vertices, fresh.vertices)
+    assert np.array_equal(rebuilt.faces, fresh.faces)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the file was written again, whole
+        again = build_cave(_small_tube(), "tube")
+    assert np.array_equal(again.vertices, fresh.vertices)
+
+
+def test_a_cache_that_cannot_be_written_still_gives_the_cave(tmp_path, monkeypatch) -> None:
+    blocked = tmp_path / "a file, not a folder"
+    blocked.write_text("")
+    monkeypatch.setenv("CAVENAV_CACHE", str(blocked / "cache"))
+    cave = build_cave(_small_tube(), "tube")
+    monkeypatch.setenv("CAVENAV_CACHE", str(tmp_path / "cache"))
+    assert np.array_equal(cave.vertices, build_cave(_small_tube(), "tube").vertices)

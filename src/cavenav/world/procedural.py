@@ -24,6 +24,8 @@ from __future__ import annotations
 import hashlib
 import math
 import os
+import warnings
+import zipfile
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -32,6 +34,7 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
+from cavenav.errors import CavenavWarning, MeshError
 from cavenav.files import write_then_rename
 from cavenav.world.mesh import CaveMesh, make_mesh
 
@@ -274,23 +277,45 @@ def _fractal_noise(shape: tuple[int, ...], voxel: float, rng: np.random.Generato
 
 
 def build_cave(spec: PassageSpec, name: str = "cave") -> CaveMesh:
-    """Generate the cave mesh for ``spec`` (cached on disk, see `cache_dir`)."""
+    """Generate the cave mesh for ``spec`` (cached on disk, see `cache_dir`).
+
+    A damaged cache file (a crash of another tool, a disk error) is built again, with one
+    `CavenavWarning`; a cache that cannot be written (read-only, full) is no error.
+    """
     cache = cache_dir() / f"{name}-{spec.digest()}.npz"
     if cache.is_file():
-        with np.load(cache) as data:
-            return make_mesh(data["vertices"], data["faces"], name)
-    mesh = _generate(spec, name)
-    cache.parent.mkdir(parents=True, exist_ok=True)
+        cached = _read_cached(cache, name)
+        if cached is not None:
+            return cached
+    generated = _generate(spec, name)
+    # Stored as float32: the mesh returned is that copy, so cold and warm runs agree.
+    vertices, faces = generated.vertices.astype(np.float32), generated.faces.astype(np.int32)
 
     def save(tmp: Path) -> None:
         with open(tmp, "wb") as out:  # np.savez would add ".npz" to a path
-            np.savez_compressed(
-                out, vertices=mesh.vertices.astype(np.float32), faces=mesh.faces.astype(np.int32)
-            )
+            np.savez_compressed(out, vertices=vertices, faces=faces)
 
-    write_then_rename(cache, save)
-    with np.load(cache) as data:  # the cached float32 copy, so cold and warm runs agree
-        return make_mesh(data["vertices"], data["faces"], name)
+    try:
+        cache.parent.mkdir(parents=True, exist_ok=True)
+        write_then_rename(cache, save)
+    except OSError:
+        pass
+    return make_mesh(vertices, faces, name)
+
+
+def _read_cached(path: Path, name: str) -> CaveMesh | None:
+    """The mesh cached at ``path``, or None (with a warning) when the file is damaged."""
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            return make_mesh(data["vertices"], data["faces"], name)
+    except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile, MeshError) as error:
+        reason = str(error).splitlines()[0] if str(error) else type(error).__name__
+        warnings.warn(
+            f"the cached cave {path} is damaged ({reason}): building it again",
+            CavenavWarning,
+            stacklevel=3,  # where the cave was asked for
+        )
+        return None
 
 
 def cache_dir() -> Path:
