@@ -1,5 +1,6 @@
 """The OpenAI backend against bad input and faults: deadlines, retries as the SDK makes
-them, bodies that are no reply, a key refused mid-run, and what the run folder keeps.
+them, bodies that are no reply, a server that is no OpenAI server at start, a key refused
+mid-run, and what the run folder keeps.
 
 Transport faults are played by a real HTTP server on 127.0.0.1 (tests/vlm_server.py);
 the retry policy by `httpx2.MockTransport` handlers with the sleep recorded, not slept.
@@ -31,6 +32,7 @@ from cavenav.pilots.vlm import VLMPilot
 from cavenav.types import Observation
 from cavenav.world.scenarios import load_scenario
 
+from .conftest import cavenav
 from .vlm_server import PROXY_PAGE, FakeVLM
 
 MESSAGES = [{"role": "user", "content": "Which way?"}]
@@ -297,6 +299,50 @@ def test_a_proxy_page_ends_the_episode_with_the_page_recorded(
     assert exchange["reply"] == PROXY_PAGE[:REPLY_CHARS]
     assert "gave up after 2 attempts" in exchange["rejected"]
     assert exchange["transport_retries"] == 1 and len(exchange["transport_errors"]) == 2
+
+
+# --------------------------------------------------------------------------- at start
+
+NO_MODEL_LISTS = {
+    "a proxy's page": ("text/html", PROXY_PAGE),
+    "a JSON list": ("application/json", '[{"id": "fake-vlm"}]'),
+    "an object without data": ("application/json", "{}"),
+    "data that is no list": ("application/json", '{"data": "fake-vlm"}'),
+    "an empty body": ("application/json", ""),
+    "plain text": ("text/plain", "It works!"),
+}
+
+
+@pytest.mark.parametrize("answer", NO_MODEL_LISTS.values(), ids=NO_MODEL_LISTS.keys())
+def test_a_server_whose_model_list_is_no_list_is_refused_at_start(
+    server: FakeVLM, answer: tuple[str, str]
+) -> None:
+    server.models_answer = answer
+    with pytest.raises(BackendUnavailable, match=r"is no OpenAI-compatible server") as caught:
+        real_backend(server).check()
+    message = str(caught.value)
+    assert f"GET /models answered HTTP 200 ({answer[0]}) with " in message
+    assert "check --base-url" in message and caught.value.exit_status == 2
+    assert server.requests == []  # refused before the first chat request
+
+
+def test_a_model_list_is_accepted_at_start(server: FakeVLM) -> None:
+    server.models_answer = ("application/json", '{"object": "list", "data": []}')
+    real_backend(server).check()
+
+
+def test_the_command_line_refuses_a_page_at_start_in_one_line_with_no_run_folder(
+    server: FakeVLM, tmp_path: Path
+) -> None:
+    server.models_answer = ("text/html", PROXY_PAGE)
+    done = cavenav(
+        "run", "S1", "--pilot", "vlm", "--base-url", server.base_url, "--model", "fake",
+        "--out", str(tmp_path / "runs"),
+    )  # fmt: skip
+    assert done.returncode == 2 and "Traceback" not in done.stderr, done.stderr
+    (line,) = done.stderr.strip().splitlines()
+    assert line.startswith(f"error: {server.base_url} is no OpenAI-compatible server")
+    assert not (tmp_path / "runs").exists() or not any((tmp_path / "runs").iterdir())
 
 
 # --------------------------------------------------------------------------- failures

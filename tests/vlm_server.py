@@ -4,8 +4,10 @@ Its replies are computed from the images it receives: it decodes the current dep
 from the request, chooses as the geometric pilot would, and phrases the answer the way
 models do (reasoning first, fenced or inline, single or double quotes, varied wording).
 Faults can be queued per request or switched on for good to exercise the failure paths:
-wrong replies, HTTP errors, a proxy's HTML page, a slow answer, and a reply dripped one
-byte at a time (headers at once, then a byte every `drip_s`).
+wrong replies, HTTP errors, a proxy's HTML page, a slow answer, a reply dripped one
+byte at a time (headers at once, then a byte every `drip_s`), and careless servers that
+echo the request's API key back (in an error body, a page or a reply). `GET /models` can
+be made to answer with something that is no model list (`models_answer`).
 """
 
 from __future__ import annotations
@@ -25,7 +27,10 @@ from PIL import Image
 from cavenav.pilots.geometric import GeometricPilot
 from cavenav.types import Action, Observation
 
-FAULTS = ("garbage", "two_keys", "out_of_set", "429", "500", "slow", "401", "html", "drip")
+FAULTS = (
+    "garbage", "two_keys", "out_of_set", "429", "500", "slow", "401", "html", "drip",
+    "echo_key_500", "echo_key_html", "echo_key_reply",
+)  # fmt: skip
 
 # What a proxy in front of a model server sends when the server is down: a 200 with a page,
 # longer than what a run folder keeps of it.
@@ -94,6 +99,8 @@ class FakeVLM:
         self.persistent_fault: str | None = None
         self.required_key = required_key
         self.requests: list[dict] = []
+        # What GET /models answers instead of the model list, as (content type, body).
+        self.models_answer: tuple[str, str] | None = None
         self.slow_s = 1.5
         self.drip_s = 2.0
         self._stopped = threading.Event()  # ends replies still dripping
@@ -158,13 +165,15 @@ class FakeVLM:
                 payload: dict | str,
                 headers: dict | None = None,
                 drip: bool = False,
+                content_type: str | None = None,
             ) -> None:
                 """A JSON payload (or a page, given as text); ``drip``: the body one byte
                 every `drip_s`, until the client hangs up or the server stops."""
                 html = isinstance(payload, str)
                 data = (payload if html else json.dumps(payload)).encode()
                 self.send_response(status)
-                self.send_header("content-type", "text/html" if html else "application/json")
+                kind = content_type or ("text/html" if html else "application/json")
+                self.send_header("content-type", kind)
                 self.send_header("content-length", str(len(data)))
                 for k, v in (headers or {}).items():
                     self.send_header(k, v)
@@ -193,6 +202,10 @@ class FakeVLM:
             def do_GET(self) -> None:  # noqa: N802 - http.server's naming
                 if not self._authorised():
                     return
+                if owner.models_answer is not None:
+                    content_type, text = owner.models_answer
+                    self._send(200, text, content_type=content_type)
+                    return
                 self._send(200, {"object": "list", "data": [{"id": "fake-vlm", "object": "model"}]})
 
             def do_POST(self) -> None:  # noqa: N802
@@ -213,6 +226,18 @@ class FakeVLM:
                 if fault == "html":
                     self._send(200, PROXY_PAGE)
                     return
+                # A careless server quoting the credentials it was sent: the header as is,
+                # or the key alone, as OpenAI's own "Incorrect API key provided" does.
+                authorization = self.headers.get("authorization", "")
+                key = authorization.removeprefix("Bearer ")
+                if fault == "echo_key_500":
+                    message = f"Incorrect API key provided: {key}. Upstream failed."
+                    self._send(500, {"error": {"message": message}})
+                    return
+                if fault == "echo_key_html":
+                    page = f"<!DOCTYPE html><pre>Authorization: {authorization}</pre>{PROXY_PAGE}"
+                    self._send(200, page)
+                    return
                 if fault == "slow":
                     time.sleep(owner.slow_s)  # longer than the client's timeout
                 if fault == "garbage":
@@ -223,6 +248,9 @@ class FakeVLM:
                     text = 'I will go ahead a bit.\n{"forward 0.3 m": "gap ahead"}'
                 elif fault == "drip":  # never read whole: its words do not matter
                     text = 'Slowly.\n{"forward 0.5 m": "open water"}'
+                elif fault == "echo_key_reply":  # a model that repeats its prompt's secrets
+                    with owner._lock:
+                        text = f"My key is {key}; {authorization}.\n{owner.answer(body)}"
                 else:
                     with owner._lock:
                         text = owner.answer(body)

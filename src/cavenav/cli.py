@@ -38,6 +38,7 @@ from rich.progress import (
 from rich.table import Table
 
 from cavenav.errors import CavenavError
+from cavenav.redaction import redact
 from cavenav.sensors.depth import DEPTH_RANGE_M, EXR_COMPRESSIONS
 
 app = typer.Typer(
@@ -1030,7 +1031,9 @@ def _print_summary(summary: dict) -> None:
     if summary.get("failure"):
         rows.append(("failure", summary["failure"]))
     for key, value in rows:
-        table.add_row(key, "-" if value is None else str(value))
+        # Escaped: a failure quoting a server or a reply ("[redacted]", "[/]") is text,
+        # not rich markup, which would swallow it or fail on it.
+        table.add_row(key, "-" if value is None else escape(str(value)))
     console.print(table)
 
 
@@ -1090,8 +1093,9 @@ def main() -> None:
     try:
         app()
     except CavenavError as exc:
-        # One line, even when the message quotes a model's multi-line reply.
-        message = " ".join(str(exc).split())
+        # One line, even when the message quotes a model's multi-line reply; no key in it,
+        # whatever a server echoed (backends redact already: this is the last guard).
+        message = redact(" ".join(str(exc).split()))
         errors.print(f"[red]error:[/] {escape(message)}", highlight=False)
         sys.exit(exc.exit_status)
     except KeyboardInterrupt:

@@ -35,6 +35,7 @@ import numpy as np
 
 from cavenav.errors import ConfigError, RecordingError
 from cavenav.files import write_then_rename
+from cavenav.redaction import redact
 from cavenav.sensors.depth import EXR_COMPRESSIONS, ExrCompression, save_png, write_exr
 from cavenav.types import Observation
 
@@ -134,8 +135,15 @@ def interrupts_deferred() -> Iterator[None]:
 
 
 def write_json(path: Path, data: Mapping[str, Any]) -> None:
-    """Atomically (re)write a JSON file; inf and NaN become null, numpy values plain."""
-    write_atomic(path, json.dumps(_finite(dict(data)), indent=2, default=_json_default) + "\n")
+    """Atomically (re)write a JSON file; inf and NaN become null, numpy values plain, API
+    keys redacted (`cavenav.redaction`)."""
+    write_atomic(path, _dumps(data, indent=2) + "\n")
+
+
+def _dumps(data: Mapping[str, Any], indent: int | None = None) -> str:
+    """One record as JSON, as every file of a run folder holds it: finite numbers, plain
+    values, and no credential, whatever a server or a model echoed into it."""
+    return json.dumps(redact(_finite(dict(data))), indent=indent, default=_json_default)
 
 
 def _json_default(value: Any) -> Any:
@@ -314,7 +322,7 @@ class RunFolder:
     def append_step(self, record: dict[str, Any]) -> None:
         """Append one line to steps.jsonl (a short write is a full disk: `_write_step`
         cuts the line back)."""
-        line = (json.dumps(_finite(record), default=_json_default) + "\n").encode()
+        line = (_dumps(record) + "\n").encode()
         if self._steps.write(line) != len(line):
             raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
 
@@ -388,7 +396,8 @@ class RunFolder:
 
         ``exchanges`` are the pilot's plain records (`Decision.exchanges`). Images are
         replaced by references to images/, stored once; the request carries no
-        credentials (keys live in the backend's HTTP headers, never in messages).
+        credentials (keys live in the backend's HTTP headers, never in messages), and any
+        a server echoed into a reply or an error is redacted.
         """
         lines = []
         for attempt, exchange in enumerate(exchanges):
@@ -398,7 +407,7 @@ class RunFolder:
                 **exchange,
                 "messages": [self._strip_images(m) for m in exchange["messages"]],
             }
-            lines.append(json.dumps(record) + "\n")
+            lines.append(_dumps(record) + "\n")
         with open(self.path / "exchanges.jsonl", "a", encoding="utf-8") as out:
             out.write("".join(lines))
 

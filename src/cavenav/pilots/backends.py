@@ -2,7 +2,9 @@
 local transformers model, with bounded retries, token accounting and an optional cache.
 
 Messages use the OpenAI chat format with images as PNG data URLs, so one request
-recorded in a run folder means the same thing to every backend.
+recorded in a run folder means the same thing to every backend. What a backend hands out
+(replies, errors, the bodies they carry) never holds an API key, whatever the server
+echoed: each public method is `redacting` (`cavenav.redaction`).
 """
 
 from __future__ import annotations
@@ -35,6 +37,7 @@ from cavenav.errors import (
     RateLimited,
 )
 from cavenav.files import write_then_rename
+from cavenav.redaction import redacting, register
 
 if TYPE_CHECKING:
     import openai
@@ -281,6 +284,7 @@ class OpenAIBackend:
                 f"no API key: set the environment variable {config.api_key_env} "
                 "(or point --base-url at a local server)"
             )
+        register(key)  # a server may echo it back: redacted from all we hand out
         self._openai = openai
         self._sleep, self._clock = sleep, clock
         # The deadline of the attempt this thread is making: sweeps share one backend
@@ -331,11 +335,15 @@ class OpenAIBackend:
             assert isinstance(response.stream, httpx2.SyncByteStream)  # a sync client
             response.stream = _DeadlineStream(response.stream, deadline, self._clock)
 
+    @redacting
     def check(self) -> None:
+        """Ask for the model list: a refused key, an unreachable server or one that is
+        no OpenAI server (a page, an empty or foreign body) is refused before the first
+        step. A server without /models, or failing now, is left to the first request."""
         openai = self._openai
         try:
             with self._until(self._clock() + self.config.budget_s):
-                self._client.with_options(max_retries=1).models.list()
+                raw = self._client.with_options(max_retries=1).models.with_raw_response.list()
         except (openai.AuthenticationError, openai.PermissionDeniedError) as exc:
             raise BackendAuthError(
                 f"{self._where()} refused the API key from ${self.config.api_key_env} "
@@ -347,10 +355,18 @@ class OpenAIBackend:
             raise BackendUnavailable(f"cannot reach {self._where()}: {exc}") from None
         except openai.APIStatusError:
             pass
+        else:
+            problem = _not_a_model_list(raw.http_response)
+            if problem:
+                raise BackendUnavailable(
+                    f"{self._where()} is no OpenAI-compatible server, or not up: GET /models "
+                    f"answered {problem}; check --base-url (a local server's ends in /v1)"
+                )
 
     def _where(self) -> str:
         return self.config.base_url or "api.openai.com"
 
+    @redacting
     def complete(self, messages: list[Message], json_schema: dict | None = None) -> Completion:
         """One reply, retried within the call's deadline.
 
@@ -435,6 +451,21 @@ def _short(exc: Exception) -> str:
     return str(exc).splitlines()[0][:200]
 
 
+def _not_a_model_list(response: httpx2.Response) -> str:
+    """What is wrong with a successful answer to GET /models, in words ("" if nothing):
+    an OpenAI-compatible server answers a JSON object whose "data" is a list."""
+    try:
+        listing: Any = response.json()
+    except ValueError:  # not JSON: a page, plain text, nothing
+        listing = None
+    if isinstance(listing, dict) and isinstance(listing.get("data"), list):
+        return ""
+    kind = response.headers.get("content-type", "no content type").split(";")[0]
+    body = response.text.strip()
+    quoted = repr(body[:100]) if body else "an empty body"
+    return f"HTTP {response.status_code} ({kind}) with {quoted}"
+
+
 # --------------------------------------------------------------------------- cache
 
 
@@ -455,6 +486,7 @@ class CachedBackend:
     def check(self) -> None:
         self.inner.check()
 
+    @redacting  # a reply cached before keys were redacted is served without its key
     def complete(self, messages: list[Message], json_schema: dict | None = None) -> Completion:
         params = {**getattr(self.inner, "params", {}), "schema": json_schema}
         path = self.directory / f"{request_hash(self.model, messages, params)}.json"
@@ -538,6 +570,7 @@ class TransformersBackend:
     def check(self) -> None:
         """Loading already proved the model usable."""
 
+    @redacting
     def complete(self, messages: list[Message], json_schema: dict | None = None) -> Completion:
         from PIL import Image
 
