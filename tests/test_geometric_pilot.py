@@ -7,13 +7,18 @@ import math
 
 import numpy as np
 import pytest
+import trimesh
 
-from cavenav.actions import DEFAULT_SPACE, parse_action
+from cavenav import kinematics
+from cavenav.actions import DEFAULT_SPACE, format_action, parse_action
 from cavenav.episode.loop import EpisodeConfig, run_episode
 from cavenav.pilots.base import Pilot
 from cavenav.pilots.geometric import GeometricPilot, GeometricPilotConfig
 from cavenav.sensors.rig import SensorRig
-from cavenav.types import Action, Observation, Pose
+from cavenav.shield import Shield
+from cavenav.types import Action, Observation, Pose, VehicleBody
+from cavenav.world.collision import swept_collision
+from cavenav.world.mesh import make_mesh
 from cavenav.world.raycast import RayCaster
 from cavenav.world.scenarios import ExitPortal, Scenario
 
@@ -83,7 +88,7 @@ def test_boxed_in_it_searches_one_way_round_never_back_and_forth() -> None:
 def test_turning_back_and_forth_on_one_spot_becomes_a_one_way_search(monkeypatch) -> None:
     # Hemmed in so that only its turns are carried out, it would turn toward the way on,
     # overshoot and turn back for ever; six such turns in place start the search instead.
-    def turns_only(self, action: Action, cloud, tight: bool) -> tuple[Action, str]:
+    def turns_only(self, action: Action, obs, cloud) -> tuple[Action, str]:
         return Action(yaw_deg=action.yaw_deg), "hemmed in: turning only"
 
     monkeypatch.setattr(GeometricPilot, "_keep_clear", turns_only)
@@ -147,3 +152,46 @@ def test_a_sampling_stride_below_one_is_refused_where_it_is_set(setting: dict) -
         GeometricPilotConfig(**setting)
     with pytest.raises(ConfigError, match="stride"):
         DepthMemory(**setting)
+
+
+def hall_with_a_rock_beside(rock_x: float) -> RayCaster:
+    """An 8 m wide hall along y, and a rock 0.6 m thick, 1.6 m long, standing at ``rock_x``."""
+    hall = trimesh.creation.box(extents=(8.0, 40.0, 6.0))
+    rock = trimesh.creation.box(extents=(0.6, 1.6, 2.0))
+    rock.apply_translation((rock_x, 0.0, 0.0))
+    both = trimesh.util.concatenate([hall, rock])
+    return RayCaster(make_mesh(both.vertices, both.faces, "hall-with-rock"))
+
+
+def test_a_rock_beside_it_out_of_view_is_never_strafed_into() -> None:
+    # The collision of the issue: the right wall 1.9 m away, inside the standoff; the left
+    # wall 6 m away, too far ahead to count; a rock 0.6 m to the left, beside the body and
+    # out of the 53-degree view. It once chose "forward 0.2 m, strafe left 0.5 m" ("away
+    # from the nearer wall") into the rock. Now it looks before it strafes.
+    caster = hall_with_a_rock_beside(rock_x=-1.2)
+    rig, pilot, pose = SensorRig(caster), GeometricPilot(), Pose(-2.1, 0.0, 0.0, 0.0)
+    actions = []
+    for _ in range(6):
+        action = pilot.decide(rig.observe(pose)).action
+        end = kinematics.apply(pose, action)
+        assert not swept_collision(caster, VehicleBody(), pose, end), format_action(action)
+        actions.append(action)
+        pose = end
+    assert actions[0] == Action(yaw_deg=90.0)  # to the left, to look at the side
+    assert actions[1] == Action(yaw_deg=-90.0)  # and back
+    assert all(a.right >= 0 for a in actions)  # having seen the rock, never toward it
+
+
+def test_every_move_it_makes_enters_only_space_it_has_seen_free() -> None:
+    # The same rule the shield judges by (cavenav.shield.move_hazard), from the same
+    # memory: flown past the rock, not one of its moves is something the shield refuses.
+    caster = hall_with_a_rock_beside(rock_x=-1.2)
+    rig, pilot, shield = SensorRig(caster), GeometricPilot(), Shield()
+    pose = Pose(-2.1, 0.0, 0.0, 0.0)
+    for _ in range(12):
+        observation = rig.observe(pose)
+        shield.observe(observation)
+        action = pilot.decide(observation).action
+        verdict = shield.judge(action)
+        assert "never seen free" not in verdict.reason and "surface seen" not in verdict.reason
+        pose = kinematics.apply(pose, action)

@@ -10,9 +10,10 @@ from cavenav.episode.loop import EpisodeConfig, run_episode
 from cavenav.pilots.geometric import GeometricPilot
 from cavenav.pilots.random_pilot import RandomPilot
 from cavenav.shield import DepthMemory, Shield, move_points
-from cavenav.types import Action, Observation
-from cavenav.world.scenarios import Scenario
+from cavenav.types import Action, Observation, Pose
+from cavenav.world.scenarios import ExitPortal, Scenario
 
+from .conftest import box_room
 from .conftest import synthetic_observation as seen
 
 
@@ -107,3 +108,38 @@ def test_a_move_that_slants_down_keeps_clear_of_the_floor_the_sounder_reads() ->
     verdict = judged("back 1 m, descend 0.64 m", *way_in, low_floor)
     assert verdict.intervened and "floor" in verdict.reason, verdict.reason
     assert verdict.action.up > -0.93 + 0.61
+
+
+def test_a_pinch_ahead_that_the_body_fits_through_is_no_obstacle() -> None:
+    # A wall 1.2 m ahead with a round hole 0.9 m across: the open corridor (the body's
+    # section plus 0.3 m) finds it blocked within 1.5 m, the crawlway's (plus 0.1 m, as
+    # the geometric pilot flies crawlways) passes. It once read every crawlway's pinch
+    # as an obstacle ahead and held the vehicle there.
+    rows, cols = np.mgrid[0:480, 0:640]
+    hole = np.hypot(rows - 239.5, cols - 319.5) < 0.45 / 1.2 * 640  # focal length 640 px
+    verdict = judged("forward 0.2 m, turn left 5 deg", seen(np.where(hole, np.inf, 1.2)))
+    assert not verdict.intervened, verdict.reason
+
+
+def test_the_shield_and_the_geometric_pilot_keep_one_set_of_margins() -> None:
+    from cavenav.pilots.geometric import GeometricPilotConfig
+    from cavenav.shield import Margins, ShieldConfig
+
+    assert GeometricPilotConfig().margins == ShieldConfig().margins == Margins()
+    assert GeometricPilotConfig().corridor_radius(tight=True) == pytest.approx(0.21 + 0.1, 0.01)
+
+
+@pytest.mark.slow
+def test_the_geometric_pilot_crawls_through_under_the_shield_untouched() -> None:
+    # 1.15 m square: too narrow for the open margin (0.61 m from every wall), wide enough
+    # for the crawlway's. The shield once stopped every step forward there.
+    cave = Scenario(
+        name="crawlway",
+        mesh=box_room(extents=(1.15, 12.0, 1.15)),
+        start=Pose(0.0, 5.0, 0.0, 0.0),
+        exits=(ExitPortal((0.0, -2.5, 0.0), (0.0, -1.0, 0.0), 3.0),),
+    )
+    config = EpisodeConfig(max_steps=150, save_frames=False, plots=False, shield=True)
+    result = run_episode(cave, GeometricPilot(), config)
+    assert result.termination == "exit", result.termination
+    assert result.summary["shield_interventions"] == 0

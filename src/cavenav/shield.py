@@ -10,11 +10,16 @@ a real BlueROV2. It enforces, with the numbers of `Rules` (SPEC section 3):
 2. Inside the standoff, forward motion of at most ``slow_forward_m[1]`` and only together
    with a turn or a lateral or vertical shift.
 3. No move passes within the body's radius plus a margin of a surface it has seen (or,
-   already closer than that, comes any closer to one); the ceiling and floor the
-   sounders read count as level planes near the vehicle.
+   already closer than that, comes more than a few centimetres closer to one); the
+   ceiling and floor the sounders read count as level planes near the vehicle.
 4. No move enters space that was never seen free: every point along the straight move,
    and the body's leading edge beyond its end, must lie in the view of a remembered depth
    image in front of the surface there, in the sounders' column, or inside the body.
+
+In a crawlway (a surface seen nearer than the full margin allows, or a pinch ahead that
+only the body's section plus a thin margin passes) rules 1 and 3 use the thin margins the
+geometric pilot flies crawlways with: `Margins` is the one definition both read, and
+`move_hazard` (rules 3 and 4) the one judgement both make of a move.
 
 A move that breaks a rule is replaced by the nearest action that keeps them all: its
 translations shrunk toward zero (inside the standoff also a 0.1 m shift away from the
@@ -38,12 +43,16 @@ from cavenav.types import DEFAULT_RULES, Action, Observation, Rules, VehicleBody
 
 __all__ = [
     "DepthMemory",
+    "Margins",
     "SeenFrame",
     "Shield",
     "ShieldConfig",
     "Verdict",
+    "crawlway_move",
+    "move_hazard",
     "move_points",
     "sampling_stride",
+    "unseen_point",
 ]
 
 
@@ -260,21 +269,173 @@ class DepthMemory:
 
 
 @dataclass(frozen=True)
+class Margins:
+    """Distances kept from surfaces seen: one definition that the safety shield and the
+    geometric pilot both judge moves by, so that the shield never stops the pilot for
+    doing what the pilot was built to do.
+
+    Attributes:
+        open_m: kept beyond the body's half-diagonal from every surface seen, and added to
+            the body's section for the corridor in which an obstacle counts as "ahead";
+            also how far in front of a surface space must lie to count as seen free.
+        crawlway_m: the same where ``open_m`` cannot be kept (a crawlway): beyond the
+            reach of the body's corners when it turns, beyond its section for a corridor,
+            and in front of a surface for space seen free.
+        closer_m: a move along a rough wall may pass this much nearer to it than where it
+            starts, once the body is already nearer than the margin.
+    """
+
+    open_m: float = 0.3
+    crawlway_m: float = 0.1
+    closer_m: float = 0.05
+
+    def corridor_m(self, body: VehicleBody, crawlway: bool) -> float:
+        """Radius of the corridor a forward move needs: the body's section plus a margin."""
+        section = 0.5 * math.hypot(body.width, body.height)
+        return section + (self.crawlway_m if crawlway else self.open_m)
+
+    def in_crawlway(self, cloud: np.ndarray, body: VehicleBody) -> bool:
+        """Whether a surface of ``cloud`` (n, 3) is already nearer than the open margin."""
+        return bool(len(cloud)) and float(np.linalg.norm(cloud, axis=1).min()) < (
+            body.bounding_radius + self.open_m
+        )
+
+    def keep_clear_m(self, body: VehicleBody, here_m: float, crawlway: bool) -> float:
+        """How near a move may pass to a surface seen, from ``here_m`` away now.
+
+        In the open the body's bounding radius plus ``open_m``; in a crawlway the reach of
+        its corners when it turns plus ``crawlway_m``. Already nearer than that, any move
+        that comes at most ``closer_m`` nearer, down to the crawlway's distance; nearer
+        still (a wall it drifted to), only one that comes no nearer at all.
+        """
+        reach = 0.5 * math.hypot(body.length, body.width) + self.crawlway_m
+        keep = reach if crawlway else body.bounding_radius + self.open_m
+        if here_m < keep:
+            keep = max(reach, here_m - self.closer_m) if here_m >= reach else here_m - 1e-6
+        return keep
+
+
+def free_ahead(cloud: np.ndarray, yaw_deg: float, camera_offset_m: float, radius: float) -> float:
+    """Distance from the camera to the nearest point of ``cloud`` (n, 3) in the horizontal
+    corridor of ``radius`` along the heading after turning ``yaw_deg``."""
+    if not len(cloud):
+        return math.inf
+    pts = cloud @ _yaw_matrix(-yaw_deg).T
+    along = pts[:, 0] - camera_offset_m
+    across = np.hypot(pts[:, 1], pts[:, 2])
+    blocking = (along > 0) & (across < radius)
+    return float(along[blocking].min()) if blocking.any() else math.inf
+
+
+def crawlway_move(
+    action: Action,
+    cloud: np.ndarray,
+    *,
+    body: VehicleBody,
+    margins: Margins,
+    camera_offset_m: float,
+    no_forward_m: float,
+) -> bool:
+    """Whether ``action`` is judged with the crawlway's margins: a surface of ``cloud``
+    is already nearer than the open margin, or the move goes forward into a pinch that
+    the open corridor finds blocked within ``no_forward_m`` and the crawlway's does not."""
+    if margins.in_crawlway(cloud, body):
+        return True
+    if action.forward <= 0:
+        return False
+    ahead = [
+        free_ahead(cloud, action.yaw_deg, camera_offset_m, margins.corridor_m(body, tight))
+        for tight in (False, True)
+    ]
+    return ahead[0] < no_forward_m <= ahead[1]
+
+
+def move_hazard(
+    action: Action,
+    cloud: np.ndarray,
+    memory: DepthMemory,
+    sounded: tuple[float, float],
+    *,
+    body: VehicleBody,
+    margins: Margins,
+    crawlway: bool,
+    sample_m: float = 0.1,
+) -> str:
+    """Why the straight move of ``action`` is unsafe by what was seen; "" when it is not.
+
+    The move must keep `Margins.keep_clear_m` from the surfaces ``cloud`` (n, 3) and from
+    the ceiling and floor the sounders read (``sounded``: d_top, d_bottom), taken as level
+    planes; and the centre's path and the body's leading edge beyond its end must lie in
+    space ``memory`` saw free, or in the sounders' column short of what they read. A side
+    or a depth never seen is no free space, however far the walls seen elsewhere are.
+    """
+    move = translation(action)
+    length = float(np.linalg.norm(move))
+    if length == 0.0:
+        return ""
+    here = float(np.linalg.norm(cloud, axis=1).min()) if len(cloud) else math.inf
+    keep = margins.keep_clear_m(body, here, crawlway)
+    if clearance_of_move(cloud, action) < keep - 1e-6:
+        return f"the move would pass within {keep:.2f} m of a surface seen"
+    d_top, d_bottom = sounded
+    for gap, rise, what in ((d_top, move[2], "ceiling"), (d_bottom, -move[2], "floor")):
+        keep = margins.keep_clear_m(body, gap, crawlway)
+        if rise > 0 and gap - rise < keep - 1e-6:
+            return f"the move would end within {keep:.2f} m of the {what} ({gap:.2f} m away)"
+    unseen = unseen_point(
+        action, memory, sounded, body=body, margins=margins, crawlway=crawlway, sample_m=sample_m
+    )
+    if unseen is None:
+        return ""
+    return f"the move would enter space never seen free ({_describe(unseen)} of the vehicle)"
+
+
+def unseen_point(
+    action: Action,
+    memory: DepthMemory,
+    sounded: tuple[float, float],
+    *,
+    body: VehicleBody,
+    margins: Margins,
+    crawlway: bool,
+    sample_m: float = 0.1,
+) -> np.ndarray | None:
+    """(3,) the first point, body frame, of the straight move of ``action`` (its centre's
+    path every ``sample_m``, and the body's leading edge beyond its end) that lies neither
+    in space ``memory`` saw free nor in the sounders' column short of what they read
+    (``sounded``: d_top, d_bottom); None when every point does."""
+    move = translation(action)
+    length = float(np.linalg.norm(move))
+    radius = body.bounding_radius
+    along = np.arange(sample_m, length + radius + 1e-6, sample_m) if length else np.empty(0)
+    points = ((along[:, None] / max(length, 1e-9)) * move)[along > radius]  # beyond the body
+    if not len(points):
+        return None
+    margin = margins.crawlway_m if crawlway else margins.open_m
+    d_top, d_bottom = sounded
+    beside = np.hypot(points[:, 0], points[:, 1]) <= 0.1  # the sounders' column
+    up = (points[:, 2] > 0) & (points[:, 2] + margin <= d_top)
+    down = (points[:, 2] < 0) & (-points[:, 2] + margin <= d_bottom)
+    known = memory.seen_free(points, margin) | (beside & (up | down))
+    return None if known.all() else points[int(np.argmin(known))]
+
+
+@dataclass(frozen=True)
 class ShieldConfig:
     """Numbers of the shield.
 
     Attributes:
         rules: the strategy's distances (standoff, no forward within).
         body: the vehicle; its bounding radius is the body's extent in every direction.
-        margin_m: distance kept beyond the body from every surface seen, and in front of
-            the surface for space to count as seen free.
+        margins: distances kept from surfaces seen, in the open and in a crawlway (the
+            geometric pilot's own), and in front of a surface for space seen free.
         memory_frames: depth images remembered, the current one included.
         sample_m: spacing of the points checked along a move.
     """
 
     rules: Rules = DEFAULT_RULES
     body: VehicleBody = field(default_factory=VehicleBody)
-    margin_m: float = 0.3
+    margins: Margins = field(default_factory=Margins)
     memory_frames: int = 8
     sample_m: float = 0.1
 
@@ -350,8 +511,17 @@ class Shield:
             return ""
         if action.yaw_deg and s.turn_room_m < s.turn_radius + 0.05:
             return f"a surface {s.turn_room_m:.2f} m beside the centre leaves no room to turn"
+        crawlway = crawlway_move(
+            action,
+            s.cloud,
+            body=cfg.body,
+            margins=cfg.margins,
+            camera_offset_m=s.camera_offset_m,
+            no_forward_m=rules.no_forward_within_m,
+        )
         if action.forward > 0:
-            ahead = s.free_ahead(action.yaw_deg)
+            corridor = cfg.margins.corridor_m(cfg.body, crawlway)
+            ahead = free_ahead(s.cloud, action.yaw_deg, s.camera_offset_m, corridor)
             if ahead < rules.no_forward_within_m:
                 return (
                     f"obstacle {ahead:.1f} m ahead, within {rules.no_forward_within_m:g} m: "
@@ -366,31 +536,16 @@ class Shield:
                     )
                 if not (action.yaw_deg or action.right or action.up):
                     return "inside the standoff, forward motion must come with a turn or a shift"
-        move = translation(action)
-        length = float(np.linalg.norm(move))
-        if length == 0.0:
-            return ""
-        required = min(s.radius + cfg.margin_m, s.nearest_surface_m)
-        if clearance_of_move(s.cloud, action) < required - 1e-6:
-            return f"the move would pass within {required:.2f} m of a surface seen"
-        for gap, rise, what in ((s.d_top, move[2], "ceiling"), (s.d_bottom, -move[2], "floor")):
-            keep = min(s.radius + cfg.margin_m, gap)
-            if rise > 0 and gap - rise < keep - 1e-6:
-                return f"the move would end within {keep:.2f} m of the {what} ({gap:.2f} m away)"
-        # The centre's path and the body's leading edge beyond its end must be seen free.
-        along = np.arange(cfg.sample_m, length + s.radius + 1e-6, cfg.sample_m)
-        points = (along[:, None] / length) * move
-        unknown = np.linalg.norm(points, axis=1) > s.radius
-        if unknown.any():
-            pts = points[unknown]
-            known = self.memory.seen_free(pts, cfg.margin_m) | s.in_sounder_column(pts)
-            if not known.all():
-                where = pts[int(np.argmin(known))]
-                return (
-                    "the move would enter space never seen free "
-                    f"({_describe(where)} of the vehicle)"
-                )
-        return ""
+        return move_hazard(
+            action,
+            s.cloud,
+            self.memory,
+            (s.d_top, s.d_bottom),
+            body=cfg.body,
+            margins=cfg.margins,
+            crawlway=crawlway,
+            sample_m=cfg.sample_m,
+        )
 
     def _candidates(self, proposed: Action, s: _Situation) -> list[Action]:
         """Admissible actions near ``proposed``, nearest first (hold excluded)."""
@@ -433,17 +588,13 @@ class _Situation:
     """What the shield measured for one observation (body frame, metres)."""
 
     cloud: np.ndarray  # remembered surface points within reach of any move
-    radius: float  # the body's bounding radius
     turn_radius: float  # how far the body's corners reach when it turns in place
     turn_room_m: float  # horizontal distance to the nearest surface at the body's height
-    nearest_surface_m: float  # nearest remembered surface point
     nearest_m: float  # the same, or the ceiling or floor if nearer
     away: Action  # a 0.1 m lateral or vertical shift away from the nearest surface
     d_top: float
     d_bottom: float
     camera_offset_m: float
-    corridor_m: float  # half-width of the corridor an obstacle "ahead" lies in
-    margin_m: float
 
     @classmethod
     def of(cls, obs: Observation, memory: DepthMemory, cfg: ShieldConfig) -> _Situation:
@@ -460,41 +611,20 @@ class _Situation:
             away = Action()
         # Moves reach at most ~2.3 m (1 m forward, 1 m sideways, 2 m up): farther points
         # cannot come within the margin, and the forward check looks 1.5 m beyond.
-        reach = 2.3 + cfg.rules.no_forward_within_m + cfg.body.bounding_radius + cfg.margin_m
+        reach = 2.3 + cfg.rules.no_forward_within_m + cfg.body.bounding_radius + cfg.margins.open_m
         body = cfg.body
         level = np.abs(cloud[:, 2]) <= body.height / 2 + 0.05
         beside = np.hypot(cloud[level, 0], cloud[level, 1])
         return cls(
             cloud=cloud[distance < reach],
-            radius=body.bounding_radius,
             turn_radius=0.5 * math.hypot(body.length, body.width),
             turn_room_m=float(beside.min()) if beside.size else math.inf,
-            nearest_surface_m=nearest_surface,
             nearest_m=min(nearest_surface, obs.d_top, obs.d_bottom),
             away=away,
             d_top=obs.d_top,
             d_bottom=obs.d_bottom,
             camera_offset_m=obs.camera_offset_m,
-            corridor_m=cfg.body.width / 2 + cfg.margin_m,
-            margin_m=cfg.margin_m,
         )
-
-    def free_ahead(self, yaw_deg: float) -> float:
-        """Distance from the camera to the nearest surface in the corridor of the new heading."""
-        if not len(self.cloud):
-            return math.inf
-        pts = self.cloud @ _yaw_matrix(-yaw_deg).T
-        along = pts[:, 0] - self.camera_offset_m
-        across = np.hypot(pts[:, 1], pts[:, 2])
-        blocking = (along > 0) & (across < self.corridor_m)
-        return float(along[blocking].min()) if blocking.any() else math.inf
-
-    def in_sounder_column(self, points: np.ndarray) -> np.ndarray:
-        """(n,) points straight above or below the centre, short of what the sounders read."""
-        beside = np.hypot(points[:, 0], points[:, 1]) <= 0.1
-        up = (points[:, 2] > 0) & (points[:, 2] + self.margin_m <= self.d_top)
-        down = (points[:, 2] < 0) & (-points[:, 2] + self.margin_m <= self.d_bottom)
-        return beside & (up | down)
 
 
 def _describe(point: np.ndarray) -> str:

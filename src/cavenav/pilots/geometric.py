@@ -21,10 +21,13 @@ the prompt's strategy (SPEC section 3), so it is the yardstick a VLM pilot must 
 4. Centre vertically between ceiling and floor, following the passage's slope ahead.
 5. Cap forward motion by the standoff rules: none within 1.5 m of an obstacle ahead,
    0.1-0.2 m (with a turn or a shift) below the 2.0 m standoff, otherwise 0.5-1.0 m.
-6. Shrink the move until it keeps its half-diagonal plus a margin from every surface in
-   the safety shield's memory of recent depth images (`cavenav.shield`: the same memory
-   and the same move clearance that ``--shield`` judges any pilot with); where the walls
-   are already nearer, a move that brings it no nearer, down to a crawlway's margin.
+6. Shrink the move until it is safe by the safety shield's own judgement of a move
+   (`cavenav.shield.move_hazard`, from the same memory of recent depth images that
+   ``--shield`` judges any pilot with, and the same `Margins`): its half-diagonal plus a
+   margin from every surface seen (where the walls are already nearer, a move that brings
+   it no nearer, down to a crawlway's margin), clear of the ceiling and floor the
+   sounders read, and into no space it has not seen free. A sideways shift toward a side
+   never seen is made only after turning to look at it, and turning back.
 """
 
 from __future__ import annotations
@@ -40,7 +43,14 @@ from scipy import ndimage
 from cavenav.actions import DEFAULT_SPACE, ActionSpace, format_action
 from cavenav.cave_map import CaveMap, Opening
 from cavenav.sensors.depth import denormalise_depth, pixel_slopes
-from cavenav.shield import DepthMemory, clearance_of_move, sampling_stride
+from cavenav.shield import (
+    DepthMemory,
+    Margins,
+    crawlway_move,
+    move_hazard,
+    sampling_stride,
+    unseen_point,
+)
 from cavenav.types import DEFAULT_RULES, Action, Decision, Observation, Rules, VehicleBody
 
 __all__ = ["GeometricPilot", "GeometricPilotConfig"]
@@ -49,8 +59,6 @@ __all__ = ["GeometricPilot", "GeometricPilotConfig"]
 # 41-degree vertical view (left and up positive).
 _BEARINGS = np.arange(-25.0, 25.01, 2.5)
 _ELEVATIONS = np.arange(-18.0, 18.01, 3.0)
-# A move along a rough wall may pass this much closer to it than where it starts.
-_CLOSER_TOLERANCE_M = 0.05
 # This many turns in place in a row that add up to less than a search's turn are
 # dithering between two headings it cannot take: it searches instead.
 _DITHER_STEPS = 6
@@ -93,11 +101,13 @@ class GeometricPilotConfig:
 
     Attributes:
         rules: standoff, no-forward distance and the forward step inside the standoff.
-        corridor_margin_m: how much wider than the body's section (its half-diagonal
-            across, 0.21 m) the corridor tested along a bearing is: room for rough walls.
-        tight_margin_m: the thinner margin of a crawlway, read where no corridor of the
-            full margin leads anywhere new or a surface is nearer than ``margin_m``
-            allows; moves there keep this margin from every surface too.
+        margins: the safety shield's margins (`cavenav.shield.Margins`), one definition
+            for both. ``open_m`` (0.3 m) widens the corridor tested along a bearing
+            beyond the body's section (its half-diagonal across, 0.21 m), room for rough
+            walls, and is kept beyond the body's half-diagonal from every surface;
+            ``crawlway_m`` (0.1 m) is the thinner margin of a crawlway, read where no
+            corridor of the open margin leads anywhere new or a surface is nearer than
+            the open margin allows; moves there keep it from every surface too.
         open_range_m: a bearing free this far counts as the passage's continuation.
         stride: use every n-th pixel of the depth image; None follows the image's
             width to keep about `columns` of them: 5 at 640x480 (128x96 points), 2 at
@@ -109,26 +119,22 @@ class GeometricPilotConfig:
             by the actions the vehicle executed, to know the walls beside it that are out
             of view (the safety shield's memory: one piece of code serves both).
         body: the vehicle, whose half-diagonal every move keeps from remembered surfaces.
-        margin_m: extra distance every move keeps from remembered surfaces.
     """
 
     rules: Rules = DEFAULT_RULES
-    corridor_margin_m: float = 0.3
-    tight_margin_m: float = 0.1
+    margins: Margins = field(default_factory=Margins)
     open_range_m: float = 8.0
     stride: int | None = None
     columns: int = 128
     memory_frames: int = 8
     body: VehicleBody = field(default_factory=VehicleBody)
-    margin_m: float = 0.3
 
     def __post_init__(self) -> None:
         sampling_stride(640, self.stride, self.columns)  # refuse a bad setting here
 
     def corridor_radius(self, tight: bool = False) -> float:
         """Radius of the corridor tested along a bearing: the body's section plus a margin."""
-        section = 0.5 * math.hypot(self.body.width, self.body.height)
-        return section + (self.tight_margin_m if tight else self.corridor_margin_m)
+        return self.margins.corridor_m(self.body, tight)
 
 
 @dataclass(frozen=True)
@@ -154,6 +160,7 @@ class _Scene:
     nearest_m: float  # nearest remembered surface point beside or ahead, from the centre
     nearest_left: bool  # whether it lies to the left
     cloud: np.ndarray  # (n, 3) remembered surface points, body frame
+    crawling: bool  # a surface is nearer than the open margin allows
     beside_m: float  # sideways distance of the nearer wall over the next 2 m
     left_offset_m: float  # sideways distance of the walls beside and up to 8 m ahead
     right_offset_m: float
@@ -199,6 +206,8 @@ class GeometricPilot:
         self._backing_out = False  # a dead end was searched all round: going back
         self._dead_ends: list[np.ndarray] = []  # map positions of dead ends found
         self._rejected: list[np.ndarray] = []  # remembered openings found impassable
+        self._look_back = 0.0  # the turn back after turning to look at a side, if any
+        self._looked_from: np.ndarray | None = None  # map position of the last look
         self.memory.reset()
         self.map.reset()
 
@@ -237,9 +246,7 @@ class GeometricPilot:
         # In a crawlway (a surface nearer than the full keep-clear margin) the full
         # corridor fits nowhere but along the axis, and a slight offset reads it blocked:
         # only the thin margin's corridors tell the way on.
-        crawling = bool(len(cloud)) and float(np.linalg.norm(cloud, axis=1).min()) < (
-            cfg.body.bounding_radius + cfg.margin_m
-        )
+        crawling = cfg.margins.in_crawlway(cloud, cfg.body)
         if crawling or all(o.visited for o in openings):
             tight_free = free_for(True)
             tight_openings = self._openings(tight_free, obs.camera_offset_m, tight=True)
@@ -251,7 +258,7 @@ class GeometricPilot:
         slope = math.tan(math.radians(elevation))
         at_height = (
             np.abs(cloud[:, 2] - slope * np.maximum(cloud[:, 0], 0.0))
-            < 0.5 * cfg.body.height + cfg.corridor_margin_m + 0.3
+            < 0.5 * cfg.body.height + cfg.margins.open_m + 0.3
         )
         beside = at_height & (cloud[:, 0] > -1.5) & (cloud[:, 0] < 8.0)
         # Ahead, not beside: nearer the axis than a crawlway's corridor, beyond the bow.
@@ -290,6 +297,7 @@ class GeometricPilot:
             nearest_m=float(distance[nearest]) if nearest >= 0 else d_max,
             nearest_left=bool(cloud[nearest, 1] > 0) if nearest >= 0 else True,
             cloud=cloud,
+            crawling=crawling,
             beside_m=min(beside_now),
             left_offset_m=left_offset,
             right_offset_m=right_offset,
@@ -394,6 +402,11 @@ class GeometricPilot:
         def turn(yaw: float, situation: str) -> _Heading:
             return _Heading(yaw, 0.0, 0.0, False, situation)
 
+        if self._look_back:
+            side = "left" if self._look_back < 0 else "right"
+            yaw, self._look_back = self._look_back, 0.0
+            return turn(yaw, f"looked at the {side} side; turning back to the way on")
+
         if self._dithering() and self._search_from is None:
             self._start_search(scene)  # look round for a way it can take
             self._recent.clear()
@@ -497,42 +510,84 @@ class GeometricPilot:
             self._rejected.append(end)
         return None, None
 
-    def _keep_clear(self, action: Action, cloud: np.ndarray, tight: bool) -> tuple[Action, str]:
-        """Shrink ``action`` until its move keeps a margin from every remembered surface:
-        the body's half-diagonal plus ``margin_m``, or in a crawlway the reach of its
-        corners when it turns plus ``tight_margin_m``.
+    def _hazard(self, action: Action, obs: Observation, cloud: np.ndarray) -> str:
+        """Why the move of ``action`` is unsafe by the shield's own judgement of a move,
+        from the shield's memory and margins; "" when it is safe."""
+        cfg = self.config
+        crawlway = crawlway_move(
+            action,
+            cloud,
+            body=cfg.body,
+            margins=cfg.margins,
+            camera_offset_m=obs.camera_offset_m,
+            no_forward_m=cfg.rules.no_forward_within_m,
+        )
+        return move_hazard(
+            action,
+            cloud,
+            self.memory,
+            (obs.d_top, obs.d_bottom),
+            body=cfg.body,
+            margins=cfg.margins,
+            crawlway=crawlway,
+        )
+
+    def _keep_clear(
+        self, action: Action, obs: Observation, cloud: np.ndarray
+    ) -> tuple[Action, str]:
+        """Shrink ``action`` until its move is safe (`_hazard`): the sideways shift dropped
+        first, then the forward step shortened (a climb or a descent straight up or down
+        stays in the sounders' column, seen free), then the vertical shift dropped too; a
+        turn in place is always left.
 
         Returns the action to take and, if it had to be changed, why.
         """
-        cfg, body = self.config, self.config.body
-        reach = 0.5 * math.hypot(body.length, body.width) + cfg.tight_margin_m
-        margin = reach if tight else body.bounding_radius + cfg.margin_m
-        # Already closer than that (a passage narrower than the margin): any move that
-        # brings the body no closer will do, down to the crawlway's margin; nearer still
-        # (a wall it drifted to), only one that brings it no nearer at all.
-        here = clearance_of_move(cloud, Action())
-        if here < margin:
-            margin = max(reach, here - _CLOSER_TOLERANCE_M) if here >= reach else here - 1e-6
-        candidates = [action]
-        if action.right:
-            candidates.append(replace(action, right=0.0))
-        for forward in (0.5, 0.2, 0.1, 0.0):
-            if forward < action.forward:
-                candidates.append(replace(action, right=0.0, forward=forward))
-        candidates.append(replace(action, right=0.0, forward=0.0, up=0.0))
-        for k, candidate in enumerate(candidates):
-            if clearance_of_move(cloud, candidate) >= margin:
-                return candidate, "" if k == 0 else (
-                    f"the move would pass within {margin:.2f} m of a remembered surface, "
-                    f"so it becomes '{format_action(candidate)}'"
-                )
-        return candidates[-1], "boxed in: turning in place only"
+        shorter = [f for f in (0.5, 0.2, 0.1, 0.0) if f < action.forward]
+        candidates = [action, replace(action, right=0.0)]
+        candidates += [replace(action, right=0.0, forward=f) for f in shorter]
+        candidates += [replace(action, right=0.0, up=0.0, forward=f) for f in shorter]
+        candidates.append(Action(yaw_deg=action.yaw_deg))
+        why = self._hazard(action, obs, cloud)
+        if not why:
+            return action, ""
+        for candidate in candidates[1:]:
+            if not self._hazard(candidate, obs, cloud):
+                return candidate, f"{why}, so it becomes '{format_action(candidate)}'"
+        return candidates[-1], f"{why}: turning in place only"
+
+    def _unseen(self, action: Action, obs: Observation) -> bool:
+        """Whether the move of ``action`` enters space the memory never saw free."""
+        cfg = self.config
+        sounded = (obs.d_top, obs.d_bottom)
+        return (
+            unseen_point(
+                action, self.memory, sounded, body=cfg.body, margins=cfg.margins, crawlway=False
+            )
+            is not None
+        )
+
+    def _look_first(self, right: float, obs: Observation, scene: _Scene) -> float:
+        """The turn to look at the side a sideways shift of ``right`` would enter, when
+        that side was never seen free (0 when it was, or when a look cannot help)."""
+        if not right or scene.crawling:  # in a crawlway the turn itself has no room
+            return 0.0
+        if self._looked_from is not None and (
+            np.linalg.norm(self.map.position - self._looked_from) < 0.5
+        ):
+            return 0.0  # it looked from here already: what stays unseen stays unknown
+        if not self._unseen(Action(right=right), obs):
+            return 0.0
+        look = max(y for y in self.space.yaw_deg if y <= 90.0)
+        return look if right < 0 else -look
 
     def decide(self, observation: Observation) -> Decision:
         cfg = self.config
         rules = cfg.rules
         half_view = observation.hfov_deg / 2
         scene = self._measure(observation)
+        executed = observation.previous_action
+        if self._look_back and executed is not None and executed.yaw_deg != -self._look_back:
+            self._look_back = 0.0  # the look was not made as chosen: nothing to turn back
         d_top, d_bottom = observation.d_top, observation.d_bottom
         heading = self._heading(scene, half_view)
         yaw, elevation, target_free = heading.yaw, heading.elevation, heading.target_free
@@ -567,8 +622,8 @@ class GeometricPilot:
 
         # Lateral: shift away from a wall seen closer than the standoff when the other
         # side has more room (0.2 m more: back to the middle, where the standoff may hold
-        # again); never toward a side whose wall is out of view.
-        right = 0.0
+        # again); a side out of view that was never seen free is looked at first.
+        right = look = 0.0
         left_is_nearer = scene.left_offset_m < scene.right_offset_m
         near_offset = min(scene.left_offset_m, scene.right_offset_m)
         gap = abs(scene.left_offset_m - scene.right_offset_m)
@@ -579,22 +634,42 @@ class GeometricPilot:
             wanted = 0.5 if gap > 2.0 else 0.2 if gap > 1.0 else 0.1
             magnitude = max((m for m in self.space.lateral_m if m <= min(wanted, room)), default=0)
             right = magnitude if left_is_nearer else -magnitude
+            look = self._look_first(right, observation, scene)
         # Below the standoff, forward motion must come with a turn or a shift: in a
-        # crawlway a 5-degree turn, which costs no room, elsewhere a shift away from the
-        # nearer wall.
+        # crawlway, or where the side it would shift to was never seen, a 5-degree turn,
+        # which costs no room; elsewhere a shift away from the nearer wall.
         if forward > 0 and nearest < rules.standoff_m and not (yaw or right or up):
-            if heading.tight:
+            shift = 0.1 if left_is_nearer else -0.1
+            if heading.tight or self._unseen(Action(right=shift), observation):
                 yaw = -5.0 if scene.right_room_m >= scene.left_room_m else 5.0
             else:
-                right = 0.1 if left_is_nearer else -0.1
+                right = shift
         if not (forward or right or up or yaw):  # never idle: look for a way on
             yaw = 20.0 if scene.left_room_m >= scene.right_room_m else -20.0
+        if look:
+            side = "left" if right < 0 else "right"
+            constraint += (
+                f"; the {side} side was never seen free: turning to look before moving to it"
+            )
+            self._look_back, self._looked_from = -look, self.map.position.copy()
+            forward, right, up, yaw = 0.0, 0.0, 0.0, look
 
         action, shielded = self._keep_clear(
-            Action(forward=forward, right=right, up=up, yaw_deg=yaw), scene.cloud, heading.tight
+            Action(forward=forward, right=right, up=up, yaw_deg=yaw), observation, scene.cloud
         )
         if shielded:
             constraint += f"; {shielded}"
+        if (
+            action.forward
+            and nearest < rules.standoff_m
+            and not (action.yaw_deg or action.right or action.up)
+        ):
+            # The shift that came with it was refused: a 5-degree turn instead, as the
+            # standoff asks, toward the roomier side.
+            turn = 5.0 if scene.left_room_m >= scene.right_room_m else -5.0
+            action = replace(action, yaw_deg=turn)
+            if self._hazard(action, observation, scene.cloud):
+                action = Action(yaw_deg=turn)
         action = self.space.validate(action)
         yaw, up, right = action.yaw_deg, action.up, action.right
         self._last = action
