@@ -8,6 +8,7 @@ import shutil
 import subprocess
 import sys
 import tempfile
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -83,6 +84,27 @@ def write_room(folder: Path, start_y: float = 8.0) -> Path:
         "[[exit]]\npoint = [0.0, -6.0, 0.0]\nnormal = [0.0, -1.0, 0.0]\nradius = 3.0\n"
     )
     return path
+
+
+@pytest.fixture
+def read_only_folder(tmp_path: Path) -> Iterator[Path]:
+    """An empty folder nobody can write into, root included (CI runs as root, who writes
+    through a folder's permission bits): a read-only tmpfs mounted there as root, the
+    permission bits otherwise."""
+    folder = tmp_path / "read-only"
+    folder.mkdir()
+    if os.geteuid() != 0:
+        folder.chmod(0o555)
+        yield folder
+        folder.chmod(0o755)
+        return
+    mount = ["mount", "-t", "tmpfs", "-o", "ro,size=64k", "tmpfs", str(folder)]
+    if subprocess.run(mount, capture_output=True).returncode != 0:
+        pytest.fail(f"as root, a read-only folder is a read-only mount, and {mount} failed")
+    try:
+        yield folder
+    finally:
+        subprocess.run(["umount", str(folder)], check=True)
 
 
 @pytest.fixture
