@@ -8,6 +8,9 @@ import gymnasium as gym
 import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
+from hypothesis import given
+from hypothesis import strategies as st
+from hypothesis.extra import numpy as hnp
 
 import cavenav  # noqa: F401 - registers cavenav/CaveNav-v0
 from cavenav.env import CaveNavEnv, snap_action
@@ -145,6 +148,70 @@ def test_action_vectors_snap_to_the_nearest_admissible_values(vector, expected) 
 def test_a_vector_that_is_not_four_finite_numbers_is_rejected() -> None:
     with pytest.raises(ActionError, match="4 finite numbers"):
         snap_action(np.array([0.0, np.nan, 0.0, 0.0]))
+
+
+def test_a_huge_but_finite_vector_snaps_to_the_largest_magnitudes() -> None:
+    """Not to a hold: beyond 1e17 every candidate is one float away from the value."""
+    assert snap_action(np.array([1e40, -1e300, 1e40, -1e300])) == Action(1.0, -1.0, 2.0, -180.0)
+
+
+# Whatever a policy or a script hands to step: numbers, text, containers, arrays of every
+# dtype and shape, Actions holding anything, plain objects.
+_scalars = st.one_of(
+    st.none(), st.booleans(), st.integers(), st.floats(), st.complex_numbers(),
+    st.text(max_size=6), st.binary(max_size=6), st.decimals(), st.fractions(), st.builds(object),
+)  # fmt: skip
+_anything = st.recursive(
+    _scalars,
+    lambda inner: st.one_of(
+        st.lists(inner, max_size=5),
+        st.tuples(inner, inner, inner, inner),
+        st.dictionaries(st.text(max_size=3), inner, max_size=3),
+    ),
+    max_leaves=12,
+)
+_actions = st.one_of(
+    _anything,
+    hnp.arrays(hnp.scalar_dtypes(), hnp.array_shapes(min_dims=0, max_dims=2, max_side=5)),
+    st.lists(st.floats(-3, 3), min_size=4, max_size=4),  # near the admissible ones
+    st.builds(Action, _anything, _anything, _anything, _anything),
+)
+
+
+@pytest.mark.parametrize("action_format", ["vector", "text"])
+@given(action=_actions)
+def test_every_action_whatever_its_type_is_admissible_or_a_hold_that_says_why(
+    action_format: str, action: object
+) -> None:
+    env = CaveNavEnv("S1", action_format=action_format)  # no cave is built before reset
+    command, why = env.command(action)
+    if why is None:
+        assert env.space.is_valid(command)
+    else:
+        assert command == Action() and why
+
+
+@pytest.mark.parametrize(
+    "action",
+    [
+        np.array(["forward", "0", "0", "0"]),
+        {"forward": 1.0},
+        object(),
+        np.zeros((2, 2)),
+        [0.5, 0.0, 0.0],
+        [np.nan, 0.0, 0.0, 0.0],
+        [1j, 0, 0, 0],
+        Action("1", 0.0, 0.0, 0.0),  # type: ignore[arg-type]
+    ],
+    ids=["text", "dict", "object", "shape 2x2", "three", "nan", "complex", "an Action of text"],
+)
+def test_a_vector_environment_holds_on_a_bad_action_and_says_why(action: object) -> None:
+    env = CaveNavEnv("S1", action_format="vector", resolution=(32, 32))
+    _, before = env.reset(seed=0)
+    _, reward, terminated, truncated, info = env.step(action)
+    assert info["invalid_action"] and info["action"] == "hold"
+    assert info["pose"] == before["pose"] and reward == 0.0
+    assert not terminated and not truncated
 
 
 # ------------------------------------------------------------------ resolution

@@ -14,6 +14,8 @@ Every driver steps the vehicle through `CaveNavEnv`: the episode loop behind
 from __future__ import annotations
 
 import math
+import numbers
+import reprlib
 import string
 import time
 from dataclasses import dataclass, replace
@@ -42,7 +44,7 @@ ACTION_CHARSET = string.ascii_letters + string.digits + " .,-+°"
 TRAINING_SEEDS = 1000
 
 
-def snap_action(vector: np.ndarray, space: ActionSpace = DEFAULT_SPACE) -> Action:
+def snap_action(vector: object, space: ActionSpace = DEFAULT_SPACE) -> Action:
     """The admissible action nearest ``vector`` = (df, dr, dz, dpsi in degrees).
 
     df, dr and dpsi go to the nearest signed value of their sets. dz is continuous but
@@ -51,13 +53,14 @@ def snap_action(vector: np.ndarray, space: ActionSpace = DEFAULT_SPACE) -> Actio
     the centimetre.
 
     Raises:
-        ActionError: when a component is not a finite number.
+        ActionError: ``vector`` is not 4 finite real numbers of shape (4,), whatever it is
+            instead (text, a dict, another shape, NaN, ...).
     """
-    v = np.asarray(vector, np.float64).reshape(-1)
-    if v.shape != (4,) or not np.isfinite(v).all():
-        raise ActionError(f"an action vector is 4 finite numbers (df, dr, dz, dpsi), got {v}")
+    v = _four_numbers(vector)
 
     def nearest(value: float, magnitudes: tuple[float, ...]) -> float:
+        # Clipped first: beyond 1e17 the distances to every candidate round to one float.
+        value = min(max(value, -max(magnitudes)), max(magnitudes))
         signed = [s * m for m in magnitudes for s in (1.0, -1.0)]
         return float(min(signed, key=lambda c: (abs(c - value), abs(c)))) + 0.0
 
@@ -69,6 +72,35 @@ def snap_action(vector: np.ndarray, space: ActionSpace = DEFAULT_SPACE) -> Actio
         up=dz,
         yaw_deg=nearest(v[3], space.yaw_deg),
     )
+
+
+# What an array holds when it holds no real numbers, by numpy's dtype kind.
+_NOT_NUMBERS = {"U": "text", "S": "bytes", "c": "complex numbers", "O": "objects", "M": "dates"}
+
+
+def _four_numbers(vector: object) -> np.ndarray:
+    """``vector`` as a (4,) float64 array of finite numbers, or an ActionError saying what
+    it is instead: a policy's output can be anything, and the step must say why it held."""
+    wanted = "an action vector is 4 finite numbers (df, dr, dz, dpsi)"
+    shown = reprlib.repr(vector)
+    try:
+        array = np.asarray(vector)
+    except (TypeError, ValueError):  # ragged nesting, an __array__ that refuses
+        raise ActionError(f"{wanted}, got {shown}") from None
+    if array.shape != (4,):
+        raise ActionError(f"{wanted}, got shape {array.shape}: {shown}")
+    if array.dtype == object and all(isinstance(x, numbers.Real) for x in array):
+        try:  # Python numbers of mixed types; an int beyond float's range overflows
+            array = array.astype(np.float64)
+        except OverflowError:
+            raise ActionError(f"{wanted}, got {shown}") from None
+    if array.dtype.kind not in "biuf":  # booleans, integers or floats
+        kind = _NOT_NUMBERS.get(array.dtype.kind, str(array.dtype))
+        raise ActionError(f"{wanted}, got {kind}: {shown}")
+    v = array.astype(np.float64)
+    if not np.isfinite(v).all():
+        raise ActionError(f"{wanted}, got {shown}")
+    return v
 
 
 @dataclass(frozen=True)
@@ -94,8 +126,8 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
     Action: an action string of the grammar in `cavenav.actions` (``spaces.Text`` over
     `ACTION_CHARSET`), or with ``action_format="vector"`` a ``Box`` of (df, dr, dz, dpsi
     in degrees) snapped to the admissible sets by `snap_action`. An unparseable or
-    inadmissible action does not raise: the vehicle holds, ``info["invalid_action"]``
-    says why, and the step counts toward the budget.
+    inadmissible action, of whatever type, does not raise: the vehicle holds,
+    ``info["invalid_action"]`` says why, and the step counts toward the budget.
 
     Episode: ``terminated`` when the vehicle passes an exit portal, leaves through the
     cave's entrance (a mesh scenario's ``[entrance]``: a failure, never success) or
@@ -325,14 +357,17 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
         return self.observation.rgb.copy()
 
     # ------------------------------------------------------------------ helpers
-    def command(self, action: str | np.ndarray | Action) -> tuple[Action, str | None]:
+    def command(self, action: object) -> tuple[Action, str | None]:
         """The action ``action`` asks for and, when it is not admissible, why (then hold).
 
         Accepts what `step` accepts: an action string, an action vector (with
-        ``action_format="vector"``) or an `Action`.
+        ``action_format="vector"``) or an `Action`; anything else holds, saying why.
         """
         try:
             if isinstance(action, Action):
+                parts = (action.forward, action.right, action.up, action.yaw_deg)
+                if not all(isinstance(v, numbers.Real) for v in parts):
+                    raise ActionError(f"an Action holds four numbers, got {action!r}")
                 return self.space.validate(action), None
             if self.action_format == "vector" and not isinstance(action, str):
                 return snap_action(action, self.space), None
