@@ -34,6 +34,8 @@ from cavenav.vehicle.fake_sub import (
 )
 from cavenav.vehicle.frames import body_to_ned
 
+from .conftest import cavenav
+
 MAV = mavutil.mavlink
 GCS_ID = 255
 ARMED = MAV.MAV_MODE_FLAG_SAFETY_ARMED
@@ -507,6 +509,8 @@ def test_serve_reports_the_state_until_stopped() -> None:
         ({"system_id": 0}, "system_id"),
         ({"gcs_system_id": 256}, "gcs_system_id"),
         ({"address": " "}, "address"),
+        ({"address": "bogus"}, "address"),  # pymavlink would open it as a serial port
+        ({"address": "udpout:127.0.0.1:x"}, "address"),
         ({"speed": 1.0}, "speed"),
     ],
 )
@@ -515,6 +519,14 @@ def test_a_bad_config_value_is_a_config_error_naming_the_field(
 ) -> None:
     with pytest.raises(ConfigError, match=f"'{name}"):
         FakeSubConfig(**bad)
+
+
+def test_fake_sub_refuses_a_malformed_address_in_one_line() -> None:
+    """Not a traceback from pymavlink opening 'bogus' as a serial port."""
+    result = cavenav("fake-sub", "--connect", "bogus")
+    assert result.returncode == 2
+    (line,) = result.stderr.strip().splitlines()
+    assert line.startswith("error: fake sub settings: field 'address': Value error, 'bogus'")
 
 
 def test_a_config_takes_vectors_as_lists() -> None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import signal
 import socket
 import subprocess
@@ -14,10 +15,12 @@ import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
+from pymavlink import mavutil
 
 from cavenav.actions import parse_action
 from cavenav.episode.loop import EpisodeConfig, run_episode
@@ -29,6 +32,7 @@ from cavenav.types import Action, Pose
 from cavenav.vehicle.fake_sub import FakeSub, FakeSubConfig
 from cavenav.vehicle.frames import NedFrame, NedPose, body_offset
 from cavenav.vehicle.mavlink import (
+    ArduSubLink,
     ArduSubMotion,
     BridgeConfig,
     describe,
@@ -38,8 +42,9 @@ from cavenav.vehicle.mavlink import (
 )
 from cavenav.world.scenarios import load_scenario
 
-from .conftest import cavenav
+from .conftest import cavenav, write_room
 
+MAV = mavutil.mavlink
 angles = st.floats(-math.pi, math.pi - 1e-9)
 metres = st.floats(-50, 50)
 
@@ -183,6 +188,16 @@ def test_a_settings_file_overrides_the_defaults_and_flags_override_the_file(tmp_
         ('mode = "auto"\n', "field 'mode'"),
         ("min_depth_m = 5\nmax_depth_m = 2\n", "min_depth_m must be below max_depth_m"),
         ("mode = \n", "not valid TOML"),
+        # durations and rates within sane ranges: 1e308 s would wait forever
+        ("connect_timeout_s = 1e308\n", "field 'connect_timeout_s': .* less than or equal to 600"),
+        ("ack_timeout_s = 1e9\n", "field 'ack_timeout_s'"),
+        ("heartbeat_timeout_s = 3600\n", "field 'heartbeat_timeout_s'"),
+        ("segment_cap_s = 1e12\n", "field 'segment_cap_s'"),
+        ("control_hz = 0.001\n", "field 'control_hz'"),  # the failsafe would fire
+        ("telemetry_hz = 1e-300\n", "field 'telemetry_hz'"),
+        ("yaw_dps = 1e308\n", "field 'yaw_dps'"),
+        ("settle_s = 1e308\n", "field 'settle_s'"),
+        ('connect = "bogus"\n', "field 'connect'"),
     ],
 )
 def test_bad_settings_are_one_line_naming_the_field(tmp_path, text: str, message: str) -> None:
@@ -190,6 +205,41 @@ def test_bad_settings_are_one_line_naming_the_field(tmp_path, text: str, message
     path.write_text(text)
     with pytest.raises(ConfigError, match=message):
         load_bridge_config(path)
+
+
+@pytest.mark.parametrize(
+    "address",
+    [
+        "udpin:0.0.0.0:14550",
+        "udpin:127.0.0.1:0",  # listening: a port the system picks
+        "udpout:192.168.2.2:14550",
+        "udp:blueos.local:14550",
+        "udpbcast:192.168.2.255:14550",
+        "tcp:127.0.0.1:5760",
+        "tcpin:0.0.0.0:5760",
+    ],
+)
+def test_pymavlinks_network_addresses_are_accepted(address: str) -> None:
+    assert load_bridge_config(connect=address).connect == address
+
+
+@pytest.mark.parametrize(
+    ("address", "problem"),
+    [
+        ("bogus", "'bogus' is no MAVLink address: give udpin:HOST:PORT"),
+        ("", "'' is no MAVLink address"),
+        ("udpin:127.0.0.1", "give udpin:HOST:PORT"),
+        ("udpin::14550", "give udpin:HOST:PORT"),
+        ("udpin:127.0.0.1:99999", "the port must be a number from 0 to 65535"),
+        ("udpout:127.0.0.1:0", "the port must be a number from 1 to 65535"),
+        ("tcp:host:port", "the port must be a number"),
+        ("/dev/no-such-serial-port", "is no MAVLink address"),  # pymavlink: "No module 'serial'"
+        ("flight.tlog", "is no MAVLink address"),  # a log file is no vehicle
+    ],
+)
+def test_a_malformed_address_is_a_settings_error_naming_it(address: str, problem: str) -> None:
+    with pytest.raises(ConfigError, match=f"field 'connect': Value error, .*{re.escape(problem)}"):
+        load_bridge_config(connect=address)
 
 
 # ---------------------------------------------------------------------------- flights
@@ -374,6 +424,105 @@ def test_depth_targets_are_clamped_to_the_limits() -> None:
         assert reached.z == pytest.approx(0.5, abs=0.1)  # 1 m deep, stopped at 0.5 m
 
 
+# ---------------------------------------------------------------------------- one vehicle
+# The bridge listens on a port the system picks (udpin:127.0.0.1:0), read back before the
+# autopilots start: no port is probed free and then raced for.
+
+
+def listening(motion: ArduSubMotion) -> int:
+    address = motion.listen()
+    assert address is not None
+    return address[1]
+
+
+NEUTRAL_STICKS = (0, 0, 500, 0)
+
+
+def test_two_vehicles_with_one_system_id_on_the_port_are_refused_before_arming() -> None:
+    with flying(0) as motion:
+        port = listening(motion)
+        with (
+            autopilot(port, start_ned=(0.0, 0.0, 12.0)) as deep,
+            autopilot(port, start_ned=(0.0, 0.0, 0.5)) as shallow,
+        ):
+            with pytest.raises(VehicleError, match=r"two vehicles on udpin:127\.0\.0\.1:0: "):
+                motion.start(Pose(0, 0, 0))
+            motion.close()
+            for sub in (deep, shallow):
+                state = sub.state()
+                assert not state.armed and state.sticks == NEUTRAL_STICKS
+
+
+def test_a_second_vehicle_heard_mid_flight_stops_the_flight_with_neutral_sticks() -> None:
+    with flying(0, **GENTLE) as motion:
+        port = listening(motion)
+        with autopilot(port) as first:
+            start = motion.start(Pose(0, 0, 0))
+            pose = motion.move(start, parse_action("forward 0.5 m"))
+            with autopilot(port, start_ned=(0.0, 0.0, 0.5)) as second:
+                with pytest.raises(VehicleError, match="speaks besides system 1 component 1 at"):
+                    motion.move(pose, parse_action("forward 1 m, turn left 90 deg"))  # ~3 s
+                for sub in (first, second):
+                    assert wait_until(lambda sub=sub: sub.state().sticks == NEUTRAL_STICKS, 1.0)
+                with pytest.raises(VehicleError, match="two vehicles"):  # and it stays refused
+                    motion.move(pose, parse_action("hold"))
+
+
+def heartbeat(kind: int) -> Callable[[Any], None]:
+    """A HEARTBEAT of type ``kind``, armed in ALT_HOLD (2)."""
+    armed = MAV.MAV_MODE_FLAG_SAFETY_ARMED | MAV.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+    return lambda mav: mav.heartbeat_send(
+        kind, MAV.MAV_AUTOPILOT_ARDUPILOTMEGA, armed, 2, MAV.MAV_STATE_ACTIVE
+    )
+
+
+@pytest.mark.parametrize(
+    ("system", "component", "send", "target_system", "refused"),
+    [
+        pytest.param(2, 1, heartbeat(MAV.MAV_TYPE_SUBMARINE), 0, True, id="another submarine"),
+        pytest.param(
+            1, 2, lambda mav: mav.attitude_send(0, 0, 0, 1.0, 0, 0, 0), 0, True,
+            id="our system id, another component's attitude",
+        ),
+        pytest.param(
+            1, 2, heartbeat(MAV.MAV_TYPE_SUBMARINE), 1, True, id="our system id, two autopilots"
+        ),
+        pytest.param(255, 190, heartbeat(MAV.MAV_TYPE_GCS), 0, False, id="a ground station"),
+        pytest.param(1, 100, heartbeat(MAV.MAV_TYPE_CAMERA), 0, False, id="the vehicle's camera"),
+        pytest.param(
+            2, 1, heartbeat(MAV.MAV_TYPE_SUBMARINE), 1, False, id="another, not the target_system"
+        ),
+    ],
+)  # fmt: skip
+def test_the_link_locks_onto_one_vehicle_and_refuses_a_second_from_one_address(
+    system: int, component: int, send: Callable[[Any], None], target_system: int, refused: bool
+) -> None:
+    """Through one address (a router, as BlueOS is), a second vehicle shows by its ids."""
+    link = ArduSubLink(BridgeConfig(connect="udpin:127.0.0.1:0", target_system=target_system))
+    vehicle = None
+    try:
+        port = link.local_address[1]  # type: ignore[index]
+        vehicle = mavutil.mavlink_connection(
+            f"udpout:127.0.0.1:{port}", source_system=1, source_component=1
+        )
+        heartbeat(MAV.MAV_TYPE_SUBMARINE)(vehicle.mav)
+        link.wait_for("a heartbeat", lambda t: t.system is not None, 5.0)
+        vehicle.mav.srcSystem, vehicle.mav.srcComponent = system, component
+        send(vehicle.mav)
+        vehicle.mav.srcSystem, vehicle.mav.srcComponent = 1, 1
+        vehicle.mav.attitude_send(0, 0, 0, 0.5, 0, 0, 0)  # after it on the same socket
+        if refused:
+            with pytest.raises(VehicleError, match=f"two vehicles .*: system {system} "):
+                link.wait_for("never", lambda t: False, 5.0)
+        else:
+            link.wait_for("the vehicle's ATTITUDE", lambda t: t.yaw == 0.5, 5.0)
+            link.check_alive(2)  # armed in ALT_HOLD, as the heartbeat says
+    finally:
+        link.close()
+        if vehicle is not None:
+            vehicle.close()
+
+
 def wait_until(condition: Callable[[], bool], timeout_s: float = 5.0) -> bool:
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
@@ -409,6 +558,37 @@ def test_fly_refuses_a_bad_settings_file_in_one_line(tmp_path: Path) -> None:
     assert result.stderr.strip().splitlines() == [
         f"error: {settings}: field 'yaw_dps': Input should be greater than 0"
     ]
+
+
+@pytest.mark.parametrize("address", ["bogus", ""])
+def test_fly_refuses_a_malformed_address_in_one_line_before_anything_is_written(
+    tmp_path: Path, address: str
+) -> None:
+    """Not pymavlink's "No module named 'serial'" with a vehicle's exit status 3."""
+    out = tmp_path / "runs"
+    result = cavenav("fly", "--sim", "S1", "--yes", "--connect", address, "--out", str(out))
+    assert result.returncode == 2
+    (line,) = result.stderr.strip().splitlines()
+    assert line.startswith(
+        f"error: bridge settings: field 'connect': Value error, '{address}' is no MAVLink address"
+    )
+    assert not out.exists()
+
+
+@pytest.mark.slow
+def test_fly_that_hears_no_vehicle_exits_3_and_leaves_no_run_folder(tmp_path: Path) -> None:
+    settings = tmp_path / "bridge.toml"
+    settings.write_text("connect_timeout_s = 0.3\n")
+    out = tmp_path / "runs"
+    result = cavenav(
+        "fly", "--sim", str(write_room(tmp_path)), "--yes", "--no-frames",
+        "--config", str(settings), "--connect", "udpin:127.0.0.1:0", "--out", str(out),
+    )  # fmt: skip
+    assert result.returncode == 3
+    assert result.stderr.strip().splitlines() == [
+        "error: no heartbeat from a submarine on udpin:127.0.0.1:0: nothing after 0.3 s"
+    ]
+    assert list(out.iterdir()) == []  # not a folder holding only mavlink.jsonl
 
 
 def start_flying(tmp_path: Path, port: int) -> subprocess.Popen[str]:

@@ -914,6 +914,12 @@ def fly(
     )
     try:
         _fly_episode(cave, flyer, episode, run_dir, motion)
+    except CavenavError:
+        motion.close()  # closes the command log
+        if not (run_dir / "summary.json").exists():  # failed to connect: nothing was flown,
+            (run_dir / "mavlink.jsonl").unlink(missing_ok=True)  # so no folder looks like a run
+            _remove_if_empty(run_dir)
+        raise
     finally:
         motion.close()
     console.print(f"commands:   {run_dir / 'mavlink.jsonl'}", soft_wrap=True)

@@ -36,12 +36,13 @@ from dataclasses import dataclass
 from typing import Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 from pymavlink import mavutil
 
 from cavenav.errors import ConfigError, invalid_field
 from cavenav.kinematics import wrap_angle
 from cavenav.vehicle.frames import body_to_ned
+from cavenav.vehicle.mavlink import check_address
 
 __all__ = [
     "ALT_HOLD",
@@ -131,6 +132,11 @@ class FakeSubConfig(BaseModel):
             super().__init__(**values)
         except ValidationError as error:
             raise invalid_field(error, "fake sub settings") from None
+
+    @field_validator("address")
+    @classmethod
+    def _one_link_address(cls, address: str) -> str:
+        return check_address(address)  # the bridge's forms; pymavlink would guess a serial port
 
 
 @dataclass(frozen=True)

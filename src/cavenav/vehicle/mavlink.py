@@ -27,19 +27,24 @@ fires when the bridge dies: ArduSub then sets neutral controls and, with
 
 Safety, in this module: no segment while the vehicle's heartbeat is older than
 ``heartbeat_timeout_s`` (2.5 s), while it is disarmed or in another mode than ours, nor
-one longer than ``segment_cap_s``; depth targets (``LOCAL_POSITION_NED``'s down) are
-clamped to ``[min_depth_m, max_depth_m]``; neutral sticks (manual) or a hold at the
-current pose (guided) on any exception and on Ctrl-C; arming only after the operator
-confirms (a flag waives it in simulation), and at the end disarming only a vehicle the
-bridge armed; every message sent and received goes to the
+one longer than ``segment_cap_s``; none once a second vehicle has been heard on the link
+(the bridge locks onto the first submarine's ids and address); depth targets
+(``LOCAL_POSITION_NED``'s down) are clamped to ``[min_depth_m, max_depth_m]``; neutral
+sticks (manual) or a hold at the current pose (guided) on any exception and on Ctrl-C;
+arming only after the operator confirms (a flag waives it in simulation), and at the end
+disarming only a vehicle the bridge armed; every message sent and received goes to the
 command log as JSON lines. The forward-clearance rule is the safety shield's
 (`cavenav.wrappers.SafetyShield`), which `cavenav fly` puts in front of the pilot.
 """
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import math
+import os
+import re
+import stat
 import threading
 import time
 import tomllib
@@ -49,7 +54,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from cavenav.actions import format_action
 from cavenav.errors import ConfigError, DependencyError, VehicleError, invalid_field
@@ -61,6 +66,7 @@ __all__ = [
     "ArduSubMotion",
     "BridgeConfig",
     "Segment",
+    "check_address",
     "describe",
     "load_bridge_config",
     "plan",
@@ -73,6 +79,56 @@ FRAME_LOCAL_OFFSET_NED = 7  # MAV_FRAME_LOCAL_OFFSET_NED: NED offset from the ve
 # SET_POSITION_TARGET_LOCAL_NED type_mask: use x, y, z and yaw; ignore velocity (8, 16,
 # 32), acceleration (64, 128, 256) and yaw rate (2048).
 POSITION_AND_YAW = 8 | 16 | 32 | 64 | 128 | 256 | 2048
+# What a vehicle sends about itself: with a submarine's HEARTBEAT, what the bridge reads the
+# pose from. Heard from a second source, it means a second vehicle on the link.
+POSE_TELEMETRY = ("LOCAL_POSITION_NED", "ATTITUDE")
+
+# pymavlink's network addresses, "SCHEME:HOST:PORT", and whether each listens (a listening
+# one may take port 0, a port the system picks). Log files, websockets, multicast and Unix
+# sockets are pymavlink forms too, but no link to one vehicle.
+NETWORK_SCHEMES = {
+    "udpin": True, "udp": True, "tcpin": True, "udpout": False, "udpbcast": False, "tcp": False,
+}  # fmt: skip
+ADDRESS_FORMS = (
+    "udpin:HOST:PORT (listen, where BlueOS forwards), udpout:HOST:PORT, udp:HOST:PORT, "
+    "udpbcast:HOST:PORT, tcp:HOST:PORT, tcpin:HOST:PORT, or a serial device that exists "
+    "(/dev/ttyACM0, or /dev/ttyACM0,115200 with its baud rate)"
+)
+_HOST = re.compile(r"[A-Za-z0-9_.-]+")  # a host name or an IPv4 address, not resolved here
+
+
+def check_address(address: str) -> str:
+    """``address`` unchanged if pymavlink can open it as a link to one vehicle.
+
+    Checked before anything is written, so that a typo is bad input (exit status 2)
+    instead of pymavlink's guess: a string it does not know is opened as a serial port.
+
+    Raises:
+        ValueError: the address, what is wrong with it and the forms accepted.
+    """
+    scheme, colon, rest = address.partition(":")
+    if colon and scheme in NETWORK_SCHEMES:
+        host, colon, port = rest.partition(":")
+        lowest = 0 if NETWORK_SCHEMES[scheme] else 1
+        if not colon or not _HOST.fullmatch(host):
+            raise ValueError(f"{address!r}: give {scheme}:HOST:PORT, e.g. {scheme}:127.0.0.1:14550")
+        if not (port.isascii() and port.isdigit()) or not lowest <= int(port) <= 65535:
+            raise ValueError(f"{address!r}: the port must be a number from {lowest} to 65535")
+        return address
+    device, baud = address, ""
+    if "," in address and not os.path.exists(address):  # pymavlink's "DEVICE,BAUD"
+        device, _, baud = address.rpartition(",")
+    try:
+        is_serial = stat.S_ISCHR(os.stat(device).st_mode)
+    except (OSError, ValueError):  # no such file, or a name no file can have
+        is_serial = False
+    if not is_serial:
+        raise ValueError(f"{address!r} is no MAVLink address: give {ADDRESS_FORMS}")
+    if baud and not (baud.isascii() and baud.isdigit() and int(baud) > 0):
+        raise ValueError(f"{address!r}: the baud rate must be a positive whole number")
+    if importlib.util.find_spec("serial") is None:
+        raise ValueError(f"{address!r}: a serial device needs pyserial: pip install pyserial")
+    return address
 
 
 class BridgeConfig(BaseModel):
@@ -91,25 +147,36 @@ class BridgeConfig(BaseModel):
     system_id: int = Field(255, ge=1, le=255, description="our system id; ArduSub's SYSID_MYGCS")
     component_id: int = Field(190, ge=0, le=255, description="MAV_COMP_ID_MISSIONPLANNER")
     target_system: int = Field(0, ge=0, le=255, description="0: the first submarine heard")
-    heartbeat_timeout_s: float = Field(2.5, gt=0)
-    connect_timeout_s: float = Field(30.0, gt=0)
-    ack_timeout_s: float = Field(3.0, gt=0)
-    telemetry_hz: float = Field(10.0, gt=0, le=50, description="ATTITUDE and position rate")
-    control_hz: float = Field(10.0, gt=0, le=50)
+    # Every duration and rate has a sane range: a typo of 1e308 would wait forever, and
+    # sticks repeated less than once a second would trip ArduSub's pilot-input failsafe.
+    heartbeat_timeout_s: float = Field(2.5, gt=0, le=60)
+    connect_timeout_s: float = Field(30.0, gt=0, le=600)
+    ack_timeout_s: float = Field(3.0, gt=0, le=60)
+    telemetry_hz: float = Field(10.0, ge=1, le=50, description="ATTITUDE and position rate")
+    control_hz: float = Field(10.0, ge=1, le=50)
     stick_limit: int = Field(400, ge=50, le=1000, description="strongest stick, of 1000")
-    forward_mps: float = Field(0.4, gt=0, description="forward/back speed at stick_limit")
-    lateral_mps: float = Field(0.4, gt=0, description="sideways speed at stick_limit")
-    vertical_mps: float = Field(0.2, gt=0, description="up/down speed at stick_limit")
-    yaw_dps: float = Field(36.0, gt=0, description="turn rate at stick_limit, deg/s")
-    settle_s: float = Field(0.5, ge=0, description="neutral sticks after a manual segment")
-    guided_mps: float = Field(0.5, gt=0, description="guided: the vehicle's speed (WPNAV_SPEED)")
-    guided_yaw_dps: float = Field(45.0, gt=0, description="guided: the vehicle's turn rate")
-    position_tolerance_m: float = Field(0.1, gt=0, description="guided: target reached within")
-    yaw_tolerance_deg: float = Field(3.0, gt=0, description="guided: heading reached within")
-    segment_cap_s: float = Field(30.0, gt=0, description="no segment lasts longer")
+    forward_mps: float = Field(0.4, gt=0, le=10, description="forward/back speed at stick_limit")
+    lateral_mps: float = Field(0.4, gt=0, le=10, description="sideways speed at stick_limit")
+    vertical_mps: float = Field(0.2, gt=0, le=10, description="up/down speed at stick_limit")
+    yaw_dps: float = Field(36.0, gt=0, le=720, description="turn rate at stick_limit, deg/s")
+    settle_s: float = Field(0.5, ge=0, le=10, description="neutral sticks after a manual segment")
+    guided_mps: float = Field(
+        0.5, gt=0, le=10, description="guided: the vehicle's speed (WPNAV_SPEED)"
+    )
+    guided_yaw_dps: float = Field(45.0, gt=0, le=720, description="guided: the vehicle's turn rate")
+    position_tolerance_m: float = Field(
+        0.1, gt=0, le=5, description="guided: target reached within"
+    )
+    yaw_tolerance_deg: float = Field(3.0, gt=0, le=45, description="guided: heading reached within")
+    segment_cap_s: float = Field(30.0, gt=0, le=300, description="no segment lasts longer")
     min_depth_m: float = Field(0.3, description="no target shallower (autopilot depth)")
     max_depth_m: float = Field(100.0, description="no target deeper")
     disarm_at_end: bool = True
+
+    @field_validator("connect")
+    @classmethod
+    def _one_vehicle_address(cls, address: str) -> str:
+        return check_address(address)
 
 
 def load_bridge_config(path: str | Path | None = None, **overrides: Any) -> BridgeConfig:
@@ -260,12 +327,15 @@ class _Telemetry:
     heartbeat_at: float = -math.inf
     armed: bool = False
     mode: int | None = None
-    system: int | None = None
+    system: int | None = None  # the vehicle flown, locked onto at its first heartbeat
+    component: int | None = None
+    peer: tuple[str, int] | None = None  # its address, where the link can tell (udpin)
     position: tuple[float, float, float] | None = None
     position_at: float = -math.inf
     yaw: float | None = None
     acks: dict[int, int] = field(default_factory=dict)
     failure: BaseException | None = None  # what stopped the link thread
+    second_vehicle: str | None = None  # why the link refuses to fly: two vehicles heard
 
 
 class _CommandLog:
@@ -295,6 +365,12 @@ class ArduSubLink:
 
     One background thread reads every message, keeps the latest telemetry, sends our
     heartbeat at 1 Hz and repeats the current sticks at ``control_hz``.
+
+    The link locks onto one vehicle at its first heartbeat: its system and component id
+    and, listening on UDP, its address. A second vehicle heard afterwards (telemetry from
+    another address, or from another id) would interleave its pose with ours, and over
+    ``udpin`` pymavlink sends our commands to every address it has heard: the link then
+    refuses to go on (`check_alive`, `wait_for`), and the motion sets neutral sticks.
     """
 
     def __init__(self, config: BridgeConfig, log_path: Path | None = None):
@@ -304,7 +380,6 @@ class ArduSubLink:
             raise DependencyError(f"pymavlink is missing ({exc}): pip install -e .") from None
         self.config = config
         self._mavlink = mavutil.mavlink
-        self.log = _CommandLog(log_path)
         try:
             self._conn = mavutil.mavlink_connection(
                 config.connect,
@@ -313,6 +388,11 @@ class ArduSubLink:
             )
         except Exception as exc:  # pymavlink raises bare OSError/ValueError here
             raise VehicleError(f"cannot open MAVLink address {config.connect!r}: {exc}") from None
+        try:  # the log only once the address is open: a refused one leaves no file
+            self.log = _CommandLog(log_path)
+        except BaseException:
+            self._conn.close()
+            raise
         self.telemetry = _Telemetry()
         self._sticks = dict(NEUTRAL)
         self._send_lock = threading.Lock()
@@ -321,6 +401,17 @@ class ArduSubLink:
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._serve, name="mavlink-link", daemon=True)
         self._thread.start()
+
+    @property
+    def local_address(self) -> tuple[str, int] | None:
+        """Where the link listens (``udpin``, ``udp``, ``tcpin``; port 0 asks the system
+        for a free one), or None for a link that does not listen."""
+        scheme = self.config.connect.partition(":")[0]
+        if not NETWORK_SCHEMES.get(scheme):
+            return None
+        listening = self._conn.listen if scheme == "tcpin" else self._conn.port
+        host, port = listening.getsockname()[:2]
+        return host, port
 
     # ---------------------------------------------------------------- io
     def _send(self, name: str, **fields: Any) -> None:
@@ -362,18 +453,34 @@ class ArduSubLink:
 
     def _receive(self, message: Any) -> None:
         kind = message.get_type()
-        self.log.write("received", {"sys": message.get_srcSystem(), **message.to_dict()})
+        source = (message.get_srcSystem(), message.get_srcComponent())
+        self.log.write("received", {"sys": source[0], **message.to_dict()})
         t, now = self.telemetry, time.monotonic()
+        submarine = kind == "HEARTBEAT" and message.type == self._mavlink.MAV_TYPE_SUBMARINE
         with self._seen:
-            if kind == "HEARTBEAT" and message.type == self._mavlink.MAV_TYPE_SUBMARINE:
-                wanted = t.system or self.config.target_system
-                if wanted in (0, message.get_srcSystem()):
-                    t.system = message.get_srcSystem()
-                    t.heartbeat_at = now
-                    t.armed = bool(message.base_mode & self._mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
-                    t.mode = message.custom_mode
-            elif message.get_srcSystem() != t.system:
+            if t.second_vehicle is not None:
                 return
+            if t.system is None:
+                if not submarine or self.config.target_system not in (0, source[0]):
+                    return
+                t.system, t.component = source
+            if source != (t.system, t.component):
+                ours = source[0] == t.system  # the same id, another component
+                if (ours and (submarine or kind in POSE_TELEMETRY)) or (
+                    submarine and self.config.target_system == 0
+                ):
+                    hint = "" if ours else " (target_system chooses one)"
+                    self._second_vehicle(
+                        f"system {source[0]} component {source[1]} sends {kind} besides "
+                        f"{self._flown()}{hint}"
+                    )
+                return  # a ground station, a camera; another vehicle, with a target_system
+            if not self._one_peer():
+                return
+            if submarine:
+                t.heartbeat_at = now
+                t.armed = bool(message.base_mode & self._mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
+                t.mode = message.custom_mode
             elif kind == "LOCAL_POSITION_NED":
                 t.position, t.position_at = (message.x, message.y, message.z), now
             elif kind == "ATTITUDE":
@@ -381,6 +488,38 @@ class ArduSubLink:
             elif kind == "COMMAND_ACK":
                 t.acks[message.command] = message.result
             self._seen.notify_all()
+
+    def _one_peer(self) -> bool:
+        """Whether one address only has spoken; else the second vehicle is noted.
+
+        Listening on UDP, pymavlink keeps every address that sent a datagram (``clients``)
+        and sends our commands to all of them. Other links have one peer by construction.
+        """
+        peers = getattr(self._conn, "clients", None)
+        if not getattr(self._conn, "udp_server", False) or not peers:
+            return True
+        t = self.telemetry
+        if len(peers) == 1:
+            (t.peer,) = peers
+            return True
+        heard = sorted(f"{host}:{port}" for host, port in peers if (host, port) != t.peer)
+        if t.peer is None:
+            self._second_vehicle(f"{' and '.join(heard)} spoke before the first heartbeat")
+        else:
+            self._second_vehicle(f"{', '.join(heard)} speaks besides {self._flown()}")
+        return False
+
+    def _flown(self) -> str:
+        t = self.telemetry
+        where = f" at {t.peer[0]}:{t.peer[1]}" if t.peer else ""
+        return f"system {t.system} component {t.component}{where}, the vehicle flown"
+
+    def _second_vehicle(self, heard: str) -> None:
+        """Refuse to fly on, saying what was ``heard`` (called under ``_seen``)."""
+        self.telemetry.second_vehicle = (
+            f"two vehicles on {self.config.connect}: {heard}: refusing to fly with two on one link"
+        )
+        self._seen.notify_all()
 
     def set_sticks(self, sticks: dict[str, int] | None = None) -> None:
         """Hold ``sticks`` from now on and send them at once (None: send again the sticks
@@ -399,13 +538,16 @@ class ArduSubLink:
         deadline = time.monotonic() + timeout_s
         with self._seen:
             while not ready(self.telemetry):
-                self._check_thread()
+                self._check_link()
                 left = deadline - time.monotonic()
                 if left <= 0:
                     raise VehicleError(f"{what}: nothing after {timeout_s:g} s")
                 self._seen.wait(min(left, 0.1))
 
-    def _check_thread(self) -> None:
+    def _check_link(self) -> None:
+        """A VehicleError if the link thread has stopped or heard a second vehicle."""
+        if self.telemetry.second_vehicle is not None:
+            raise VehicleError(self.telemetry.second_vehicle)
         failure = self.telemetry.failure
         if failure is not None:
             raise VehicleError(f"the MAVLink link stopped: {type(failure).__name__}: {failure}")
@@ -413,7 +555,7 @@ class ArduSubLink:
     def check_alive(self, mode: int) -> None:
         """Refuse to go on when the vehicle's last heartbeat is older than allowed, or it
         is no longer armed in ``mode`` (a failsafe, another ground station)."""
-        self._check_thread()
+        self._check_link()
         t = self.telemetry
         age = time.monotonic() - t.heartbeat_at
         if age > self.config.heartbeat_timeout_s:
@@ -534,19 +676,30 @@ class ArduSubMotion:
         self._log_path = log_path
         self._confirm = confirm
         self._link: ArduSubLink | None = None
+        self._ready = False  # connected: the mode set, armed, a pose reported
         self._frame: NedFrame | None = None
         self._armed_here = False  # disarm at the end only a vehicle the bridge armed
+
+    def listen(self) -> tuple[str, int] | None:
+        """Open the link now, without waiting for the vehicle, and return where it listens
+        (`ArduSubLink.local_address`): with ``udpin:HOST:0``, the port the system chose."""
+        return self._open().local_address
 
     def start(self, pose: Pose) -> Pose:
         link = self._connect()
         self._frame = NedFrame(link.pose(), pose)
         return pose
 
+    def _open(self) -> ArduSubLink:
+        if self._link is None:
+            self._link = ArduSubLink(self.config, self._log_path)
+        return self._link
+
     def _connect(self) -> ArduSubLink:
-        if self._link is not None:
-            return self._link
+        link = self._open()
+        if self._ready:
+            return link
         config = self.config
-        link = self._link = ArduSubLink(config, self._log_path)
         link.wait_for(
             f"no heartbeat from a submarine on {config.connect}",
             lambda t: t.system is not None,
@@ -565,6 +718,7 @@ class ArduSubMotion:
             lambda t: t.position is not None and t.yaw is not None,
             config.connect_timeout_s,
         )
+        self._ready = True
         return link
 
     @property
@@ -655,7 +809,7 @@ class ArduSubMotion:
 
     def close(self) -> None:
         """Neutral sticks, disarm (``disarm_at_end``), close the link; safe to repeat."""
-        link, self._link = self._link, None
+        link, self._link, self._ready = self._link, None, False
         if link is None:
             return
         try:
