@@ -148,6 +148,60 @@ def test_malformed_scenario_files_are_one_line_errors(
     assert "\n" not in str(info.value)
 
 
+EXITS = "[[exit]]\npoint = [0.0, -8.0, 0.0]\nnormal = [0.0, -1.0, 0.0]\nradius = 2.0\n"
+PIECE = '[[mesh]]\npath = "room.obj"\n'
+REST = f"[start]\nposition = [0.0, 8.0, 0.0]\n{EXITS}"  # after a [[mesh]] piece
+
+
+@pytest.mark.parametrize(
+    ("text", "field", "bound"),
+    [
+        (VALID.replace("radius = 2.0", "radius = 1e308"), "exit.radius", "10000"),
+        (
+            VALID.replace("[exit]", "[[exit]]").replace("radius = 2.0", "radius = 1e308"),
+            "exit.0.radius",
+            "10000",
+        ),
+        (VALID.replace("[0.0, 8.0, 0.0]", "[0.0, 8.0e9, 0.0]"), "start.position.1", "100000"),
+        (VALID.replace("[0.0, -8.0, 0.0]", "[-1e300, -8.0, 0.0]"), "exit.point.0", "-100000"),
+        (VALID.replace("[0.0, -1.0, 0.0]", "[0.0, -1e308, 0.0]"), "exit.normal.1", "-100000"),
+        (VALID.replace("[start]", "[start]\nyaw_deg = 1e300"), "start.yaw_deg", "360"),
+        (VALID.replace('"room.obj"', '"room.obj"\nscale = 1e-300'), "scale", "0.000001"),
+        (
+            VALID.replace('"room.obj"', '"room.obj"\nstep_budget = 10_000_000'),
+            "step_budget",
+            "100000",
+        ),
+        (
+            f"centreline = [[0.0, 8.0, 0.0], [0.0, -1e7, 0.0]]\n{VALID}",
+            "centreline.1.1",
+            "-100000",
+        ),
+        (f"{PIECE}offset = [1e308, 0.0, 0.0]\n{REST}", "mesh.0.offset.0", "100000"),
+        (f"{PIECE}yaw_deg = -1e9\n{REST}", "mesh.0.yaw_deg", "-360"),
+        (f"{PIECE}scale = 1e9\n{REST}", "mesh.0.scale", "1000"),
+        (f"{VALID}[sensors]\nresolution = [1_000_000, 480]\n", "sensors.resolution.0", "8192"),
+    ],
+)
+def test_every_number_of_a_scenario_file_is_bounded_by_what_a_cave_can_hold(
+    tmp_path: Path, text: str, field: str, bound: str
+) -> None:
+    """A typo such as radius = 1e308 is refused at once, naming the field and its bound,
+    instead of overflowing the plots of the episode it would fly."""
+    with pytest.raises(ConfigError) as info:
+        load_scenario_file(_write(tmp_path, text))
+    message = str(info.value)
+    assert f"field '{field}': Input should be" in message and message.endswith(bound)
+    assert "\n" not in message
+
+
+def test_the_largest_caves_and_portals_a_file_may_hold_still_load(tmp_path: Path) -> None:
+    widest = VALID.replace("radius = 2.0", "radius = 1e4")
+    bounds = widest.replace("[start]", "[start]\nyaw_deg = -360")
+    scenario = load_scenario_file(_write(tmp_path, bounds))
+    assert scenario.exits[0].radius == 1e4
+
+
 def test_a_start_outside_the_passage_is_refused(room_scenario: Scenario) -> None:
     caster = RayCaster(room_scenario.mesh)
     outside = Scenario("room", room_scenario.mesh, Pose(10.0, 0.0, 0.0), room_scenario.exits)

@@ -1095,13 +1095,25 @@ def procedural_scenario(name: str, seed: int = 0, difficulty: Difficulty | None 
 # Unknown keys are typos; NaN or inf in a position, angle or size is never meant.
 _STRICT = ConfigDict(extra="forbid", allow_inf_nan=False)
 # A pixel count: a TOML integer above 0 (strict: 160.0 and true are refused, not rounded).
-_Pixels = Annotated[int, Field(strict=True, gt=0)]
+# Every number is bounded by what a cave can hold, so that a typo (radius = 1e308) is
+# refused here, naming its field, instead of overflowing the plots or the ray caster later.
+# The bounds lie far beyond any real cave (README, "Bad input and faults").
+_MAX_COORDINATE_M = 1e5  # 100 km from the origin, for positions, offsets, centre lines
+_MAX_RADIUS_M = 1e4  # a portal 10 km across: the largest known chambers are under 1 km
+_SCALE_RANGE = (1e-6, 1e3)  # metres per mesh unit: micrometres to kilometres
+_MAX_STEP_BUDGET = 100_000  # more than a day of flight at a step a second
+_MAX_PIXELS = 8192  # a camera 8192 px wide or high (8K video is 7680 x 4320)
+_Pixels = Annotated[int, Field(strict=True, gt=0, le=_MAX_PIXELS)]
+_Coordinate = Annotated[float, Field(ge=-_MAX_COORDINATE_M, le=_MAX_COORDINATE_M)]
+_Point = tuple[_Coordinate, _Coordinate, _Coordinate]  # metres; also a normal's direction
+_Yaw = Annotated[float, Field(ge=-360.0, le=360.0)]  # degrees: one turn either way
+_Scale = Annotated[float, Field(ge=_SCALE_RANGE[0], le=_SCALE_RANGE[1])]
 
 
 class _StartModel(BaseModel):
     model_config = _STRICT
-    position: tuple[float, float, float]
-    yaw_deg: float = Field(0.0, description="0 heads along -y; positive turns left")
+    position: _Point
+    yaw_deg: _Yaw = Field(0.0, description="0 heads along -y; positive turns left")
 
 
 def _nonzero_normal(v: tuple[float, float, float], kind: str) -> tuple[float, float, float]:
@@ -1112,9 +1124,9 @@ def _nonzero_normal(v: tuple[float, float, float], kind: str) -> tuple[float, fl
 
 class _ExitModel(BaseModel):
     model_config = _STRICT
-    point: tuple[float, float, float]
-    normal: tuple[float, float, float]
-    radius: float = Field(gt=0)
+    point: _Point
+    normal: _Point
+    radius: float = Field(gt=0, le=_MAX_RADIUS_M)
 
     @field_validator("normal")
     @classmethod
@@ -1136,9 +1148,9 @@ class _MeshPieceModel(BaseModel):
 
     model_config = _STRICT
     path: str = Field(description="relative to the scenario file")
-    offset: tuple[float, float, float] = Field((0.0, 0.0, 0.0), description="metres")
-    yaw_deg: float = Field(0.0, description="about the vertical; positive turns +y toward -x")
-    scale: float | None = Field(None, gt=0, description="metres per unit (default: the file's)")
+    offset: _Point = Field((0.0, 0.0, 0.0), description="metres")
+    yaw_deg: _Yaw = Field(0.0, description="about the vertical; positive turns +y toward -x")
+    scale: _Scale | None = Field(None, description="metres per unit (default: the file's)")
     up_axis: Literal["x", "y", "z"] | None = None
 
 
@@ -1161,18 +1173,18 @@ class _ScenarioFileModel(BaseModel):
     mesh: list[_MeshPieceModel] = Field(
         min_length=1, description='one file (mesh = "path") or [[mesh]] pieces to chain'
     )
-    scale: float | None = Field(None, gt=0, description="metres per mesh unit, every piece")
+    scale: _Scale | None = Field(None, description="metres per mesh unit, every piece")
     up_axis: Literal["x", "y", "z"] | None = None
     start: _StartModel
     exit: list[_ExitModel] = Field(description="one portal or a list of them")
     entrance: list[_EntranceModel] = Field(
         default_factory=list, description="the portals the vehicle came in by, if open"
     )
-    centreline: list[tuple[float, float, float]] | None = Field(
+    centreline: list[_Point] | None = Field(
         None, min_length=2, description="[[x, y, z], ...] from the start to the exit"
     )
     step_budget: int | None = Field(
-        None, strict=True, gt=0, description="steps an episode gets (default 150)"
+        None, strict=True, gt=0, le=_MAX_STEP_BUDGET, description="steps an episode gets (150)"
     )
     optics: dict[str, Any] = Field(
         default_factory=dict, description="water and light; see cavenav.sensors.optics"
