@@ -6,6 +6,7 @@ by rebuilding a family cave from its summary fields.
 
 from __future__ import annotations
 
+import shutil
 import sys
 from pathlib import Path
 
@@ -15,10 +16,19 @@ import pytest
 
 from cavenav.episode.loop import EpisodeConfig, run_episode
 from cavenav.episode.video import CAPTION_HEIGHT, PANEL_HEIGHT, _rebuild_scenario, write_video
-from cavenav.errors import CavenavError, DependencyError
+from cavenav.errors import (
+    CavenavError,
+    CavenavWarning,
+    ConfigError,
+    DependencyError,
+    RecordError,
+    RecordingError,
+)
 from cavenav.pilots.geometric import GeometricPilot
 from cavenav.world.scenarios import load_scenario
 
+from .conftest import cavenav
+from .test_records import refuse_writes_in
 from .test_report import INTO_THE_WALL, ScriptedPilot, corridor
 
 STEPS = 6
@@ -112,3 +122,85 @@ def test_the_map_shows_the_flown_cave_only_when_it_rebuilds_to_the_same_mesh() -
     assert _rebuild_scenario({**s4, "mesh": "S4-seed3-d0123abcd"}) is None  # harder knobs
     assert _rebuild_scenario({**s4, "scenario": "room"}) is None  # not a family: path only
     assert _rebuild_scenario({**s4, "seed": None}) is None
+
+
+def test_an_out_that_is_a_folder_or_under_a_file_is_refused_in_one_line(
+    forward_run: Path, tmp_path: Path
+) -> None:
+    (tmp_path / "a-file").write_text("")
+    for out, says in (
+        (tmp_path, f"{tmp_path} is a folder: name the MP4 to write, e.g. {tmp_path}/episode.mp4"),
+        (tmp_path / "a-file" / "v.mp4", f"cannot write {tmp_path}/a-file/v.mp4: "
+         f"{tmp_path}/a-file is a file, not a folder"),
+    ):  # fmt: skip
+        with pytest.raises(ConfigError) as error:
+            write_video(forward_run, out)
+        assert str(error.value) == says and error.value.exit_status == 2
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a-file"]  # nothing written
+
+
+def test_the_command_line_refuses_a_folder_for_out_in_one_line(
+    forward_run: Path, tmp_path: Path
+) -> None:
+    done = cavenav("video", str(forward_run), "--out", str(tmp_path))
+    assert done.returncode == 2
+    assert done.stderr == f"error: {tmp_path} is a folder: name the MP4 to write, e.g. " + (
+        f"{tmp_path}/episode.mp4\n"
+    )
+
+
+def test_a_read_only_out_folder_is_one_line_and_leaves_no_part_of_a_video(
+    forward_run: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    refuse_writes_in(monkeypatch, locked)
+    with pytest.raises(RecordingError) as error:
+        write_video(forward_run, locked / "v.mp4")
+    assert str(error.value) == f"cannot write {locked}/v.mp4: Permission denied"
+    assert error.value.exit_status == 1
+    monkeypatch.undo()
+    assert list(locked.iterdir()) == []
+
+
+def test_a_missing_or_cut_short_frame_is_a_grey_panel_with_a_warning_naming_the_step(
+    forward_run: Path, tmp_path: Path
+) -> None:
+    run_dir = tmp_path / "damaged"
+    shutil.copytree(forward_run, run_dir)
+    rgb = run_dir / "frames" / "step_0001_rgb.png"
+    rgb.write_bytes(rgb.read_bytes()[:300])  # the header survives, the pixels do not
+    (run_dir / "frames" / "step_0003_depth.png").unlink()
+    with pytest.warns(CavenavWarning) as warned:
+        _, _, frames = read_video(write_video(run_dir))
+    assert [str(w.message) for w in warned] == [
+        f"{run_dir}: step 1: frames/step_0001_rgb.png cannot be read (image file is truncated); "
+        "shown as a grey panel",
+        f"{run_dir}: step 3: frames/step_0003_depth.png is missing; shown as a grey panel",
+    ]
+    assert len(frames) == STEPS  # the video is still made, a frame for every step
+    grey = np.array([60, 60, 60])
+    below_label = slice(40, PANEL_HEIGHT)  # under the panel's label
+    for k, panel in ((1, slice(0, CAMERA[0])), (3, slice(CAMERA[0], 2 * CAMERA[0]))):
+        assert np.abs(frames[k][below_label, panel].astype(int) - grey).max() <= 6  # H.264
+    assert np.abs(frames[2][below_label, : 2 * CAMERA[0]].astype(int) - grey).max() > 30
+
+
+@pytest.mark.parametrize(
+    ("name", "text", "says"),
+    [
+        ("summary.json", "[1, 2]", "summary.json: holds an array, not a JSON object"),
+        ("summary.json", '{"exits": 3}', "summary.json: field 'exits': Input should be"),
+        ("steps.jsonl", '{"step": "first"}', "steps.jsonl line 1: field 'step': Input should be"),
+    ],
+)
+def test_a_damaged_record_is_one_line_naming_the_file_and_the_field(
+    forward_run: Path, tmp_path: Path, name: str, text: str, says: str
+) -> None:
+    run_dir = tmp_path / "damaged"
+    shutil.copytree(forward_run, run_dir, ignore=shutil.ignore_patterns("*.mp4"))
+    (run_dir / name).write_text(text)
+    with pytest.raises(RecordError) as error:
+        write_video(run_dir)
+    assert str(error.value).startswith(f"{run_dir}/{says}") and "\n" not in str(error.value)
+    assert not (run_dir / "episode.mp4").exists()

@@ -720,11 +720,13 @@ def compare(
     ] = None,
 ) -> None:
     """Pair two sweeps by cave: success rates, exact McNemar test, caves only one got through."""
-    import json
-
+    from cavenav.episode.run_folder import write_json
+    from cavenav.errors import ConfigError, RecordingError
     from cavenav.evaluation.results import compare as compare_rows
     from cavenav.evaluation.sweep import read_rows, read_sweep
 
+    if json_out is not None and json_out.is_dir():
+        raise ConfigError(f"--json {json_out} is a folder: name the file to write")
     (config_a, _), (config_b, _) = read_sweep(sweep_a), read_sweep(sweep_b)
     if dict(config_a.difficulty) != dict(config_b.difficulty):
         raise CavenavError(
@@ -764,7 +766,13 @@ def compare(
             if len(caves) > shown:
                 console.print(f"  ... {len(caves) - shown} more (all of them with --json FILE)")
     if json_out:
-        json_out.write_text(json.dumps(result, indent=2) + "\n")
+        try:
+            write_json(json_out, result)
+        except OSError as exc:
+            raise RecordingError(
+                f"cannot write the comparison to {json_out}: {exc.strerror or exc} "
+                "(the table above is complete)"
+            ) from None
         console.print(f"comparison: {json_out}", soft_wrap=True)
 
 

@@ -21,6 +21,7 @@ __all__ = [
     "MeshError",
     "PilotFailure",
     "RateLimited",
+    "RecordError",
     "RecordingError",
     "ScenarioError",
     "VehicleError",
@@ -59,8 +60,17 @@ class ScenarioError(CavenavError):
     """A scenario is inconsistent: unknown name, start pose outside the passage, ..."""
 
 
+class RecordError(ConfigError):
+    """A record read back is damaged: summary.json, steps.jsonl or sweep.json that is not
+    JSON, not an object, or holds a field of the wrong type (`cavenav.episode.records`).
+
+    The message names the file and the field. Nothing was written (exit status 2).
+    """
+
+
 class RecordingError(CavenavError):
-    """The run folder cannot be written (a read-only folder, a full disk).
+    """A record cannot be written (a read-only folder, a full disk): the run folder, or
+    what `video`, `report` and `compare --json` write from it.
 
     Mid-episode, the record stops at the last whole step and the command exits 1.
     """

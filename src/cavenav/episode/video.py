@@ -11,13 +11,19 @@ arrow along its heading.
 The map background is drawn once with matplotlib; each frame only draws the vehicle and
 its path into a copy of it, through the axes' data-to-pixel mapping taken once, so a
 150-step episode encodes in seconds. Frames are H.264 (yuv420p) through imageio-ffmpeg,
-which ships its own ffmpeg.
+which ships its own ffmpeg, into a temporary beside the MP4 that is renamed into place once
+whole (`cavenav.files.write_then_rename`).
+
+A frame image that is missing or cannot be read (cut short, not an image) is shown as a
+grey panel, with a one-line warning naming the step and the file: the rest of the episode
+is still worth watching, and its map and caption are still right.
 """
 
 from __future__ import annotations
 
-import json
+import itertools
 import math
+import warnings
 from collections.abc import Generator, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,8 +32,15 @@ from typing import Any
 import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
-from cavenav.episode.run_folder import read_jsonl
-from cavenav.errors import CavenavError, DependencyError
+from cavenav.episode.records import read_steps, read_summary
+from cavenav.errors import (
+    CavenavError,
+    CavenavWarning,
+    ConfigError,
+    DependencyError,
+    RecordingError,
+)
+from cavenav.files import write_then_rename
 
 __all__ = ["CAPTION_HEIGHT", "PANEL_HEIGHT", "write_video"]
 
@@ -121,7 +134,7 @@ def _draw_map(
             fontsize=7,
             color="0.45",
         )
-    draw_exits(ax, [ExitPortal(**portal) for portal in exits])
+    draw_exits(ax, [ExitPortal(e["point"], e["normal"], e["radius"]) for e in exits])
     ax.plot(positions[:, 0], positions[:, 1], color="0.6", lw=1, ls=":", zorder=3)
     ax.plot(*positions[0, :2], marker="o", color="tab:green", ms=7, zorder=5)
     limits = _map_limits(positions, exits)
@@ -181,31 +194,56 @@ def _map_frame(
     return image
 
 
-def _panel(path: Path | None, width: int) -> Image.Image:
-    """A saved frame scaled to the panel height, or a grey panel when it is missing."""
-    if path is None or not path.is_file():
-        return Image.new("RGB", (width, PANEL_HEIGHT), (60, 60, 60))
-    image = Image.open(path).convert("RGB")
-    if image.height != PANEL_HEIGHT:
-        w = round(image.width * PANEL_HEIGHT / image.height)
-        image = image.resize((w, PANEL_HEIGHT), Image.Resampling.BILINEAR)
-    return image
+# What reading a frame image can raise: missing or unreadable (OSError, PIL's
+# UnidentifiedImageError among them), or too many pixels to decode safely.
+_UNREADABLE = (OSError, Image.DecompressionBombError)
 
 
-def _panel_width(path: Path) -> int:
-    """The width of a saved frame once scaled to the panel height."""
-    with Image.open(path) as image:
-        return round(image.width * PANEL_HEIGHT / image.height)
+def _panel(run_dir: Path, step: Mapping[str, Any], key: str, width: int) -> Image.Image:
+    """The step's frame ``key`` scaled to the panel, or a grey panel where it has none or
+    it cannot be read (with a warning naming the step and the file)."""
+    name = (step.get("frames") or {}).get(key)
+    if name is not None:
+        try:
+            with Image.open(run_dir / name) as image:
+                frame = image.convert("RGB")
+            return frame.resize((width, PANEL_HEIGHT), Image.Resampling.BILINEAR)
+        except _UNREADABLE as exc:
+            why = "is missing" if isinstance(exc, FileNotFoundError) else f"cannot be read ({exc})"
+            warnings.warn(
+                f"{run_dir}: step {step.get('step')}: {name} {why}; shown as a grey panel",
+                CavenavWarning,
+                stacklevel=2,
+            )
+    return Image.new("RGB", (width, PANEL_HEIGHT), (60, 60, 60))
+
+
+def _panel_width(run_dir: Path, steps: Sequence[Mapping[str, Any]], key: str) -> int:
+    """The width of the episode's frames ``key`` once scaled to the panel height, read
+    from the first that can be read (640, the default camera's, when none can)."""
+    for step in steps:
+        name = (step.get("frames") or {}).get(key)
+        if name is None:
+            continue
+        try:
+            with Image.open(run_dir / name) as image:
+                return round(image.width * PANEL_HEIGHT / image.height)
+        except _UNREADABLE:
+            continue  # warned of when its frame is drawn
+    return 640
 
 
 def _caption(step: Mapping[str, Any], count: int) -> str:
+    def metres(key: str) -> str:  # null where the record holds no finite value
+        value = step.get(key)
+        return "-" if value is None else f"{value:.2f}"
+
     action = step.get("action")
     parts = [
         f"step {step.get('step')}/{count - 1}",
         action if action is not None else "no action (pilot failure)",
-        f"clearance {step.get('clearance_m', float('nan')):.2f} m",
-        f"top {step.get('d_top_m', float('nan')):.2f} m, bottom "
-        f"{step.get('d_bottom_m', float('nan')):.2f} m",
+        f"clearance {metres('clearance_m')} m",
+        f"top {metres('d_top_m')} m, bottom {metres('d_bottom_m')} m",
     ]
     if step.get("shield"):
         parts.append(f"shield replaced {step['shield'].get('proposed')}")
@@ -234,20 +272,17 @@ def _frames(
     canvas = _draw_map(positions, summary.get("exits") or [], _rebuild_scenario(summary))
     pixels = canvas.pixels(positions[:, :2])
     colours = _viridis(np.array([s.get("clearance_m") or 0.0 for s in steps], np.float64))
-    first = next(s["frames"] for s in steps if s.get("frames"))
-    widths = [_panel_width(run_dir / first[key]) if key in first else 640 for key in _IMAGES]
+    widths = [_panel_width(run_dir, steps, key) for key in _IMAGES]
     widths.append(canvas.image.shape[1])
     width = sum(widths) + sum(widths) % 2  # H.264 with yuv420p needs even sizes
     height = PANEL_HEIGHT + CAPTION_HEIGHT
     font, small = _font(17), _font(13)
     for k, step in enumerate(steps):
-        files = step.get("frames") or {}
         frame = Image.new("RGB", (width, height), (16, 16, 16))
         x = 0
         draw = ImageDraw.Draw(frame)
         for key, w in zip(_IMAGES, widths, strict=False):
-            panel = _panel(run_dir / files[key] if key in files else None, w)
-            frame.paste(panel.resize((w, PANEL_HEIGHT)) if panel.width != w else panel, (x, 0))
+            frame.paste(_panel(run_dir, step, key, w), (x, 0))
             draw.text(
                 (x + 8, 6),
                 _LABELS[key],
@@ -286,8 +321,41 @@ def _encoder(path: Path, size: tuple[int, int], fps: float) -> Generator[None, A
         quality=None,
         macro_block_size=2,
         ffmpeg_log_level="error",
-        output_params=["-crf", "23", "-preset", "veryfast"],  # legible text, quick encoding
+        # Legible text, quick encoding; MP4 named, as the temporary's name does not say it.
+        output_params=["-crf", "23", "-preset", "veryfast", "-f", "mp4"],
     )
+
+
+def _encode(path: Path, frames: Iterator[np.ndarray], fps: float) -> None:
+    """Encode ``frames`` (every one the same size) into the MP4 at ``path``."""
+    path.touch()  # a folder that refuses the file fails here, before ffmpeg says it at length
+    first = next(frames)
+    writer = _encoder(path, (first.shape[1], first.shape[0]), fps)
+    writer.send(None)  # start the generator: ffmpeg is launched here
+    try:
+        for frame in itertools.chain([first], frames):
+            writer.send(np.ascontiguousarray(frame))
+    finally:
+        writer.close()
+
+
+def _output(out: Path) -> Path:
+    """``out`` checked to be a file that can be made: not a folder, under no file.
+
+    Raises:
+        ConfigError: ``out`` is a folder, or a file stands where a folder above it should.
+        RecordingError: its folder cannot be made (a read-only folder).
+    """
+    if out.is_dir():
+        raise ConfigError(f"{out} is a folder: name the MP4 to write, e.g. {out / 'episode.mp4'}")
+    above = next((folder for folder in out.parents if folder.exists()), None)
+    if above is not None and not above.is_dir():
+        raise ConfigError(f"cannot write {out}: {above} is a file, not a folder")
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise RecordingError(f"cannot write {out}: {exc.strerror or exc}") from None
+    return out
 
 
 def write_video(run_dir: Path, out: Path | None = None, fps: float = 4.0) -> Path:
@@ -301,30 +369,32 @@ def write_video(run_dir: Path, out: Path | None = None, fps: float = 4.0) -> Pat
         out: the MP4 to write (default ``run_dir/episode.mp4``).
         fps: steps shown per second.
 
+    A frame image that is missing or cannot be read is a grey panel, with a warning
+    naming the step (see the module docstring).
+
     Raises:
         CavenavError: no run folder, or it holds no frames (flown with frames off).
+        RecordError: its summary.json or steps.jsonl is damaged (naming the field).
+        ConfigError: ``out`` is a folder, or lies under a file.
+        RecordingError: ``out`` cannot be written (a read-only folder, a full disk, ffmpeg
+            failing); no part of a video is left behind.
         DependencyError: imageio-ffmpeg is not installed (the message has the command).
     """
     run_dir = Path(run_dir)
     if not (run_dir / "summary.json").is_file() or not (run_dir / "steps.jsonl").is_file():
         raise CavenavError(f"{run_dir} is no run folder (no summary.json or steps.jsonl)")
-    summary = json.loads((run_dir / "summary.json").read_text(encoding="utf-8"))
-    steps = [s for s in read_jsonl(run_dir / "steps.jsonl") if "pose" in s]
+    summary = read_summary(run_dir / "summary.json")
+    steps = [s for s in read_steps(run_dir / "steps.jsonl") if s.get("pose") is not None]
     if not any(s.get("frames") for s in steps):
         raise CavenavError(
             f"{run_dir} holds no frames: a video needs the episode flown with frames saved "
             "(cavenav run without --no-frames; cavenav eval --frames png or all)"
         )
-    out = Path(out) if out is not None else run_dir / "episode.mp4"
-    out.parent.mkdir(parents=True, exist_ok=True)
+    out = _output(Path(out) if out is not None else run_dir / "episode.mp4")
     frames = _frames(run_dir, steps, summary)
-    first = next(frames)
-    writer = _encoder(out, (first.shape[1], first.shape[0]), fps)
-    writer.send(None)  # start the generator: ffmpeg is launched here
     try:
-        writer.send(np.ascontiguousarray(first))
-        for frame in frames:
-            writer.send(np.ascontiguousarray(frame))
-    finally:
-        writer.close()
+        write_then_rename(out, lambda tmp: _encode(tmp, frames, fps))
+    except OSError as exc:  # ffmpeg's own account runs to many lines: its first says why
+        reason = exc.strerror or (str(exc).strip().splitlines() or ["ffmpeg failed"])[0]
+        raise RecordingError(f"cannot write {out}: {reason}") from None
     return out

@@ -13,7 +13,6 @@ read, never markup to run.
 
 from __future__ import annotations
 
-import json
 import os
 import re
 from collections import Counter
@@ -24,8 +23,9 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import quote
 
-from cavenav.episode.run_folder import read_jsonl, write_atomic
-from cavenav.errors import CavenavError, DependencyError
+from cavenav.episode.records import read_exchanges, read_steps, read_summary, read_sweep_file
+from cavenav.episode.run_folder import write_atomic
+from cavenav.errors import CavenavError, DependencyError, RecordError, RecordingError
 from cavenav.evaluation.results import aggregate
 from cavenav.evaluation.results import outcome as episode_outcome
 from cavenav.evaluation.sweep import read_rows
@@ -79,22 +79,19 @@ class SweepRecord:
     groups: tuple[Mapping[str, Any], ...]
 
 
-def _read_json(path: Path) -> dict[str, Any]:
-    try:
-        return json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, json.JSONDecodeError) as exc:
-        raise CavenavError(f"{path}: cannot be read as JSON ({exc})") from None
-
-
 def read_run(path: Path) -> RunRecord:
-    """Read summary.json, steps.jsonl and exchanges.jsonl of a run folder."""
+    """Read summary.json, steps.jsonl and exchanges.jsonl of a run folder.
+
+    Raises:
+        RecordError: one of them is damaged (naming the file and the field).
+    """
     by_step: dict[int, list[dict[str, Any]]] = {}
-    for exchange in read_jsonl(path / "exchanges.jsonl"):
-        by_step.setdefault(int(exchange.get("step", -1)), []).append(exchange)
+    for exchange in read_exchanges(path / "exchanges.jsonl"):
+        by_step.setdefault(exchange.get("step", -1), []).append(exchange)
     return RunRecord(
         path=path,
-        summary=_read_json(path / "summary.json"),
-        steps=tuple(read_jsonl(path / "steps.jsonl")),
+        summary=read_summary(path / "summary.json"),
+        steps=tuple(read_steps(path / "steps.jsonl")),
         exchanges={
             step: tuple(sorted(items, key=lambda e: e.get("attempt", 0)))
             for step, items in by_step.items()
@@ -112,7 +109,7 @@ def read_sweep_record(folder: Path, rows: Sequence[Mapping[str, Any]] | None = N
     rows = list(rows) if rows is not None else read_rows(folder)
     return SweepRecord(
         path=folder,
-        config=_read_json(folder / "sweep.json"),
+        config=read_sweep_file(folder / "sweep.json"),
         rows=tuple(rows),
         groups=tuple(aggregate(rows)),
     )
@@ -621,18 +618,32 @@ def _episode_pages(
             previous=f"../{pages[k - 1]}" if k > 0 else None,
             next=f"../{pages[k + 1]}" if k + 1 < len(pages) else None,
         )
+        run, error = None, row.get("error") or "the run folder holds no summary.json"
         if (run_dir / "summary.json").is_file():
-            run = read_run(run_dir)
+            try:
+                run = read_run(run_dir)
+            except RecordError as exc:  # counted as an error by its row, with a warning
+                error = str(exc)
+        if run is not None:
             _write_episode_page(run, page, outcome, neighbours, frames_note)
             topdown = run_dir / "topdown.png"
             thumb = _href(topdown, report) if topdown.is_file() else None
             reason = "" if thumb else _missing_plot_reason(run.summary)
         else:
-            error = row.get("error") or "the run folder holds no summary.json"
+            damaged = (run_dir / "summary.json").is_file()
+            label = "damaged record" if damaged else "no run folder"
+            note = "Its record does not read back." if damaged else "It left no run folder."
             _render(
-                "missing.html.j2", page, title=ids[k], id=ids[k], error=error, neighbours=neighbours
+                "missing.html.j2",
+                page,
+                title=ids[k],
+                id=ids[k],
+                label=label,
+                note=f"{note} It counts as an error.",
+                error=error,
+                neighbours=neighbours,
             )
-            thumb, reason = None, f"no run folder: {error}"
+            thumb, reason = None, f"{label}: {error}"
         yield EpisodeLink(ids[k], outcome, pages[k], cells[k], thumb, reason)
 
 
@@ -669,12 +680,21 @@ def write_report(folder: Path, rows: Sequence[Mapping[str, Any]] | None = None) 
 
     Raises:
         CavenavError: ``folder`` is neither a sweep folder nor a run folder.
+        RecordError: its sweep.json, or the summary or steps of a lone run folder, is
+            damaged (an episode of a sweep with a damaged record is shown as an error).
+        RecordingError: the report cannot be written (a read-only folder, a full disk);
+            every page is written whole or not at all.
     """
     folder = Path(folder)
-    if (folder / "sweep.json").is_file():
-        return _write_sweep_report(folder, rows)
-    if (folder / "summary.json").is_file():
-        return _write_episode_page(read_run(folder), folder / "report.html")
+    try:
+        if (folder / "sweep.json").is_file():
+            return _write_sweep_report(folder, rows)
+        if (folder / "summary.json").is_file():
+            return _write_episode_page(read_run(folder), folder / "report.html")
+    except OSError as exc:
+        raise RecordingError(
+            f"cannot write the report in {folder}: {exc.strerror or exc}"
+        ) from None
     raise CavenavError(
         f"{folder} is neither a sweep folder (no sweep.json) nor a run folder "
         "(no summary.json): give the folder `cavenav eval` or `cavenav run` wrote"

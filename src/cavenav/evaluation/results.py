@@ -17,7 +17,9 @@ Outcomes (the failure taxonomy, one per episode):
                    headway: back and forth, or round in circles
     error          the episode raised an error (recorded in its summary), its worker died,
                    or the model server failed it (no answer in time, a refused key, a
-                   proxy's page): not the model's fault, so a resumed sweep flies it again
+                   proxy's page): not the model's fault, so a resumed sweep flies it again;
+                   also an episode whose record is damaged (a summary.json or steps.jsonl
+                   that does not read back), with a warning naming the file and the field
     incomplete     not flown yet, or cut short by Ctrl-C or a kill (re-run to finish it)
 """
 
@@ -25,8 +27,8 @@ from __future__ import annotations
 
 import csv
 import io
-import json
 import math
+import warnings
 from collections import Counter
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
@@ -35,7 +37,9 @@ from typing import Any
 import numpy as np
 from scipy.stats import binomtest
 
-from cavenav.episode.run_folder import read_jsonl, write_atomic, write_json
+from cavenav.episode.records import read_steps, read_summary
+from cavenav.episode.run_folder import write_atomic, write_json
+from cavenav.errors import CavenavWarning, RecordError
 
 __all__ = [
     "COLUMNS",
@@ -140,17 +144,23 @@ def outcome(summary: Mapping[str, Any], steps: Sequence[Mapping[str, Any]]) -> s
 def episode_row(run_dir: Path, root: Path | None = None) -> dict[str, Any]:
     """One results.csv row for the run folder ``run_dir`` (``root``: paths relative to it).
 
-    A folder with no readable summary (never started, or killed before its first write)
-    gives an ``incomplete`` row.
+    A folder with no summary (never started, or killed before its first write) gives an
+    ``incomplete`` row. A damaged record (`cavenav.episode.records`) gives an ``error``
+    row, status ``damaged``, with a warning naming the file and the field: one damaged
+    episode never stops a report or a comparison of the others.
     """
     run_dir = Path(run_dir)
     relative = str(run_dir.relative_to(root)) if root else str(run_dir)
-    try:
-        summary = json.loads((run_dir / "summary.json").read_text(encoding="utf-8"))
-    except (OSError, json.JSONDecodeError):
+    if not (run_dir / "summary.json").is_file():
         return {"episode": run_dir.name, "status": "missing", "outcome": "incomplete",
                 "run_dir": relative}  # fmt: skip
-    steps = read_jsonl(run_dir / "steps.jsonl")
+    try:
+        summary = read_summary(run_dir / "summary.json")
+        steps = read_steps(run_dir / "steps.jsonl")
+    except RecordError as exc:
+        warnings.warn(f"{exc}; the episode counts as an error", CavenavWarning, stacklevel=2)
+        return {"episode": run_dir.name, "status": "damaged", "outcome": "error",
+                "error": str(exc), "run_dir": relative}  # fmt: skip
     usage = summary.get("usage") or {}
     path_m, progress_m = summary.get("path_length_m"), summary.get("progress_m")
     efficiency = None

@@ -31,8 +31,9 @@ from typing import Any, Protocol
 
 from cavenav import __version__
 from cavenav.episode.loop import DEFAULT_STEPS, EpisodeConfig, run_episode
+from cavenav.episode.records import read_summary, read_sweep_file
 from cavenav.episode.run_folder import prepare_root, write_json
-from cavenav.errors import ConfigError
+from cavenav.errors import ConfigError, RecordError
 from cavenav.evaluation.results import episode_row, server_failed, write_results
 from cavenav.pilots.base import Pilot
 from cavenav.pilots.factory import PilotSpec, VLMOptions
@@ -236,10 +237,7 @@ def prepare(config: SweepConfig, folder: Path) -> list[EpisodeJob]:
     settings = folder / "sweep.json"
     wanted = config.to_dict()
     if settings.is_file():
-        try:
-            recorded = json.loads(settings.read_text(encoding="utf-8"))
-        except json.JSONDecodeError:
-            raise ConfigError(f"{settings} is not valid JSON; use another --out") from None
+        recorded = read_sweep_file(settings)  # a damaged one names the field
         # Read back through SweepConfig, so that settings added since the sweep began
         # take the values it was flown with (no stuck endings, no map image).
         recorded = {**recorded, **SweepConfig.from_dict(recorded).to_dict()}
@@ -265,8 +263,8 @@ def prepare(config: SweepConfig, folder: Path) -> list[EpisodeJob]:
 def _finished(run_dir: Path) -> bool:
     """Flown to an ending the pilot is answerable for: nothing to fly again on resume."""
     try:
-        summary = json.loads((run_dir / "summary.json").read_text())
-    except (OSError, ValueError):
+        summary = read_summary(run_dir / "summary.json")
+    except RecordError:  # none yet, or damaged: fly it again
         return False
     return summary.get("status") == "finished" and not server_failed(summary)
 
@@ -346,8 +344,8 @@ def record_error(run_dir: Path, job: EpisodeJob, error: str, trace: str = "") ->
     run_dir.mkdir(parents=True, exist_ok=True)
     path = run_dir / "summary.json"
     try:
-        summary = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, json.JSONDecodeError):
+        summary = read_summary(path)
+    except RecordError:
         summary = {"scenario": job.scenario, "seed": job.seed, "termination": None}
     summary.update(status="crashed", error=error)
     write_json(path, summary)
@@ -429,12 +427,12 @@ def read_sweep(folder: Path) -> tuple[SweepConfig, dict[str, Any]]:
         ConfigError: ``folder`` holds no readable sweep.json.
     """
     path = Path(folder) / "sweep.json"
+    if not path.is_file():
+        raise ConfigError(f"{folder} is not a sweep folder: no sweep.json")
+    data = read_sweep_file(path)  # a damaged one names the field
     try:
-        data = json.loads(path.read_text(encoding="utf-8"))
         return SweepConfig.from_dict(data), data
-    except FileNotFoundError:
-        raise ConfigError(f"{folder} is not a sweep folder: no sweep.json") from None
-    except (OSError, ValueError, KeyError, TypeError) as exc:
+    except (ValueError, KeyError, TypeError) as exc:
         raise ConfigError(f"{path} cannot be read as a sweep: {exc}") from None
 
 
@@ -446,7 +444,7 @@ def read_rows(folder: Path, write: bool = True) -> list[dict[str, Any]]:
     rows = []
     for job in plan(config):
         row = episode_row(folder / "episodes" / job.episode, folder)
-        if row["status"] == "missing":
+        if row["status"] in ("missing", "damaged"):  # no summary to say whose it is
             row.update(scenario=job.scenario, pilot=config.pilot.label)
         row["seed"] = job.seed  # a mesh file's summary has none, yet its episodes pair by it
         rows.append(row)

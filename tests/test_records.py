@@ -1,0 +1,243 @@
+"""Records read back, whatever was done to them: a damaged summary.json, steps.jsonl or
+sweep.json is one line naming the file and the field, a damaged episode never stops the
+report or the comparison of the others, and a folder that refuses the report or the
+comparison is one line too.
+
+One 3-step run folder is flown per module in the test corridor; sweep folders are
+assembled from copies of it as `cavenav eval` lays them out.
+"""
+
+from __future__ import annotations
+
+import builtins
+import io
+import json
+import os
+import shutil
+from collections.abc import Callable
+from pathlib import Path
+
+import pytest
+
+from cavenav.episode.loop import EpisodeConfig, run_episode
+from cavenav.episode.records import read_steps, read_summary, read_sweep_file
+from cavenav.errors import CavenavWarning, RecordError, RecordingError
+from cavenav.evaluation.report import write_report
+from cavenav.evaluation.results import compare
+from cavenav.evaluation.sweep import SweepConfig, prepare, read_rows
+
+from .conftest import cavenav
+from .test_report import ScriptedPilot, corridor, make_sweep
+
+EPISODES = ("room-seed0000", "room-seed0001")
+
+
+def refuse_writes_in(monkeypatch: pytest.MonkeyPatch, folder: Path) -> None:
+    """Make ``folder`` refuse new files and folders, as a read-only folder does.
+
+    Root writes into any folder, read-only or not, so the refusal is made at the calls
+    every write goes through (open, os.open, os.mkdir): the test holds for any user.
+    """
+    inside = str(Path(folder).resolve()) + os.sep
+    real_open, real_os_open, real_mkdir = io.open, os.open, os.mkdir
+
+    def refused(path: object) -> bool:
+        return isinstance(path, str | os.PathLike) and os.path.abspath(path).startswith(inside)
+
+    def denied(path: object) -> PermissionError:
+        return PermissionError(13, "Permission denied", os.fspath(path))  # type: ignore[arg-type]
+
+    def fake_open(file: object, mode: str = "r", *args: object, **kwargs: object) -> object:
+        if any(c in mode for c in "wax+") and refused(file):
+            raise denied(file)
+        return real_open(file, mode, *args, **kwargs)  # type: ignore[call-overload]
+
+    def fake_os_open(path: object, flags: int, *args: object, **kwargs: object) -> int:
+        if flags & (os.O_WRONLY | os.O_RDWR | os.O_CREAT) and refused(path):
+            raise denied(path)
+        return real_os_open(path, flags, *args, **kwargs)  # type: ignore[arg-type]
+
+    def fake_mkdir(path: object, *args: object, **kwargs: object) -> None:
+        if refused(path):
+            raise denied(path)
+        real_mkdir(path, *args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(builtins, "open", fake_open)
+    monkeypatch.setattr(io, "open", fake_open)
+    monkeypatch.setattr(os, "open", fake_os_open)
+    monkeypatch.setattr(os, "mkdir", fake_mkdir)
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Three 1 m moves down the test corridor, frames saved, no plots."""
+    run_dir = tmp_path_factory.mktemp("records") / "run"
+    config = EpisodeConfig(max_steps=3, plots=False)
+    run_episode(corridor(), ScriptedPilot(("forward 1 m",)), config, run_dir)
+    return run_dir
+
+
+@pytest.fixture
+def sweep(run: Path, tmp_path: Path) -> Callable[[str], Path]:
+    """A new two-episode sweep folder named ``name`` under tmp_path, each time it is called."""
+    return lambda name: make_sweep(tmp_path / name, {episode: run for episode in EPISODES})
+
+
+def damage(path: Path, text: str) -> Path:
+    path.write_text(text, encoding="utf-8")
+    return path
+
+
+def one_line(error: pytest.ExceptionInfo[Exception]) -> str:
+    message = str(error.value)
+    assert "\n" not in message
+    return message
+
+
+# ------------------------------------------------------------------ the reader
+
+
+@pytest.mark.parametrize(
+    ("text", "says"),
+    [
+        ("[1, 2]", "holds an array, not a JSON object"),
+        ('"finished"', "holds a str, not a JSON object"),
+        ('{"steps": "many"}', "field 'steps': Input should be a valid integer"),
+        ('{"status": 5}', "field 'status': Input should be a valid string"),
+        ('{"usage": 3}', "field 'usage': Input should be a valid dictionary"),
+        ('{"path_length_m": "far"}', "field 'path_length_m': Input should be a valid number"),
+        ('{"exits": [{"point": [0, 1], "normal": [0, 0, 1], "radius": 3}]}', "'exits.0.point.2'"),
+        ('{"status": "finish', "not valid JSON"),
+    ],
+)
+def test_a_damaged_summary_is_one_line_naming_the_file_and_the_field(
+    tmp_path: Path, text: str, says: str
+) -> None:
+    path = damage(tmp_path / "summary.json", text)
+    with pytest.raises(RecordError) as error:
+        read_summary(path)
+    assert one_line(error).startswith(f"{path}: ") and says in str(error.value)
+    assert error.value.exit_status == 2
+
+
+def test_a_summary_reads_back_as_it_was_written(run: Path) -> None:
+    """Nothing added (no defaults), nothing dropped (fields the models do not name)."""
+    written = json.loads((run / "summary.json").read_text())
+    assert json.loads(json.dumps(read_summary(run / "summary.json"))) == written
+
+
+def test_a_steps_line_cut_short_is_skipped_and_a_wrong_one_is_named_by_its_line(
+    run: Path, tmp_path: Path
+) -> None:
+    lines = (run / "steps.jsonl").read_text().splitlines()
+    cut = damage(tmp_path / "cut.jsonl", "\n".join([*lines[:2], lines[2][:40]]))
+    assert [s["step"] for s in read_steps(cut)] == [0, 1]  # a kill cut the last line short
+    step = json.loads(lines[1])
+    for record, field in (({**step, "pose": None}, "(top level)"), ([1, 2], None),
+                          ({**step, "progress_m": "far"}, "progress_m")):  # fmt: skip
+        wrong = damage(tmp_path / "wrong.jsonl", "\n".join([lines[0], json.dumps(record)]))
+        with pytest.raises(RecordError) as error:
+            read_steps(wrong)
+        assert one_line(error).startswith(f"{wrong} line 2: ")
+        assert field is None or f"field '{field}'" in str(error.value)
+
+
+# ------------------------------------------------------------------ sweeps
+
+
+@pytest.mark.parametrize(
+    ("text", "says"),
+    [
+        ("{}", "field 'scenarios': Field required"),
+        ("[]", "holds an array, not a JSON object"),
+        ('{"scenarios": ["room"], "seeds": [0], "pilot": {}, "episode": {}}', "field 'pilot.name'"),
+    ],
+)
+def test_a_damaged_sweep_json_is_one_line_naming_the_field_wherever_it_is_read(
+    sweep: Callable[[str], Path], text: str, says: str
+) -> None:
+    folder = sweep("s")
+    damage(folder / "sweep.json", text)
+    for read in (
+        lambda: read_rows(folder),  # report, compare
+        lambda: prepare(SweepConfig(("room",), (0, 1)), folder),  # a resumed eval
+        lambda: read_sweep_file(folder / "sweep.json"),
+    ):
+        with pytest.raises(RecordError) as error:
+            read()
+        assert one_line(error).startswith(f"{folder / 'sweep.json'}: {says}")
+
+
+def test_the_command_line_says_which_field_of_sweep_json_is_damaged(
+    sweep: Callable[[str], Path],
+) -> None:
+    folder = damage(sweep("s") / "sweep.json", "{}").parent
+    for command in (("report", str(folder)), ("compare", str(folder), str(sweep("good")))):
+        done = cavenav(*command)
+        assert done.returncode == 2, done.stderr
+        assert done.stderr == f"error: {folder / 'sweep.json'}: field 'scenarios': Field required\n"
+
+
+@pytest.mark.parametrize("text", ["[1, 2]", '{"status": "finished", "steps": "many"}'])
+def test_a_damaged_episode_counts_as_an_error_and_the_report_and_comparison_go_on(
+    sweep: Callable[[str], Path], text: str
+) -> None:
+    folder, good = sweep("s"), sweep("good")
+    summary = damage(folder / "episodes" / EPISODES[1] / "summary.json", text)
+    with pytest.warns(CavenavWarning, match=f"^{summary}: .*; the episode counts as an error$"):
+        rows = read_rows(folder)
+    assert [r["outcome"] for r in rows] == ["budget", "error"]
+    assert rows[1]["scenario"] == "room" and rows[1]["status"] == "damaged"
+    assert str(summary) in rows[1]["error"]
+    with pytest.warns(CavenavWarning):
+        index = write_report(folder)
+    page = index.parent / "episodes" / f"{EPISODES[1]}.html"
+    assert "damaged record" in page.read_text() and str(summary) in page.read_text()
+    with pytest.warns(CavenavWarning):
+        result = compare(read_rows(folder, write=False), read_rows(good, write=False))
+    assert result["overall"]["pairs"] == 2
+    assert [c["cave"] for c in result["overall"]["only_b"]] == []  # both ran out of steps
+
+
+def test_a_resumed_sweep_flies_an_episode_with_a_damaged_summary_again(
+    sweep: Callable[[str], Path],
+) -> None:
+    folder = sweep("s")
+    damage(folder / "episodes" / EPISODES[0] / "summary.json", "[1, 2]")
+    left = prepare(SweepConfig(("room",), (0, 1)), folder)  # as make_sweep configured it
+    assert [job.episode for job in left] == [EPISODES[0]]
+
+
+# ------------------------------------------------------------------ writing
+
+
+def test_a_report_into_a_read_only_folder_is_one_line_and_exits_1(
+    run: Path, sweep: Callable[[str], Path], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    lone = tmp_path / "lone"
+    shutil.copytree(run, lone)
+    for folder in (sweep("s"), lone):
+        with monkeypatch.context() as patch:
+            refuse_writes_in(patch, folder)
+            with pytest.raises(RecordingError) as error:
+                write_report(folder)
+        assert one_line(error) == f"cannot write the report in {folder}: Permission denied"
+        assert error.value.exit_status == 1
+    assert not (lone / "report.html").exists()
+
+
+def test_compare_json_that_cannot_be_written_is_one_line(
+    sweep: Callable[[str], Path], tmp_path: Path
+) -> None:
+    a, b = sweep("a"), sweep("b")
+    (tmp_path / "a-file").write_text("")
+    folder = cavenav("compare", str(a), str(b), "--json", str(tmp_path))
+    assert folder.returncode == 2
+    assert folder.stderr == f"error: --json {tmp_path} is a folder: name the file to write\n"
+    under_a_file = tmp_path / "a-file" / "c.json"
+    done = cavenav("compare", str(a), str(b), "--json", str(under_a_file))
+    assert done.returncode == 1 and "pairs" in done.stdout  # the table was shown
+    assert done.stderr == (
+        f"error: cannot write the comparison to {under_a_file}: Not a directory "
+        "(the table above is complete)\n"
+    )
