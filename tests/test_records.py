@@ -126,6 +126,19 @@ def test_a_summary_reads_back_as_it_was_written(run: Path) -> None:
     assert json.loads(json.dumps(read_summary(run / "summary.json"))) == written
 
 
+def test_a_whole_number_reads_back_whole_where_it_must(run: Path, tmp_path: Path) -> None:
+    """A difficulty count (obstacles = 3) read back as 3.0 would be refused by Difficulty:
+    a resumed sweep over harder caves would fail."""
+    knobs = {"obstacles": 3, "constriction_m": 2.4}
+    sweep_json = {**SweepConfig(("S3",), (0,)).to_dict(), "difficulty": knobs}
+    path = damage(tmp_path / "sweep.json", json.dumps(sweep_json))
+    assert read_sweep_file(path)["difficulty"] == knobs
+    assert type(read_sweep_file(path)["difficulty"]["obstacles"]) is int
+    summary = json.loads((run / "summary.json").read_text())
+    path = damage(tmp_path / "summary.json", json.dumps({**summary, "difficulty": knobs}))
+    assert type(read_summary(path)["difficulty"]["obstacles"]) is int
+
+
 def test_a_steps_line_cut_short_is_skipped_and_a_wrong_one_is_named_by_its_line(
     run: Path, tmp_path: Path
 ) -> None:

@@ -1,4 +1,5 @@
-"""Records read back: a run folder's summary.json and steps.jsonl, a sweep's sweep.json.
+"""Records read back: a run folder's summary.json, steps.jsonl and exchanges.jsonl, and a
+sweep's sweep.json.
 
 Every command that reads a record it did not just write (`report`, `compare`, `video`, a
 resumed `eval`) reads it here, so a file damaged by hand or by another tool (``{}``,
@@ -25,6 +26,8 @@ from cavenav.errors import RecordError, invalid_field
 __all__ = ["read_exchanges", "read_steps", "read_summary", "read_sweep_file"]
 
 _Vector = tuple[float, float, float]
+# Difficulty knobs: a count (obstacles = 3) must read back whole, or Difficulty refuses it.
+_Knobs = dict[str, int | float]
 
 
 class _Record(BaseModel):
@@ -91,7 +94,7 @@ class _Summary(_Record):
     wall_time_s: float | None = None
     usage: _Usage | None = None
     exits: list[_Portal] = Field(default_factory=list)
-    difficulty: dict[str, float] | None = None
+    difficulty: _Knobs | None = None
     config: _EpisodeSettings | None = None
 
 
@@ -154,7 +157,7 @@ class _SweepFile(_Record):
     seeds: list[int] = Field(min_length=1)
     pilot: _PilotEntry
     episode: _EpisodeEntry
-    difficulty: dict[str, float] = Field(default_factory=dict)
+    difficulty: _Knobs = Field(default_factory=dict)
     sensors: dict[str, Any] = Field(default_factory=dict)
     created_at: str | None = None
     cavenav_version: str | None = None
