@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import atexit
+import contextlib
 import os
 import shutil
 import subprocess
@@ -86,25 +87,39 @@ def write_room(folder: Path, start_y: float = 8.0) -> Path:
     return path
 
 
-@pytest.fixture
-def read_only_folder(tmp_path: Path) -> Iterator[Path]:
-    """An empty folder nobody can write into, root included (CI runs as root, who writes
-    through a folder's permission bits): a read-only tmpfs mounted there as root, the
-    permission bits otherwise."""
-    folder = tmp_path / "read-only"
-    folder.mkdir()
+@contextlib.contextmanager
+def read_only(folder: Path) -> Iterator[Path]:
+    """``folder``, with what it holds, refusing every write while the context lasts, root
+    included (CI runs as root, who writes through permission bits): as root the folder is
+    bind-mounted read-only onto itself, as another user its folders lose their write bits.
+    """
     if os.geteuid() != 0:
-        folder.chmod(0o555)
-        yield folder
-        folder.chmod(0o755)
+        folders = [folder, *(p for p in folder.rglob("*") if p.is_dir())]
+        for each in folders:
+            each.chmod(0o555)
+        try:
+            yield folder
+        finally:
+            for each in folders:
+                each.chmod(0o755)
         return
-    mount = ["mount", "-t", "tmpfs", "-o", "ro,size=64k", "tmpfs", str(folder)]
-    if subprocess.run(mount, capture_output=True).returncode != 0:
-        pytest.fail(f"as root, a read-only folder is a read-only mount, and {mount} failed")
+    for mount in (["--bind", folder, folder], ["-o", "remount,ro,bind", folder]):
+        done = subprocess.run(["mount", *map(str, mount)], capture_output=True, text=True)
+        if done.returncode != 0:
+            pytest.fail(f"as root, read-only means a read-only mount: {done.stderr.strip()}")
     try:
         yield folder
     finally:
         subprocess.run(["umount", str(folder)], check=True)
+
+
+@pytest.fixture
+def read_only_folder(tmp_path: Path) -> Iterator[Path]:
+    """An empty folder nobody can write into (see `read_only`)."""
+    folder = tmp_path / "read-only"
+    folder.mkdir()
+    with read_only(folder):
+        yield folder
 
 
 @pytest.fixture

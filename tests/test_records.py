@@ -9,10 +9,7 @@ assembled from copies of it as `cavenav eval` lays them out.
 
 from __future__ import annotations
 
-import builtins
-import io
 import json
-import os
 import shutil
 from collections.abc import Callable
 from pathlib import Path
@@ -26,46 +23,10 @@ from cavenav.evaluation.report import write_report
 from cavenav.evaluation.results import compare
 from cavenav.evaluation.sweep import SweepConfig, prepare, read_rows
 
-from .conftest import cavenav
+from .conftest import cavenav, read_only
 from .test_report import ScriptedPilot, corridor, make_sweep
 
 EPISODES = ("room-seed0000", "room-seed0001")
-
-
-def refuse_writes_in(monkeypatch: pytest.MonkeyPatch, folder: Path) -> None:
-    """Make ``folder`` refuse new files and folders, as a read-only folder does.
-
-    Root writes into any folder, read-only or not, so the refusal is made at the calls
-    every write goes through (open, os.open, os.mkdir): the test holds for any user.
-    """
-    inside = str(Path(folder).resolve()) + os.sep
-    real_open, real_os_open, real_mkdir = io.open, os.open, os.mkdir
-
-    def refused(path: object) -> bool:
-        return isinstance(path, str | os.PathLike) and os.path.abspath(path).startswith(inside)
-
-    def denied(path: object) -> PermissionError:
-        return PermissionError(13, "Permission denied", os.fspath(path))  # type: ignore[arg-type]
-
-    def fake_open(file: object, mode: str = "r", *args: object, **kwargs: object) -> object:
-        if any(c in mode for c in "wax+") and refused(file):
-            raise denied(file)
-        return real_open(file, mode, *args, **kwargs)  # type: ignore[call-overload]
-
-    def fake_os_open(path: object, flags: int, *args: object, **kwargs: object) -> int:
-        if flags & (os.O_WRONLY | os.O_RDWR | os.O_CREAT) and refused(path):
-            raise denied(path)
-        return real_os_open(path, flags, *args, **kwargs)  # type: ignore[arg-type]
-
-    def fake_mkdir(path: object, *args: object, **kwargs: object) -> None:
-        if refused(path):
-            raise denied(path)
-        real_mkdir(path, *args, **kwargs)  # type: ignore[arg-type]
-
-    monkeypatch.setattr(builtins, "open", fake_open)
-    monkeypatch.setattr(io, "open", fake_open)
-    monkeypatch.setattr(os, "open", fake_os_open)
-    monkeypatch.setattr(os, "mkdir", fake_mkdir)
 
 
 @pytest.fixture(scope="module")
@@ -225,16 +186,15 @@ def test_a_resumed_sweep_flies_an_episode_with_a_damaged_summary_again(
 
 
 def test_a_report_into_a_read_only_folder_is_one_line_and_exits_1(
-    run: Path, sweep: Callable[[str], Path], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+    run: Path, sweep: Callable[[str], Path], tmp_path: Path
 ) -> None:
     lone = tmp_path / "lone"
     shutil.copytree(run, lone)
     for folder in (sweep("s"), lone):
-        with monkeypatch.context() as patch:
-            refuse_writes_in(patch, folder)
-            with pytest.raises(RecordingError) as error:
-                write_report(folder)
-        assert one_line(error) == f"cannot write the report in {folder}: Permission denied"
+        with read_only(folder), pytest.raises(RecordingError) as error:
+            write_report(folder)
+        assert one_line(error).startswith(f"cannot write the report in {folder}: ")
+        assert one_line(error).endswith(("Permission denied", "Read-only file system"))
         assert error.value.exit_status == 1
     assert not (lone / "report.html").exists()
 
