@@ -2,13 +2,17 @@
 
 from __future__ import annotations
 
+import csv
+import fcntl
 import json
 import os
 import signal
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 from scipy.stats import binomtest
@@ -111,3 +115,139 @@ def test_a_different_configuration_is_refused_in_one_line(tmp_path: Path) -> Non
     assert refused.stderr.count("\n") == 1 and "episode.shield: false there, true now" in (
         refused.stderr
     )
+
+
+def test_bad_input_to_a_sweep_is_refused_in_one_line_before_anything_is_written(
+    tmp_path: Path,
+) -> None:
+    out = tmp_path / "sweep"
+    for args, refusal in [
+        (["--scenarios", "S1,S9"], "error: unknown scenario 'S9'"),
+        (["--scenarios", "S4", "--difficulty", "bend_deg=500"], "bend_deg=500 is outside"),
+        (["--seeds", "0-9999999999"], "more than the 100,000 episodes a sweep flies"),
+    ]:
+        refused = cavenav("eval", *args, "--out", str(out), "--workers", "1")
+        assert refused.returncode == 2, refused.stderr
+        assert refused.stderr.count("\n") == 1 and refusal in refused.stderr
+        assert not out.exists()
+
+
+def alive(pid: int) -> bool:
+    """Still running: a zombie (dead, not yet reaped by its new parent) is not."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except (FileNotFoundError, ProcessLookupError):
+        return False
+
+
+def flying(out: Path, count: int, deadline_s: float = 120) -> dict[str, int]:
+    """Wait until ``count`` episodes are in the air; their names and worker pids."""
+    deadline = time.monotonic() + deadline_s
+    while time.monotonic() < deadline:
+        found = {}
+        for summary in out.glob("episodes/*/summary.json"):
+            try:
+                record = json.loads(summary.read_text())
+            except ValueError:
+                continue  # being rewritten
+            if record["status"] == "running" and record["steps"] >= 1:
+                found[summary.parent.name] = record["pid"]
+        if len(found) >= count:
+            return found
+        time.sleep(0.1)
+    raise AssertionError(f"fewer than {count} episodes flew within {deadline_s} s")
+
+
+@pytest.fixture
+def slow_model(monkeypatch: pytest.MonkeyPatch) -> Iterator[tuple[Any, list[str]]]:
+    """A model server that takes 0.4 s a reply, and the options of a sweep flying it: its
+    episodes last seconds, long enough to kill the sweep with both in the air."""
+    from .vlm_server import FakeVLM
+
+    monkeypatch.setenv("OPENAI_API_KEY", "sk-test-slow")
+    with FakeVLM() as server:
+        server.persistent_fault, server.slow_s = "slow", 0.4
+        yield server, ["--pilot", "vlm", "--model", "fake-vlm", "--base-url", server.base_url,
+                       "--seeds", "0-1", "--workers", "2", "--steps", "8", "--frames", "none",
+                       "--no-report"]  # fmt: skip
+
+
+@pytest.mark.slow
+def test_a_killed_sweep_takes_its_workers_with_it_and_a_rerun_counts_no_error(
+    tmp_path: Path, slow_model: tuple[Any, list[str]]
+) -> None:
+    server, options = slow_model
+    room = str(write_room(tmp_path / "caves"))
+    out = tmp_path / "sweep"
+    args = ["eval", "--scenarios", room, *options, "--out", str(out)]
+    sweep = subprocess.Popen([sys.executable, "-m", "cavenav.cli", *args],
+                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)  # fmt: skip
+    try:
+        workers = set(flying(out, 2).values())
+        held = os.open(out / "episodes", os.O_RDONLY)
+        with pytest.raises(BlockingIOError):  # the workers hold the folder with the sweep
+            fcntl.flock(held, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        os.close(held)
+    finally:
+        sweep.kill()
+        sweep.wait()
+    deadline = time.monotonic() + 2  # the steps left take longer: none is flown unsupervised
+    while any(alive(pid) for pid in workers) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not any(alive(pid) for pid in workers)
+
+    server.persistent_fault = None  # quick replies from now on: the rerun's own episodes
+    rerun = cavenav(*args)  # at once
+    assert rerun.returncode == 0, rerun.stderr
+    with open(out / "results.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert [(r["status"], r["error"]) for r in rows] == [("finished", "")] * 2
+    assert not list(out.glob("episodes/*/error.txt"))
+
+
+@pytest.mark.slow
+def test_sigterm_stops_a_sweep_as_ctrl_c_does_with_status_143(
+    tmp_path: Path, slow_model: tuple[Any, list[str]]
+) -> None:
+    room = str(write_room(tmp_path / "caves"))
+    out = tmp_path / "sweep"
+    args = ["eval", "--scenarios", room, *slow_model[1], "--out", str(out)]
+    sweep = subprocess.Popen([sys.executable, "-m", "cavenav.cli", *args],
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)  # fmt: skip
+    workers = set(flying(out, 2).values())
+    sweep.terminate()
+    _, stderr = sweep.communicate(timeout=60)
+    assert sweep.returncode == 143, stderr
+    assert "interrupted after" in stderr and "run the same command again to resume" in stderr
+    assert "Traceback" not in stderr
+    assert not any(alive(pid) for pid in workers)
+    with open(out / "results.csv", newline="") as f:
+        assert [r["status"] for r in csv.DictReader(f)] == ["running"] * 2  # in the air
+
+
+@pytest.mark.slow
+def test_a_sweep_into_a_full_disk_stops_in_one_line_and_finishes_nothing_unwritten(
+    tmp_path: Path,
+) -> None:
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=96k", "tmpfs", str(disk)],
+                             capture_output=True)  # fmt: skip
+    if mounted.returncode != 0:
+        pytest.skip("a 96 kB tmpfs needs root (mount): the full disk is not tested here")
+    try:
+        room = str(write_room(tmp_path / "caves"))
+        out = disk / "sweep"
+        done = cavenav("eval", "--scenarios", room, "--seeds", "0-3", "--workers", "1",
+                       "--steps", "30", "--frames", "none", "--out", str(out))  # fmt: skip
+        assert done.returncode == 1, done.stderr
+        assert done.stderr.count("\n") == 1 and "Traceback" not in done.stderr
+        assert "No space left on device; the sweep stopped after" in done.stderr
+        runs = {p.parent: json.loads(p.read_text()) for p in out.glob("episodes/*/summary.json")}
+        assert any(s["status"] != "finished" for s in runs.values())  # the one cut short
+        for run, summary in runs.items():  # a finished episode is whole, plots and all
+            if summary["status"] == "finished":
+                assert all((run / name).is_file() for name in summary["plots"].values())
+        assert len(runs) < 4  # it stopped: no episode flew into the full disk after it
+    finally:
+        subprocess.run(["umount", str(disk)], check=False)

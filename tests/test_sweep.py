@@ -3,21 +3,30 @@
 from __future__ import annotations
 
 import csv
+import errno
 import json
 import os
 import signal
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 
 import pytest
 from scipy.stats import binomtest
 
-from cavenav.errors import ConfigError
+from cavenav.errors import CavenavError, ConfigError, RecordingError
 from cavenav.evaluation.executors import InProcess, LocalPool
 from cavenav.evaluation.results import aggregate, compare, outcome
-from cavenav.evaluation.sweep import EpisodeJob, SweepConfig, parse_seeds, read_rows, run_sweep
+from cavenav.evaluation.sweep import (
+    MAX_EPISODES,
+    EpisodeJob,
+    SweepConfig,
+    parse_seeds,
+    read_rows,
+    run_sweep,
+)
 from cavenav.pilots.factory import PilotSpec, VLMOptions
 
 from .conftest import write_room
@@ -308,3 +317,121 @@ def test_a_model_server_outage_is_an_error_that_a_resumed_sweep_flies_again(
         (row,) = run_sweep(config, tmp_path / "vlm", InProcess())
     assert row["outcome"] != "error" and row["error"] is None
     assert row["steps"] == 6
+
+
+def test_seeds_past_the_largest_grid_are_refused_before_they_are_counted_out() -> None:
+    started = time.perf_counter()
+    with pytest.raises(ConfigError, match="more than the 100,000 episodes a sweep flies"):
+        parse_seeds("0-9999999999")
+    with pytest.raises(ConfigError, match="more than the 100,000 episodes"):
+        parse_seeds("0-59999,100000-159999")  # each range fits, together they do not
+    assert time.perf_counter() - started < 1.0  # refused, not allocated
+    assert len(parse_seeds("0-99999,0-99999")) == MAX_EPISODES  # repeats count once
+    with pytest.raises(ConfigError, match="2 scenarios x 60000 seeds is more than"):
+        SweepConfig(("S1", "S2"), tuple(range(60_000)))
+
+
+@pytest.mark.parametrize(
+    ("scenario", "knobs", "refusal"),
+    [
+        ("S9", {}, "unknown scenario 'S9'"),
+        ("S4", {"bend_deg": 500}, r"S4: bend_deg=500 is outside \(0, 150\]"),
+        ("missing.toml", {}, "scenario file not found"),
+        ("mesh-gone", {}, "mesh file not found"),
+        ("hard-s1", {"constriction_m": 0.2}, r"constriction_m=0.2 is outside \[1, 7\]"),
+    ],
+)
+def test_a_grid_that_could_only_crash_is_refused_before_anything_is_written(
+    tmp_path: Path, scenario: str, knobs: dict, refusal: str
+) -> None:
+    (tmp_path / "hard-s1.toml").write_text('family = "S1"\n[difficulty]\nconstriction_m = 2.4\n')
+    gone = write_room(tmp_path / "caves")
+    (gone.parent / "room.ply").unlink()
+    names = {"mesh-gone": str(gone), "hard-s1": str(tmp_path / "hard-s1.toml")}
+    config = SweepConfig(("S1", names.get(scenario, scenario)), (0, 1), difficulty=knobs)
+    started = time.perf_counter()
+    with pytest.raises(CavenavError, match=refusal) as refused:
+        run_sweep(config, tmp_path / "sweep", InProcess())
+    assert refused.value.exit_status == 2
+    assert time.perf_counter() - started < 1.0  # no cave was built to find out
+    assert not (tmp_path / "sweep").exists()
+
+
+class FillsUp:
+    """write_then_rename on a disk that is full from the ``after``-th write into ``at`` on."""
+
+    def __init__(self, write: Callable[..., None], at: str, after: int):
+        self.write, self.at, self.left = write, at, after
+
+    def __call__(self, path: Path, *args: object) -> None:
+        self.left -= self.at in str(path)
+        if self.left < 0:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        self.write(path, *args)
+
+
+def test_a_full_disk_stops_the_sweep_in_one_line_and_no_lost_episode_reads_finished(
+    room: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from cavenav.episode import run_folder
+
+    out = tmp_path / "sweep"
+    # Seed 1 writes its first summary and one step's, then finds the disk full.
+    disk = FillsUp(run_folder.write_then_rename, "room-seed0001", after=2)
+    monkeypatch.setattr(run_folder, "write_then_rename", disk)
+    with pytest.raises(RecordingError, match="room-seed0001.*No space left on device") as stop:
+        run_sweep(sweep(room, seeds=(0, 1, 2)), out, InProcess())
+    assert stop.value.exit_status == 1
+    assert not (out / "results.csv").exists() and not list(out.rglob("*.tmp"))
+    monkeypatch.undo()  # room again: the tables of what was flown are written
+    rows = read_rows(out)
+    assert [(r["status"], r["outcome"]) for r in rows] == [
+        ("finished", "budget"),
+        ("running", "incomplete"),  # its last whole summary: a rerun flies it again
+        ("missing", "incomplete"),  # the sweep stopped: never flown into a full disk
+    ]
+
+
+def test_a_rerun_never_flies_beside_the_workers_of_a_killed_sweep(
+    room: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import subprocess
+    import sys
+
+    import cavenav.evaluation.sweep as sweeps
+
+    out = tmp_path / "sweep"
+    config = sweep(room, seeds=(0,))
+    (out / "episodes").mkdir(parents=True)
+    (out / "sweep.json").write_text(json.dumps(config.to_dict()))
+    # A pool worker holds episodes/ as `hold_episodes` does, for as long as it lives.
+    worker = (
+        "import fcntl, os, sys, time\n"
+        "fcntl.flock(os.open(sys.argv[1], os.O_RDONLY), fcntl.LOCK_SH)\n"
+        "print('FLYING', flush=True)\n"
+        "time.sleep(float(sys.argv[2]))\n"
+    )
+
+    def leftover(lives_s: float) -> subprocess.Popen:
+        process = subprocess.Popen(
+            [sys.executable, "-c", worker, str(out / "episodes"), str(lives_s)],
+            stdout=subprocess.PIPE,
+            text=True,
+        )
+        assert process.stdout is not None and process.stdout.readline() == "FLYING\n"
+        return process
+
+    stubborn = leftover(60)
+    try:
+        monkeypatch.setattr(sweeps, "LEFTOVER_GRACE_S", 0.3)
+        with pytest.raises(ConfigError, match="earlier sweep .* still hold its episodes"):
+            run_sweep(config, out, InProcess())
+    finally:
+        stubborn.kill()
+        stubborn.wait()
+    assert list((out / "episodes").iterdir()) == []  # nothing flown beside it
+
+    dying = leftover(0.5)  # as a killed sweep's workers do, within the grace
+    monkeypatch.setattr(sweeps, "LEFTOVER_GRACE_S", 30.0)
+    (row,) = run_sweep(config, out, InProcess())
+    assert dying.poll() is not None and row["status"] == "finished"

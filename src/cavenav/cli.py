@@ -17,8 +17,10 @@ from __future__ import annotations
 import contextlib
 import math
 import os
+import signal
 import sys
 import warnings
+from collections.abc import Iterator
 from dataclasses import replace
 from enum import StrEnum
 from pathlib import Path
@@ -591,19 +593,17 @@ def eval_(
     """Fly a pilot over scenarios x seeds; results.csv, aggregate.json and an HTML report."""
     sizes = _sizes(resolution, sounder_resolution)
     from cavenav.episode.run_folder import prepare_root
-    from cavenav.evaluation.sweep import SweepConfig, parse_seeds, run_sweep
+    from cavenav.errors import RecordingError
+    from cavenav.evaluation.sweep import SweepConfig, check_grid, parse_seeds, run_sweep
     from cavenav.pilots.factory import PilotSpec
     from cavenav.world.scenarios import parse_difficulty
 
     if pilot == "replay":
         raise CavenavError("a sweep flies geometric, vlm or random pilots, not replay")
-    prepare_root(out)
     spec = PilotSpec(
         pilot,
         _vlm_options(locals()),
     )
-    if pilot == "vlm":
-        spec.build()  # a missing key or an unreachable server fails now, not in a worker
     optics = _optics_flags(
         water=water,
         light_power=light_power,
@@ -624,6 +624,10 @@ def eval_(
         difficulty=parse_difficulty(difficulty or []).to_dict(),
         sensors={"sounder": sounder.value, "depth_max_m": depth_max, "optics": optics, **sizes},
     )
+    check_grid(config)  # every scenario and knob, in milliseconds, before anything is written
+    prepare_root(out)
+    if pilot == "vlm":
+        spec.build()  # a missing key or an unreachable server fails now, not in a worker
     executor = _executor(workers, concurrency, ray_address)
     counts = {"done": 0, "success": 0}
     with Progress(
@@ -649,15 +653,23 @@ def eval_(
             status = f"{counts['success']}/{counts['done']} succeeded  last: {row['episode']} "
             progress.update(task, advance=1, status=status + str(row.get("outcome")))
 
+        terminated: list[int] = []
         try:
-            rows = run_sweep(config, out, executor, done, started)
+            with _sigterm_as_ctrl_c(terminated):
+                rows = run_sweep(config, out, executor, done, started)
         except KeyboardInterrupt:
             progress.stop()
             errors.print(
                 f"interrupted after {counts['done']} episodes: results so far are in {out}; "
                 "run the same command again to resume"
             )
-            raise typer.Exit(130) from None
+            raise typer.Exit(143 if terminated else 130) from None
+        except RecordingError as exc:
+            progress.stop()
+            raise RecordingError(
+                f"{exc}; the sweep stopped after {counts['done']} episodes, each record whole: "
+                "make room, then run the same command again to resume"
+            ) from None
     _print_groups(rows)
     console.print(f"sweep folder: [bold]{out}[/]", soft_wrap=True)
     console.print(f"results:      {out / 'results.csv'}", soft_wrap=True)
@@ -665,6 +677,24 @@ def eval_(
         from cavenav.evaluation.report import write_report
 
         console.print(f"report:       {write_report(out, rows)}", soft_wrap=True)
+
+
+@contextlib.contextmanager
+def _sigterm_as_ctrl_c(caught: list[int]) -> Iterator[None]:
+    """SIGTERM (kill, a batch scheduler's stop) ends the block as Ctrl-C does: the workers
+    are stopped and the tables written; ``caught`` gets the signal, for the exit status
+    (143 = 128 + SIGTERM). A second SIGTERM while stopping is ignored."""
+
+    def stop(signum: int, frame: object) -> None:
+        caught.append(signum)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, stop)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 def _scenario_list(text: str) -> tuple[str, ...]:

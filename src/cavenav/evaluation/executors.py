@@ -4,15 +4,20 @@ All three keep ``workers x concurrency`` episodes in flight. A worker is a proce
 lives for the whole sweep (kernels compiled once, caves kept); ``concurrency`` episodes
 share it on threads, which pays off for model pilots: a VLM step is mostly waiting on the
 server, and a server (vLLM, SGLang, a hosted API) answers many requests at once.
+
+A sweep folder that cannot be written (`RecordingError` from `EpisodeWorker.fly`) stops
+every executor: the error reaches `run_sweep` wherever the episode flew.
 """
 
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import multiprocessing
 import os
 import queue
 import signal
+import sys
 import threading
 from collections import deque
 from collections.abc import Callable, Iterator, Sequence
@@ -21,9 +26,15 @@ from multiprocessing.connection import Connection, wait
 from pathlib import Path
 from typing import Any
 
-from cavenav.errors import ConfigError, DependencyError
+from cavenav.errors import ConfigError, DependencyError, RecordingError
 from cavenav.evaluation.results import episode_row
-from cavenav.evaluation.sweep import EpisodeJob, EpisodeWorker, SweepConfig, record_error
+from cavenav.evaluation.sweep import (
+    EpisodeJob,
+    EpisodeWorker,
+    SweepConfig,
+    hold_episodes,
+    record_error,
+)
 
 __all__ = ["InProcess", "LocalPool", "RayCluster"]
 
@@ -59,25 +70,66 @@ class InProcess:
                     job = todo.get_nowait()
                 except queue.Empty:
                     return
-                rows.put(worker.fly(job))
+                try:
+                    rows.put(worker.fly(job))
+                except BaseException as exc:  # noqa: BLE001 - raised where the sweep waits
+                    rows.put(exc)
+                    return
 
         for _ in range(self.concurrency):
             threading.Thread(target=fly, daemon=True).start()
         for _ in jobs:
-            done(rows.get())
+            row = rows.get()
+            if isinstance(row, BaseException):
+                raise row
+            done(row)
 
 
-def _pool_worker(config: SweepConfig, folder: Path, concurrency: int, conn: Connection) -> None:
+# prctl(2) option: the signal this process gets when the thread that started it ends.
+_PR_SET_PDEATHSIG = 1
+
+
+def _die_with(parent: int) -> None:
+    """End this process when ``parent`` does, however it ends (SIGKILL included).
+
+    On Linux the kernel sends SIGKILL (PR_SET_PDEATHSIG) when the *thread* that started
+    this process ends: `LocalPool.run` starts its workers from the thread that runs the
+    sweep, which returns only after stopping them (a spawned child is started directly by
+    the calling thread, not by a helper thread or a fork server). A parent that died
+    before the request is caught by its pid; elsewhere the pipe's end watches
+    (`_pool_worker`).
+    """
+    if sys.platform == "linux":
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(_PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
+    if os.getppid() != parent:
+        os._exit(1)
+
+
+def _pool_worker(
+    config: SweepConfig, folder: Path, concurrency: int, conn: Connection, parent: int
+) -> None:
     """A pool process: flies the jobs its pipe brings, ``concurrency`` at a time, and sends
-    back (episode, row) for each; a None means no more. Ctrl-C is the parent's to handle."""
+    back (episode, row) for each, or (episode, RecordingError) when the folder cannot be
+    written; a None means no more. Ctrl-C is the parent's to handle.
+
+    The worker never outlives the sweep: it dies with its parent (`_die_with`), or at
+    once when the pipe closes, leaving its episodes in flight "running" for a rerun, and
+    it holds the sweep's episodes/ while it lives (`hold_episodes`).
+    """
+    _die_with(parent)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    hold_episodes(folder)  # until the process ends
     worker = EpisodeWorker(config, folder)
     jobs: queue.Queue = queue.Queue()
     sending = threading.Lock()
 
     def fly() -> None:
         while (job := jobs.get()) is not None:
-            row = worker.fly(job)
+            try:
+                row: Any = worker.fly(job)
+            except RecordingError as exc:  # the parent stops the sweep
+                row = exc
             with sending:
                 conn.send((job.episode, row))
 
@@ -87,8 +139,8 @@ def _pool_worker(config: SweepConfig, folder: Path, concurrency: int, conn: Conn
     while True:
         try:
             job = conn.recv()
-        except EOFError:  # the parent is gone
-            job = None
+        except (EOFError, OSError):  # the parent is gone: no episode flies unsupervised
+            os._exit(1)
         if job is None:
             break
         jobs.put(job)
@@ -144,7 +196,7 @@ class LocalPool:
                 here, there = context.Pipe()
                 process = context.Process(
                     target=_pool_worker,
-                    args=(config, folder, self.concurrency, there),
+                    args=(config, folder, self.concurrency, there, os.getpid()),
                     daemon=True,
                 )
                 process.start()
@@ -168,9 +220,11 @@ class LocalPool:
                         self._bury(processes[conn], flying.pop(conn), folder, done)
                         continue
                     del flying[conn][episode]
+                    if isinstance(row, RecordingError):
+                        raise row
                     done(row)
                     feed(conn)
-        except BaseException:  # Ctrl-C: stop now; the episodes in flight stay "running"
+        except BaseException:  # Ctrl-C, a full disk: stop now; those in flight stay "running"
             for process in processes.values():
                 process.terminate()
             raise
@@ -262,6 +316,8 @@ class RayCluster:
                 row = ray.get(ready[0])
                 load[a] -= 1
             except ray.exceptions.RayError as exc:  # the actor died or the task failed
+                if isinstance(getattr(exc, "cause", None), RecordingError):
+                    raise exc.cause from None  # the folder cannot be written: stop
                 run_dir = folder / "episodes" / job.episode
                 record_error(run_dir, job, f"Ray: {type(exc).__name__}: {exc}".splitlines()[0])
                 row = episode_row(run_dir, folder)

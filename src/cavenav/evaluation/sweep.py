@@ -10,20 +10,27 @@ DIR/
 Re-running the same command skips every episode whose summary says ``finished`` and
 flies the others again from scratch: never started, interrupted by Ctrl-C, killed, or
 crashed with an error. An episode that fails is recorded with its error in its summary
-and never stops the sweep.
+and never stops the sweep; a sweep folder that cannot be written (a full disk) does, with
+a `RecordingError`, keeping every record whole.
+
+The folder is held by one sweep at a time (`_only_sweep_in`), and its pool workers hold
+``episodes/`` as long as they live (`hold_episodes`): a rerun never flies beside the
+workers of a sweep that was killed.
 """
 
 from __future__ import annotations
 
+import errno
 import fcntl
 import json
 import os
 import re
 import shutil
 import threading
+import time
 import traceback
 from collections.abc import Callable, Iterator, Mapping, Sequence
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from dataclasses import dataclass, field, replace
 from datetime import UTC, datetime
 from pathlib import Path
@@ -32,20 +39,29 @@ from typing import Any, Protocol
 from cavenav import __version__
 from cavenav.episode.loop import DEFAULT_STEPS, EpisodeConfig, run_episode
 from cavenav.episode.records import read_summary, read_sweep_file
-from cavenav.episode.run_folder import prepare_root, write_json
-from cavenav.errors import ConfigError, RecordError
+from cavenav.episode.run_folder import prepare_root, write_atomic, write_json
+from cavenav.errors import ConfigError, RecordError, RecordingError
 from cavenav.evaluation.results import episode_row, server_failed, write_results
 from cavenav.pilots.base import Pilot
 from cavenav.pilots.factory import PilotSpec, VLMOptions
 from cavenav.sensors.rig import SENSOR_KEYS, SensorConfig
-from cavenav.world.scenarios import SCENARIOS, Difficulty, Scenario, load_scenario
+from cavenav.world.scenarios import (
+    SCENARIOS,
+    Difficulty,
+    Scenario,
+    check_scenario,
+    load_scenario,
+)
 
 __all__ = [
     "FRAMES",
+    "MAX_EPISODES",
     "EpisodeJob",
     "EpisodeWorker",
     "Executor",
     "SweepConfig",
+    "check_grid",
+    "hold_episodes",
     "parse_seeds",
     "plan",
     "prepare",
@@ -59,6 +75,16 @@ FORMAT = 1
 # Pilot settings that change how a request travels, not what the pilot does: a resumed
 # sweep may change them (a longer timeout, more retries, a reply cache).
 _TRANSPORT_OPTIONS = ("timeout", "retries", "cache", "device", "api_key_env")
+# The largest grid a sweep flies (scenarios x seeds). sweep.json lists every seed and
+# results.csv holds a row per episode, so the grid must fit in memory and on a page:
+# 100,000 episodes of the geometric pilot are about a day on 16 cores. A larger study is
+# several sweeps (e.g. by seed range), each resumable on its own.
+MAX_EPISODES = 100_000
+# How long a new sweep waits for the pool workers of a killed one to die before refusing
+# the folder: they die with their parent within milliseconds (`executors._pool_worker`).
+LEFTOVER_GRACE_S = 5.0
+# Failures to write that stop the whole sweep: the next episode would fail the same way.
+_FOLDER_FAULTS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS)
 
 
 @dataclass(frozen=True)
@@ -93,6 +119,11 @@ class SweepConfig:
             raise ConfigError("give at least one scenario, e.g. --scenarios S1,S2")
         if not self.seeds:
             raise ConfigError("give at least one seed, e.g. --seeds 0-19")
+        if len(self.scenarios) * len(self.seeds) > MAX_EPISODES:
+            raise ConfigError(
+                f"{len(self.scenarios)} scenarios x {len(self.seeds)} seeds is more than the "
+                f"{MAX_EPISODES:,} episodes a sweep flies; split it into several sweeps"
+            )
         knobs = Difficulty.from_dict(self.difficulty).to_dict()  # fails here, not in a worker
         files = [s for s in self.scenarios if s not in SCENARIOS]
         for knob in knobs:
@@ -175,7 +206,8 @@ def parse_seeds(text: str) -> tuple[int, ...]:
     """ "0-19", "3", "0,5,7-9" -> the seeds, in order, without repeats.
 
     Raises:
-        ConfigError: naming the part that is not a seed or a range.
+        ConfigError: naming the part that is not a seed or a range, or more seeds than
+            `MAX_EPISODES` (refused before they are counted out one by one).
     """
     seeds: dict[int, None] = {}
     for part in (p.strip() for p in text.split(",")):
@@ -188,8 +220,34 @@ def parse_seeds(text: str) -> tuple[int, ...]:
         last = int(match[2]) if match[2] else first
         if last < first:
             raise ConfigError(f"--seeds: the range '{part}' runs backwards")
+        if last - first >= MAX_EPISODES:  # refused before it is counted out
+            raise _too_many(text)
         seeds.update(dict.fromkeys(range(first, last + 1)))
+        if len(seeds) > MAX_EPISODES:
+            raise _too_many(text)
     return tuple(seeds)
+
+
+def _too_many(seeds: str) -> ConfigError:
+    return ConfigError(
+        f"--seeds {seeds}: more than the {MAX_EPISODES:,} episodes a sweep flies; "
+        "split it into several sweeps"
+    )
+
+
+def check_grid(config: SweepConfig) -> None:
+    """Refuse a grid whose episodes could only crash, before anything is written: an
+    unknown scenario, a scenario file that does not read, a difficulty knob that its
+    family lacks or out of its range, two scenarios sharing run folders. Each is checked
+    as its episodes would load it (`SweepConfig.difficulty_for`), in milliseconds: no
+    cave is built (`cavenav.world.scenarios.check_scenario`).
+
+    Raises:
+        ConfigError, MeshError, ScenarioError: naming the scenario and what is wrong.
+    """
+    for scenario in config.scenarios:
+        check_scenario(scenario, config.difficulty_for(scenario))
+    plan(config)
 
 
 def plan(config: SweepConfig) -> list[EpisodeJob]:
@@ -231,6 +289,7 @@ def prepare(config: SweepConfig, folder: Path) -> list[EpisodeJob]:
     Raises:
         ConfigError: ``folder`` holds another sweep (naming the first difference), or
             something that is not a sweep.
+        RecordingError: sweep.json cannot be written (a full disk).
     """
     folder = Path(folder)
     jobs = plan(config)
@@ -255,8 +314,11 @@ def prepare(config: SweepConfig, folder: Path) -> list[EpisodeJob]:
     elif folder.exists() and any(folder.iterdir()):
         raise ConfigError(f"{folder} is not empty and holds no sweep.json; choose another --out")
     else:
-        (folder / "episodes").mkdir(parents=True, exist_ok=True)
-        write_json(settings, wanted)
+        try:
+            (folder / "episodes").mkdir(parents=True, exist_ok=True)
+            write_json(settings, wanted)
+        except OSError as exc:
+            raise _cannot_write(folder, exc) from None
     return [job for job in jobs if not _finished(folder / "episodes" / job.episode)]
 
 
@@ -323,34 +385,68 @@ class EpisodeWorker:
         )
 
     def fly(self, job: EpisodeJob) -> dict[str, Any]:
-        """Fly one episode into a fresh run folder; its results row, whatever happens.
+        """Fly one episode into a fresh run folder; its results row.
 
         Any error is recorded in the run folder's summary (status "crashed", "error")
-        and returned in the row: one episode never stops the sweep.
+        and returned in the row: one episode never stops the sweep, unless the sweep
+        folder cannot be written.
+
+        Raises:
+            RecordingError: the run folder cannot be written (a full disk): the episode is
+                recorded as crashed where that can still be written, else its summary
+                stays the last whole one ("running"); never "finished". Every episode
+                after it would fail the same way, so the sweep stops.
         """
         run_dir = self.folder / "episodes" / job.episode
-        if run_dir.exists():
-            shutil.rmtree(run_dir)  # an interrupted or crashed attempt: start again
         try:
+            if run_dir.exists():
+                shutil.rmtree(run_dir)  # an interrupted or crashed attempt: start again
             cave = self._cave(job)
             run_episode(cave, self._pilot(job), self.episode_config(cave), run_dir)
         except Exception as exc:  # noqa: BLE001 - recorded, and the sweep goes on
-            record_error(run_dir, job, f"{type(exc).__name__}: {exc}", traceback.format_exc())
+            fault = _folder_fault(run_dir, exc)
+            try:
+                record_error(run_dir, job, f"{type(exc).__name__}: {exc}", traceback.format_exc())
+            except RecordingError:
+                if fault is None:
+                    raise
+            if fault is not None:  # the first cause, naming the file
+                raise fault from None
         return episode_row(run_dir, self.folder)
 
 
 def record_error(run_dir: Path, job: EpisodeJob, error: str, trace: str = "") -> None:
-    """Mark ``run_dir`` as crashed with ``error``, keeping whatever it already holds."""
-    run_dir.mkdir(parents=True, exist_ok=True)
+    """Mark ``run_dir`` as crashed with ``error``, keeping whatever it already holds.
+
+    Raises:
+        RecordingError: it cannot be written (a full disk); each file is whole or absent.
+    """
     path = run_dir / "summary.json"
     try:
-        summary = read_summary(path)
-    except RecordError:
-        summary = {"scenario": job.scenario, "seed": job.seed, "termination": None}
-    summary.update(status="crashed", error=error)
-    write_json(path, summary)
-    if trace:
-        (run_dir / "error.txt").write_text(trace)
+        run_dir.mkdir(parents=True, exist_ok=True)
+        try:
+            summary = read_summary(path)
+        except RecordError:
+            summary = {"scenario": job.scenario, "seed": job.seed, "termination": None}
+        summary.update(status="crashed", error=error)
+        write_json(path, summary)
+        if trace:
+            write_atomic(run_dir / "error.txt", trace)
+    except OSError as exc:
+        raise _cannot_write(run_dir, exc) from None
+
+
+def _cannot_write(where: Path, error: OSError) -> RecordingError:
+    return RecordingError(f"cannot write {where}: {error.strerror or error}")
+
+
+def _folder_fault(run_dir: Path, error: Exception) -> RecordingError | None:
+    """``error`` as the sweep's reason to stop, if it says the folder cannot be written."""
+    if isinstance(error, RecordingError):
+        return error
+    if isinstance(error, OSError) and error.errno in _FOLDER_FAULTS:
+        return _cannot_write(run_dir, error)
+    return None
 
 
 class Executor(Protocol):
@@ -380,19 +476,31 @@ def run_sweep(
         started: called once with (episodes left to fly, episodes in the grid).
 
     Returns:
-        Every episode's row, finished earlier or now. On Ctrl-C the tables are still
-        written (the episodes in flight count as incomplete) before the interrupt goes on.
+        Every episode's row, finished earlier or now. On Ctrl-C, or when the folder
+        cannot be written, the tables are still written where they can be (the episodes
+        in flight count as incomplete) before the exception goes on.
+
+    Raises:
+        ConfigError, MeshError, ScenarioError: the grid is refused (`check_grid`), or the
+            folder is held by another sweep or its workers; nothing was written.
+        RecordingError: the sweep folder cannot be written (a full disk): the sweep stops.
     """
     folder = Path(folder)
+    check_grid(config)
     with _only_sweep_in(folder):
         jobs = prepare(config, folder)
         if started:
             started(len(jobs), len(config.scenarios) * len(config.seeds))  # the grid
         try:
             executor.run(config, folder, jobs, done or (lambda row: None))
-        finally:
-            rows = read_rows(folder)
-    return rows
+        except BaseException:
+            with suppress(OSError):  # the cause, not a full disk's echo, goes on
+                read_rows(folder)
+            raise
+        try:
+            return read_rows(folder)
+        except OSError as exc:
+            raise _cannot_write(folder, exc) from None
 
 
 @contextmanager
@@ -401,9 +509,12 @@ def _only_sweep_in(folder: Path) -> Iterator[None]:
     another terminal) would fly the same episodes into the same run folders.
 
     The lock is the kernel's (flock on the folder itself): a killed sweep releases it.
+    Its pool workers hold episodes/ (`hold_episodes`) and die with it; until the last of
+    them is gone, which takes milliseconds, the folder is not flown into.
 
     Raises:
-        ConfigError: another sweep holds ``folder``.
+        ConfigError: another sweep holds ``folder``, or the workers of a killed one still
+            live after `LEFTOVER_GRACE_S`.
     """
     prepare_root(folder)
     fd = os.open(folder, os.O_RDONLY)
@@ -415,9 +526,48 @@ def _only_sweep_in(folder: Path) -> Iterator[None]:
                 f"another sweep is writing into {folder}; wait for it to end, or choose "
                 "another --out"
             ) from None
+        _wait_for_leftovers(folder)
         yield
     finally:
         os.close(fd)  # releases the lock
+
+
+def hold_episodes(folder: Path) -> int:
+    """Hold ``folder``'s episodes/ for as long as this process lives (a pool worker):
+    shared with the sweep's other workers, exclusive of a sweep started after a kill.
+
+    Returns:
+        The descriptor that holds it; closing it, or the process ending, lets go.
+    """
+    fd = os.open(Path(folder) / "episodes", os.O_RDONLY)
+    fcntl.flock(fd, fcntl.LOCK_SH)
+    return fd
+
+
+def _wait_for_leftovers(folder: Path) -> None:
+    """Return once no worker of an earlier sweep holds ``folder``'s episodes/.
+
+    Raises:
+        ConfigError: some still do after `LEFTOVER_GRACE_S`.
+    """
+    if not (folder / "episodes").is_dir():
+        return
+    fd = os.open(folder / "episodes", os.O_RDONLY)
+    try:
+        deadline = time.monotonic() + LEFTOVER_GRACE_S
+        while True:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                return
+            except BlockingIOError:
+                if time.monotonic() > deadline:
+                    raise ConfigError(
+                        f"processes of an earlier sweep into {folder} still hold its "
+                        "episodes; wait for them to end (or end them), then run it again"
+                    ) from None
+                time.sleep(0.05)
+    finally:
+        os.close(fd)  # lets go at once: this sweep's own workers share it
 
 
 def read_sweep(folder: Path) -> tuple[SweepConfig, dict[str, Any]]:

@@ -27,7 +27,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 from scipy.spatial import cKDTree
 
-from cavenav.errors import ConfigError, ScenarioError
+from cavenav.errors import ConfigError, MeshError, ScenarioError
 from cavenav.types import Pose
 from cavenav.world.collision import VehicleBody
 from cavenav.world.mesh import CaveMesh, check_units, load_mesh, sphere_directions
@@ -49,6 +49,7 @@ __all__ = [
     "Difficulty",
     "ExitPortal",
     "Scenario",
+    "check_scenario",
     "difficulty_table",
     "load_scenario",
     "load_scenario_file",
@@ -1308,6 +1309,21 @@ def load_scenario_file(
         ScenarioError: ``difficulty`` given for a mesh file, or out of the family's range.
     """
     path = Path(path)
+    model = _read_scenario_file(path, difficulty)
+    if isinstance(model, _FamilyFileModel):
+        return _family_scenario(path, model, seed, difficulty)
+    return _mesh_scenario(path, model)
+
+
+def _read_scenario_file(
+    path: Path, difficulty: Difficulty | None
+) -> _FamilyFileModel | _ScenarioFileModel:
+    """The file's fields, validated, before any mesh is read or cave built (milliseconds).
+
+    Raises:
+        ConfigError: unreadable TOML or invalid fields, naming the field.
+        ScenarioError: ``difficulty`` given for a mesh file.
+    """
     if not path.is_file():
         raise ConfigError(f"scenario file not found: {path}")
     try:
@@ -1317,7 +1333,7 @@ def load_scenario_file(
     if "mesh" in raw and "family" in raw:
         raise ConfigError(f"{path}: give either 'mesh' (a cave mesh) or 'family', not both")
     if "family" in raw:
-        return _family_scenario(path, _validated(_FamilyFileModel, raw, path), seed, difficulty)
+        return _validated(_FamilyFileModel, raw, path)
     if "mesh" not in raw:
         raise ConfigError(
             f"{path}: give 'mesh' (a cave mesh file) or 'family' (one of {', '.join(SCENARIOS)})"
@@ -1327,7 +1343,7 @@ def load_scenario_file(
             f"{path} is a mesh scenario, which has no difficulty knobs: they apply to the "
             f"procedural families ({', '.join(SCENARIOS)}, or a file naming one)"
         )
-    return _mesh_scenario(path, _validated(_ScenarioFileModel, raw, path))
+    return _validated(_ScenarioFileModel, raw, path)
 
 
 _Model = TypeVar("_Model", bound=BaseModel)
@@ -1391,14 +1407,7 @@ def _family_scenario(
     path: Path, model: _FamilyFileModel, seed: int, override: Difficulty | None
 ) -> Scenario:
     """The file's family at ``seed``, with its knobs updated by ``override``."""
-    try:
-        difficulty = Difficulty.from_dict(model.difficulty)
-        SCENARIOS[model.family].resolve(difficulty)  # the file's own knobs, blamed on it
-    except (ConfigError, ScenarioError) as exc:
-        raise ConfigError(f"{path}: [difficulty]: {exc}") from None
-    if override is not None:
-        difficulty = difficulty.updated(override)
-    cave = procedural_scenario(model.family, seed, difficulty)
+    cave = procedural_scenario(model.family, seed, _family_difficulty(path, model, override))
     return replace(
         cave,
         name=model.name or path.stem,
@@ -1406,6 +1415,52 @@ def _family_scenario(
         optics=model.optics,
         sensors=model.sensors.model_dump(exclude_none=True),
     )
+
+
+def _family_difficulty(
+    path: Path, model: _FamilyFileModel, override: Difficulty | None
+) -> Difficulty:
+    """The file's knobs updated by ``override``, each checked against the file's family.
+
+    Raises:
+        ConfigError: the file's own knobs are wrong (blamed on the file).
+        ScenarioError: ``override`` sets a knob the family lacks, or one out of range.
+    """
+    try:
+        difficulty = Difficulty.from_dict(model.difficulty)
+        SCENARIOS[model.family].resolve(difficulty)  # the file's own knobs, blamed on it
+    except (ConfigError, ScenarioError) as exc:
+        raise ConfigError(f"{path}: [difficulty]: {exc}") from None
+    if override is None:
+        return difficulty
+    difficulty = difficulty.updated(override)
+    SCENARIOS[model.family].resolve(difficulty)
+    return difficulty
+
+
+def check_scenario(name_or_path: str, difficulty: Difficulty | None = None) -> None:
+    """Refuse what `load_scenario` would refuse, without building the cave or reading a
+    mesh: a sweep checks its whole grid this way in milliseconds (a cave takes seconds),
+    so that bad input never becomes a sweep of errors.
+
+    Raises:
+        ConfigError: a scenario file that does not read or validate.
+        MeshError: a mesh file the scenario file names is missing.
+        ScenarioError: an unknown family, or a knob the family lacks or out of its range.
+    """
+    if name_or_path in SCENARIOS:
+        SCENARIOS[name_or_path].resolve(difficulty)
+        return
+    path = Path(name_or_path)
+    if not (path.suffix.lower() == ".toml" or path.exists()):
+        raise _unknown(name_or_path)
+    model = _read_scenario_file(path, difficulty)
+    if isinstance(model, _FamilyFileModel):
+        _family_difficulty(path, model, difficulty)
+        return
+    for piece in model.mesh:
+        if not (path.parent / piece.path).is_file():
+            raise MeshError(f"{path}: mesh file not found: {path.parent / piece.path}")
 
 
 def load_scenario(
@@ -1418,8 +1473,12 @@ def load_scenario(
     path = Path(name_or_path)
     if path.suffix.lower() == ".toml" or path.exists():
         return load_scenario_file(path, seed, difficulty)
-    raise ScenarioError(
-        f"unknown scenario '{name_or_path}': give one of {', '.join(SCENARIOS)} "
+    raise _unknown(name_or_path)
+
+
+def _unknown(name: str) -> ScenarioError:
+    return ScenarioError(
+        f"unknown scenario '{name}': give one of {', '.join(SCENARIOS)} "
         "or the path of a scenario .toml file"
     )
 
