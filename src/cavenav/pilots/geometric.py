@@ -566,19 +566,19 @@ class GeometricPilot:
             is not None
         )
 
-    def _look_first(self, right: float, obs: Observation, scene: _Scene) -> float:
-        """The turn to look at the side a sideways shift of ``right`` would enter, when
-        that side was never seen free (0 when it was, or when a look cannot help)."""
-        if not right or scene.crawling:  # in a crawlway the turn itself has no room
+    def _look_first(self, move: Action, obs: Observation, scene: _Scene) -> float:
+        """The turn to look at the side that ``move``, with a sideways shift, would enter
+        when that space was never seen free (0 when it was, or when a look cannot help)."""
+        if not move.right or scene.crawling:  # in a crawlway the turn itself has no room
             return 0.0
         if self._looked_from is not None and (
             np.linalg.norm(self.map.position - self._looked_from) < 0.5
         ):
             return 0.0  # it looked from here already: what stays unseen stays unknown
-        if not self._unseen(Action(right=right), obs):
+        if not self._unseen(move, obs):
             return 0.0
         look = max(y for y in self.space.yaw_deg if y <= 90.0)
-        return look if right < 0 else -look
+        return look if move.right < 0 else -look
 
     def decide(self, observation: Observation) -> Decision:
         cfg = self.config
@@ -634,7 +634,9 @@ class GeometricPilot:
             wanted = 0.5 if gap > 2.0 else 0.2 if gap > 1.0 else 0.1
             magnitude = max((m for m in self.space.lateral_m if m <= min(wanted, room)), default=0)
             right = magnitude if left_is_nearer else -magnitude
-            look = self._look_first(right, observation, scene)
+            look = self._look_first(
+                Action(forward=forward, right=right, yaw_deg=yaw), observation, scene
+            )
         # Below the standoff, forward motion must come with a turn or a shift: in a
         # crawlway, or where the side it would shift to was never seen, a 5-degree turn,
         # which costs no room; elsewhere a shift away from the nearer wall.
