@@ -238,7 +238,7 @@ def test_a_sweep_into_a_full_disk_stops_in_one_line_and_finishes_nothing_unwritt
     try:
         room = str(write_room(tmp_path / "caves"))
         out = disk / "sweep"
-        done = cavenav("eval", "--scenarios", room, "--seeds", "0-3", "--workers", "1",
+        done = cavenav("eval", "--scenarios", room, "--seeds", "0-3", "--workers", "2",
                        "--steps", "30", "--frames", "none", "--out", str(out))  # fmt: skip
         assert done.returncode == 1, done.stderr
         assert done.stderr.count("\n") == 1 and "Traceback" not in done.stderr
