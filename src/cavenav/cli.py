@@ -1132,6 +1132,7 @@ def main() -> None:
        was written.
     3: `fly`: the vehicle failed the bridge (no heartbeat, refused, a stale link).
     130: interrupted (Ctrl-C); what was recorded so far stays valid.
+    143: `eval` stopped by SIGTERM, as by Ctrl-C.
     """
     warnings.showwarning = _show_warning
     try:
