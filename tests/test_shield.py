@@ -143,3 +143,11 @@ def test_the_geometric_pilot_crawls_through_under_the_shield_untouched() -> None
     result = run_episode(cave, GeometricPilot(), config)
     assert result.termination == "exit", result.termination
     assert result.summary["shield_interventions"] == 0
+
+
+def test_a_climb_slanting_out_of_the_sounders_column_into_space_never_seen_is_refused() -> None:
+    # Straight up the upward sounder saw 3 m free; 0.3 m ahead and 0.3 m up lies behind
+    # the camera's view and off the sounder's column: nobody saw it.
+    verdict = judged("forward 0.2 m, ascend 1 m", seen(np.inf, d_top=3.0))
+    assert verdict.intervened and "never seen free" in verdict.reason
+    assert not judged("ascend 1 m", seen(np.inf, d_top=3.0)).intervened
