@@ -17,8 +17,8 @@ a real BlueROV2. It enforces, with the numbers of `Rules` (SPEC section 3):
    image in front of the surface there, in the sounders' column, or inside the body.
 
 In a crawlway (a surface seen nearer than the full margin allows, or a pinch ahead that
-only the body's section plus a thin margin passes) rules 1 and 3 use the thin margins the
-geometric pilot flies crawlways with: `Margins` is the one definition both read, and
+only the body's section plus a thin margin passes) rules 1, 3 and 4 use the thin margins
+the geometric pilot flies crawlways with: `Margins` is the one definition both read, and
 `move_hazard` (rules 3 and 4) the one judgement both make of a move.
 
 A move that breaks a rule is replaced by the nearest action that keeps them all: its
