@@ -1095,7 +1095,6 @@ def procedural_scenario(name: str, seed: int = 0, difficulty: Difficulty | None 
 
 # Unknown keys are typos; NaN or inf in a position, angle or size is never meant.
 _STRICT = ConfigDict(extra="forbid", allow_inf_nan=False)
-# A pixel count: a TOML integer above 0 (strict: 160.0 and true are refused, not rounded).
 # Every number is bounded by what a cave can hold, so that a typo (radius = 1e308) is
 # refused here, naming its field, instead of overflowing the plots or the ray caster later.
 # The bounds lie far beyond any real cave (README, "Bad input and faults").
@@ -1104,6 +1103,7 @@ _MAX_RADIUS_M = 1e4  # a portal 10 km across: the largest known chambers are und
 _SCALE_RANGE = (1e-6, 1e3)  # metres per mesh unit: micrometres to kilometres
 _MAX_STEP_BUDGET = 100_000  # more than a day of flight at a step a second
 _MAX_PIXELS = 8192  # a camera 8192 px wide or high (8K video is 7680 x 4320)
+# A pixel count: a TOML integer above 0 (strict: 160.0 and true are refused, not rounded).
 _Pixels = Annotated[int, Field(strict=True, gt=0, le=_MAX_PIXELS)]
 _Coordinate = Annotated[float, Field(ge=-_MAX_COORDINATE_M, le=_MAX_COORDINATE_M)]
 _Point = tuple[_Coordinate, _Coordinate, _Coordinate]  # metres; also a normal's direction
