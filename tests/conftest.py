@@ -6,6 +6,7 @@ import atexit
 import contextlib
 import os
 import shutil
+import signal
 import subprocess
 import sys
 import tempfile
@@ -72,6 +73,13 @@ def cavenav(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess[
         timeout=300,
         env=wide(),
     )
+
+
+def takes_ctrl_c() -> None:
+    """``preexec_fn`` for a command a test interrupts with SIGINT: Ctrl-C as a terminal
+    gives it, even when the tests themselves run with SIGINT ignored (a shell starts its
+    background jobs so, and an ignored signal stays ignored across exec)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
 
 
 def write_room(folder: Path, start_y: float = 8.0) -> Path:

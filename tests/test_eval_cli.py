@@ -17,7 +17,7 @@ from typing import Any
 import pytest
 from scipy.stats import binomtest
 
-from .conftest import write_room
+from .conftest import takes_ctrl_c, write_room
 from .test_cli import table_rows
 
 
@@ -53,6 +53,7 @@ def test_a_sweep_survives_ctrl_c_and_resumes_where_it_stopped(tmp_path: Path) ->
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
+        preexec_fn=takes_ctrl_c,
     )
     deadline = time.monotonic() + 240
     while not finished(out) and time.monotonic() < deadline and sweep.poll() is None:

@@ -26,6 +26,7 @@ from cavenav.pilots.geometric import GeometricPilot
 from cavenav.sensors.rig import SensorConfig
 from cavenav.world.scenarios import load_scenario_file, procedural_scenario
 
+from .conftest import takes_ctrl_c
 from .vlm_server import FakeVLM
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
@@ -372,6 +373,7 @@ def test_ctrl_c_while_the_plots_are_drawn_leaves_a_finished_record(tmp_path: Pat
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
+        preexec_fn=takes_ctrl_c,
     )
     assert process.stdout is not None
     for line in process.stdout:

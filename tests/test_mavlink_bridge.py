@@ -42,7 +42,7 @@ from cavenav.vehicle.mavlink import (
 )
 from cavenav.world.scenarios import load_scenario
 
-from .conftest import cavenav, write_room
+from .conftest import cavenav, takes_ctrl_c, write_room
 
 MAV = mavutil.mavlink
 angles = st.floats(-math.pi, math.pi - 1e-9)
@@ -599,6 +599,7 @@ def start_flying(tmp_path: Path, port: int) -> subprocess.Popen[str]:
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
+        preexec_fn=takes_ctrl_c,
     )  # fmt: skip
 
 
