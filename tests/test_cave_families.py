@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import io
 import json
 import math
 import os
+import struct
 import subprocess
 import sys
 import warnings
+import zipfile
 from dataclasses import replace
 
 import numpy as np
@@ -333,14 +336,34 @@ def _small_tube() -> PassageSpec:
     return PassageSpec(centreline, ones, ones, exit_index=len(y) - 8, roughness=0.1, voxel=0.25)
 
 
-@pytest.mark.parametrize("damage", [b"", b"not a zip archive", b"PK\x03\x04 cut short"])
+def _break_the_compressed_stream(archive: bytes) -> bytes:
+    """``archive`` (a zip) with its first member's deflate stream made invalid where it
+    starts (block type 3 is reserved), the rest of the file intact."""
+    with zipfile.ZipFile(io.BytesIO(archive)) as z:
+        member = z.infolist()[0]
+    local = member.header_offset  # its local header: 30 bytes, the name, the extra field
+    name_length, extra_length = struct.unpack("<HH", archive[local + 26 : local + 30])
+    start = local + 30 + name_length + extra_length
+    return archive[:start] + b"\xff" + archive[start + 1 :]
+
+
+DAMAGE = {
+    "empty": lambda archive: b"",
+    "not a zip": lambda archive: b"not a zip archive",
+    "cut short": lambda archive: archive[: len(archive) // 2],
+    "a byte flipped": lambda archive: archive[:-30] + bytes([archive[-30] ^ 0xFF]) + archive[-29:],
+    "a broken stream": _break_the_compressed_stream,
+}
+
+
+@pytest.mark.parametrize("damage", DAMAGE)
 def test_a_damaged_cached_cave_is_built_again_with_one_warning(
-    damage: bytes, tmp_path, monkeypatch
+    damage: str, tmp_path, monkeypatch
 ) -> None:
     monkeypatch.setenv("CAVENAV_CACHE", str(tmp_path))
     fresh = build_cave(_small_tube(), "tube")
     (cached,) = tmp_path.glob("tube-*.npz")
-    cached.write_bytes(damage)
+    cached.write_bytes(DAMAGE[damage](cached.read_bytes()))
     with pytest.warns(CavenavWarning, match="is damaged.*building it again"):
         rebuilt = build_cave(_small_tube(), "tube")
     assert np.array_equal(rebuilt.vertices, fresh.vertices)
@@ -351,10 +374,16 @@ def test_a_damaged_cached_cave_is_built_again_with_one_warning(
     assert np.array_equal(again.vertices, fresh.vertices)
 
 
-def test_a_cache_that_cannot_be_written_still_gives_the_cave(tmp_path, monkeypatch) -> None:
+def test_a_cache_that_cannot_be_written_still_gives_the_cave_with_one_warning(
+    tmp_path, monkeypatch
+) -> None:
     blocked = tmp_path / "a file, not a folder"
     blocked.write_text("")
     monkeypatch.setenv("CAVENAV_CACHE", str(blocked / "cache"))
-    cave = build_cave(_small_tube(), "tube")
+    with pytest.warns(CavenavWarning, match="cannot keep built caves in .*CAVENAV_CACHE"):
+        cave = build_cave(_small_tube(), "tube")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # said once for the folder, not for every cave
+        build_cave(replace(_small_tube(), seed=1), "tube")
     monkeypatch.setenv("CAVENAV_CACHE", str(tmp_path / "cache"))
     assert np.array_equal(cave.vertices, build_cave(_small_tube(), "tube").vertices)

@@ -26,6 +26,7 @@ import math
 import os
 import warnings
 import zipfile
+import zlib
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -280,7 +281,8 @@ def build_cave(spec: PassageSpec, name: str = "cave") -> CaveMesh:
     """Generate the cave mesh for ``spec`` (cached on disk, see `cache_dir`).
 
     A damaged cache file (a crash of another tool, a disk error) is built again, with one
-    `CavenavWarning`; a cache that cannot be written (read-only, full) is no error.
+    `CavenavWarning`; a cache that cannot be written (read-only, full) is no error, but
+    worth one warning: every process then builds its caves again.
     """
     cache = cache_dir() / f"{name}-{spec.digest()}.npz"
     if cache.is_file():
@@ -298,9 +300,20 @@ def build_cave(spec: PassageSpec, name: str = "cave") -> CaveMesh:
     try:
         cache.parent.mkdir(parents=True, exist_ok=True)
         write_then_rename(cache, save)
-    except OSError:
-        pass
+    except OSError as error:
+        if cache.parent not in _UNWRITABLE:  # once per folder and process, not per cave
+            _UNWRITABLE.add(cache.parent)
+            warnings.warn(
+                f"cannot keep built caves in {cache.parent} ({error.strerror or error}): "
+                "every process builds its caves again; set CAVENAV_CACHE to a writable folder",
+                CavenavWarning,
+                stacklevel=2,
+            )
     return make_mesh(vertices, faces, name)
+
+
+# Cache folders already found unwritable in this process, warned about once.
+_UNWRITABLE: set[Path] = set()
 
 
 def _read_cached(path: Path, name: str) -> CaveMesh | None:
@@ -308,7 +321,15 @@ def _read_cached(path: Path, name: str) -> CaveMesh | None:
     try:
         with np.load(path, allow_pickle=False) as data:
             return make_mesh(data["vertices"], data["faces"], name)
-    except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile, MeshError) as error:
+    except (
+        OSError,
+        ValueError,
+        EOFError,
+        KeyError,
+        zipfile.BadZipFile,
+        zlib.error,
+        MeshError,
+    ) as error:
         reason = str(error).splitlines()[0] if str(error) else type(error).__name__
         warnings.warn(
             f"the cached cave {path} is damaged ({reason}): building it again",
