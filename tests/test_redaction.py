@@ -71,10 +71,34 @@ def test_the_key_and_authorization_values_are_redacted_wherever_they_appear() ->
     assert redact(cleaned) == cleaned  # the run folder redacts what backends redacted
 
 
-def test_ordinary_words_around_credentials_are_kept() -> None:
-    redact = Redactor((KEY,))
-    text = 'I will go ahead.\n{"forward 1 m": "the bearer of good news: open water"}'
-    assert redact(text) == text
+@pytest.mark.parametrize(
+    "text",
+    [
+        'I will go ahead.\n{"forward 1 m": "the bearer of good news: open water"}',
+        "Basic strategy: keep right of the pillar.",
+        "basic obstacle avoidance first, then the bearer of the passage: north",
+        "passage authorization: granted by the open water ahead",
+        "Authorization: none needed; basic 2024 plan",
+    ],
+)
+def test_a_models_prose_is_kept_word_for_word(text: str) -> None:
+    assert Redactor((KEY,))(text) == text
+
+
+@pytest.mark.parametrize(
+    ("text", "credential"),
+    [
+        ("send Bearer sk-proj-abc123def456 now", "sk-proj-abc123def456"),
+        ("Basic dXNlcjpwYXNz", "dXNlcjpwYXNz"),  # user:pass
+        ("authorization=tok3n12345", "tok3n12345"),
+        ('{"authorization": "granted-by-no-one"}', "granted-by-no-one"),  # quoted: a header
+    ],
+)
+def test_a_credential_of_another_service_is_redacted_by_its_form(
+    text: str, credential: str
+) -> None:
+    cleaned = Redactor((KEY,))(text)
+    assert credential not in cleaned and "[redacted]" in cleaned
 
 
 def test_a_placeholder_key_of_a_local_server_is_not_treated_as_a_secret() -> None:

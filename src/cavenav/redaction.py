@@ -15,6 +15,8 @@ whoever's it is. This module is a leaf: it imports nothing of cavenav but the er
 
 from __future__ import annotations
 
+import base64
+import binascii
 import dataclasses
 import functools
 import re
@@ -33,17 +35,40 @@ REDACTED = "[redacted]"
 MIN_SECRET_CHARS = 8
 
 # The value of an Authorization header however it is quoted (a header line, a dict's repr,
-# JSON, a query string), its scheme kept; and a Bearer or Basic credential on its own. A
-# lone scheme word is taken for a credential only before 8 or more token characters (RFC
-# 7235's token68), so that "the bearer of good news" stays as it is. The value is token
-# characters (a trailing full stop is the sentence's); one already redacted is matched as
-# it is, so that redacting twice gives what redacting once gave.
+# JSON, a query string), and a Bearer or Basic credential on its own. Records are mostly
+# prose (a model's reasoning: "basic strategy: keep right", "authorization: granted"), so a
+# value is taken for a credential only when its form says so: after the header's name with
+# a scheme or a quote before it, or when it looks like one (`_looks_like_credential`). The
+# value is token characters (a trailing full stop is the sentence's); one already redacted
+# is matched as it is, so that redacting twice gives what redacting once gave.
 _CREDENTIAL = re.compile(
-    r"(?i)(?P<lead>"
-    r"\b(?:proxy-)?authorization\b[\"']?\s*[:=]\s*[\"']?(?:(?:bearer|basic|token|digest)\s+)?"
-    r"|\b(?:bearer|basic)\s+(?=[A-Za-z0-9\-._~+/]{8}))"
+    r"(?i)(?:"
+    r"(?P<header>\b(?:proxy-)?authorization\b[\"']?\s*[:=]\s*)(?P<quote>[\"']?)"
+    r"(?P<scheme>(?:bearer|basic|token|digest)\s+)?"
+    r"|(?P<lone>\b(?:bearer|basic)\s+))"
     r"(?P<value>\[redacted\]|[\w\-.~+/=:%]*[\w\-~+/=%])"
 )
+
+
+def _looks_like_credential(value: str) -> bool:
+    """Whether ``value`` reads as a token rather than a word: 8 or more characters with
+    letters and digits (API keys, JWTs), or Base64 of "user:password" (RFC 7617)."""
+    if len(value) >= 8 and any(c.isdigit() for c in value) and any(c.isalpha() for c in value):
+        return True
+    try:
+        decoded = base64.b64decode(value, validate=True).decode("utf-8")
+    except (binascii.Error, UnicodeDecodeError, ValueError):
+        return False
+    return ":" in decoded and decoded.isprintable()
+
+
+def _redacted(match: re.Match[str]) -> str:
+    """The match with its value redacted where it is a credential, else as it was."""
+    value = match["value"]
+    told = match["header"] is not None and bool(match["quote"] or match["scheme"])
+    if value == REDACTED or not (told or _looks_like_credential(value)):
+        return match[0]
+    return match[0][: match.start("value") - match.start()] + REDACTED
 
 
 @dataclass(frozen=True)
@@ -59,7 +84,7 @@ class Redactor:
 
     def __call__(self, text: str) -> str:
         """``text`` with every credential replaced by `REDACTED`."""
-        text = _CREDENTIAL.sub(lambda match: match["lead"] + REDACTED, text)
+        text = _CREDENTIAL.sub(_redacted, text)
         for secret in self.secrets:
             if len(secret) >= MIN_SECRET_CHARS:
                 text = text.replace(secret, REDACTED)
