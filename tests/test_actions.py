@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import re
+from dataclasses import astuple
 
 import pytest
 from hypothesis import given
@@ -55,6 +56,29 @@ def test_natural_wordings_parse(text: str, expected: Action) -> None:
 def test_bad_actions_are_rejected_with_a_reason(text: str, reason: str) -> None:
     with pytest.raises(ActionError, match=reason):
         parse_action(text)
+
+
+@pytest.mark.parametrize(
+    ("action", "refused"),
+    [
+        (Action(forward=10**400), "forward 100000"),  # beyond a float's range
+        (Action(forward=True), "forward True"),  # a flag, though True == 1
+        (Action(right="0.5"), "lateral '0.5'"),  # type: ignore[arg-type]
+        (Action(up=None), "vertical None"),  # type: ignore[arg-type]
+        (Action(yaw_deg=1j), "yaw 1j"),  # type: ignore[arg-type]
+    ],
+)
+def test_validate_refuses_a_part_that_is_no_real_number_naming_it(
+    action: Action, refused: str
+) -> None:
+    with pytest.raises(ActionError, match=f"^{re.escape(refused)}"):
+        DEFAULT_SPACE.validate(action)
+
+
+def test_validate_returns_every_part_as_a_float() -> None:
+    validated = DEFAULT_SPACE.validate(Action(1, 0, -1, 15))  # type: ignore[arg-type]
+    assert validated == Action(1.0, 0.0, -1.0, 15.0)
+    assert [type(v) for v in astuple(validated)] == [float] * 4
 
 
 def test_magnitudes_are_never_rounded_to_the_set() -> None:

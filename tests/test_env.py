@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+from dataclasses import astuple
 from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
-from hypothesis import given
+from hypothesis import example, given
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
@@ -150,6 +151,25 @@ def test_a_vector_that_is_not_four_finite_numbers_is_rejected() -> None:
         snap_action(np.array([0.0, np.nan, 0.0, 0.0]))
 
 
+class _CountsPrints(np.ndarray):
+    """An action vector that counts how often it is printed."""
+
+    printed = 0
+
+    def __repr__(self) -> str:
+        _CountsPrints.printed += 1
+        return "printed"
+
+
+def test_a_valid_vector_is_snapped_without_being_printed() -> None:
+    """Its text is for the reason of a hold only: a step must not pay for it."""
+    vector = np.array([0.4, 0.0, 0.0, 12.0]).view(_CountsPrints)
+    assert snap_action(vector) == Action(0.5, 0.0, 0.0, 10.0)
+    assert _CountsPrints.printed == 0
+    with pytest.raises(ActionError, match="printed"):
+        snap_action(np.array([0.4, np.nan, 0.0, 12.0]).view(_CountsPrints))
+
+
 def test_a_huge_but_finite_vector_snaps_to_the_largest_magnitudes() -> None:
     """Not to a hold: beyond 1e17 every candidate is one float away from the value."""
     assert snap_action(np.array([1e40, -1e300, 1e40, -1e300])) == Action(1.0, -1.0, 2.0, -180.0)
@@ -180,6 +200,8 @@ _actions = st.one_of(
 
 @pytest.mark.parametrize("action_format", ["vector", "text"])
 @given(action=_actions)
+@example(action=Action(10**400, 0, 0, 0))  # beyond float's range: no OverflowError
+@example(action=Action(True, 0, 0, 0))  # a flag is no magnitude, though True == 1
 def test_every_action_whatever_its_type_is_admissible_or_a_hold_that_says_why(
     action_format: str, action: object
 ) -> None:
@@ -187,6 +209,7 @@ def test_every_action_whatever_its_type_is_admissible_or_a_hold_that_says_why(
     command, why = env.command(action)
     if why is None:
         assert env.space.is_valid(command)
+        assert all(type(part) is float for part in astuple(command)), command
     else:
         assert command == Action() and why
 
@@ -202,8 +225,21 @@ def test_every_action_whatever_its_type_is_admissible_or_a_hold_that_says_why(
         [np.nan, 0.0, 0.0, 0.0],
         [1j, 0, 0, 0],
         Action("1", 0.0, 0.0, 0.0),  # type: ignore[arg-type]
+        Action(10**400, 0.0, 0.0, 0.0),
+        Action(True, 0.0, 0.0, 0.0),
     ],
-    ids=["text", "dict", "object", "shape 2x2", "three", "nan", "complex", "an Action of text"],
+    ids=[
+        "text",
+        "dict",
+        "object",
+        "shape 2x2",
+        "three",
+        "nan",
+        "complex",
+        "an Action of text",
+        "an Action of a huge int",
+        "an Action of a bool",
+    ],  # fmt: skip
 )
 def test_a_vector_environment_holds_on_a_bad_action_and_says_why(action: object) -> None:
     env = CaveNavEnv("S1", action_format="vector", resolution=(32, 32))

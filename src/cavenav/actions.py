@@ -11,7 +11,9 @@ ambiguous or outside the admissible magnitudes: it never rounds 0.3 m to a set v
 from __future__ import annotations
 
 import math
+import numbers
 import re
+import reprlib
 from dataclasses import dataclass
 
 from cavenav.errors import ActionError
@@ -39,7 +41,15 @@ class ActionSpace:
     vertical_range_m: tuple[float, float] = (0.1, 2.0)
 
     def validate(self, action: Action) -> Action:
-        """Return ``action`` unchanged, or raise ActionError naming the offending value."""
+        """``action`` with its four parts as floats, or an ActionError naming the offending
+        value: a part that is no real number (text, None, a bool, an int beyond a float's
+        range) or a magnitude outside the admissible sets."""
+        action = Action(
+            forward=_real("forward", action.forward, "m"),
+            right=_real("lateral", action.right, "m"),
+            up=_real("vertical", action.up, "m"),
+            yaw_deg=_real("yaw", action.yaw_deg, "deg"),
+        )
         _check_in_set("forward", action.forward, self.forward_m, "m")
         _check_in_set("lateral", action.right, self.lateral_m, "m")
         _check_in_set("yaw", action.yaw_deg, self.yaw_deg, "deg")
@@ -61,6 +71,21 @@ class ActionSpace:
 
 
 DEFAULT_SPACE = ActionSpace()
+
+
+def _real(name: str, value: object, unit: str) -> float:
+    """``value`` as a float if it is a real number; a bool is a flag, not a magnitude,
+    though ``True == 1``."""
+    if isinstance(value, numbers.Real) and not isinstance(value, bool):
+        try:
+            return float(value)
+        except (TypeError, ValueError, OverflowError):  # 10**400, a Real that refuses
+            pass
+    words = {"m": "metres", "deg": "degrees"}[unit]
+    raise ActionError(
+        f"{name} {reprlib.repr(value)} is not a number of {words}: an Action holds four "
+        "real numbers within a float's range"
+    )
 
 
 def _check_in_set(name: str, value: float, allowed: tuple[float, ...], unit: str) -> None:
