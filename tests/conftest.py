@@ -4,13 +4,15 @@ from __future__ import annotations
 
 import atexit
 import contextlib
+import json
 import os
 import shutil
 import signal
 import subprocess
 import sys
 import tempfile
-from collections.abc import Iterator
+import time
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 
 import numpy as np
@@ -63,16 +65,38 @@ def wide() -> dict[str, str]:
     return {**os.environ, "COLUMNS": "240"}
 
 
-def cavenav(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess[str]:
-    """Run the command line as a user would, in a fresh process."""
+def cavenav(
+    *args: str, cwd: Path | None = None, env: Mapping[str, str] | None = None
+) -> subprocess.CompletedProcess[str]:
+    """Run the command line as a user would, in a fresh process (``env``: its whole
+    environment, `wide` by default)."""
     return subprocess.run(
         [sys.executable, "-m", "cavenav.cli", *args],
         capture_output=True,
         text=True,
         cwd=cwd,
         timeout=300,
-        env=wide(),
+        env=wide() if env is None else dict(env),
     )
+
+
+def flying(out: Path, count: int, steps: int = 1, deadline_s: float = 120) -> dict[str, int]:
+    """Wait until ``count`` episodes of the sweep in ``out`` are in the air, each with at
+    least ``steps`` steps flown; their names and the pids of the processes flying them."""
+    deadline = time.monotonic() + deadline_s
+    while time.monotonic() < deadline:
+        found = {}
+        for summary in out.glob("episodes/*/summary.json"):
+            try:
+                record = json.loads(summary.read_text())
+            except ValueError:
+                continue  # being rewritten
+            if record["status"] == "running" and record["steps"] >= steps:
+                found[summary.parent.name] = record["pid"]
+        if len(found) >= count:
+            return found
+        time.sleep(0.05)
+    raise AssertionError(f"fewer than {count} episodes flew {steps} steps within {deadline_s} s")
 
 
 def takes_ctrl_c() -> None:
@@ -119,6 +143,24 @@ def read_only(folder: Path) -> Iterator[Path]:
         yield folder
     finally:
         subprocess.run(["umount", str(folder)], check=True)
+
+
+@contextlib.contextmanager
+def full_disk(folder: Path, size: str) -> Iterator[Path]:
+    """``folder`` made a disk of ``size`` ("96k") of its own while the context lasts (a
+    tmpfs): what is written into it past that fails with ENOSPC. Mounting needs root: as
+    root (CI) a failed mount fails the test, as another user the test is skipped."""
+    folder.mkdir(parents=True, exist_ok=True)
+    mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(folder)],
+                             capture_output=True, text=True)  # fmt: skip
+    if mounted.returncode != 0:
+        if os.geteuid() == 0:
+            pytest.fail(f"as root, a full disk is a small tmpfs: {mounted.stderr.strip()}")
+        pytest.skip(f"a {size} tmpfs needs root (mount): the full disk is not tested here")
+    try:
+        yield folder
+    finally:
+        subprocess.run(["umount", str(folder)], check=False)
 
 
 @pytest.fixture

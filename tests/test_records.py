@@ -18,12 +18,12 @@ import pytest
 
 from cavenav.episode.loop import EpisodeConfig, run_episode
 from cavenav.episode.records import read_steps, read_summary, read_sweep_file
-from cavenav.errors import CavenavWarning, RecordError, RecordingError
+from cavenav.errors import CavenavWarning, ConfigError, RecordError, RecordingError
 from cavenav.evaluation.report import write_report
 from cavenav.evaluation.results import compare
 from cavenav.evaluation.sweep import SweepConfig, prepare, read_rows
 
-from .conftest import cavenav, read_only
+from .conftest import cavenav, read_only, write_room
 from .test_report import ScriptedPilot, corridor, make_sweep
 
 EPISODES = ("room-seed0000", "room-seed0001")
@@ -62,7 +62,10 @@ def one_line(error: pytest.ExceptionInfo[Exception]) -> str:
     ("text", "says"),
     [
         ("[1, 2]", "holds an array, not a JSON object"),
-        ('"finished"', "holds a str, not a JSON object"),
+        ('"finished"', "holds a string, not a JSON object"),
+        ("3", "holds a number, not a JSON object"),
+        ("null", "holds null, not a JSON object"),
+        ("true", "holds true, not a JSON object"),
         ('{"steps": "many"}', "field 'steps': Input should be a valid integer"),
         ('{"status": 5}', "field 'status': Input should be a valid string"),
         ('{"usage": 3}', "field 'usage': Input should be a valid dictionary"),
@@ -173,13 +176,93 @@ def test_a_damaged_episode_counts_as_an_error_and_the_report_and_comparison_go_o
     assert [c["cave"] for c in result["overall"]["only_b"]] == []  # both ran out of steps
 
 
-def test_a_resumed_sweep_flies_an_episode_with_a_damaged_summary_again(
+@pytest.mark.parametrize(
+    ("record", "text"), [("summary.json", "[1, 2]"), ("steps.jsonl", "[1, 2]")]
+)
+def test_a_resumed_sweep_flies_an_episode_with_a_damaged_record_again(
+    sweep: Callable[[str], Path], record: str, text: str
+) -> None:
+    """What its results row counts as an error, a resumed sweep flies again: an error
+    that no resume clears would stay in the sweep's results for good."""
+    folder = sweep("s")
+    damage(folder / "episodes" / EPISODES[0] / record, text)
+    with pytest.warns(CavenavWarning, match="the episode counts as an error"):
+        assert [r["outcome"] for r in read_rows(folder, write=False)] == ["error", "budget"]
+    left = prepare(SweepConfig(("room",), (0, 1)), folder)  # as make_sweep configured it
+    assert [job.episode for job in left] == [EPISODES[0]]
+
+
+def test_a_resumed_sweep_whose_sweep_json_names_an_unknown_pilot_option_is_one_line(
     sweep: Callable[[str], Path],
 ) -> None:
     folder = sweep("s")
-    damage(folder / "episodes" / EPISODES[0] / "summary.json", "[1, 2]")
-    left = prepare(SweepConfig(("room",), (0, 1)), folder)  # as make_sweep configured it
-    assert [job.episode for job in left] == [EPISODES[0]]
+    settings = json.loads((folder / "sweep.json").read_text())
+    settings["pilot"]["options"] = {"foo": 1}
+    damage(folder / "sweep.json", json.dumps(settings))
+    for read in (
+        lambda: prepare(SweepConfig(("room",), (0, 1)), folder),  # a resumed eval
+        lambda: read_rows(folder),  # report, compare
+    ):
+        with pytest.raises(ConfigError) as error:
+            read()
+        assert one_line(error).startswith(f"{folder / 'sweep.json'} cannot be read as a sweep: ")
+        assert "foo" in str(error.value) and error.value.exit_status == 2
+
+
+def test_damaged_model_exchanges_are_skipped_with_one_warning_and_the_outcome_stands(
+    sweep: Callable[[str], Path],
+) -> None:
+    """exchanges.jsonl is the audit trail, not the result: the page shows the episode as
+    its results row counts it."""
+    folder = sweep("s")
+    exchanges = folder / "episodes" / EPISODES[1] / "exchanges.jsonl"
+    good = {"step": 0, "attempt": 0, "messages": [{"role": "system", "content": "fly"}]}
+    damage(exchanges, "\n".join([json.dumps(good), '{"step": "x"}', "[1]"]))
+    with pytest.warns(CavenavWarning) as warned:
+        index = write_report(folder)
+    about = [str(w.message) for w in warned if str(exchanges) in str(w.message)]
+    assert len(about) == 1 and about[0].startswith(f"{exchanges} line 2: ")
+    rows = read_rows(folder, write=False)
+    assert [r["outcome"] for r in rows] == ["budget", "budget"]
+    page = (index.parent / "episodes" / f"{EPISODES[1]}.html").read_text()
+    assert "damaged record" not in page and "budget" in page
+
+
+def test_the_page_of_an_episode_never_flown_says_it_is_incomplete(
+    sweep: Callable[[str], Path],
+) -> None:
+    folder = sweep("s")
+    shutil.rmtree(folder / "episodes" / EPISODES[1])
+    index = write_report(folder)
+    assert [r["outcome"] for r in read_rows(folder, write=False)] == ["budget", "incomplete"]
+    page = (index.parent / "episodes" / f"{EPISODES[1]}.html").read_text()
+    assert "no run folder" in page and "incomplete" in page
+    assert "counts as an error" not in page
+
+
+@pytest.mark.parametrize(
+    ("record", "text", "says"),
+    [
+        ("summary.json", "[1, 2]", "not a JSON object"),
+        ("summary.json", '{"scenario": 5}', "field 'scenario'"),
+        ("summary.json", '{"scenario": "room", "seed": "x"}', "field 'seed'"),
+        ("steps.jsonl", "[1, 2]", "line 1 is not a JSON object"),
+        ("steps.jsonl", '{"step": 0, "action": 7}', "line 1 needs a text 'action'"),
+    ],
+)
+def test_a_replay_of_a_damaged_recording_is_one_line_naming_the_file(
+    run: Path, tmp_path: Path, record: str, text: str, says: str
+) -> None:
+    recording = tmp_path / "recording"
+    shutil.copytree(run, recording)
+    damage(recording / record, text)
+    room = write_room(tmp_path / "caves")
+    done = cavenav("run", str(room), "--pilot", "replay", "--from", str(recording),
+                   "--out", str(tmp_path / "replays"))  # fmt: skip
+    assert done.returncode == 2, done.stderr
+    assert done.stderr.startswith(f"error: {recording / record}: ")
+    assert says in done.stderr and done.stderr.count("\n") == 1
+    assert not (tmp_path / "replays").exists()  # refused before anything was written
 
 
 # ------------------------------------------------------------------ writing

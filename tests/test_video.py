@@ -27,7 +27,7 @@ from cavenav.errors import (
 from cavenav.pilots.geometric import GeometricPilot
 from cavenav.world.scenarios import load_scenario
 
-from .conftest import cavenav
+from .conftest import cavenav, full_disk
 from .test_report import INTO_THE_WALL, ScriptedPilot, corridor
 
 STEPS = 6
@@ -169,12 +169,13 @@ def test_a_missing_or_cut_short_frame_is_a_grey_panel_with_a_warning_naming_the_
     rgb.write_bytes(rgb.read_bytes()[:300])  # the header survives, the pixels do not
     (run_dir / "frames" / "step_0003_depth.png").unlink()
     with pytest.warns(CavenavWarning) as warned:
-        _, _, frames = read_video(write_video(run_dir))
+        video = write_video(run_dir)
     assert [str(w.message) for w in warned] == [
         f"{run_dir}: step 1: frames/step_0001_rgb.png cannot be read (image file is truncated); "
         "shown as a grey panel",
         f"{run_dir}: step 3: frames/step_0003_depth.png is missing; shown as a grey panel",
     ]
+    _, _, frames = read_video(video)
     assert len(frames) == STEPS  # the video is still made, a frame for every step
     grey = np.array([60, 60, 60])
     below_label = slice(40, PANEL_HEIGHT)  # under the panel's label
@@ -201,3 +202,15 @@ def test_a_damaged_record_is_one_line_naming_the_file_and_the_field(
         write_video(run_dir)
     assert str(error.value).startswith(f"{run_dir}/{says}") and "\n" not in str(error.value)
     assert not (run_dir / "episode.mp4").exists()
+
+
+def test_a_full_disk_is_one_line_and_leaves_no_part_of_a_video(
+    forward_run: Path, tmp_path: Path
+) -> None:
+    # x264 holds a short episode back until its input closes: the disk fills at the end.
+    with full_disk(tmp_path / "disk", "40k") as disk:
+        with pytest.raises(RecordingError) as error:
+            write_video(forward_run, disk / "v.mp4")
+        assert str(error.value) == f"cannot write {disk}/v.mp4: No space left on device"
+        assert error.value.exit_status == 1
+        assert list(disk.iterdir()) == []

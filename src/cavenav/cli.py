@@ -327,8 +327,8 @@ def run(
                 f"[yellow]note:[/] the recording flew {recorded}, replaying in {scenario}"
             )
         seed = recorded_seed if recorded_seed is not None else seed
+    flyer = spec.build(seed=seed)  # a refused pilot or recording leaves no folder behind
     prepare_root(out)  # a folder that cannot be written is refused before the cave is built
-    flyer = spec.build(seed=seed)
     with console.status(f"building {scenario} (seed {seed})"):
         cave = load_scenario(scenario, seed, difficulty=parse_difficulty(difficulty or []))
     sensors = _sensors(
@@ -625,9 +625,9 @@ def eval_(
         sensors={"sounder": sounder.value, "depth_max_m": depth_max, "optics": optics, **sizes},
     )
     check_grid(config)  # every scenario and knob, in milliseconds, before anything is written
-    prepare_root(out)
     if pilot == "vlm":
         spec.build()  # a missing key or an unreachable server fails now, not in a worker
+    prepare_root(out)  # only now: a refused grid or pilot leaves no folder behind
     executor = _executor(workers, concurrency, ray_address)
     counts = {"done": 0, "success": 0}
     with Progress(
@@ -799,9 +799,8 @@ def compare(
         try:
             write_json(json_out, result)
         except OSError as exc:
-            raise RecordingError(
-                f"cannot write the comparison to {json_out}: {exc.strerror or exc} "
-                "(the table above is complete)"
+            raise RecordingError.cannot_write(
+                f"the comparison to {json_out}", exc, " (the table above is complete)"
             ) from None
         console.print(f"comparison: {json_out}", soft_wrap=True)
 

@@ -77,6 +77,19 @@ class RecordingError(CavenavError):
 
     exit_status = 1
 
+    @classmethod
+    def cannot_write(cls, where: object, error: BaseException, then: str = "") -> RecordingError:
+        """The one line for every failed write: "cannot write WHERE: WHY" and ``then``.
+
+        WHY is the system's reason for an `OSError` ("No space left on device"), else the
+        error's type and text.
+        """
+        if isinstance(error, OSError):
+            why: object = error.strerror or error
+        else:
+            why = f"{type(error).__name__}: {error}"
+        return cls(f"cannot write {where}: {why}{then}")
+
 
 class VehicleError(CavenavError):
     """A real or simulated vehicle cannot carry out the flight: no heartbeat, a stale link,

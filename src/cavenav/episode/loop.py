@@ -257,7 +257,7 @@ def _settle(folder: RunFolder, log: EpisodeLog) -> None:
 def _taken_back(folder: RunFolder, log: EpisodeLog, lost: LostStep) -> RecordingError:
     """Forget the lost step and those after it; the error to end the episode with."""
     log.rewind(lost.undo)  # type: ignore[arg-type]
-    return _cannot_write(folder.path, lost.error)
+    return RecordingError.cannot_write(f"the run folder {folder.path}", lost.error)
 
 
 def _write(write: Callable[..., None], where: Path, *args: Any) -> None:
@@ -265,14 +265,4 @@ def _write(write: Callable[..., None], where: Path, *args: Any) -> None:
     try:
         write(*args)
     except OSError as exc:
-        raise _cannot_write(where, exc) from None
-
-
-def _cannot_write(where: Path, error: BaseException) -> RecordingError:
-    """The one line that ends an episode whose run folder cannot be written."""
-    why = (
-        error.strerror or error
-        if isinstance(error, OSError)
-        else f"{type(error).__name__}: {error}"
-    )
-    return RecordingError(f"cannot write the run folder {where}: {why}")
+        raise RecordingError.cannot_write(f"the run folder {where}", exc) from None

@@ -16,12 +16,14 @@ means what it meant before.
 from __future__ import annotations
 
 import json
+import warnings
 from pathlib import Path
 from typing import Any, TypeVar
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from cavenav.errors import RecordError, invalid_field
+from cavenav.episode.run_folder import numbered_jsonl
+from cavenav.errors import CavenavWarning, RecordError, invalid_field
 
 __all__ = ["read_exchanges", "read_steps", "read_summary", "read_sweep_file"]
 
@@ -166,11 +168,22 @@ class _SweepFile(_Record):
 _Model = TypeVar("_Model", bound=_Record)
 
 
+def _json_kind(value: Any) -> str:
+    """What a JSON value is, in JSON's words: "an array", "a number", "null", ..."""
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    kinds = ((list, "an array"), (str, "a string"), (int | float, "a number"))
+    return next((kind for types, kind in kinds if isinstance(value, types)), "an object")
+
+
 def _checked(model: type[_Model], data: Any, where: str) -> dict[str, Any]:
     """``data`` as ``model`` reads it, as a dict of the keys it held; else one line."""
     if not isinstance(data, dict):
-        kind = "an array" if isinstance(data, list) else f"a {type(data).__name__}"
-        raise RecordError(f"{where}: holds {kind}, not a JSON object: the record is damaged")
+        raise RecordError(
+            f"{where}: holds {_json_kind(data)}, not a JSON object: the record is damaged"
+        )
     try:
         return model.model_validate(data).model_dump(exclude_unset=True)
     except ValidationError as exc:
@@ -205,30 +218,50 @@ def read_steps(path: Path) -> list[dict[str, Any]]:
     that is JSON but not a step is damage.
 
     Raises:
-        RecordError: a line is not an object or holds a field of the wrong type, naming
-            the line and the field.
+        RecordError: the file cannot be read, or a line is not an object or holds a field
+            of the wrong type, naming the line and the field.
     """
-    return _read_lines(Path(path), _Step)
+    path = Path(path)
+    return [_checked(_Step, data, f"{path} line {n}") for n, data in _lines(path)]
 
 
 def read_exchanges(path: Path) -> list[dict[str, Any]]:
-    """A run folder's exchanges.jsonl, read as `read_steps` reads steps.jsonl."""
-    return _read_lines(Path(path), _Exchange)
+    """A run folder's exchanges.jsonl ([] when there is none), read leniently.
 
-
-def _read_lines(path: Path, model: type[_Model]) -> list[dict[str, Any]]:
+    The exchanges are the audit trail of the model's requests and replies, not the
+    episode's result: a damaged line is left out with one warning naming the file and
+    the first such line, and the episode's outcome (from summary.json and steps.jsonl)
+    stands.
+    """
+    path = Path(path)
     try:
-        lines = path.read_text(encoding="utf-8").splitlines() if path.is_file() else []
-    except (OSError, UnicodeDecodeError) as exc:
-        raise RecordError(f"{path}: cannot be read ({exc})") from None
-    records = []
-    for number, line in enumerate(lines, start=1):
+        lines = _lines(path)
+    except RecordError as exc:
+        warnings.warn(f"{exc}; its model exchanges are not shown", CavenavWarning, stacklevel=2)
+        return []
+    exchanges, damaged = [], []
+    for number, data in lines:
         try:
-            data = json.loads(line)
-        except json.JSONDecodeError:
-            continue
-        records.append(_checked(model, data, f"{path} line {number}"))
-    return records
+            exchanges.append(_checked(_Exchange, data, f"{path} line {number}"))
+        except RecordError as exc:
+            damaged.append(exc)
+    if damaged:
+        more = f" (and {len(damaged) - 1} more)" if len(damaged) > 1 else ""
+        warnings.warn(
+            f"{damaged[0]}{more}: skipped; the rest of the model exchanges are shown",
+            CavenavWarning,
+            stacklevel=2,
+        )
+    return exchanges
+
+
+def _lines(path: Path) -> list[tuple[int, Any]]:
+    """The JSON values of a JSON-lines record, numbered (`run_folder.numbered_jsonl`)."""
+    try:
+        return numbered_jsonl(path)
+    except (OSError, UnicodeDecodeError) as exc:
+        reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else exc
+        raise RecordError(f"{path}: cannot be read ({reason})") from None
 
 
 def read_sweep_file(path: Path) -> dict[str, Any]:

@@ -47,6 +47,7 @@ __all__ = [
     "LostStep",
     "RunFolder",
     "new_run_dir",
+    "numbered_jsonl",
     "prepare_root",
     "read_jsonl",
     "write_atomic",
@@ -99,15 +100,25 @@ def read_jsonl(path: Path) -> list[dict[str, Any]]:
 
     A line cut short by a crash or a kill is skipped: the record up to it is valid.
     """
+    return [record for _, record in numbered_jsonl(path)]
+
+
+def numbered_jsonl(path: Path) -> list[tuple[int, Any]]:
+    """(line number from 1, value) of each line of a JSON-lines file that reads as JSON;
+    [] when there is no file. A line cut short by a crash or a kill is skipped.
+
+    Raises:
+        OSError, UnicodeDecodeError: the file cannot be read as text.
+    """
     if not path.is_file():
         return []
-    records = []
-    for line in path.read_text(encoding="utf-8").splitlines():
+    values = []
+    for number, line in enumerate(path.read_text(encoding="utf-8").splitlines(), start=1):
         try:
-            records.append(json.loads(line))
+            values.append((number, json.loads(line)))
         except json.JSONDecodeError:
             continue
-    return records
+    return values
 
 
 def write_atomic(path: Path, text: str) -> None:
@@ -453,6 +464,4 @@ class RunFolder:
                     self.write_json("summary.json", summary)
                 except OSError as exc:
                     if summary["status"] != "crashed":  # else the cause is on its way up
-                        raise RecordingError(
-                            f"cannot write {self.path / 'summary.json'}: {exc.strerror or exc}"
-                        ) from None
+                        raise RecordingError.cannot_write(self.path / "summary.json", exc) from None

@@ -10,9 +10,10 @@ arrow along its heading.
 
 The map background is drawn once with matplotlib; each frame only draws the vehicle and
 its path into a copy of it, through the axes' data-to-pixel mapping taken once, so a
-150-step episode encodes in seconds. Frames are H.264 (yuv420p) through imageio-ffmpeg,
-which ships its own ffmpeg, into a temporary beside the MP4 that is renamed into place once
-whole (`cavenav.files.write_then_rename`).
+150-step episode encodes in seconds. Frames are H.264 (yuv420p), through the ffmpeg that
+imageio-ffmpeg ships, into a temporary beside the MP4 that is renamed into place once
+whole (`cavenav.files.write_then_rename`) and only if ffmpeg ended well: a full disk
+leaves no part of a video.
 
 A frame image that is missing or cannot be read (cut short, not an image) is shown as a
 grey panel, with a one-line warning naming the step and the file: the rest of the episode
@@ -21,11 +22,17 @@ is still worth watching, and its map and caption are still right.
 
 from __future__ import annotations
 
+import contextlib
+import errno
 import itertools
 import math
+import os
+import subprocess
+import tempfile
 import warnings
-from collections.abc import Generator, Iterator, Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
+from fractions import Fraction
 from pathlib import Path
 from typing import Any
 
@@ -303,40 +310,81 @@ def _frames(
         yield np.asarray(frame)
 
 
-def _encoder(path: Path, size: tuple[int, int], fps: float) -> Generator[None, Any, None]:
-    """imageio-ffmpeg's frame writer (a generator to send frames to), or the install hint."""
+def _ffmpeg() -> str:
+    """The ffmpeg that imageio-ffmpeg ships, or the install hint."""
     try:
         import imageio_ffmpeg
     except ImportError:
         raise DependencyError(
             "writing videos needs imageio-ffmpeg: pip install imageio-ffmpeg"
         ) from None
-    return imageio_ffmpeg.write_frames(
-        str(path),
-        size,
-        fps=fps,
-        codec="libx264",
-        pix_fmt_in="rgb24",
-        pix_fmt_out="yuv420p",
-        quality=None,
-        macro_block_size=2,
-        ffmpeg_log_level="error",
-        # Legible text, quick encoding; MP4 named, as the temporary's name does not say it.
-        output_params=["-crf", "23", "-preset", "veryfast", "-f", "mp4"],
-    )
+    return imageio_ffmpeg.get_ffmpeg_exe()
+
+
+# Why ffmpeg could not write the MP4, as the system says it, looked for in its account.
+_WRITE_FAULTS = tuple(
+    os.strerror(code) for code in (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EIO)
+)
 
 
 def _encode(path: Path, frames: Iterator[np.ndarray], fps: float) -> None:
-    """Encode ``frames`` (every one the same size) into the MP4 at ``path``."""
+    """Encode ``frames`` (every one the same size) into the MP4 at ``path``.
+
+    ffmpeg runs here rather than through imageio-ffmpeg's frame writer, which never looks
+    at how ffmpeg ended: x264 holds a short episode back until the input closes, so a full
+    disk shows only in ffmpeg's exit status, after the last frame was handed over.
+
+    Raises:
+        OSError: the file cannot be made, or ffmpeg failed (its reason, in one line).
+    """
     path.touch()  # a folder that refuses the file fails here, before ffmpeg says it at length
     first = next(frames)
-    writer = _encoder(path, (first.shape[1], first.shape[0]), fps)
-    writer.send(None)  # start the generator: ffmpeg is launched here
-    try:
-        for frame in itertools.chain([first], frames):
-            writer.send(np.ascontiguousarray(frame))
-    finally:
-        writer.close()
+    height, width = first.shape[:2]
+    command = [
+        _ffmpeg(),
+        "-y",
+        "-v", "error",
+        "-f", "rawvideo",
+        "-vcodec", "rawvideo",
+        "-pix_fmt", "rgb24",
+        "-s", f"{width}x{height}",
+        "-r", str(Fraction(fps).limit_denominator()),
+        "-i", "-",
+        "-an",
+        "-vcodec", "libx264",
+        "-pix_fmt", "yuv420p",
+        # Legible text, quick encoding; MP4 named, as the temporary's name does not say it.
+        "-crf", "23", "-preset", "veryfast",
+        "-f", "mp4",
+        str(path),
+    ]  # fmt: skip
+    with tempfile.TemporaryFile() as account:  # a file, not a pipe: ffmpeg never blocks on it
+        ffmpeg = subprocess.Popen(
+            command, stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=account
+        )
+        assert ffmpeg.stdin is not None
+        try:
+            # Closing stdin ends ffmpeg's input; a broken pipe means ffmpeg gave up, and
+            # its exit status says why.
+            with contextlib.suppress(BrokenPipeError), ffmpeg.stdin:
+                for frame in itertools.chain([first], frames):
+                    ffmpeg.stdin.write(np.ascontiguousarray(frame, np.uint8).tobytes())
+        except BaseException:
+            ffmpeg.kill()
+            ffmpeg.wait()
+            raise
+        status = ffmpeg.wait()
+        if status != 0:
+            account.seek(0)
+            raise OSError(_ffmpeg_reason(account.read().decode(errors="replace"), status))
+
+
+def _ffmpeg_reason(account: str, status: int) -> str:
+    """ffmpeg's many-line account of a failure as one reason: the system's words where
+    it gives them ("No space left on device"), else its first line."""
+    fault = next((fault for fault in _WRITE_FAULTS if fault in account), None)
+    lines = account.strip().splitlines()
+    return fault or f"ffmpeg failed (exit status {status}): {lines[0] if lines else 'no account'}"
 
 
 def _output(out: Path) -> Path:
@@ -354,7 +402,7 @@ def _output(out: Path) -> Path:
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        raise RecordingError(f"cannot write {out}: {exc.strerror or exc}") from None
+        raise RecordingError.cannot_write(out, exc) from None
     return out
 
 
@@ -394,7 +442,6 @@ def write_video(run_dir: Path, out: Path | None = None, fps: float = 4.0) -> Pat
     frames = _frames(run_dir, steps, summary)
     try:
         write_then_rename(out, lambda tmp: _encode(tmp, frames, fps))
-    except OSError as exc:  # ffmpeg's own account runs to many lines: its first says why
-        reason = exc.strerror or (str(exc).strip().splitlines() or ["ffmpeg failed"])[0]
-        raise RecordingError(f"cannot write {out}: {reason}") from None
+    except OSError as exc:
+        raise RecordingError.cannot_write(out, exc) from None
     return out

@@ -46,7 +46,8 @@ class InProcess:
     """Fly in this process, ``concurrency`` episodes at a time on threads.
 
     The threads are daemons: on Ctrl-C the process leaves at once, and the episodes in
-    flight stay recorded as running (a re-run flies them again).
+    flight stay recorded as running (a re-run flies them again). Once the sweep stops
+    (Ctrl-C, a full disk), no thread starts another episode.
     """
 
     concurrency: int = 1
@@ -63,9 +64,10 @@ class InProcess:
         for job in jobs:
             todo.put(job)
         rows: queue.Queue = queue.Queue()
+        stop = threading.Event()  # the sweep stopped: its folder is no longer held
 
         def fly() -> None:
-            while True:
+            while not stop.is_set():
                 try:
                     job = todo.get_nowait()
                 except queue.Empty:
@@ -73,16 +75,20 @@ class InProcess:
                 try:
                     rows.put(worker.fly(job))
                 except BaseException as exc:  # noqa: BLE001 - raised where the sweep waits
+                    stop.set()
                     rows.put(exc)
                     return
 
-        for _ in range(self.concurrency):
-            threading.Thread(target=fly, daemon=True).start()
-        for _ in jobs:
-            row = rows.get()
-            if isinstance(row, BaseException):
-                raise row
-            done(row)
+        for k in range(self.concurrency):
+            threading.Thread(target=fly, name=f"cavenav-episodes-{k}", daemon=True).start()
+        try:
+            for _ in jobs:
+                row = rows.get()
+                if isinstance(row, BaseException):
+                    raise row
+                done(row)
+        finally:
+            stop.set()
 
 
 # prctl(2) option: the signal this process gets when the thread that started it ends.
@@ -111,14 +117,18 @@ def _pool_worker(
 ) -> None:
     """A pool process: flies the jobs its pipe brings, ``concurrency`` at a time, and sends
     back (episode, row) for each, or (episode, RecordingError) when the folder cannot be
-    written; a None means no more. Ctrl-C is the parent's to handle.
+    written; a None means no more. Ctrl-C and SIGTERM are the parent's to handle: sent to
+    the whole process group (a terminal's Ctrl-C, Slurm, ``kill -- -PGID``), they stop
+    the parent, which stops its workers; a worker that died of them first would have its
+    episodes recorded as errors instead of in flight.
 
     The worker never outlives the sweep: it dies with its parent (`_die_with`), or at
     once when the pipe closes, leaving its episodes in flight "running" for a rerun, and
     it holds the sweep's episodes/ while it lives (`hold_episodes`).
     """
     _die_with(parent)
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    for stop in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(stop, signal.SIG_IGN)
     hold_episodes(folder)  # until the process ends
     worker = EpisodeWorker(config, folder)
     jobs: queue.Queue = queue.Queue()
@@ -226,7 +236,7 @@ class LocalPool:
                     feed(conn)
         except BaseException:  # Ctrl-C, a full disk: stop now; those in flight stay "running"
             for process in processes.values():
-                process.terminate()
+                process.kill()  # SIGKILL: the workers ignore SIGTERM (`_pool_worker`)
             raise
         finally:
             for conn, process in processes.items():
@@ -234,7 +244,7 @@ class LocalPool:
                     conn.send(None)
                 process.join(timeout=5)
                 if process.is_alive():
-                    process.terminate()
+                    process.kill()
                     process.join(timeout=5)
 
     @staticmethod

@@ -44,6 +44,11 @@ _OUTCOME_CLASS = {
     "exited_entrance": "warn",
 }
 _EMPTY = "—"  # shown for a missing value
+# What the page of an episode with no readable record says of its row's outcome.
+_COUNTS_AS = {
+    "error": "It counts as an error.",
+    "incomplete": "It counts as incomplete: run the same sweep again to fly it.",
+}
 
 
 # --------------------------------------------------------------------------- reading
@@ -82,8 +87,12 @@ class SweepRecord:
 def read_run(path: Path) -> RunRecord:
     """Read summary.json, steps.jsonl and exchanges.jsonl of a run folder.
 
+    The exchanges are read leniently (`cavenav.episode.records.read_exchanges`): they are
+    the audit trail, not the result, so a damaged line is left out with a warning and the
+    page agrees with the episode's results row.
+
     Raises:
-        RecordError: one of them is damaged (naming the file and the field).
+        RecordError: the summary or the steps are damaged (naming the file and the field).
     """
     by_step: dict[int, list[dict[str, Any]]] = {}
     for exchange in read_exchanges(path / "exchanges.jsonl"):
@@ -622,7 +631,7 @@ def _episode_pages(
         if (run_dir / "summary.json").is_file():
             try:
                 run = read_run(run_dir)
-            except RecordError as exc:  # counted as an error by its row, with a warning
+            except RecordError as exc:  # its summary or steps: an error row, with a warning
                 error = str(exc)
         if run is not None:
             _write_episode_page(run, page, outcome, neighbours, frames_note)
@@ -639,7 +648,7 @@ def _episode_pages(
                 title=ids[k],
                 id=ids[k],
                 label=label,
-                note=f"{note} It counts as an error.",
+                note=f"{note} {_COUNTS_AS.get(outcome, f'Its outcome is {outcome}.')}",
                 error=error,
                 neighbours=neighbours,
             )
@@ -692,9 +701,7 @@ def write_report(folder: Path, rows: Sequence[Mapping[str, Any]] | None = None) 
         if (folder / "summary.json").is_file():
             return _write_episode_page(read_run(folder), folder / "report.html")
     except OSError as exc:
-        raise RecordingError(
-            f"cannot write the report in {folder}: {exc.strerror or exc}"
-        ) from None
+        raise RecordingError.cannot_write(f"the report in {folder}", exc) from None
     raise CavenavError(
         f"{folder} is neither a sweep folder (no sweep.json) nor a run folder "
         "(no summary.json): give the folder `cavenav eval` or `cavenav run` wrote"

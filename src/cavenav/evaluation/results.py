@@ -49,6 +49,8 @@ __all__ = [
     "compare",
     "episode_row",
     "outcome",
+    "read_episode",
+    "server_failed",
     "wilson",
     "write_results",
 ]
@@ -141,6 +143,16 @@ def outcome(summary: Mapping[str, Any], steps: Sequence[Mapping[str, Any]]) -> s
     return "oscillating" if moved >= MOVED_M * share else "stuck"
 
 
+def read_episode(run_dir: Path) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+    """A run folder's summary.json and steps.jsonl, as every judge of an episode reads
+    them: its results row, and a resumed sweep deciding what to fly again.
+
+    Raises:
+        RecordError: either is missing or damaged (`cavenav.episode.records`).
+    """
+    return read_summary(run_dir / "summary.json"), read_steps(run_dir / "steps.jsonl")
+
+
 def episode_row(run_dir: Path, root: Path | None = None) -> dict[str, Any]:
     """One results.csv row for the run folder ``run_dir`` (``root``: paths relative to it).
 
@@ -155,8 +167,7 @@ def episode_row(run_dir: Path, root: Path | None = None) -> dict[str, Any]:
         return {"episode": run_dir.name, "status": "missing", "outcome": "incomplete",
                 "run_dir": relative}  # fmt: skip
     try:
-        summary = read_summary(run_dir / "summary.json")
-        steps = read_steps(run_dir / "steps.jsonl")
+        summary, steps = read_episode(run_dir)
     except RecordError as exc:
         warnings.warn(f"{exc}; the episode counts as an error", CavenavWarning, stacklevel=2)
         return {"episode": run_dir.name, "status": "damaged", "outcome": "error",

@@ -40,8 +40,8 @@ from cavenav import __version__
 from cavenav.episode.loop import DEFAULT_STEPS, EpisodeConfig, run_episode
 from cavenav.episode.records import read_summary, read_sweep_file
 from cavenav.episode.run_folder import prepare_root, write_atomic, write_json
-from cavenav.errors import ConfigError, RecordError, RecordingError
-from cavenav.evaluation.results import episode_row, server_failed, write_results
+from cavenav.errors import CavenavError, ConfigError, RecordError, RecordingError
+from cavenav.evaluation.results import episode_row, outcome, read_episode, write_results
 from cavenav.pilots.base import Pilot
 from cavenav.pilots.factory import PilotSpec, VLMOptions
 from cavenav.sensors.rig import SENSOR_KEYS, SensorConfig
@@ -296,10 +296,10 @@ def prepare(config: SweepConfig, folder: Path) -> list[EpisodeJob]:
     settings = folder / "sweep.json"
     wanted = config.to_dict()
     if settings.is_file():
-        recorded = read_sweep_file(settings)  # a damaged one names the field
+        flown, recorded = read_sweep(folder)  # a damaged one is one line, naming the field
         # Read back through SweepConfig, so that settings added since the sweep began
         # take the values it was flown with (no stuck endings, no map image).
-        recorded = {**recorded, **SweepConfig.from_dict(recorded).to_dict()}
+        recorded = {**recorded, **flown.to_dict()}
         if _identity(recorded) != _identity(wanted):
             hint = (
                 " (it was flown without stuck endings: add --stuck-after 0)"
@@ -318,17 +318,21 @@ def prepare(config: SweepConfig, folder: Path) -> list[EpisodeJob]:
             (folder / "episodes").mkdir(parents=True, exist_ok=True)
             write_json(settings, wanted)
         except OSError as exc:
-            raise _cannot_write(folder, exc) from None
+            raise RecordingError.cannot_write(folder, exc) from None
     return [job for job in jobs if not _finished(folder / "episodes" / job.episode)]
 
 
 def _finished(run_dir: Path) -> bool:
-    """Flown to an ending the pilot is answerable for: nothing to fly again on resume."""
+    """Flown to an ending the pilot is answerable for: nothing to fly again on resume.
+
+    Judged as its results row judges it (`episode_row`): an episode whose row would be
+    an error or incomplete, a damaged record included, is flown again.
+    """
     try:
-        summary = read_summary(run_dir / "summary.json")
+        summary, steps = read_episode(run_dir)
     except RecordError:  # none yet, or damaged: fly it again
         return False
-    return summary.get("status") == "finished" and not server_failed(summary)
+    return outcome(summary, steps) not in ("error", "incomplete")
 
 
 class EpisodeWorker:
@@ -404,7 +408,7 @@ class EpisodeWorker:
             cave = self._cave(job)
             run_episode(cave, self._pilot(job), self.episode_config(cave), run_dir)
         except Exception as exc:  # noqa: BLE001 - recorded, and the sweep goes on
-            fault = _folder_fault(run_dir, exc)
+            fault = _folder_fault(job, exc)
             try:
                 record_error(run_dir, job, f"{type(exc).__name__}: {exc}", traceback.format_exc())
             except RecordingError:
@@ -433,19 +437,21 @@ def record_error(run_dir: Path, job: EpisodeJob, error: str, trace: str = "") ->
         if trace:
             write_atomic(run_dir / "error.txt", trace)
     except OSError as exc:
-        raise _cannot_write(run_dir, exc) from None
+        raise RecordingError.cannot_write(run_dir, exc) from None
 
 
-def _cannot_write(where: Path, error: OSError) -> RecordingError:
-    return RecordingError(f"cannot write {where}: {error.strerror or error}")
+def _folder_fault(job: EpisodeJob, error: Exception) -> RecordingError | None:
+    """``error`` as the sweep's reason to stop: its run folder cannot be written, or a
+    disk it needs is full or read-only (the cave cache, the reply cache, /tmp).
 
-
-def _folder_fault(run_dir: Path, error: Exception) -> RecordingError | None:
-    """``error`` as the sweep's reason to stop, if it says the folder cannot be written."""
+    The episode loop names its run folder itself (a `RecordingError`); a raw `OSError`
+    here came from elsewhere, so it names its own file, never the run folder.
+    """
     if isinstance(error, RecordingError):
         return error
     if isinstance(error, OSError) and error.errno in _FOLDER_FAULTS:
-        return _cannot_write(run_dir, error)
+        where = error.filename or f"a file while flying {job.episode}"
+        return RecordingError.cannot_write(where, error)
     return None
 
 
@@ -494,13 +500,14 @@ def run_sweep(
         try:
             executor.run(config, folder, jobs, done or (lambda row: None))
         except BaseException:
-            with suppress(OSError):  # the cause, not a full disk's echo, goes on
+            # The cause goes on, not a full disk's echo nor a record damaged meanwhile.
+            with suppress(OSError, CavenavError):
                 read_rows(folder)
             raise
         try:
             return read_rows(folder)
         except OSError as exc:
-            raise _cannot_write(folder, exc) from None
+            raise RecordingError.cannot_write(folder, exc) from None
 
 
 @contextmanager
@@ -532,16 +539,13 @@ def _only_sweep_in(folder: Path) -> Iterator[None]:
         os.close(fd)  # releases the lock
 
 
-def hold_episodes(folder: Path) -> int:
+def hold_episodes(folder: Path) -> None:
     """Hold ``folder``'s episodes/ for as long as this process lives (a pool worker):
     shared with the sweep's other workers, exclusive of a sweep started after a kill.
 
-    Returns:
-        The descriptor that holds it; closing it, or the process ending, lets go.
+    The descriptor that holds it is left open on purpose: the process ending lets go.
     """
-    fd = os.open(Path(folder) / "episodes", os.O_RDONLY)
-    fcntl.flock(fd, fcntl.LOCK_SH)
-    return fd
+    fcntl.flock(os.open(Path(folder) / "episodes", os.O_RDONLY), fcntl.LOCK_SH)
 
 
 def _wait_for_leftovers(folder: Path) -> None:

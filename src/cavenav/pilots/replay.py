@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 from cavenav.actions import parse_action
 from cavenav.errors import ConfigError, PilotFailure
@@ -17,27 +18,65 @@ from cavenav.types import Decision, Observation
 __all__ = ["ReplayPilot", "recorded_scenario"]
 
 
-def _read_steps(run_dir: Path) -> list[dict]:
+def _damaged(path: Path, why: str) -> ConfigError:
+    return ConfigError(f"{path}: {why}: the recording is damaged; replay another run folder")
+
+
+def _read_steps(run_dir: Path) -> list[dict[str, Any]]:
+    """The recorded steps that flew an action, checked as far as a replay reads them.
+
+    (`cavenav.episode.records` checks whole records; pilots never import the episode
+    layer, so the replay checks here the few fields it uses.)
+    """
     path = run_dir / "steps.jsonl"
     if not path.is_file():
         raise ConfigError(f"{run_dir} is not a run folder: no steps.jsonl")
+    try:
+        lines = path.read_text(encoding="utf-8").splitlines()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"cannot read {path}: {exc}") from None
     steps = []
-    for number, line in enumerate(path.read_text().splitlines(), 1):
+    for number, line in enumerate(lines, 1):
         try:
-            steps.append(json.loads(line))
+            step = json.loads(line)
         except json.JSONDecodeError:
-            raise ConfigError(f"{path}: line {number} is not JSON") from None
+            raise _damaged(path, f"line {number} is not JSON") from None
+        if not isinstance(step, dict):
+            raise _damaged(path, f"line {number} is not a JSON object")
+        action = step.get("action")
+        if action is None or action == "":
+            continue  # a step without an action (the pilot failed): nothing to replay
+        if not isinstance(action, str) or not _whole(step.get("step")):
+            raise _damaged(path, f"line {number} needs a text 'action' and a whole 'step'")
+        steps.append(step)
     return steps
 
 
+def _whole(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
 def recorded_scenario(run_dir: str | Path) -> tuple[str, int | None]:
-    """(scenario, seed) of a recorded run, from its summary.json."""
+    """(scenario, seed) of a recorded run, from its summary.json.
+
+    Raises:
+        ConfigError: summary.json is missing, unreadable or damaged (naming the file).
+    """
     path = Path(run_dir) / "summary.json"
     try:
-        summary = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        raise ConfigError(f"cannot read {path}: {exc}") from None
-    return summary["scenario"], summary.get("seed")
+        summary = json.loads(path.read_text(encoding="utf-8"))
+    except OSError as exc:
+        raise ConfigError(f"cannot read {path}: {exc.strerror or exc}") from None
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise _damaged(path, f"not valid JSON ({exc})") from None
+    if not isinstance(summary, dict):
+        raise _damaged(path, "not a JSON object")
+    scenario, seed = summary.get("scenario"), summary.get("seed")
+    if not isinstance(scenario, str):
+        raise _damaged(path, "field 'scenario' is not text")
+    if seed is not None and not _whole(seed):
+        raise _damaged(path, "field 'seed' is not a whole number")
+    return scenario, seed
 
 
 class ReplayPilot:
@@ -47,7 +86,7 @@ class ReplayPilot:
 
     def __init__(self, run_dir: str | Path):
         self.run_dir = Path(run_dir)
-        self._steps = [s for s in _read_steps(self.run_dir) if s.get("action")]
+        self._steps = _read_steps(self.run_dir)
         self._next = 0
 
     def reset(self) -> None:
