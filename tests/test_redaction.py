@@ -9,9 +9,7 @@ them, and the check is on bytes: every file of the run folder, stdout and stderr
 from __future__ import annotations
 
 import json
-import os
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -22,6 +20,7 @@ from cavenav.errors import BackendUnavailable
 from cavenav.pilots.backends import OpenAIBackend, OpenAIConfig
 from cavenav.redaction import Redactor
 
+from .conftest import cavenav, wide
 from .vlm_server import FakeVLM
 
 KEY = "sk-test-4f9c2b7e1d8a4c6f9e3b5a7d1c2e8f40"
@@ -37,13 +36,7 @@ class SteadyVLM(FakeVLM):
 
 def command(*args: str) -> subprocess.CompletedProcess[str]:
     """The command line in a fresh process, with ``KEY`` as the user's API key."""
-    return subprocess.run(
-        [sys.executable, "-m", "cavenav.cli", *args],
-        capture_output=True,
-        text=True,
-        timeout=300,
-        env={**os.environ, "OPENAI_API_KEY": KEY, "COLUMNS": "240"},
-    )
+    return cavenav(*args, env={**wide(), "OPENAI_API_KEY": KEY})
 
 
 def files_holding(folder: Path, secret: str) -> list[str]:
