@@ -5,9 +5,9 @@ from __future__ import annotations
 
 import json
 import math
+import queue
 import re
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -189,7 +189,7 @@ def test_a_settings_file_overrides_the_defaults_and_flags_override_the_file(tmp_
         ("min_depth_m = 5\nmax_depth_m = 2\n", "min_depth_m must be below max_depth_m"),
         ("mode = \n", "not valid TOML"),
         # durations and rates within sane ranges: 1e308 s would wait forever
-        ("connect_timeout_s = 1e308\n", "field 'connect_timeout_s': .* less than or equal to 600"),
+        ("connect_timeout_s = 1e308\n", "field 'connect_timeout_s'"),
         ("ack_timeout_s = 1e9\n", "field 'ack_timeout_s'"),
         ("heartbeat_timeout_s = 3600\n", "field 'heartbeat_timeout_s'"),
         ("segment_cap_s = 1e12\n", "field 'segment_cap_s'"),
@@ -233,13 +233,38 @@ def test_pymavlinks_network_addresses_are_accepted(address: str) -> None:
         ("udpin:127.0.0.1:99999", "the port must be a number from 0 to 65535"),
         ("udpout:127.0.0.1:0", "the port must be a number from 1 to 65535"),
         ("tcp:host:port", "the port must be a number"),
-        ("/dev/no-such-serial-port", "is no MAVLink address"),  # pymavlink: "No module 'serial'"
         ("flight.tlog", "is no MAVLink address"),  # a log file is no vehicle
+        ("ttyACM0", "is no MAVLink address"),  # pymavlink would look for it in the cwd
+        ("/dev/serial/by-path/pci-0000:00:14.0-usb-0:1", "is no MAVLink address"),  # UDP to it
+        ("/dev/ttyACM0,0", "the baud rate must be a positive whole number"),
+        ("/dev/ttyACM0,fast", "is no MAVLink address"),
+        ("COM0", "is no MAVLink address"),
     ],
 )
 def test_a_malformed_address_is_a_settings_error_naming_it(address: str, problem: str) -> None:
-    with pytest.raises(ConfigError, match=f"field 'connect': Value error, .*{re.escape(problem)}"):
+    with pytest.raises(ConfigError, match=f"field 'connect': .*{re.escape(problem)}"):
         load_bridge_config(connect=address)
+
+
+@pytest.mark.parametrize(
+    "address", ["/dev/ttyACM0", "/dev/serial/by-id/usb-ArduPilot,115200", "COM3", "com12,57600"]
+)
+def test_a_serial_device_loads_on_a_machine_without_it(address: str) -> None:
+    """The settings travel between machines; the device is looked for when connecting."""
+    assert load_bridge_config(connect=address).connect == address
+
+
+def test_a_serial_device_that_is_not_there_is_a_vehicle_fault_when_connecting(
+    tmp_path: Path,
+) -> None:
+    with pytest.raises(
+        VehicleError, match="/dev/no-such-serial-port is not on this machine"
+    ) as missing:
+        ArduSubMotion(load_bridge_config(connect="/dev/no-such-serial-port")).listen()
+    assert missing.value.exit_status == 3  # as a vehicle that does not answer
+    (plain_file := tmp_path / "ttyACM0").write_text("")
+    with pytest.raises(VehicleError, match="ttyACM0 is no device"):
+        ArduSubLink(load_bridge_config(connect=str(plain_file)))
 
 
 # ---------------------------------------------------------------------------- flights
@@ -271,12 +296,6 @@ FAST_BRIDGE = {
 }
 
 
-def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
-
-
 @contextmanager
 def autopilot(port: int, **settings: object) -> Iterator[FakeSub]:
     sub = FakeSub(FakeSubConfig(address=f"udpout:127.0.0.1:{port}", **{**FAST_SUB, **settings}))
@@ -288,17 +307,49 @@ def bridge(port: int, **settings: object) -> BridgeConfig:
     return BridgeConfig(connect=f"udpin:127.0.0.1:{port}", **{**FAST_BRIDGE, **settings})
 
 
-def fly_s4(tmp_path: Path, mode: str, **sub_settings: object) -> tuple[dict, list[dict]]:
-    port = free_udp_port()
-    motion = ArduSubMotion(bridge(port, mode=mode), tmp_path / "run" / "mavlink.jsonl")
-    (tmp_path / "run").mkdir()
-    config = EpisodeConfig(save_frames=False, plots=False, shield=True)
-    with autopilot(port, **sub_settings):
+# The bridge listens on a port the system picks (udpin:127.0.0.1:0), read back before the
+# autopilot starts: no port is probed free and then raced for.
+
+
+def listening(motion: ArduSubMotion) -> int:
+    address = motion.listen()
+    assert address is not None
+    return address[1]
+
+
+@contextmanager
+def flying(port: int = 0, **settings: object) -> Iterator[ArduSubMotion]:
+    """A bridge to the autopilot on ``port``, closed whatever the test does."""
+    motion = ArduSubMotion(bridge(port, **settings))
+    try:
+        yield motion
+    finally:
+        motion.close()
+
+
+@contextmanager
+def flown(sub: dict[str, object] | None = None, **settings: object) -> Iterator[
+    tuple[ArduSubMotion, FakeSub]
+]:  # fmt: skip
+    """A bridge (``settings``) and an autopilot (``sub``) sending to the port it listens on;
+    the bridge is closed first, while the autopilot still answers its disarm."""
+    with flying(**settings) as motion, autopilot(listening(motion), **(sub or {})) as vehicle:
         try:
-            result = run_episode(load_scenario("S4", 0), GeometricPilot(), config,
-                                 tmp_path / "run", motion=motion)  # fmt: skip
+            yield motion, vehicle
         finally:
             motion.close()
+
+
+def fly_s4(tmp_path: Path, mode: str, **sub_settings: object) -> tuple[dict, list[dict]]:
+    (tmp_path / "run").mkdir()
+    motion = ArduSubMotion(bridge(0, mode=mode), tmp_path / "run" / "mavlink.jsonl")
+    config = EpisodeConfig(save_frames=False, plots=False, shield=True)
+    try:
+        with autopilot(listening(motion), **sub_settings):
+            result = run_episode(load_scenario("S4", 0), GeometricPilot(), config,
+                                 tmp_path / "run", motion=motion)  # fmt: skip
+    finally:
+        motion.close()
     return result.summary, result.steps
 
 
@@ -323,47 +374,36 @@ def test_the_geometric_pilot_flies_s4_through_mavlink_in_guided_mode(tmp_path: P
     assert summary["max_drift_m"] < 0.3
 
 
-@contextmanager
-def flying(port: int, **settings: object) -> Iterator[ArduSubMotion]:
-    """A bridge to the autopilot on ``port``, closed whatever the test does."""
-    motion = ArduSubMotion(bridge(port, **settings))
-    try:
-        yield motion
-    finally:
-        motion.close()
-
-
 # 1 m/s at the bridge's stick limit: a sleep that overshoots 50 ms costs 5 cm
 GENTLE = {"stick_limit": 125, "forward_mps": 1.0, "vertical_mps": 0.5}
 
 
 def test_the_bridge_arms_in_alt_hold_and_disarms_with_neutral_sticks_at_the_end() -> None:
-    port = free_udp_port()
-    with autopilot(port) as sub:
-        with flying(port, **GENTLE) as motion:
-            start = Pose(1.0, 2.0, -3.0, 0.3)
-            assert motion.start(start) == start
-            state = sub.state()
-            assert state.armed and state.mode_name == "ALT_HOLD"
-            reached = motion.move(start, parse_action("forward 1 m"))
-            assert math.dist(reached.position, apply(start, Action(forward=1.0)).position) < 0.2
+    with flown(**GENTLE) as (motion, sub):
+        start = Pose(1.0, 2.0, -3.0, 0.3)
+        assert motion.start(start) == start
+        state = sub.state()
+        assert state.armed and state.mode_name == "ALT_HOLD"
+        reached = motion.move(start, parse_action("forward 1 m"))
+        assert math.dist(reached.position, apply(start, Action(forward=1.0)).position) < 0.2
+        motion.close()
         assert wait_until(lambda: not sub.state().armed)
         assert sub.state().sticks == (0, 0, 500, 0)
 
 
 def test_a_vehicle_armed_before_the_bridge_came_is_left_armed() -> None:
-    port = free_udp_port()
-    with autopilot(port) as sub:
-        with flying(port, disarm_at_end=False) as first:
-            first.start(Pose(0, 0, 0))
-        with flying(port) as second:
+    with flown(disarm_at_end=False) as (first, sub):
+        first.start(Pose(0, 0, 0))
+        port = listening(first)
+        first.close()
+        with flying(port) as second:  # on the port the autopilot sends to, freed just now
             second.start(Pose(0, 0, 0))
         assert sub.state().armed
 
 
 def test_no_vehicle_is_one_line_and_closing_after_it_is_clean() -> None:
     with (
-        flying(free_udp_port(), connect_timeout_s=0.3) as motion,
+        flying(connect_timeout_s=0.3) as motion,
         pytest.raises(VehicleError, match="no heartbeat from a submarine"),
     ):
         motion.start(Pose(0, 0, 0))
@@ -371,19 +411,16 @@ def test_no_vehicle_is_one_line_and_closing_after_it_is_clean() -> None:
 
 
 def test_the_operator_is_asked_before_arming_and_a_no_leaves_it_disarmed() -> None:
-    port = free_udp_port()
     asked = []
-    with autopilot(port) as sub:
-        with flying(port) as motion:
-            motion._confirm = lambda q: asked.append(q) or False
-            with pytest.raises(VehicleError, match="declined"):
-                motion.start(Pose(0, 0, 0))
+    with flown() as (motion, sub):
+        motion._confirm = lambda q: asked.append(q) or False
+        with pytest.raises(VehicleError, match="declined"):
+            motion.start(Pose(0, 0, 0))
         assert asked == ["arm the vehicle?"] and not sub.state().armed
 
 
 def test_no_move_while_the_vehicles_heartbeat_is_stale() -> None:
-    port = free_udp_port()
-    with autopilot(port) as sub, flying(port, heartbeat_timeout_s=0.5) as motion:
+    with flown(heartbeat_timeout_s=0.5) as (motion, sub):
         start = motion.start(Pose(0, 0, 0))
         sub.pause_heartbeat(True)
         time.sleep(0.6)
@@ -395,8 +432,7 @@ def test_no_move_while_the_vehicles_heartbeat_is_stale() -> None:
 
 
 def test_a_heartbeat_lost_mid_segment_stops_the_segment_with_neutral_sticks() -> None:
-    port = free_udp_port()
-    with autopilot(port) as sub, flying(port, heartbeat_timeout_s=0.5, **GENTLE) as motion:
+    with flown(heartbeat_timeout_s=0.5, **GENTLE) as (motion, sub):
         start = motion.start(Pose(0, 0, 0))
         threading.Timer(0.3, sub.pause_heartbeat, (True,)).start()
         started = time.monotonic()
@@ -407,45 +443,33 @@ def test_a_heartbeat_lost_mid_segment_stops_the_segment_with_neutral_sticks() ->
 
 
 def test_guided_mode_is_refused_by_a_vehicle_with_no_position_estimate() -> None:
-    port = free_udp_port()
     with (
-        autopilot(port, position_estimate=False),
-        flying(port, mode="guided", ack_timeout_s=1.0) as motion,
+        flown({"position_estimate": False}, mode="guided", ack_timeout_s=1.0) as (motion, _),
         pytest.raises(VehicleError, match="refused MAV_CMD_DO_SET_MODE"),
     ):
         motion.start(Pose(0, 0, 0))
 
 
 def test_depth_targets_are_clamped_to_the_limits() -> None:
-    port = free_udp_port()
-    with autopilot(port, start_ned=(0.0, 0.0, 1.0)), flying(port, min_depth_m=0.5, **GENTLE) as m:
-        start = m.start(Pose(0, 0, 0))
-        reached = m.move(start, parse_action("ascend 2 m"))
+    with flown({"start_ned": (0.0, 0.0, 1.0)}, min_depth_m=0.5, **GENTLE) as (motion, _):
+        start = motion.start(Pose(0, 0, 0))
+        reached = motion.move(start, parse_action("ascend 2 m"))
         assert reached.z == pytest.approx(0.5, abs=0.1)  # 1 m deep, stopped at 0.5 m
 
 
 # ---------------------------------------------------------------------------- one vehicle
-# The bridge listens on a port the system picks (udpin:127.0.0.1:0), read back before the
-# autopilots start: no port is probed free and then raced for.
-
-
-def listening(motion: ArduSubMotion) -> int:
-    address = motion.listen()
-    assert address is not None
-    return address[1]
-
 
 NEUTRAL_STICKS = (0, 0, 500, 0)
 
 
 def test_two_vehicles_with_one_system_id_on_the_port_are_refused_before_arming() -> None:
-    with flying(0) as motion:
+    with flying() as motion:
         port = listening(motion)
         with (
             autopilot(port, start_ned=(0.0, 0.0, 12.0)) as deep,
             autopilot(port, start_ned=(0.0, 0.0, 0.5)) as shallow,
         ):
-            with pytest.raises(VehicleError, match=r"two vehicles on udpin:127\.0\.0\.1:0: "):
+            with pytest.raises(VehicleError, match=r"a second peer on udpin:127\.0\.0\.1:0: "):
                 motion.start(Pose(0, 0, 0))
             motion.close()
             for sub in (deep, shallow):
@@ -454,7 +478,7 @@ def test_two_vehicles_with_one_system_id_on_the_port_are_refused_before_arming()
 
 
 def test_a_second_vehicle_heard_mid_flight_stops_the_flight_with_neutral_sticks() -> None:
-    with flying(0, **GENTLE) as motion:
+    with flying(**GENTLE) as motion:
         port = listening(motion)
         with autopilot(port) as first:
             start = motion.start(Pose(0, 0, 0))
@@ -464,7 +488,7 @@ def test_a_second_vehicle_heard_mid_flight_stops_the_flight_with_neutral_sticks(
                     motion.move(pose, parse_action("forward 1 m, turn left 90 deg"))  # ~3 s
                 for sub in (first, second):
                     assert wait_until(lambda sub=sub: sub.state().sticks == NEUTRAL_STICKS, 1.0)
-                with pytest.raises(VehicleError, match="two vehicles"):  # and it stays refused
+                with pytest.raises(VehicleError, match="a second peer"):  # and it stays refused
                     motion.move(pose, parse_action("hold"))
 
 
@@ -523,6 +547,139 @@ def test_the_link_locks_onto_one_vehicle_and_refuses_a_second_from_one_address(
             vehicle.close()
 
 
+@contextmanager
+def one_vehicle(**settings: Any) -> Iterator[tuple[ArduSubLink, Any, int]]:
+    """A link listening on a port the system picks, locked onto a vehicle (system 1,
+    component ``component``, default 1) that a bare pymavlink connection plays."""
+    component = settings.pop("component", 1)
+    link = ArduSubLink(BridgeConfig(connect="udpin:127.0.0.1:0", **settings))
+    vehicle = None
+    try:
+        port = link.local_address[1]  # type: ignore[index]
+        vehicle = mavutil.mavlink_connection(
+            f"udpout:127.0.0.1:{port}", source_system=1, source_component=component
+        )
+        heartbeat(MAV.MAV_TYPE_SUBMARINE)(vehicle.mav)
+        link.wait_for("a heartbeat", lambda t: t.system is not None, 5.0)
+        yield link, vehicle, port
+    finally:
+        link.close()
+        if vehicle is not None:
+            vehicle.close()
+
+
+def received(connection: Any, kind: str, seconds: float) -> list[Any]:
+    """Every message of ``kind`` ``connection`` receives in the next ``seconds``."""
+    messages, deadline = [], time.monotonic() + seconds
+    while (left := deadline - time.monotonic()) > 0:
+        message = connection.recv_match(type=kind, blocking=True, timeout=left)
+        if message is not None:
+            messages.append(message)
+    return messages
+
+
+def drain(connection: Any) -> None:
+    while connection.recv_match(blocking=False) is not None:
+        pass
+
+
+def test_a_ground_station_on_a_second_address_is_refused_as_a_second_peer() -> None:
+    """Not as "two vehicles": on udpin every command would go to it too, whatever it is."""
+    with one_vehicle() as (link, vehicle, port):
+        station = mavutil.mavlink_connection(
+            f"udpout:127.0.0.1:{port}", source_system=255, source_component=190
+        )
+        try:
+            heartbeat(MAV.MAV_TYPE_GCS)(station.mav)
+            vehicle.mav.attitude_send(0, 0, 0, 0.5, 0, 0, 0)
+            with pytest.raises(VehicleError) as refused:
+                link.wait_for("never", lambda t: False, 5.0)
+        finally:
+            station.close()
+    message = str(refused.value)
+    assert re.match(r"a second peer on udpin:127\.0\.0\.1:0: 127\.0\.0\.1:\d+ speaks besides "
+                    r"system 1 component 1 at 127\.0\.0\.1:\d+", message)  # fmt: skip
+    assert "two vehicles" not in message
+
+
+def test_sticks_held_when_a_second_peer_is_heard_turn_neutral_at_once_and_stay_so() -> None:
+    """The link thread repeats the sticks at control_hz: it must not repeat a segment's
+    sticks to the vehicle (and, over udpin, to the second peer) until the main thread
+    next looks, nor take new ones after the refusal."""
+    forward = {"x": 400, "y": 0, "z": 500, "r": 0}
+    with one_vehicle(control_hz=50) as (link, vehicle, port):
+        link.set_sticks(forward)
+        assert any(m.x == 400 for m in received(vehicle, "MANUAL_CONTROL", 0.1))
+        second = mavutil.mavlink_connection(
+            f"udpout:127.0.0.1:{port}", source_system=1, source_component=1
+        )
+        try:
+            heartbeat(MAV.MAV_TYPE_SUBMARINE)(second.mav)
+            with pytest.raises(VehicleError, match="a second peer"):
+                link.wait_for("never", lambda t: False, 5.0)  # the main thread only waits
+            drain(vehicle)  # what was sent before the refusal
+            link.set_sticks(forward)  # a segment that began as the refusal came
+            sticks = [(m.x, m.y, m.z, m.r) for m in received(vehicle, "MANUAL_CONTROL", 0.3)]
+        finally:
+            second.close()
+    assert sticks and set(sticks) == {NEUTRAL_STICKS}
+
+
+def test_a_peer_heard_while_a_command_is_being_sent_is_a_refusal_not_a_crash() -> None:
+    """pymavlink's udpin send iterates over the addresses heard while the link thread's
+    receive adds to them: never "Set changed size during iteration" from a send."""
+    with one_vehicle(mode="guided", control_hz=1) as (link, vehicle, port):
+        # The link's first heartbeat and sticks are out: its thread only receives for the
+        # next second (control_hz=1), so it is receiving when the second peer speaks.
+        assert vehicle.recv_match(type="MANUAL_CONTROL", blocking=True, timeout=5.0)
+        second = mavutil.mavlink_connection(
+            f"udpout:127.0.0.1:{port}", source_system=1, source_component=1
+        )
+        udp, caller, spoken = link._conn.port, threading.current_thread(), threading.Event()
+
+        class PeerSpeaksMidSend:
+            """The link's socket; its first send from this thread waits mid-send (0.5 s at
+            most) for the second peer's heartbeat to be received."""
+
+            def __getattr__(self, name: str) -> Any:
+                return getattr(udp, name)
+
+            def sendto(self, data: bytes, address: Any) -> int:
+                if threading.current_thread() is caller and not spoken.is_set():
+                    spoken.set()
+                    heartbeat(MAV.MAV_TYPE_SUBMARINE)(second.mav)
+                    wait_until(lambda: len(link._conn.clients) > 1, 0.5)
+                return udp.sendto(data, address)
+
+        link._conn.port = PeerSpeaksMidSend()
+        try:
+            link.send_target(target_fields(_HOLD, NedPose(0.0, 0.0, 5.0, 0.0)))
+            assert spoken.is_set()
+            with pytest.raises(VehicleError, match="a second peer"):
+                link.wait_for("never", lambda t: False, 5.0)
+        finally:
+            link._conn.port = udp
+            second.close()
+
+
+_HOLD = {"forward": 0.0, "right": 0.0, "down": 0.0, "turn": 0.0}
+
+
+def test_commands_and_targets_go_to_the_component_the_link_locked_onto() -> None:
+    """A vehicle whose autopilot is component 2 (not MAV_COMP_ID_AUTOPILOT1) gets them."""
+    with one_vehicle(component=2, ack_timeout_s=0.2) as (link, vehicle, _):
+        drain(vehicle)
+        with pytest.raises(VehicleError, match="not acknowledged"):
+            link.command("MAV_CMD_COMPONENT_ARM_DISARM", 1.0)
+        link.send_target(target_fields(_HOLD, NedPose(0.0, 0.0, 5.0, 0.0)))
+        command = vehicle.recv_match(type="COMMAND_LONG", blocking=True, timeout=2.0)
+        target = vehicle.recv_match(
+            type="SET_POSITION_TARGET_LOCAL_NED", blocking=True, timeout=2.0
+        )
+    assert (command.target_system, command.target_component) == (1, 2)
+    assert (target.target_system, target.target_component) == (1, 2)
+
+
 def wait_until(condition: Callable[[], bool], timeout_s: float = 5.0) -> bool:
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
@@ -555,9 +712,8 @@ def test_fly_refuses_a_bad_settings_file_in_one_line(tmp_path: Path) -> None:
     settings.write_text("yaw_dps = 0\n")
     result = cavenav("fly", "--config", str(settings), "--dry-run", "--action", "hold")
     assert result.returncode == 2
-    assert result.stderr.strip().splitlines() == [
-        f"error: {settings}: field 'yaw_dps': Input should be greater than 0"
-    ]
+    (line,) = result.stderr.strip().splitlines()
+    assert line.startswith(f"error: {settings}: field 'yaw_dps': ")
 
 
 @pytest.mark.parametrize("address", ["bogus", ""])
@@ -569,9 +725,7 @@ def test_fly_refuses_a_malformed_address_in_one_line_before_anything_is_written(
     result = cavenav("fly", "--sim", "S1", "--yes", "--connect", address, "--out", str(out))
     assert result.returncode == 2
     (line,) = result.stderr.strip().splitlines()
-    assert line.startswith(
-        f"error: bridge settings: field 'connect': Value error, '{address}' is no MAVLink address"
-    )
+    assert re.match(f"error: bridge settings: field 'connect': .*'{address}' is no MAVLink", line)
     assert not out.exists()
 
 
@@ -591,16 +745,33 @@ def test_fly_that_hears_no_vehicle_exits_3_and_leaves_no_run_folder(tmp_path: Pa
     assert list(out.iterdir()) == []  # not a folder holding only mavlink.jsonl
 
 
-def start_flying(tmp_path: Path, port: int) -> subprocess.Popen[str]:
-    """`cavenav fly --sim S1` at the calibrated default rates: segments of about a second."""
-    return subprocess.Popen(
+def start_flying(tmp_path: Path) -> tuple[subprocess.Popen[str], int]:
+    """`cavenav fly --sim S1` at the calibrated default rates (segments of about a second),
+    listening on a port the system picks, and that port, as the command prints it."""
+    process = subprocess.Popen(
         [sys.executable, "-m", "cavenav.cli", "fly", "--sim", "S1", "--yes", "--no-frames",
-         "--connect", f"udpin:127.0.0.1:{port}", "--out", str(tmp_path), "--steps", "30"],
+         "--connect", "udpin:127.0.0.1:0", "--out", str(tmp_path), "--steps", "30"],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
         preexec_fn=takes_ctrl_c,
     )  # fmt: skip
+    lines: queue.Queue[str] = queue.Queue()
+
+    def read_until_listening() -> None:  # then communicate() reads the rest
+        assert process.stdout is not None
+        for line in process.stdout:
+            lines.put(line)
+            if "listening on" in line:
+                return
+        lines.put("")  # the command ended first
+
+    threading.Thread(target=read_until_listening, daemon=True).start()
+    while line := lines.get(timeout=120):
+        if found := re.search(r"listening on 127\.0\.0\.1:(\d+)", line):
+            return process, int(found[1])
+    process.kill()
+    raise AssertionError(f"fly printed no port: {process.communicate()}")
 
 
 def calibrated_autopilot(port: int, pilot_timeout_s: float) -> FakeSub:
@@ -625,10 +796,9 @@ def mid_segment(sub: FakeSub, process: subprocess.Popen[str]) -> None:
 def test_killing_the_bridge_mid_segment_leaves_neutral_sticks_then_a_disarm(
     tmp_path: Path,
 ) -> None:
-    port = free_udp_port()
-    with calibrated_autopilot(port, pilot_timeout_s=1.0) as sub:
-        process = start_flying(tmp_path, port)
-        try:
+    process, port = start_flying(tmp_path)
+    try:
+        with calibrated_autopilot(port, pilot_timeout_s=1.0) as sub:
             mid_segment(sub, process)
             process.kill()  # SIGKILL: no neutral sticks from the bridge
             process.wait()
@@ -636,18 +806,17 @@ def test_killing_the_bridge_mid_segment_leaves_neutral_sticks_then_a_disarm(
             assert wait_until(lambda: sub.state().failsafe, 3)
             state = sub.state()
             assert state.sticks == (0, 0, 500, 0) and not state.armed
-        finally:
-            process.kill()
+    finally:
+        process.kill()
 
 
 @pytest.mark.slow
 def test_ctrl_c_mid_segment_sets_neutral_sticks_at_once_and_keeps_the_record(
     tmp_path: Path,
 ) -> None:
-    port = free_udp_port()
-    with calibrated_autopilot(port, pilot_timeout_s=5.0) as sub:
-        process = start_flying(tmp_path, port)
-        try:
+    process, port = start_flying(tmp_path)
+    try:
+        with calibrated_autopilot(port, pilot_timeout_s=5.0) as sub:
             mid_segment(sub, process)
             process.send_signal(signal.SIGINT)
             assert wait_until(lambda: sub.state().sticks == (0, 0, 500, 0), 1.0)
@@ -655,8 +824,8 @@ def test_ctrl_c_mid_segment_sets_neutral_sticks_at_once_and_keeps_the_record(
             assert process.returncode == 130, stderr
             state = sub.state()
             assert not state.armed and not state.failsafe  # disarmed by the bridge, at once
-        finally:
-            process.kill()
+    finally:
+        process.kill()
     (run_dir,) = tmp_path.iterdir()
     assert json.loads((run_dir / "summary.json").read_text())["status"] == "interrupted"
     assert read_jsonl(run_dir / "mavlink.jsonl")

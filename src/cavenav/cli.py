@@ -941,15 +941,19 @@ def fly(
         shield=shield,
         sensors=sensors,
     )
-    console.print(
-        f"[bold]{cave.name}[/] through MAVLink ({bridge.mode} mode, {bridge.connect}): waiting "
-        "for the vehicle's heartbeat"
-    )
     run_dir = new_run_dir(out, cave.name, pilot, cave.seed)
     motion = ArduSubMotion(
         bridge, run_dir / "mavlink.jsonl", confirm=None if yes else typer.confirm
     )
     try:
+        listening = motion.listen()  # with udpin:HOST:0, the port the system chose
+        where = f", listening on {listening[0]}:{listening[1]}" if listening else ""
+        console.print(
+            f"[bold]{cave.name}[/] through MAVLink ({bridge.mode} mode, {bridge.connect}{where}): "
+            "waiting for the vehicle's heartbeat",
+            soft_wrap=True,
+            highlight=False,
+        )
         _fly_episode(cave, flyer, episode, run_dir, motion)
     except CavenavError:
         motion.close()  # closes the command log

@@ -39,10 +39,10 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 from pymavlink import mavutil
 
-from cavenav.errors import ConfigError, invalid_field
+from cavenav.errors import ConfigError, VehicleError, invalid_field
 from cavenav.kinematics import wrap_angle
 from cavenav.vehicle.frames import body_to_ned
-from cavenav.vehicle.mavlink import check_address
+from cavenav.vehicle.mavlink import check_address, check_device
 
 __all__ = [
     "ALT_HOLD",
@@ -136,7 +136,9 @@ class FakeSubConfig(BaseModel):
     @field_validator("address")
     @classmethod
     def _one_link_address(cls, address: str) -> str:
-        return check_address(address)  # the bridge's forms; pymavlink would guess a serial port
+        # the bridge's forms (pymavlink would guess a serial port); the device is looked
+        # for when the fake sub starts, so that settings load on any machine
+        return check_address(address)
 
 
 @dataclass(frozen=True)
@@ -216,6 +218,10 @@ class FakeSub:
             raise RuntimeError("a FakeSub runs once; make a new one to start again")
         if self._thread is not None:
             return self
+        try:
+            check_device(self.config.address)  # a serial device named by the settings
+        except VehicleError as missing:  # the fake sub's own settings: bad input
+            raise ConfigError(str(missing)) from None
         try:
             self._conn = mavutil.mavlink_connection(
                 self.config.address,

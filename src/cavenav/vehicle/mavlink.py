@@ -27,8 +27,9 @@ fires when the bridge dies: ArduSub then sets neutral controls and, with
 
 Safety, in this module: no segment while the vehicle's heartbeat is older than
 ``heartbeat_timeout_s`` (2.5 s), while it is disarmed or in another mode than ours, nor
-one longer than ``segment_cap_s``; none once a second vehicle has been heard on the link
-(the bridge locks onto the first submarine's ids and address); depth targets
+one longer than ``segment_cap_s``; none once a second vehicle, or on ``udpin`` a second
+peer, has been heard on the link (the bridge locks onto the first submarine's ids and
+address, and sets neutral sticks the moment it hears another); depth targets
 (``LOCAL_POSITION_NED``'s down) are clamped to ``[min_depth_m, max_depth_m]``; neutral
 sticks (manual) or a hold at the current pose (guided) on any exception and on Ctrl-C;
 arming only after the operator confirms (a flag waives it in simulation), and at the end
@@ -67,6 +68,7 @@ __all__ = [
     "BridgeConfig",
     "Segment",
     "check_address",
+    "check_device",
     "describe",
     "load_bridge_config",
     "plan",
@@ -91,17 +93,22 @@ NETWORK_SCHEMES = {
 }  # fmt: skip
 ADDRESS_FORMS = (
     "udpin:HOST:PORT (listen, where BlueOS forwards), udpout:HOST:PORT, udp:HOST:PORT, "
-    "udpbcast:HOST:PORT, tcp:HOST:PORT, tcpin:HOST:PORT, or a serial device that exists "
-    "(/dev/ttyACM0, or /dev/ttyACM0,115200 with its baud rate)"
+    "udpbcast:HOST:PORT, tcp:HOST:PORT, tcpin:HOST:PORT, or a serial device (/dev/ttyACM0 "
+    "or COM3, with its baud rate: /dev/ttyACM0,115200)"
 )
 _HOST = re.compile(r"[A-Za-z0-9_.-]+")  # a host name or an IPv4 address, not resolved here
+# A serial device as pymavlink opens one: an absolute path (no ':', which it would read as a
+# UDP address) or a Windows port, then ",BAUD" at most once.
+_SERIAL = re.compile(r"(?P<device>/[^,:]+|(?i:COM)[1-9][0-9]*)(?:,(?P<baud>[0-9]+))?")
 
 
 def check_address(address: str) -> str:
-    """``address`` unchanged if pymavlink can open it as a link to one vehicle.
+    """``address`` unchanged if it has the form of a link to one vehicle pymavlink opens.
 
-    Checked before anything is written, so that a typo is bad input (exit status 2)
-    instead of pymavlink's guess: a string it does not know is opened as a serial port.
+    Only the form: a settings file naming /dev/ttyACM0 or COM3 loads on any machine, and
+    `check_device` looks for the device when the link opens. Checked before anything is
+    written, so that a typo is bad input (exit status 2) instead of pymavlink's guess: a
+    string it does not know is opened as a serial port.
 
     Raises:
         ValueError: the address, what is wrong with it and the forms accepted.
@@ -115,20 +122,41 @@ def check_address(address: str) -> str:
         if not (port.isascii() and port.isdigit()) or not lowest <= int(port) <= 65535:
             raise ValueError(f"{address!r}: the port must be a number from {lowest} to 65535")
         return address
-    device, baud = address, ""
-    if "," in address and not os.path.exists(address):  # pymavlink's "DEVICE,BAUD"
-        device, _, baud = address.rpartition(",")
-    try:
-        is_serial = stat.S_ISCHR(os.stat(device).st_mode)
-    except (OSError, ValueError):  # no such file, or a name no file can have
-        is_serial = False
-    if not is_serial:
+    serial = _SERIAL.fullmatch(address)
+    if serial is None:
         raise ValueError(f"{address!r} is no MAVLink address: give {ADDRESS_FORMS}")
-    if baud and not (baud.isascii() and baud.isdigit() and int(baud) > 0):
+    if serial["baud"] is not None and int(serial["baud"]) == 0:
         raise ValueError(f"{address!r}: the baud rate must be a positive whole number")
-    if importlib.util.find_spec("serial") is None:
-        raise ValueError(f"{address!r}: a serial device needs pyserial: pip install pyserial")
     return address
+
+
+def check_device(address: str) -> None:
+    """For a serial ``address`` (see `check_address`), that its device is on this machine
+    and pyserial is installed; a network address passes. Called when the link opens.
+
+    Raises:
+        VehicleError: no such device, or a file that is no device (exit status 3, as for a
+            vehicle that does not answer: the cable, not the settings, is the likely cause).
+        DependencyError: pyserial is missing, with the command that installs it.
+    """
+    serial = _SERIAL.fullmatch(address)
+    if serial is None:
+        return
+    device = serial["device"]
+    if os.name != "nt":  # a COM port is no file: there pyserial says whether it is there
+        try:
+            is_device = stat.S_ISCHR(os.stat(device).st_mode)
+        except (OSError, ValueError):  # no such file, or a name no file can have
+            is_device = None
+        if is_device is None:
+            raise VehicleError(
+                f"cannot open MAVLink address {address!r}: {device} is not on this machine "
+                "(is the vehicle plugged in?)"
+            )
+        if not is_device:
+            raise VehicleError(f"cannot open MAVLink address {address!r}: {device} is no device")
+    if importlib.util.find_spec("serial") is None:
+        raise DependencyError(f"{address!r}: a serial device needs pyserial: pip install pyserial")
 
 
 class BridgeConfig(BaseModel):
@@ -335,7 +363,7 @@ class _Telemetry:
     yaw: float | None = None
     acks: dict[int, int] = field(default_factory=dict)
     failure: BaseException | None = None  # what stopped the link thread
-    second_vehicle: str | None = None  # why the link refuses to fly: two vehicles heard
+    refused: str | None = None  # why the link refuses to fly: a second vehicle or peer
 
 
 class _CommandLog:
@@ -367,10 +395,16 @@ class ArduSubLink:
     heartbeat at 1 Hz and repeats the current sticks at ``control_hz``.
 
     The link locks onto one vehicle at its first heartbeat: its system and component id
-    and, listening on UDP, its address. A second vehicle heard afterwards (telemetry from
-    another address, or from another id) would interleave its pose with ours, and over
-    ``udpin`` pymavlink sends our commands to every address it has heard: the link then
-    refuses to go on (`check_alive`, `wait_for`), and the motion sets neutral sticks.
+    and, listening on UDP, its address. A second vehicle heard afterwards (another id's
+    telemetry) would interleave its pose with ours, and over ``udpin`` pymavlink sends our
+    commands to every address it has heard (a second peer, whatever it is): the link then
+    sets neutral sticks at once, holds them, and refuses to go on (`check_alive`,
+    `wait_for`).
+
+    Threads: the link thread receives and repeats the heartbeat and sticks; the caller's
+    thread sends commands. Every send and every receive happens under ``_send_lock``:
+    pymavlink's ``udpin`` receive adds to the set of addresses its send iterates over.
+    Locks are taken in the order ``_seen``, ``_sticks_lock``, ``_send_lock``.
     """
 
     def __init__(self, config: BridgeConfig, log_path: Path | None = None):
@@ -380,6 +414,7 @@ class ArduSubLink:
             raise DependencyError(f"pymavlink is missing ({exc}): pip install -e .") from None
         self.config = config
         self._mavlink = mavutil.mavlink
+        check_device(config.connect)
         try:
             self._conn = mavutil.mavlink_connection(
                 config.connect,
@@ -445,7 +480,10 @@ class ArduSubLink:
                 self.set_sticks()
                 next_sticks = now + 1.0 / self.config.control_hz
             try:
-                message = self._conn.recv_match(blocking=True, timeout=0.02)
+                with self._send_lock:  # recv adds to the peers a send iterates over
+                    message = self._conn.recv_msg()
+                if message is None:
+                    self._conn.select(0.02)  # wait for the next datagram, lock released
             except OSError:  # udpin before a peer spoke, or a closed socket
                 message = None
             if message is not None and message.get_type() != "BAD_DATA":
@@ -458,7 +496,7 @@ class ArduSubLink:
         t, now = self.telemetry, time.monotonic()
         submarine = kind == "HEARTBEAT" and message.type == self._mavlink.MAV_TYPE_SUBMARINE
         with self._seen:
-            if t.second_vehicle is not None:
+            if t.refused is not None:
                 return
             if t.system is None:
                 if not submarine or self.config.target_system not in (0, source[0]):
@@ -470,9 +508,10 @@ class ArduSubLink:
                     submarine and self.config.target_system == 0
                 ):
                     hint = "" if ours else " (target_system chooses one)"
-                    self._second_vehicle(
-                        f"system {source[0]} component {source[1]} sends {kind} besides "
-                        f"{self._flown()}{hint}"
+                    self._refuse(
+                        f"two vehicles on {self.config.connect}: system {source[0]} component "
+                        f"{source[1]} sends {kind} besides {self._flown()}{hint}: refusing to "
+                        "fly with two on one link"
                     )
                 return  # a ground station, a camera; another vehicle, with a target_system
             if not self._one_peer():
@@ -490,10 +529,11 @@ class ArduSubLink:
             self._seen.notify_all()
 
     def _one_peer(self) -> bool:
-        """Whether one address only has spoken; else the second vehicle is noted.
+        """Whether one address only has spoken; else the link refuses to fly on.
 
         Listening on UDP, pymavlink keeps every address that sent a datagram (``clients``)
-        and sends our commands to all of them. Other links have one peer by construction.
+        and sends our commands to all of them: a second peer, a vehicle or a ground
+        station, would get them too. Other links have one peer by construction.
         """
         peers = getattr(self._conn, "clients", None)
         if not getattr(self._conn, "udp_server", False) or not peers:
@@ -504,9 +544,13 @@ class ArduSubLink:
             return True
         heard = sorted(f"{host}:{port}" for host, port in peers if (host, port) != t.peer)
         if t.peer is None:
-            self._second_vehicle(f"{' and '.join(heard)} spoke before the first heartbeat")
+            heard_text = f"{' and '.join(heard)} spoke before the first heartbeat"
         else:
-            self._second_vehicle(f"{', '.join(heard)} speaks besides {self._flown()}")
+            heard_text = f"{', '.join(heard)} speaks besides {self._flown()}"
+        self._refuse(
+            f"a second peer on {self.config.connect}: {heard_text}: listening, the bridge "
+            "sends every command to each address heard; refusing to fly with two peers"
+        )
         return False
 
     def _flown(self) -> str:
@@ -514,19 +558,23 @@ class ArduSubLink:
         where = f" at {t.peer[0]}:{t.peer[1]}" if t.peer else ""
         return f"system {t.system} component {t.component}{where}, the vehicle flown"
 
-    def _second_vehicle(self, heard: str) -> None:
-        """Refuse to fly on, saying what was ``heard`` (called under ``_seen``)."""
-        self.telemetry.second_vehicle = (
-            f"two vehicles on {self.config.connect}: {heard}: refusing to fly with two on one link"
-        )
+    def _refuse(self, why: str) -> None:
+        """Refuse to fly on, saying ``why``, and set neutral sticks at once (called by the
+        link thread under ``_seen``): sticks held for a segment must not be repeated to
+        the vehicle, nor to a second one, until the main thread next looks."""
+        self.telemetry.refused = why  # first: a set_sticks from now on holds neutral
+        self.set_sticks(NEUTRAL)
         self._seen.notify_all()
 
     def set_sticks(self, sticks: dict[str, int] | None = None) -> None:
         """Hold ``sticks`` from now on and send them at once (None: send again the sticks
         held, as the link does at ``control_hz``); under one lock, so an older set is never
-        sent after a newer one."""
+        sent after a newer one. Once the link has refused to fly on, the sticks stay
+        neutral."""
         with self._sticks_lock:
-            if sticks is not None:
+            if self.telemetry.refused is not None:
+                self._sticks = dict(NEUTRAL)
+            elif sticks is not None:
                 self._sticks = dict(sticks)
             if self.telemetry.system is not None:
                 self._send(
@@ -545,9 +593,9 @@ class ArduSubLink:
                 self._seen.wait(min(left, 0.1))
 
     def _check_link(self) -> None:
-        """A VehicleError if the link thread has stopped or heard a second vehicle."""
-        if self.telemetry.second_vehicle is not None:
-            raise VehicleError(self.telemetry.second_vehicle)
+        """A VehicleError if the link thread has stopped or refused to fly on."""
+        if self.telemetry.refused is not None:
+            raise VehicleError(self.telemetry.refused)
         failure = self.telemetry.failure
         if failure is not None:
             raise VehicleError(f"the MAVLink link stopped: {type(failure).__name__}: {failure}")
@@ -581,7 +629,7 @@ class ArduSubLink:
         self._send(
             "COMMAND_LONG",
             target_system=self.telemetry.system,
-            target_component=1,
+            target_component=self.telemetry.component,
             command=number,
             confirmation=0,
             **{f"param{i + 1}": float(p) for i, p in enumerate(padded)},
@@ -626,7 +674,7 @@ class ArduSubLink:
             "SET_POSITION_TARGET_LOCAL_NED",
             time_boot_ms=0,
             target_system=self.telemetry.system,
-            target_component=1,
+            target_component=self.telemetry.component,
             vx=0.0, vy=0.0, vz=0.0, afx=0.0, afy=0.0, afz=0.0, yaw_rate=0.0,
             **target,
         )  # fmt: skip
