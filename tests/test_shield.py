@@ -2,15 +2,21 @@
 
 from __future__ import annotations
 
+import re
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
 from cavenav.actions import parse_action
 from cavenav.episode.loop import EpisodeConfig, run_episode
+from cavenav.errors import ConfigError
 from cavenav.pilots.geometric import GeometricPilot
 from cavenav.pilots.random_pilot import RandomPilot
-from cavenav.shield import DepthMemory, Shield, move_points
-from cavenav.types import Action, Observation, Pose
+from cavenav.sensors.rig import SensorRig
+from cavenav.shield import DepthMemory, Margins, Shield, Surroundings, move_hazard, move_points
+from cavenav.types import Action, Observation, Pose, VehicleBody
+from cavenav.world.raycast import RayCaster
 from cavenav.world.scenarios import ExitPortal, Scenario
 
 from .conftest import box_room
@@ -121,12 +127,78 @@ def test_a_pinch_ahead_that_the_body_fits_through_is_no_obstacle() -> None:
     assert not verdict.intervened, verdict.reason
 
 
-def test_the_shield_and_the_geometric_pilot_keep_one_set_of_margins() -> None:
-    from cavenav.pilots.geometric import GeometricPilotConfig
-    from cavenav.shield import Margins, ShieldConfig
+@pytest.mark.parametrize("floor_m", [0.55, 0.50])
+def test_a_floor_near_below_is_no_crawlway_a_descent_toward_it_is_refused(floor_m: float) -> None:
+    # Nearer than the 0.61 m kept in the open, the floor may come at most 5 cm nearer:
+    # a surface on one side is no crawlway, where 0.39 m would do.
+    verdict = judged("descend 0.1 m", seen(np.inf, d_bottom=floor_m))
+    assert verdict.intervened and verdict.action.up >= 0, verdict.reason
 
-    assert GeometricPilotConfig().margins == ShieldConfig().margins == Margins()
-    assert GeometricPilotConfig().corridor_radius(tight=True) == pytest.approx(0.21 + 0.1, 0.01)
+
+def along_a_passage(width_m: float, right_wall_m: float) -> list[Observation]:
+    """Two views, 1 m apart, flying along a square passage ``width_m`` across with its
+    right wall ``right_wall_m`` away: the memory holds the walls beside the vehicle."""
+    rig = SensorRig(RayCaster(box_room(extents=(width_m, 20.0, width_m))))
+    x = -width_m / 2 + right_wall_m  # heading -y: the right wall is at -width_m / 2
+    first = rig.observe(Pose(x, 1.0, 0.0, 0.0))
+    second = replace(rig.observe(Pose(x, 0.0, 0.0, 0.0)), previous_action=Action(forward=1.0))
+    return [first, second]
+
+
+def beside_a_wall(offset_m: float) -> list[Observation]:
+    """Along a wall ``offset_m`` to the right, the left wall 1.5 m away, ceiling and floor 1 m."""
+    return along_a_passage(2.0, offset_m)
+
+
+@pytest.mark.parametrize("move", ["strafe right 0.1 m", "forward 0.2 m, strafe right 0.1 m"])
+def test_a_move_toward_a_wall_0_5_m_away_is_refused(move: str) -> None:
+    # One wall near is no crawlway: 0.4 m would be 10 cm nearer than the 0.5 m it is.
+    verdict = judged(move, *beside_a_wall(0.5))
+    assert verdict.intervened and verdict.action.right <= 0, verdict.reason
+    assert "surface seen" in verdict.reason
+    # Away from it, and along it with a turn away, nothing stops the vehicle.
+    assert not judged("forward 0.2 m, strafe left 0.1 m", *beside_a_wall(0.5)).intervened
+    assert not judged("forward 0.2 m, turn left 5 deg", *beside_a_wall(0.5)).intervened
+
+
+def test_in_a_passage_pinched_on_both_sides_moves_keep_the_crawlways_margin() -> None:
+    # 1.15 m square: every wall 0.575 m away, within the open margin on opposite sides,
+    # so no move could keep 0.61 m. Moves keep the 0.39 m reach of the turning body.
+    views = along_a_passage(1.15, 0.575)
+    for move in ("strafe right 0.1 m", "forward 0.2 m, strafe right 0.1 m", "ascend 0.1 m"):
+        assert not judged(move, *views).intervened, move
+    assert "surface seen" in judged("strafe right 0.5 m", *views).reason
+
+
+def test_a_move_hazard_names_the_rule_it_breaks() -> None:
+    memory = DepthMemory()
+    observation = seen(np.inf, d_top=0.8)
+    memory.update(observation, None)
+    around = Surroundings.of(observation, memory, VehicleBody(), Margins(), 1.5)
+
+    def kind(move: str) -> str:
+        hazard = move_hazard(
+            parse_action(move), around, body=VehicleBody(), margins=Margins(), crawlway=False
+        )
+        return hazard.kind
+
+    assert kind("forward 1 m") == ""
+    assert kind("strafe left 0.5 m") == "unseen"
+    assert kind("ascend 0.5 m") in {"surface", "sounded"}  # the ceiling 0.8 m above
+
+
+@pytest.mark.parametrize(
+    ("setting", "named"),
+    [
+        ({"open_m": -0.1}, "open_m = -0.1"),
+        ({"crawlway_m": float("nan")}, "crawlway_m = nan"),
+        ({"closer_m": -0.05}, "closer_m = -0.05"),
+        ({"open_m": 0.2, "crawlway_m": 0.3}, "crawlway_m = 0.3"),
+    ],
+)
+def test_nonsense_margins_are_refused_naming_the_value(setting: dict, named: str) -> None:
+    with pytest.raises(ConfigError, match=re.escape(named)):
+        Margins(**setting)
 
 
 @pytest.mark.slow

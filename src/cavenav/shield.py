@@ -6,20 +6,27 @@ last few depth images, each placed by dead reckoning on the actions the vehicle 
 a real BlueROV2. It enforces, with the numbers of `Rules` (SPEC section 3):
 
 1. No forward motion when an obstacle ahead of the new heading is closer than
-   ``no_forward_within_m`` (measured from the camera, as the depth image is).
+   ``no_forward_within_m`` (measured from the camera, as the depth image is, in a
+   corridor of the body's section plus a margin).
 2. Inside the standoff, forward motion of at most ``slow_forward_m[1]`` and only together
    with a turn or a lateral or vertical shift.
-3. No move passes within the body's radius plus a margin of a surface it has seen (or,
-   already closer than that, comes more than a few centimetres closer to one); the
-   ceiling and floor the sounders read count as level planes near the vehicle.
+3. No move passes within the body's radius plus a margin of a surface it has seen, or,
+   already nearer than that to one, more than ``Margins.closer_m`` (5 cm) nearer than the
+   nearest is now, nor within the crawlway's distance (already within it, no nearer at
+   all); the ceiling and floor the sounders read count as level planes near the vehicle.
 4. No move enters space that was never seen free: every point along the straight move,
    and the body's leading edge beyond its end, must lie in the view of a remembered depth
    image in front of the surface there, in the sounders' column, or inside the body.
 
-In a crawlway (a surface seen nearer than the full margin allows, or a pinch ahead that
-only the body's section plus a thin margin passes) rules 1, 3 and 4 use the thin margins
-the geometric pilot flies crawlways with: `Margins` is the one definition both read, and
-`move_hazard` (rules 3 and 4) the one judgement both make of a move.
+Crawlway mode: where the open margin cannot be kept for the way on, that is in a passage
+pinched on both sides (surfaces nearer than the open margin on opposite sides of the
+body) or for a forward move into a pinch ahead that only the body's section plus a thin
+margin passes, rules 1, 3 and 4 use the thin margins the geometric pilot flies crawlways
+with. A surface merely near (on one side, behind, the floor) is no crawlway: rule 3's
+5 cm applies; rule 1 alone reads the thin corridor wherever only the open one is blocked
+(a wall alongside, which the body passes). `Margins` is the one definition both read,
+`crawlway_move` the one choice of margins, and `move_hazard` (rules 3 and 4) the one
+judgement both make of a move.
 
 A move that breaks a rule is replaced by the nearest action that keeps them all: its
 translations shrunk toward zero (inside the standoff also a 0.1 m shift away from the
@@ -33,6 +40,7 @@ from __future__ import annotations
 import itertools
 import math
 from dataclasses import dataclass, field, replace
+from typing import Literal, NamedTuple
 
 import numpy as np
 
@@ -43,16 +51,18 @@ from cavenav.types import DEFAULT_RULES, Action, Observation, Rules, VehicleBody
 
 __all__ = [
     "DepthMemory",
+    "Hazard",
     "Margins",
+    "MoveMargins",
     "SeenFrame",
     "Shield",
     "ShieldConfig",
+    "Surroundings",
     "Verdict",
     "crawlway_move",
     "move_hazard",
     "move_points",
     "sampling_stride",
-    "unseen_point",
 ]
 
 
@@ -275,149 +285,240 @@ class Margins:
     doing what the pilot was built to do.
 
     Attributes:
-        open_m: kept beyond the body's half-diagonal from every surface seen, and added to
-            the body's section for the corridor in which an obstacle counts as "ahead";
-            also how far in front of a surface space must lie to count as seen free.
-        crawlway_m: the same where ``open_m`` cannot be kept (a crawlway): beyond the
-            reach of the body's corners when it turns, beyond its section for a corridor,
-            and in front of a surface for space seen free.
-        closer_m: a move along a rough wall may pass this much nearer to it than where it
-            starts, once the body is already nearer than the margin.
+        open_m: kept beyond the body's half-diagonal from every surface seen (0.61 m from
+            the centre), and added to the body's section for the corridor in which an
+            obstacle counts as "ahead"; also how far in front of a surface space must lie
+            to count as seen free.
+        crawlway_m: the same in a crawlway, where ``open_m`` cannot be kept for the way
+            on: beyond the reach of the body's corners when it turns (0.39 m from the
+            centre), beyond its section for a corridor, and in front of a surface for
+            space seen free.
+        closer_m: a move may pass this much nearer to a surface than the nearest one is
+            now, once the body is already nearer than the margin (a rough wall beside it),
+            but never nearer than a crawlway's distance.
+
+    Raises:
+        ConfigError: a negative or non-finite distance, or ``crawlway_m`` above
+            ``open_m``.
     """
 
     open_m: float = 0.3
     crawlway_m: float = 0.1
     closer_m: float = 0.05
 
+    def __post_init__(self) -> None:
+        for name in ("open_m", "crawlway_m", "closer_m"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0.0):
+                raise ConfigError(f"margins {name} = {value}: give a distance of 0 m or more")
+        if self.crawlway_m > self.open_m:
+            raise ConfigError(
+                f"margins crawlway_m = {self.crawlway_m} exceeds open_m = {self.open_m}: "
+                "the crawlway's margin is the thinner one"
+            )
+
+    def open_keep_m(self, body: VehicleBody) -> float:
+        """Distance from the centre kept from every surface in the open (0.61 m)."""
+        return body.bounding_radius + self.open_m
+
     def corridor_m(self, body: VehicleBody, crawlway: bool) -> float:
         """Radius of the corridor a forward move needs: the body's section plus a margin."""
-        section = 0.5 * math.hypot(body.width, body.height)
-        return section + (self.crawlway_m if crawlway else self.open_m)
-
-    def in_crawlway(self, cloud: np.ndarray, body: VehicleBody) -> bool:
-        """Whether a surface of ``cloud`` (n, 3) is already nearer than the open margin."""
-        return bool(len(cloud)) and float(np.linalg.norm(cloud, axis=1).min()) < (
-            body.bounding_radius + self.open_m
-        )
+        return body.section_radius + (self.crawlway_m if crawlway else self.open_m)
 
     def keep_clear_m(self, body: VehicleBody, here_m: float, crawlway: bool) -> float:
-        """How near a move may pass to a surface seen, from ``here_m`` away now.
+        """How near a move may pass to a surface seen, the nearest being ``here_m`` away.
 
         In the open the body's bounding radius plus ``open_m``; in a crawlway the reach of
         its corners when it turns plus ``crawlway_m``. Already nearer than that, any move
         that comes at most ``closer_m`` nearer, down to the crawlway's distance; nearer
         still (a wall it drifted to), only one that comes no nearer at all.
         """
-        reach = 0.5 * math.hypot(body.length, body.width) + self.crawlway_m
-        keep = reach if crawlway else body.bounding_radius + self.open_m
+        reach = body.turn_radius + self.crawlway_m
+        keep = reach if crawlway else self.open_keep_m(body)
         if here_m < keep:
             keep = max(reach, here_m - self.closer_m) if here_m >= reach else here_m - 1e-6
         return keep
 
 
-def free_ahead(cloud: np.ndarray, yaw_deg: float, camera_offset_m: float, radius: float) -> float:
-    """Distance from the camera to the nearest point of ``cloud`` (n, 3) in the horizontal
-    corridor of ``radius`` along the heading after turning ``yaw_deg``."""
-    if not len(cloud):
-        return math.inf
-    pts = cloud @ _yaw_matrix(-yaw_deg).T
-    along = pts[:, 0] - camera_offset_m
-    across = np.hypot(pts[:, 1], pts[:, 2])
-    blocking = (along > 0) & (across < radius)
-    return float(along[blocking].min()) if blocking.any() else math.inf
+@dataclass(frozen=True)
+class Surroundings:
+    """What judging any move reads from one observation, measured once (body frame).
+
+    Attributes:
+        cloud: (n, 3) float32 remembered surface points within reach of any move, the
+            ceiling and floor the sounders read included.
+        memory: the remembered depth images, for space seen free.
+        d_top, d_bottom: what the sounders read, metres.
+        camera_offset_m: how far ahead of the centre the camera sits.
+        nearest_m: distance from the centre to the nearest point of ``cloud``.
+        pinched: surfaces nearer than the open margin on opposite sides of the body (more
+            than 120 degrees apart seen from its centre: left and right, above and
+            below): a passage where the open margin cannot be kept anywhere across it.
+    """
+
+    cloud: np.ndarray
+    memory: DepthMemory
+    d_top: float
+    d_bottom: float
+    camera_offset_m: float
+    nearest_m: float
+    pinched: bool
+
+    @classmethod
+    def of(
+        cls,
+        observation: Observation,
+        memory: DepthMemory,
+        body: VehicleBody,
+        margins: Margins,
+        no_forward_m: float,
+    ) -> Surroundings:
+        """Measure ``memory`` (already updated with ``observation``) once."""
+        cloud = memory.cloud
+        distance = np.linalg.norm(cloud, axis=1)
+        # Moves reach at most ~2.3 m (1 m forward, 1 m sideways, 2 m up): farther points
+        # cannot come within the margin, and the forward check looks no_forward_m beyond.
+        reach = 2.3 + no_forward_m + margins.open_keep_m(body)
+        near = distance < margins.open_keep_m(body)
+        return cls(
+            cloud=cloud[distance < reach],
+            memory=memory,
+            d_top=observation.d_top,
+            d_bottom=observation.d_bottom,
+            camera_offset_m=observation.camera_offset_m,
+            nearest_m=float(distance.min()) if len(cloud) else math.inf,
+            pinched=_opposite(cloud[near] / distance[near, None]),
+        )
+
+
+def _opposite(directions: np.ndarray) -> bool:
+    """Whether two of the (n, 3) unit ``directions`` lie more than 120 degrees apart."""
+    if len(directions) < 2:
+        return False
+    # Directions within ~10 degrees of each other read as one: a few dozen stay.
+    cells = np.unique(np.round(directions * 4.0), axis=0)
+    cells /= np.linalg.norm(cells, axis=1, keepdims=True)
+    return bool((cells @ cells.T).min() < -0.5)
+
+
+class MoveMargins(NamedTuple):
+    """The margins a move is judged with (`crawlway_move`)."""
+
+    crawlway: bool  # rules 3 and 4 with the crawlway's thin margins, not the open ones
+    ahead_m: float  # rule 1: free ahead of the camera in its corridor (inf: no forward move)
 
 
 def crawlway_move(
     action: Action,
-    cloud: np.ndarray,
+    around: Surroundings,
     *,
     body: VehicleBody,
     margins: Margins,
-    camera_offset_m: float,
     no_forward_m: float,
-) -> bool:
-    """Whether ``action`` is judged with the crawlway's margins: a surface of ``cloud``
-    is already nearer than the open margin, or the move goes forward into a pinch that
-    the open corridor finds blocked within ``no_forward_m`` and the crawlway's does not."""
-    if margins.in_crawlway(cloud, body):
-        return True
+) -> MoveMargins:
+    """The margins ``action`` is judged with: the crawlway's where the open margin cannot
+    be kept for the way on, the open ones everywhere else.
+
+    A crawlway is a passage pinched on both sides (`Surroundings.pinched`), or, for a
+    forward move, a pinch ahead: the open corridor blocked within ``no_forward_m`` from
+    opposite sides of the axis while the crawlway's corridor is not. A surface merely near
+    (on one side, behind, the floor) is no crawlway: `Margins.keep_clear_m` lets a move
+    come at most ``closer_m`` nearer to it. Rule 1 reads the crawlway's corridor wherever
+    the open one is blocked and the crawlway's is not, a wall alongside included: the
+    body passes it, and rule 3 keeps it from closing in.
+    """
     if action.forward <= 0:
-        return False
-    ahead = [
-        free_ahead(cloud, action.yaw_deg, camera_offset_m, margins.corridor_m(body, tight))
-        for tight in (False, True)
-    ]
-    return ahead[0] < no_forward_m <= ahead[1]
+        return MoveMargins(around.pinched, math.inf)
+    # The cloud in the frame of the new heading: along it from the camera, and across it.
+    pts = around.cloud @ _yaw_matrix(-action.yaw_deg).T
+    along = pts[:, 0] - around.camera_offset_m
+    across = np.hypot(pts[:, 1], pts[:, 2])
+    thin, wide = margins.corridor_m(body, True), margins.corridor_m(body, False)
+
+    def ahead(radius: float) -> float:
+        blocking = (along > 0) & (across < radius)
+        return float(along[blocking].min()) if blocking.any() else math.inf
+
+    if around.pinched:
+        return MoveMargins(True, ahead(thin))
+    open_ahead = ahead(wide)
+    if open_ahead >= no_forward_m:
+        return MoveMargins(False, open_ahead)
+    tight_ahead = ahead(thin)
+    if tight_ahead < no_forward_m:
+        return MoveMargins(False, open_ahead)  # blocked either way
+    # What blocks only the open corridor: from opposite sides, a pinch to squeeze
+    # through; from one side, a wall to keep clear of.
+    rim = (along > 0) & (along < no_forward_m) & (across >= thin) & (across < wide)
+    sides = np.column_stack([np.zeros(int(rim.sum())), pts[rim, 1:] / across[rim, None]])
+    return MoveMargins(_opposite(sides), tight_ahead)
+
+
+@dataclass(frozen=True)
+class Hazard:
+    """Why a move is unsafe by what was seen; falsy (``kind`` "") when it is not.
+
+    Attributes:
+        kind: "surface" (it passes too near a surface seen), "sounded" (it ends too near
+            the ceiling or floor the sounders read), "unseen" (it enters space never
+            seen free), or "".
+        text: the reason in words, as the shield records it.
+    """
+
+    kind: Literal["", "surface", "sounded", "unseen"] = ""
+    text: str = ""
+
+    def __bool__(self) -> bool:
+        return bool(self.kind)
 
 
 def move_hazard(
     action: Action,
-    cloud: np.ndarray,
-    memory: DepthMemory,
-    sounded: tuple[float, float],
+    around: Surroundings,
     *,
     body: VehicleBody,
     margins: Margins,
     crawlway: bool,
     sample_m: float = 0.1,
-) -> str:
-    """Why the straight move of ``action`` is unsafe by what was seen; "" when it is not.
+) -> Hazard:
+    """Why the straight move of ``action`` is unsafe by what was seen (rules 3 and 4).
 
-    The move must keep `Margins.keep_clear_m` from the surfaces ``cloud`` (n, 3) and from
-    the ceiling and floor the sounders read (``sounded``: d_top, d_bottom), taken as level
-    planes; and the centre's path and the body's leading edge beyond its end must lie in
-    space ``memory`` saw free, or in the sounders' column short of what they read. A side
-    or a depth never seen is no free space, however far the walls seen elsewhere are.
+    The move must keep `Margins.keep_clear_m` from the surfaces ``around.cloud`` and from
+    the ceiling and floor the sounders read, taken as level planes; and the centre's path
+    every ``sample_m`` and the body's leading edge beyond its end must lie in space
+    ``around.memory`` saw free, or in the sounders' column short of what they read. A
+    side or a depth never seen is no free space, however far the walls seen elsewhere are.
     """
     move = translation(action)
     length = float(np.linalg.norm(move))
     if length == 0.0:
-        return ""
-    here = float(np.linalg.norm(cloud, axis=1).min()) if len(cloud) else math.inf
-    keep = margins.keep_clear_m(body, here, crawlway)
-    if clearance_of_move(cloud, action) < keep - 1e-6:
-        return f"the move would pass within {keep:.2f} m of a surface seen"
-    d_top, d_bottom = sounded
-    for gap, rise, what in ((d_top, move[2], "ceiling"), (d_bottom, -move[2], "floor")):
+        return Hazard()
+    keep = margins.keep_clear_m(body, around.nearest_m, crawlway)
+    if clearance_of_move(around.cloud, action) < keep - 1e-6:
+        return Hazard("surface", f"the move would pass within {keep:.2f} m of a surface seen")
+    for gap, rise, what in (
+        (around.d_top, move[2], "ceiling"),
+        (around.d_bottom, -move[2], "floor"),
+    ):
         keep = margins.keep_clear_m(body, gap, crawlway)
         if rise > 0 and gap - rise < keep - 1e-6:
-            return f"the move would end within {keep:.2f} m of the {what} ({gap:.2f} m away)"
-    unseen = unseen_point(
-        action, memory, sounded, body=body, margins=margins, crawlway=crawlway, sample_m=sample_m
-    )
-    if unseen is None:
-        return ""
-    return f"the move would enter space never seen free ({_describe(unseen)} of the vehicle)"
-
-
-def unseen_point(
-    action: Action,
-    memory: DepthMemory,
-    sounded: tuple[float, float],
-    *,
-    body: VehicleBody,
-    margins: Margins,
-    crawlway: bool,
-    sample_m: float = 0.1,
-) -> np.ndarray | None:
-    """(3,) the first point, body frame, of the straight move of ``action`` (its centre's
-    path every ``sample_m``, and the body's leading edge beyond its end) that lies neither
-    in space ``memory`` saw free nor in the sounders' column short of what they read
-    (``sounded``: d_top, d_bottom); None when every point does."""
-    move = translation(action)
-    length = float(np.linalg.norm(move))
+            return Hazard(
+                "sounded",
+                f"the move would end within {keep:.2f} m of the {what} ({gap:.2f} m away)",
+            )
+    # The centre's path and the body's leading edge beyond its end, past the body.
     radius = body.bounding_radius
-    along = np.arange(sample_m, length + radius + 1e-6, sample_m) if length else np.empty(0)
-    points = ((along[:, None] / max(length, 1e-9)) * move)[along > radius]  # beyond the body
-    if not len(points):
-        return None
+    along = np.arange(sample_m, length + radius + 1e-6, sample_m)
+    points = ((along[:, None] / length) * move)[along > radius]
     margin = margins.crawlway_m if crawlway else margins.open_m
-    d_top, d_bottom = sounded
     beside = np.hypot(points[:, 0], points[:, 1]) <= 0.1  # the sounders' column
-    up = (points[:, 2] > 0) & (points[:, 2] + margin <= d_top)
-    down = (points[:, 2] < 0) & (-points[:, 2] + margin <= d_bottom)
-    known = memory.seen_free(points, margin) | (beside & (up | down))
-    return None if known.all() else points[int(np.argmin(known))]
+    up = (points[:, 2] > 0) & (points[:, 2] + margin <= around.d_top)
+    down = (points[:, 2] < 0) & (-points[:, 2] + margin <= around.d_bottom)
+    known = around.memory.seen_free(points, margin) | (beside & (up | down))
+    if known.all():
+        return Hazard()
+    where = _describe(points[int(np.argmin(known))])
+    return Hazard("unseen", f"the move would enter space never seen free ({where} of the vehicle)")
 
 
 @dataclass(frozen=True)
@@ -509,23 +610,20 @@ class Shield:
         cfg, rules = self.config, self.config.rules
         if action.is_hold:
             return ""
-        if action.yaw_deg and s.turn_room_m < s.turn_radius + 0.05:
+        if action.yaw_deg and s.turn_room_m < cfg.body.turn_radius + 0.05:
             return f"a surface {s.turn_room_m:.2f} m beside the centre leaves no room to turn"
-        crawlway = crawlway_move(
+        judged = crawlway_move(
             action,
-            s.cloud,
+            s.around,
             body=cfg.body,
             margins=cfg.margins,
-            camera_offset_m=s.camera_offset_m,
             no_forward_m=rules.no_forward_within_m,
         )
         if action.forward > 0:
-            corridor = cfg.margins.corridor_m(cfg.body, crawlway)
-            ahead = free_ahead(s.cloud, action.yaw_deg, s.camera_offset_m, corridor)
-            if ahead < rules.no_forward_within_m:
+            if judged.ahead_m < rules.no_forward_within_m:
                 return (
-                    f"obstacle {ahead:.1f} m ahead, within {rules.no_forward_within_m:g} m: "
-                    "no forward motion"
+                    f"obstacle {judged.ahead_m:.1f} m ahead, within "
+                    f"{rules.no_forward_within_m:g} m: no forward motion"
                 )
             if s.nearest_m < rules.standoff_m:
                 slow = rules.slow_forward_m[1]
@@ -536,16 +634,15 @@ class Shield:
                     )
                 if not (action.yaw_deg or action.right or action.up):
                     return "inside the standoff, forward motion must come with a turn or a shift"
-        return move_hazard(
+        hazard = move_hazard(
             action,
-            s.cloud,
-            self.memory,
-            (s.d_top, s.d_bottom),
+            s.around,
             body=cfg.body,
             margins=cfg.margins,
-            crawlway=crawlway,
+            crawlway=judged.crawlway,
             sample_m=cfg.sample_m,
         )
+        return hazard.text
 
     def _candidates(self, proposed: Action, s: _Situation) -> list[Action]:
         """Admissible actions near ``proposed``, nearest first (hold excluded)."""
@@ -587,43 +684,31 @@ class Shield:
 class _Situation:
     """What the shield measured for one observation (body frame, metres)."""
 
-    cloud: np.ndarray  # remembered surface points within reach of any move
-    turn_radius: float  # how far the body's corners reach when it turns in place
+    around: Surroundings  # what every judgement of a move reads
     turn_room_m: float  # horizontal distance to the nearest surface at the body's height
-    nearest_m: float  # the same, or the ceiling or floor if nearer
+    nearest_m: float  # the nearest surface, or the ceiling or floor if nearer
     away: Action  # a 0.1 m lateral or vertical shift away from the nearest surface
-    d_top: float
-    d_bottom: float
-    camera_offset_m: float
 
     @classmethod
     def of(cls, obs: Observation, memory: DepthMemory, cfg: ShieldConfig) -> _Situation:
-        cloud = memory.cloud
-        distance = np.linalg.norm(cloud, axis=1)
-        nearest = int(np.argmin(distance)) if len(cloud) else -1
-        nearest_surface = float(distance[nearest]) if nearest >= 0 else math.inf
+        body = cfg.body
+        around = Surroundings.of(obs, memory, body, cfg.margins, cfg.rules.no_forward_within_m)
+        cloud = around.cloud  # the nearest point is within reach: it is kept
         shift = 0.1
-        if min(obs.d_top, obs.d_bottom) < nearest_surface:
+        if min(obs.d_top, obs.d_bottom) < around.nearest_m:
             away = Action(up=-shift if obs.d_top < obs.d_bottom else shift)
-        elif nearest >= 0:  # away from a wall on the left is to the right
+        elif len(cloud):  # away from a wall on the left is to the right
+            nearest = int(np.argmin(np.linalg.norm(cloud, axis=1)))
             away = Action(right=shift if cloud[nearest, 1] > 0 else -shift)
         else:
             away = Action()
-        # Moves reach at most ~2.3 m (1 m forward, 1 m sideways, 2 m up): farther points
-        # cannot come within the margin, and the forward check looks 1.5 m beyond.
-        reach = 2.3 + cfg.rules.no_forward_within_m + cfg.body.bounding_radius + cfg.margins.open_m
-        body = cfg.body
         level = np.abs(cloud[:, 2]) <= body.height / 2 + 0.05
         beside = np.hypot(cloud[level, 0], cloud[level, 1])
         return cls(
-            cloud=cloud[distance < reach],
-            turn_radius=0.5 * math.hypot(body.length, body.width),
+            around=around,
             turn_room_m=float(beside.min()) if beside.size else math.inf,
-            nearest_m=min(nearest_surface, obs.d_top, obs.d_bottom),
+            nearest_m=min(around.nearest_m, obs.d_top, obs.d_bottom),
             away=away,
-            d_top=obs.d_top,
-            d_bottom=obs.d_bottom,
-            camera_offset_m=obs.camera_offset_m,
         )
 
 

@@ -131,6 +131,17 @@ class VehicleBody:
         """Radius of the sphere around the box: farther than this from walls is always safe."""
         return 0.5 * math.sqrt(self.length**2 + self.width**2 + self.height**2)
 
+    @property
+    def turn_radius(self) -> float:
+        """How far the box's corners reach from its centre when it turns in place (0.29 m)."""
+        return 0.5 * math.hypot(self.length, self.width)
+
+    @property
+    def section_radius(self) -> float:
+        """Half-diagonal of its cross-section (0.21 m): a corridor along its heading must
+        be at least this wide either side of the axis."""
+        return 0.5 * math.hypot(self.width, self.height)
+
     @cached_property
     def hull_points(self) -> np.ndarray:
         """(27, 3) body-frame points (forward, right, up): corners, edge and face centres."""

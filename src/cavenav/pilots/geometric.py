@@ -23,11 +23,12 @@ the prompt's strategy (SPEC section 3), so it is the yardstick a VLM pilot must 
    0.1-0.2 m (with a turn or a shift) below the 2.0 m standoff, otherwise 0.5-1.0 m.
 6. Shrink the move until it is safe by the safety shield's own judgement of a move
    (`cavenav.shield.move_hazard`, from the same memory of recent depth images that
-   ``--shield`` judges any pilot with, and the same `Margins`): its half-diagonal plus a
-   margin from every surface seen (where the walls are already nearer, a move that brings
-   it no nearer, down to a crawlway's margin), clear of the ceiling and floor the
-   sounders read, and into no space it has not seen free. A sideways shift toward a side
-   never seen is made only after turning to look at it, and turning back.
+   ``--shield`` judges any pilot with, the same `Margins` and the same choice of them,
+   `cavenav.shield.crawlway_move`): its half-diagonal plus a margin from every surface
+   seen (already nearer, at most 5 cm nearer; in a crawlway, the reach of its corners
+   plus a thin margin), clear of the ceiling and floor the sounders read, and into no
+   space it has not seen free. A sideways shift toward a side never seen is made only
+   after turning to look at it, and turning back.
 """
 
 from __future__ import annotations
@@ -45,11 +46,12 @@ from cavenav.cave_map import CaveMap, Opening
 from cavenav.sensors.depth import denormalise_depth, pixel_slopes
 from cavenav.shield import (
     DepthMemory,
+    Hazard,
     Margins,
+    Surroundings,
     crawlway_move,
     move_hazard,
     sampling_stride,
-    unseen_point,
 )
 from cavenav.types import DEFAULT_RULES, Action, Decision, Observation, Rules, VehicleBody
 
@@ -105,9 +107,10 @@ class GeometricPilotConfig:
             for both. ``open_m`` (0.3 m) widens the corridor tested along a bearing
             beyond the body's section (its half-diagonal across, 0.21 m), room for rough
             walls, and is kept beyond the body's half-diagonal from every surface;
-            ``crawlway_m`` (0.1 m) is the thinner margin of a crawlway, read where no
-            corridor of the open margin leads anywhere new or a surface is nearer than
-            the open margin allows; moves there keep it from every surface too.
+            ``crawlway_m`` (0.1 m) is the thinner margin of a crawlway: the view is read
+            with it where no corridor of the open margin leads anywhere new or a surface
+            is nearer than the open margin allows, and moves keep it where the shield
+            would judge them by it (`cavenav.shield.crawlway_move`).
         open_range_m: a bearing free this far counts as the passage's continuation.
         stride: use every n-th pixel of the depth image; None follows the image's
             width to keep about `columns` of them: 5 at 640x480 (128x96 points), 2 at
@@ -160,6 +163,7 @@ class _Scene:
     nearest_m: float  # nearest remembered surface point beside or ahead, from the centre
     nearest_left: bool  # whether it lies to the left
     cloud: np.ndarray  # (n, 3) remembered surface points, body frame
+    around: Surroundings  # what the shield's judgement of a move reads, measured once
     crawling: bool  # a surface is nearer than the open margin allows
     beside_m: float  # sideways distance of the nearer wall over the next 2 m
     left_offset_m: float  # sideways distance of the walls beside and up to 8 m ahead
@@ -231,6 +235,9 @@ class GeometricPilot:
         self.memory.update(obs, moved_by)
         self.map.update(obs, moved_by)
         cloud = self.memory.cloud
+        around = Surroundings.of(
+            obs, self.memory, cfg.body, cfg.margins, cfg.rules.no_forward_within_m
+        )
 
         # Free length of a corridor the body fits along every direction: with the full
         # margin, and where that finds nothing new, with the crawlway's thin one.
@@ -246,7 +253,7 @@ class GeometricPilot:
         # In a crawlway (a surface nearer than the full keep-clear margin) the full
         # corridor fits nowhere but along the axis, and a slight offset reads it blocked:
         # only the thin margin's corridors tell the way on.
-        crawling = cfg.margins.in_crawlway(cloud, cfg.body)
+        crawling = around.nearest_m < cfg.margins.open_keep_m(cfg.body)
         if crawling or all(o.visited for o in openings):
             tight_free = free_for(True)
             tight_openings = self._openings(tight_free, obs.camera_offset_m, tight=True)
@@ -297,6 +304,7 @@ class GeometricPilot:
             nearest_m=float(distance[nearest]) if nearest >= 0 else d_max,
             nearest_left=bool(cloud[nearest, 1] > 0) if nearest >= 0 else True,
             cloud=cloud,
+            around=around,
             crawling=crawling,
             beside_m=min(beside_now),
             left_offset_m=left_offset,
@@ -463,7 +471,7 @@ class GeometricPilot:
 
     def _start_search(self, scene: _Scene) -> None:
         self._search_from, self._searched_deg = self.map.position.copy(), 0.0
-        self._search_side = 1.0 if scene.left_room_m >= scene.right_room_m else -1.0
+        self._search_side = _toward_roomier(scene, 1.0)
 
     def _dithering(self) -> bool:
         """Whether its latest actions turned back and forth on one spot."""
@@ -510,31 +518,22 @@ class GeometricPilot:
             self._rejected.append(end)
         return None, None
 
-    def _hazard(self, action: Action, obs: Observation, cloud: np.ndarray) -> str:
+    def _hazard(self, action: Action, around: Surroundings) -> Hazard:
         """Why the move of ``action`` is unsafe by the shield's own judgement of a move,
-        from the shield's memory and margins; "" when it is safe."""
+        with the shield's margins; falsy when it is safe."""
         cfg = self.config
-        crawlway = crawlway_move(
+        judged = crawlway_move(
             action,
-            cloud,
+            around,
             body=cfg.body,
             margins=cfg.margins,
-            camera_offset_m=obs.camera_offset_m,
             no_forward_m=cfg.rules.no_forward_within_m,
         )
         return move_hazard(
-            action,
-            cloud,
-            self.memory,
-            (obs.d_top, obs.d_bottom),
-            body=cfg.body,
-            margins=cfg.margins,
-            crawlway=crawlway,
+            action, around, body=cfg.body, margins=cfg.margins, crawlway=judged.crawlway
         )
 
-    def _keep_clear(
-        self, action: Action, obs: Observation, cloud: np.ndarray
-    ) -> tuple[Action, str]:
+    def _keep_clear(self, action: Action, around: Surroundings) -> tuple[Action, str]:
         """Shrink ``action`` until its move is safe (`_hazard`): the sideways shift dropped
         first, then the forward step shortened (a climb or a descent straight up or down
         stays in the sounders' column, seen free), then the vertical shift dropped too; a
@@ -542,31 +541,20 @@ class GeometricPilot:
 
         Returns the action to take and, if it had to be changed, why.
         """
-        shorter = [f for f in (0.5, 0.2, 0.1, 0.0) if f < action.forward]
-        candidates = [action, replace(action, right=0.0)]
-        candidates += [replace(action, right=0.0, forward=f) for f in shorter]
-        candidates += [replace(action, right=0.0, up=0.0, forward=f) for f in shorter]
-        candidates.append(Action(yaw_deg=action.yaw_deg))
-        why = self._hazard(action, obs, cloud)
+        why = self._hazard(action, around)
         if not why:
             return action, ""
-        for candidate in candidates[1:]:
-            if not self._hazard(candidate, obs, cloud):
-                return candidate, f"{why}, so it becomes '{format_action(candidate)}'"
-        return candidates[-1], f"{why}: turning in place only"
+        shorter = [f for f in (0.5, 0.2, 0.1, 0.0) if f < action.forward]
+        candidates = [replace(action, right=0.0)]
+        candidates += [replace(action, right=0.0, forward=f) for f in shorter]
+        candidates += [replace(action, right=0.0, up=0.0, forward=f) for f in shorter]
+        turn_only = Action(yaw_deg=action.yaw_deg)
+        for candidate in dict.fromkeys(candidates):  # each once, in order
+            if candidate not in (action, turn_only) and not self._hazard(candidate, around):
+                return candidate, f"{why.text}, so it becomes '{format_action(candidate)}'"
+        return turn_only, f"{why.text}: turning in place only"
 
-    def _unseen(self, action: Action, obs: Observation) -> bool:
-        """Whether the move of ``action`` enters space the memory never saw free."""
-        cfg = self.config
-        sounded = (obs.d_top, obs.d_bottom)
-        return (
-            unseen_point(
-                action, self.memory, sounded, body=cfg.body, margins=cfg.margins, crawlway=False
-            )
-            is not None
-        )
-
-    def _look_first(self, move: Action, obs: Observation, scene: _Scene) -> float:
+    def _look_first(self, move: Action, scene: _Scene) -> float:
         """The turn to look at the side that ``move``, with a sideways shift, would enter
         when that space was never seen free (0 when it was, or when a look cannot help)."""
         if not move.right or scene.crawling:  # in a crawlway the turn itself has no room
@@ -575,7 +563,7 @@ class GeometricPilot:
             np.linalg.norm(self.map.position - self._looked_from) < 0.5
         ):
             return 0.0  # it looked from here already: what stays unseen stays unknown
-        if not self._unseen(move, obs):
+        if self._hazard(move, scene.around).kind != "unseen":
             return 0.0
         look = max(y for y in self.space.yaw_deg if y <= 90.0)
         return look if move.right < 0 else -look
@@ -634,20 +622,18 @@ class GeometricPilot:
             wanted = 0.5 if gap > 2.0 else 0.2 if gap > 1.0 else 0.1
             magnitude = max((m for m in self.space.lateral_m if m <= min(wanted, room)), default=0)
             right = magnitude if left_is_nearer else -magnitude
-            look = self._look_first(
-                Action(forward=forward, right=right, yaw_deg=yaw), observation, scene
-            )
+            look = self._look_first(Action(forward=forward, right=right, yaw_deg=yaw), scene)
         # Below the standoff, forward motion must come with a turn or a shift: in a
         # crawlway, or where the side it would shift to was never seen, a 5-degree turn,
         # which costs no room; elsewhere a shift away from the nearer wall.
         if forward > 0 and nearest < rules.standoff_m and not (yaw or right or up):
             shift = 0.1 if left_is_nearer else -0.1
-            if heading.tight or self._unseen(Action(right=shift), observation):
-                yaw = -5.0 if scene.right_room_m >= scene.left_room_m else 5.0
+            if heading.tight or self._hazard(Action(right=shift), scene.around).kind == "unseen":
+                yaw = _toward_roomier(scene, 5.0)
             else:
                 right = shift
         if not (forward or right or up or yaw):  # never idle: look for a way on
-            yaw = 20.0 if scene.left_room_m >= scene.right_room_m else -20.0
+            yaw = _toward_roomier(scene, 20.0)
         if look:
             side = "left" if right < 0 else "right"
             constraint += (
@@ -657,7 +643,7 @@ class GeometricPilot:
             forward, right, up, yaw = 0.0, 0.0, 0.0, look
 
         action, shielded = self._keep_clear(
-            Action(forward=forward, right=right, up=up, yaw_deg=yaw), observation, scene.cloud
+            Action(forward=forward, right=right, up=up, yaw_deg=yaw), scene.around
         )
         if shielded:
             constraint += f"; {shielded}"
@@ -668,9 +654,9 @@ class GeometricPilot:
         ):
             # The shift that came with it was refused: a 5-degree turn instead, as the
             # standoff asks, toward the roomier side.
-            turn = 5.0 if scene.left_room_m >= scene.right_room_m else -5.0
+            turn = _toward_roomier(scene, 5.0)
             action = replace(action, yaw_deg=turn)
-            if self._hazard(action, observation, scene.cloud):
+            if self._hazard(action, scene.around):
                 action = Action(yaw_deg=turn)
         action = self.space.validate(action)
         yaw, up, right = action.yaw_deg, action.up, action.right
@@ -686,6 +672,12 @@ class GeometricPilot:
         return Decision(
             action=action, action_text=text, justification=justification, raw=justification
         )
+
+
+def _toward_roomier(scene: _Scene, degrees: float) -> float:
+    """A turn of ``degrees`` toward the side whose third of the image reaches farther on
+    average; to the left when both reach as far."""
+    return degrees if scene.left_room_m >= scene.right_room_m else -degrees
 
 
 def _bearing_words(bearing: float, elevation: float) -> str:
