@@ -119,6 +119,12 @@ def write_room(folder: Path, start_y: float = 8.0) -> Path:
     return path
 
 
+def _mount(*arguments: str | Path) -> str:
+    """Run mount(8) with ``arguments``: what it said when it refused, "" when it mounted."""
+    done = subprocess.run(["mount", *map(str, arguments)], capture_output=True, text=True)
+    return "" if done.returncode == 0 else done.stderr.strip() or f"exit {done.returncode}"
+
+
 @contextlib.contextmanager
 def read_only(folder: Path) -> Iterator[Path]:
     """``folder``, with what it holds, refusing every write while the context lasts, root
@@ -135,10 +141,9 @@ def read_only(folder: Path) -> Iterator[Path]:
             for each in folders:
                 each.chmod(0o755)
         return
-    for mount in (["--bind", folder, folder], ["-o", "remount,ro,bind", folder]):
-        done = subprocess.run(["mount", *map(str, mount)], capture_output=True, text=True)
-        if done.returncode != 0:
-            pytest.fail(f"as root, read-only means a read-only mount: {done.stderr.strip()}")
+    for arguments in (["--bind", folder, folder], ["-o", "remount,ro,bind", folder]):
+        if refused := _mount(*arguments):
+            pytest.fail(f"as root, read-only means a read-only mount: {refused}")
     try:
         yield folder
     finally:
@@ -151,11 +156,9 @@ def full_disk(folder: Path, size: str) -> Iterator[Path]:
     tmpfs): what is written into it past that fails with ENOSPC. Mounting needs root: as
     root (CI) a failed mount fails the test, as another user the test is skipped."""
     folder.mkdir(parents=True, exist_ok=True)
-    mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(folder)],
-                             capture_output=True, text=True)  # fmt: skip
-    if mounted.returncode != 0:
+    if refused := _mount("-t", "tmpfs", "-o", f"size={size}", "tmpfs", folder):
         if os.geteuid() == 0:
-            pytest.fail(f"as root, a full disk is a small tmpfs: {mounted.stderr.strip()}")
+            pytest.fail(f"as root, a full disk is a small tmpfs: {refused}")
         pytest.skip(f"a {size} tmpfs needs root (mount): the full disk is not tested here")
     try:
         yield folder
