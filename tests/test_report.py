@@ -8,11 +8,13 @@ test server); sweep folders are assembled from them as `cavenav eval` lays them 
 from __future__ import annotations
 
 import json
+import re
 import shutil
 from html.parser import HTMLParser
 from pathlib import Path
 from urllib.parse import unquote
 
+import lxml.html
 import pytest
 
 from cavenav.actions import parse_action
@@ -112,6 +114,26 @@ class Page(HTMLParser):
         self.tags: list[tuple[str, dict[str, str | None]]] = []
         self.feed(self.html)
 
+    def table(self, index: int) -> list[dict[str, lxml.html.HtmlElement]]:
+        """The body rows of the page's ``index``-th table: header -> cell, as read."""
+        table = lxml.html.fromstring(self.html).xpath("//table")[index]
+        headers = [" ".join(th.text_content().split()) for th in table.xpath(".//thead//th")]
+        return [
+            dict(zip(headers, row.xpath("./td"), strict=True)) for row in table.xpath("./tbody/tr")
+        ]
+
+    def nav(self, label: str) -> Path | None:
+        """The page a link whose text starts with ``label`` leads to, None without one."""
+        for link in lxml.html.fromstring(self.html).xpath("//nav//a"):
+            if link.text_content().strip().startswith(label):
+                return (self.path.parent / unquote(link.get("href"))).resolve()
+        return None
+
+    def facts(self, values: bool = False) -> list[str]:
+        """The labels (or, with ``values``, the values) of the page's first fact list."""
+        (facts,) = lxml.html.fromstring(self.html).xpath("(//dl)[1]")
+        return [text(item) for item in facts.xpath("./dd" if values else "./dt")]
+
     def handle_starttag(self, tag: str, attrs: list[tuple[str, str | None]]) -> None:
         self.tags.append((tag, dict(attrs)))
         for name, value in attrs:
@@ -133,6 +155,17 @@ class Page(HTMLParser):
             if not url.startswith("#"):
                 targets.append(self.path.parent / unquote(url.split("#")[0]))
         return targets
+
+
+def text(cell: lxml.html.HtmlElement) -> str:
+    return " ".join(cell.text_content().split())
+
+
+def badge(cell: lxml.html.HtmlElement) -> tuple[str, str]:
+    """The outcome badge in ``cell``: its word and its colour class (ok, bad, warn, other)."""
+    (span,) = cell.find_class("outcome")
+    (colour,) = set(span.get("class").split()) - {"outcome"}
+    return text(span), colour
 
 
 @pytest.fixture(scope="module")
@@ -167,18 +200,26 @@ def test_the_index_shows_the_aggregate_and_hides_columns_empty_for_the_whole_swe
     sweep: Path,
 ) -> None:
     index = Page(sweep / "report" / "index.html")
-    assert "0% [0-66]" in index.text  # 0 of 2, with its 95% Wilson interval
-    assert "collision 1 · oscillating 1" in index.text  # moved under the shield, no headway
-    headers = [index.html.count(f"<th>{h}</th>") for h in ("prompt tokens", "cost")]
-    assert headers == [0, 0]  # no model flew: no token or cost columns
-    assert "<th>min clearance: min / mean</th>" in index.html
+    (room, everything) = index.table(0)  # the scenario's row, then all scenarios
+    assert text(room["success [95% CI]"]) == "0% [0-66]"  # 0 of 2, its 95% Wilson interval
+    assert text(room["outcomes"]) == "collision 1 · oscillating 1"  # shielded, no headway
+    assert text(room["min clearance: min / mean"]).endswith(" m")
+    assert text(everything["scenario"]) == "all"
+    # No model flew: no token or cost columns, in either table.
+    for headers in (set(index.table(0)[0]), set(index.table(1)[0])):
+        assert not {"prompt tokens", "completion tokens", "tokens in / out", "cost"} & headers
 
 
 def test_outcomes_are_coloured_collision_red_others_amber(sweep: Path) -> None:
-    html = (sweep / "report" / "index.html").read_text()
-    assert '<span class="outcome bad">collision</span>' in html
-    assert '<span class="outcome warn">oscillating</span>' in html
-    assert "--bad: #cf222e" in html and ".outcome.bad { color: var(--bad)" in html
+    index = Page(sweep / "report" / "index.html")
+    shown = {text(row["episode"]): badge(row["outcome"]) for row in index.table(1)}
+    assert shown == {
+        "room-seed0000": ("collision", "bad"),
+        "room-seed0001": ("oscillating", "warn"),
+    }
+    crashed = Page(sweep / "report" / "episodes" / "room-seed0000.html")
+    (heading,) = lxml.html.fromstring(crashed.html).xpath("//h1")
+    assert badge(heading) == ("collision", "bad")
 
 
 def test_an_episode_page_shows_the_reasoning_and_why_a_reply_was_rejected(
@@ -280,5 +321,116 @@ def test_a_sweep_still_running_is_reported_from_its_episodes(
     index = Page(write_report(folder))
     assert "0% [0-79]" in index.text  # the aggregate, from the run folders themselves
     assert ("a", "episodes/room-seed0000.html") in index.links
-    assert '<span class="outcome bad">collision</span>' in index.html
+    (row,) = index.table(1)
+    assert badge(row["outcome"]) == ("collision", "bad")
     assert (folder / "report" / "episodes" / "room-seed0000.html").is_file()
+
+
+CRASH = "RuntimeError: the sonar driver died"
+
+
+@pytest.fixture(scope="module")
+def mixed(runs: dict[str, Path], tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A sweep of four episodes: the VLM pilot (tokens and cost), a collision, one that
+    crashed after reaching the exit (its summary otherwise reads success; no plots) and
+    one never started (no run folder)."""
+    episodes = {
+        "room-seed0000": runs["vlm"],
+        "room-seed0001": runs["crash"],
+        "room-seed0002": runs["crash"],
+        "room-seed0003": runs["crash"],
+    }
+    folder = make_sweep(tmp_path_factory.mktemp("mixed") / "sweep", episodes)
+    crashed = folder / "episodes" / "room-seed0002"
+    summary = json.loads((crashed / "summary.json").read_text())
+    summary.update(status="crashed", error=CRASH, termination="exit", success=True)
+    (crashed / "summary.json").write_text(json.dumps(summary))
+    (crashed / "topdown.png").unlink()
+    (crashed / "side.png").unlink()
+    shutil.rmtree(folder / "episodes" / "room-seed0003")
+    write_report(folder)
+    return folder
+
+
+def test_episode_pages_link_to_the_previous_and_next_episode_in_table_order(
+    mixed: Path,
+) -> None:
+    index = Page(mixed / "report" / "index.html")
+    order = [
+        (index.path.parent / row["episode"].find("a").get("href")).resolve()
+        for row in index.table(1)
+    ]
+    assert len(order) == 4
+    forward, page = [order[0]], Page(order[0])
+    assert page.nav("previous") is None  # the first has none
+    while (after := page.nav("next")) is not None:
+        forward.append(after)
+        page = Page(after)
+    assert forward == order  # missing run folder included, last one has no next
+    backward = [order[-1]]
+    while (before := Page(backward[-1]).nav("previous")) is not None:
+        backward.append(before)
+    assert backward == order[::-1]
+    for path in order:
+        assert Page(path).nav("←") == index.path.resolve()
+
+
+def test_the_tokens_and_cost_of_a_model_are_shown_and_a_dash_for_pilots_without_one(
+    mixed: Path,
+) -> None:
+    summary = json.loads((mixed / "episodes/room-seed0000/summary.json").read_text())
+    usage = summary["usage"]
+    assert usage["prompt_tokens"] > 0 and usage["cost_usd"] > 0
+    index = Page(mixed / "report" / "index.html")
+    vlm, collision = index.table(1)[:2]
+    tokens_in, tokens_out = text(vlm["tokens in / out"]).replace(",", "").split(" / ")
+    assert (int(tokens_in), int(tokens_out)) == (
+        usage["prompt_tokens"],
+        usage["completion_tokens"],
+    )
+    assert float(text(vlm["cost"]).lstrip("$")) == pytest.approx(usage["cost_usd"], abs=1e-4)
+    assert text(collision["tokens in / out"]) == text(collision["cost"]) == "—"
+    # The aggregate of the model's pilot totals them; the scripted pilot's shows none.
+    groups = {(text(g["scenario"]), text(g["pilot"])): g for g in index.table(0)}
+    model = groups[("all", summary["pilot"])]
+    assert int(text(model["prompt tokens"]).replace(",", "")) == usage["prompt_tokens"]
+    assert float(text(model["cost"]).lstrip("$")) == pytest.approx(usage["cost_usd"], abs=1e-4)
+    assert text(groups[("all", "scripted")]["cost"]) == "—"
+    page = Page(mixed / "report" / "episodes" / "room-seed0000.html")
+    facts = dict(zip(page.facts(), page.facts(values=True), strict=True))
+    tokens = [int(n) for n in re.findall(r"\d+", facts["tokens"].replace(",", ""))]
+    assert tokens == [usage["prompt_tokens"], usage["completion_tokens"]]  # in, then out
+    assert float(facts["cost"].lstrip("$")) == pytest.approx(usage["cost_usd"], abs=1e-4)
+
+
+def test_a_crashed_episode_is_an_error_with_its_message_never_a_success(mixed: Path) -> None:
+    index = Page(mixed / "report" / "index.html")
+    row = index.table(1)[2]
+    assert text(row["episode"]) == "room-seed0002"
+    assert badge(row["outcome"]) == ("error", "other")
+    assert text(row["error"]) == CRASH
+    groups = {(text(g["scenario"]), text(g["pilot"])): g for g in index.table(0)}
+    scripted = groups[("room", "scripted")]  # the collision and the crash: no success
+    assert text(scripted["success [95% CI]"]).startswith("0% ")
+    assert "success" not in text(scripted["outcomes"])
+    assert "episode crashed before its plots were drawn" in index.text
+    page = Page(mixed / "report" / "episodes" / "room-seed0002.html")
+    (heading,) = lxml.html.fromstring(page.html).xpath("//h1")
+    assert badge(heading) == ("error", "other")
+    facts = dict(zip(page.facts(), page.facts(values=True), strict=True))
+    assert (facts["outcome"], facts["status"]) == ("error", "crashed")
+
+
+def test_an_episode_without_a_run_folder_gets_a_page_saying_it_will_be_flown_again(
+    mixed: Path,
+) -> None:
+    index = Page(mixed / "report" / "index.html")
+    row = index.table(1)[3]
+    assert text(row["episode"]) == "room-seed0003"
+    assert badge(row["outcome"]) == ("incomplete", "other")
+    page = Page(mixed / "report" / "episodes" / "room-seed0003.html")
+    (heading,) = lxml.html.fromstring(page.html).xpath("//h1")
+    assert badge(heading) == ("no run folder", "other")
+    assert "It left no run folder. It counts as incomplete: run the same sweep again" in page.text
+    assert not any(tag == "img" for tag, _ in page.tags)
+    assert all(target.exists() for target in page.local_targets())
