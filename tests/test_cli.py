@@ -23,6 +23,12 @@ def table_rows(stdout: str) -> list[list[str]]:
     ]
 
 
+def printed(stdout: str, label: str) -> list[str]:
+    """The values of the lines ``label: value`` printed to ``stdout``, however aligned."""
+    lines = stdout.splitlines()
+    return [line.split(":", 1)[1].strip() for line in lines if line.startswith(f"{label}:")]
+
+
 def printed_summary(stdout: str) -> dict[str, str]:
     """The episode summary table as the user reads it: label -> value."""
     return {label: value for label, value in table_rows(stdout)}
@@ -42,10 +48,9 @@ def test_run_writes_a_run_folder_and_prints_where(tmp_path: Path) -> None:
     assert shown["steps"] == "3" and shown["collisions"] == str(summary["collisions"])
     assert shown["path length"] == f"{summary['path_length_m']:.1f} m"
     assert shown["min clearance"] == f"{summary['min_clearance_m']:.2f} m"
-    lines = done.stdout.splitlines()
-    assert f"run folder: {run_dir}" in lines
+    assert printed(done.stdout, "run folder") == [str(run_dir)]
+    assert printed(done.stdout, "plot") == [str(run_dir / "topdown.png"), str(run_dir / "side.png")]
     for plot in ("topdown.png", "side.png"):
-        assert f"plot:       {run_dir / plot}" in lines
         with Image.open(run_dir / plot) as image:
             assert image.format == "PNG"
 
