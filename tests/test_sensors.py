@@ -189,14 +189,24 @@ def test_small_and_odd_frames_are_shaded_to_their_last_row_and_column(
         assert brightness[:, edge].mean() > 0.5 * brightness[:, inside].mean()
 
 
-def test_the_sounder_resolution_is_a_setting_and_reads_the_same_ranges() -> None:
+def test_the_sounder_resolution_is_a_setting_and_reads_the_same_ranges(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
     caster = RayCaster(box_room(extents=(8, 20, 4)))
     config = SensorConfig().with_resolution(84, 84).with_sensors({"sounder_resolution": [8, 6]})
     assert config.sounder_pixels == (8, 6) and config.resolution == (84, 84)
     rig = SensorRig(caster, config)
+    casts: list[int] = []
+    cast = caster.cast_raw_rays
+
+    def counted(rays: np.ndarray) -> dict[str, np.ndarray]:
+        casts.append(len(rays))
+        return cast(rays)
+
+    monkeypatch.setattr(caster, "cast_raw_rays", counted)
     obs = rig.observe(Pose(0, 0, 0.5, 0.3))
     assert (obs.d_top, obs.d_bottom) == (pytest.approx(1.5, abs=1e-3), pytest.approx(2.5, abs=1e-3))
-    assert len(rig._rays) == 84 * 84 + 2 * 8 * 6  # one cast: the frame, then both sounders
+    assert casts == [84 * 84 + 2 * 8 * 6]  # one cast: the frame, then both sounders
 
 
 def test_a_sensors_table_with_an_unknown_key_names_it_and_the_keys() -> None:
