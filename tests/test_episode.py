@@ -170,40 +170,112 @@ def test_the_run_folder_holds_summary_steps_frames_and_plots(
     assert_side_view_shows_ceiling_and_floor(run_dir / "side.png")
 
 
-TAB_ORANGE, TAB_RED, FOOTPRINT_GREY = (255, 127, 14), (214, 39, 40), (217, 217, 217)
+# Colours as kinds a reader tells apart, not exact values: a palette or antialiasing
+# change keeps each pixel in its kind.
+def rgb(path: Path) -> np.ndarray:
+    with Image.open(path) as png:
+        return np.asarray(png.convert("RGB")).astype(int)
 
 
-def pixels_of(image: np.ndarray, colour: tuple[int, int, int], tolerance: int = 10) -> np.ndarray:
-    return np.abs(image - np.array(colour)).max(axis=-1) <= tolerance
+def neutral(image: np.ndarray, lightest: int, darkest: int) -> np.ndarray:
+    """Grey pixels (channels within 8 of each other) with brightness in [darkest, lightest]."""
+    spread = image.max(axis=-1) - image.min(axis=-1)
+    brightness = image.mean(axis=-1)
+    return (spread <= 8) & (brightness >= darkest) & (brightness <= lightest)
+
+
+def orange(image: np.ndarray) -> np.ndarray:
+    r, g, b = np.moveaxis(image, -1, 0)
+    return (r >= 230) & (g >= 100) & (g <= 155) & (b <= 60)
+
+
+def red(image: np.ndarray) -> np.ndarray:
+    r, g, b = np.moveaxis(image, -1, 0)
+    return (r >= 170) & (g <= 90) & (b <= 90)
+
+
+def pale_blue(image: np.ndarray) -> np.ndarray:
+    r, _, b = np.moveaxis(image, -1, 0)
+    return (b - r >= 12) & (r >= 180)
+
+
+def footprint_box(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rows and columns of the corridor's light-grey footprint: the widest band of rows
+    (columns) mostly grey, across gaps a line drawn over it leaves, not the axes' frame."""
+
+    def widest_band(counts: np.ndarray) -> np.ndarray:
+        grey = np.flatnonzero(counts > 0.5 * counts.max())
+        bands = np.split(grey, np.flatnonzero(np.diff(grey) > 12) + 1)
+        band = max(bands, key=lambda b: b[-1] - b[0])
+        return np.arange(band[0], band[-1] + 1)
+
+    footprint = neutral(image, lightest=235, darkest=195)
+    return widest_band(footprint.sum(axis=1)), widest_band(footprint.sum(axis=0))
 
 
 def assert_topdown_shows_the_corridor_and_its_exit(path: Path) -> None:
     """The 4 x 20 m corridor from above at equal scale, the 6 m exit across it at y = -6."""
-    with Image.open(path) as png:
-        image = np.asarray(png.convert("RGB")).astype(int)
-    footprint = pixels_of(image, FOOTPRINT_GREY, tolerance=0)
-    rows = np.flatnonzero(footprint.sum(axis=1) > 50)
-    columns = np.flatnonzero(footprint.sum(axis=0) > 200)
+    image = rgb(path)
+    rows, columns = footprint_box(image)
     height, width = rows[-1] - rows[0] + 1, columns[-1] - columns[0] + 1
     assert width / height == pytest.approx(4 / 20, abs=0.01)
-    exit_line = pixels_of(image, TAB_ORANGE)
+    exit_line = orange(image)
     (exit_rows,) = np.nonzero(exit_line.sum(axis=1) > width)  # wider than the corridor
     exit_y = 10.0 - 20.0 * (exit_rows.mean() - rows[0]) / height
     assert exit_y == pytest.approx(-6.0, abs=0.15)
     exit_columns = np.flatnonzero(exit_line[exit_rows].any(axis=0))
     assert (exit_columns[-1] - exit_columns[0] + 1) / width == pytest.approx(6 / 4, abs=0.03)
-    assert not pixels_of(image, TAB_RED).any()  # no collision marker
+    assert not red(image).any()  # no collision marker
 
 
 def assert_side_view_shows_ceiling_and_floor(path: Path) -> None:
     """Unrolled side view: rock drawn 1 m beyond a ceiling and a floor 4 m apart."""
-    with Image.open(path) as png:
-        image = np.asarray(png.convert("RGB")).astype(int)
+    image = rgb(path)
     column = image[:, image.shape[1] // 4]  # a quarter of the way along, clear of the legend
-    (rock,) = np.nonzero(pixels_of(column, (140, 140, 140), tolerance=0))  # grey "0.55"
-    (water,) = np.nonzero(pixels_of(column, (217, 236, 242), tolerance=0))  # "#d9ecf2"
+    (grey,) = np.nonzero(neutral(column, lightest=165, darkest=115))  # mid grey
+    bands = np.split(grey, np.flatnonzero(np.diff(grey) > 1) + 1)
+    rock = np.concatenate([b for b in bands if len(b) >= 5])  # not a letter of the title
+    (water,) = np.nonzero(pale_blue(column))
     assert rock[0] < water[0] and water[-1] < rock[-1], "rock above the ceiling, below the floor"
     assert (water[-1] - water[0]) / (rock[-1] - rock[0]) == pytest.approx(4 / 6, abs=0.02)
+
+
+def test_the_top_down_plot_draws_the_path_where_it_was_flown_darker_where_clearance_is_less(
+    room_scenario: Scenario, tmp_path: Path
+) -> None:
+    from matplotlib import colormaps
+
+    from cavenav.episode.plots import plot_episode
+    from cavenav.types import Pose
+    from cavenav.world.raycast import RayCaster
+
+    # 1 m right of the centre line, from y = 8 to y = -4, clearance rising from 0.2 to 2.8 m.
+    ys = np.linspace(8.0, -4.0, 13)
+    poses = [Pose(1.0, float(y), 0.0, 0.0) for y in ys]
+    clearances = np.linspace(0.2, 2.8, len(ys))
+    summary = {"scenario": "room", "pilot": "test", "seed": 0, "termination": "budget"}
+    summary |= {"steps": len(poses), "min_clearance_m": 0.2}
+    written = plot_episode(
+        summary, poses, clearances, room_scenario, RayCaster(room_scenario.mesh), tmp_path
+    )
+    assert written == {"topdown": "topdown.png", "side": "side.png"}
+    image = rgb(tmp_path / "topdown.png")
+    rows, columns = footprint_box(image)
+    corridor = image[rows[0] : rows[-1] + 1, columns[0] : columns[-1] + 1]
+    # The coloured pixels, each read on the clearance scale where its colour is near one.
+    r, c = np.nonzero(~neutral(corridor, lightest=255, darkest=0))
+    scale = np.round(colormaps["viridis"](np.linspace(0, 1, 256))[:, :3] * 255)
+    distance = np.linalg.norm(corridor[r, c][:, None, :] - scale[None], axis=-1)
+    on_scale = distance.min(axis=-1) < 20
+    r, c, value = r[on_scale], c[on_scale], distance.argmin(axis=-1)[on_scale] / 255
+    assert len(r) > 100
+    x = -2.0 + 4.0 * (c + 0.5) / corridor.shape[1]
+    y = 10.0 - 20.0 * (r + 0.5) / corridor.shape[0]
+    assert np.median(x) == pytest.approx(1.0, abs=0.15)
+    assert (y.max(), y.min()) == (pytest.approx(8.0, abs=0.4), pytest.approx(-4.0, abs=0.4))
+    # Clearance rose along the path: the colour climbs the scale from start to end.
+    expected = np.interp(y, ys[::-1], clearances[::-1]) / 3.0  # the scale runs 0 to 3 m
+    assert np.corrcoef(expected, value)[0, 1] > 0.9
 
 
 def test_an_interrupted_run_leaves_a_valid_partial_record(
