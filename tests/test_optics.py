@@ -17,7 +17,7 @@ from cavenav.errors import ConfigError
 from cavenav.sensors.camera import CameraIntrinsics
 from cavenav.sensors.lighting import backscatter_table, surface_table
 from cavenav.sensors.optics import WATER_TYPES, Lamp, Optics, optics_from_table
-from cavenav.sensors.rig import Frame, SensorConfig, SensorRig
+from cavenav.sensors.rig import Frame, SensorConfig, SensorRig, camera_response
 from cavenav.types import Pose
 from cavenav.world.mesh import CaveMesh, make_mesh
 from cavenav.world.raycast import RayCaster
@@ -306,6 +306,109 @@ def test_auto_exposure_keeps_a_dim_scene_visible():
     far = render(wall_ahead(9.0), BARE).rgb[..., 1]
     near = render(wall_ahead(2.0), BARE).rgb[..., 1]
     assert 60 < np.median(far) < 200 and 60 < np.median(near) < 200
+
+
+# ------------------------------------------------------------------ white balance, gain, exposure
+# The camera's own processing, checked on what it develops. `developed` undoes the tone
+# curve (Reinhard L / (1 + L), then sRGB), giving back the linear signal after white
+# balance and gain; 8-bit levels make it good to about 1% in the mid-tones.
+
+# A neutral grey rock, no vignetting: the wall's colour is the water's doing alone.
+GREY_WALL = replace(BARE, rock_colour=(0.4, 0.4, 0.4), vignetting=0.0)
+LUMINANCE = (0.25, 0.5, 0.25)  # the weights the camera meters with (R, G, B)
+
+
+def developed(rgb: np.ndarray) -> np.ndarray:
+    """(..., 3) float64 linear signal behind 8-bit sRGB through the camera's tone curve."""
+    srgb = rgb.astype(np.float64) / 255.0
+    mapped = np.where(srgb <= 0.04045, srgb / 12.92, ((srgb + 0.055) / 1.055) ** 2.4)
+    return mapped / (1.0 - mapped)
+
+
+def frame_mean(image: np.ndarray) -> np.ndarray:
+    """(3,) mean colour of an (H, W, 3) image."""
+    return image.reshape(-1, 3).astype(np.float64).mean(axis=0)
+
+
+def test_white_balance_gains_move_the_frame_mean_toward_grey_by_their_strength():
+    blue_green = np.array([0.02, 0.08, 0.07])  # distant rock in clear water
+    luminance = blue_green @ LUMINANCE
+    for strength in (0.0, 0.4, 1.0):
+        gains, _ = camera_response(blue_green, replace(BARE, white_balance=strength))
+        balanced = blue_green * gains
+        # Each channel keeps (1 - strength) of its log-distance from the mean luminance.
+        np.testing.assert_allclose(
+            balanced, luminance * (blue_green / luminance) ** (1 - strength), rtol=1e-5
+        )
+    gains, _ = camera_response(blue_green, replace(BARE, white_balance=1.0))
+    assert gains[0] > 1.0 > gains[1]  # red lifted, green lowered
+
+
+def test_a_grey_wall_seen_through_water_comes_out_grey_with_full_white_balance():
+    raw = render(wall_ahead(3.0), replace(GREY_WALL, white_balance=0.0))
+    full = render(wall_ahead(3.0), replace(GREY_WALL, white_balance=1.0))
+    np.testing.assert_array_equal(raw.radiance, full.radiance)  # balance is the camera's
+    red, green, blue = frame_mean(raw.radiance)
+    assert red < 0.3 * green  # the water took the red
+    balanced = frame_mean(developed(full.rgb))
+    assert balanced[0] == pytest.approx(balanced[1], rel=0.02)
+    assert balanced[2] == pytest.approx(balanced[1], rel=0.02)
+    unbalanced = frame_mean(developed(raw.rgb))
+    assert unbalanced[0] < 0.3 * unbalanced[1]  # off: the sensor's raw colours
+
+
+def test_the_default_white_balance_corrects_part_of_the_way():
+    optics = replace(GREY_WALL, white_balance=0.4)
+    frame = render(wall_ahead(3.0), optics)
+    raw_red_over_green = frame_mean(frame.radiance)[0] / frame_mean(frame.radiance)[1]
+    colour = frame_mean(developed(frame.rgb))
+    # Grey world at strength 0.4 leaves 60% of the colour cast (in log terms).
+    assert colour[0] / colour[1] == pytest.approx(raw_red_over_green**0.6, rel=0.03)
+
+
+def test_a_fixed_gain_multiplies_the_linear_signal_once():
+    signal = {}
+    for gain in (1.0, 2.0):
+        frame = render(wall_ahead(3.0), replace(GREY_WALL, white_balance=0.0, exposure=gain))
+        patch = (slice(200, 280), slice(280, 360))  # the lit centre, in the mid-tones
+        signal[gain] = developed(frame.rgb[patch]).mean(axis=(0, 1))
+        expected = gain * frame.radiance[patch].astype(np.float64).mean(axis=(0, 1))
+        np.testing.assert_allclose(signal[gain], expected, rtol=0.03)
+    np.testing.assert_allclose(signal[2.0] / signal[1.0], 2.0, rtol=0.03)
+
+
+@pytest.mark.parametrize("key", [0.25, 0.5])
+def test_auto_exposure_brings_the_frame_mean_to_its_key(key: float):
+    frame = render(wall_ahead(6.0), replace(GREY_WALL, white_balance=0.0, exposure_key=key))
+    radiance = frame_mean(frame.radiance) @ LUMINANCE
+    assert radiance < key / 2  # the scene itself is darker than the key: a gain of 2 or more
+    assert frame_mean(developed(frame.rgb)) @ LUMINANCE == pytest.approx(key, rel=0.03)
+
+
+def test_auto_exposure_stays_within_its_gain_range():
+    bright = render(wall_ahead(2.0), replace(GREY_WALL, white_balance=0.0))
+    assert frame_mean(bright.radiance) @ LUMINANCE > 0.25  # brighter than the key
+    np.testing.assert_allclose(  # the least gain is 1: a bright frame is not darkened
+        frame_mean(developed(bright.rgb)), frame_mean(bright.radiance), rtol=0.03
+    )
+    dim = render(wall_ahead(3.0), replace(GREY_WALL, white_balance=0.0, light_power=0.01))
+    high = GREY_WALL.gain_range[1]
+    np.testing.assert_allclose(  # 40 at most: a nearly dark frame stays dark
+        frame_mean(developed(dim.rgb)), high * frame_mean(dim.radiance), rtol=0.03
+    )
+
+
+def test_a_fixed_exposure_ignores_the_frame_and_auto_exposure_follows_it():
+    dim, bright = np.array([0.005, 0.02, 0.02]), np.array([0.02, 0.08, 0.08])  # gains 15, 4
+    fixed = replace(BARE, exposure=3.0, white_balance=0.0)
+    assert camera_response(dim, fixed)[1] == camera_response(bright, fixed)[1] == 3.0
+    auto = replace(BARE, white_balance=0.0)
+    assert camera_response(dim, auto)[1] == pytest.approx(0.25 / (dim @ LUMINANCE))
+    assert camera_response(bright, auto)[1] == pytest.approx(0.25 / (bright @ LUMINANCE))
+    # With white balance on, the camera meters the balanced colours.
+    gains, gain = camera_response(bright, replace(BARE, white_balance=0.4))
+    assert gain * (bright * gains) @ LUMINANCE == pytest.approx(0.25)
+    assert gain != pytest.approx(0.25 / (bright @ LUMINANCE), rel=0.01)
 
 
 # ------------------------------------------------------------------ depth degradation
