@@ -7,17 +7,21 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+import trimesh
 
 from cavenav.actions import parse_action
+from cavenav.env import CaveNavEnv
 from cavenav.episode.loop import EpisodeConfig, run_episode
 from cavenav.errors import ConfigError
 from cavenav.pilots.geometric import GeometricPilot
 from cavenav.pilots.random_pilot import RandomPilot
-from cavenav.sensors.rig import SensorRig
+from cavenav.sensors.rig import SensorConfig, SensorRig
 from cavenav.shield import DepthMemory, Margins, Shield, Surroundings, move_hazard, move_points
 from cavenav.types import Action, Observation, Pose, VehicleBody
+from cavenav.world.mesh import CaveMesh, make_mesh
 from cavenav.world.raycast import RayCaster
 from cavenav.world.scenarios import ExitPortal, Scenario
+from cavenav.wrappers import SafetyShield
 
 from .conftest import box_room
 from .conftest import synthetic_observation as seen
@@ -112,8 +116,9 @@ def test_a_move_that_slants_down_keeps_clear_of_the_floor_the_sounder_reads() ->
     way_in = [seen(np.inf, previous_action=step) for _ in range(3)]
     low_floor = seen(np.inf, d_bottom=0.93, previous_action=step)
     verdict = judged("back 1 m, descend 0.64 m", *way_in, low_floor)
-    assert verdict.intervened and "floor" in verdict.reason, verdict.reason
-    assert verdict.action.up > -0.93 + 0.61
+    assert verdict.reason == "the move would end within 0.61 m of the floor (0.93 m away)"
+    # 0.32 m down would end 0.61 m above it, a hair short of the 0.612 m kept: 0.1 m.
+    assert verdict.action == Action(forward=pytest.approx(-1.0), up=pytest.approx(-0.1))
 
 
 def test_a_pinch_ahead_that_the_body_fits_through_is_no_obstacle() -> None:
@@ -223,3 +228,165 @@ def test_a_climb_slanting_out_of_the_sounders_column_into_space_never_seen_is_re
     verdict = judged("forward 0.2 m, ascend 1 m", seen(np.inf, d_top=3.0))
     assert verdict.intervened and "never seen free" in verdict.reason
     assert not judged("ascend 1 m", seen(np.inf, d_top=3.0)).intervened
+
+
+# --------------------------------------------------------------- rules on real geometry
+# Each rule judged on what the real sensor rig sees in a small cave built for it, at
+# 160x120 (the memory reads every 2nd pixel there). The vehicle ends at the origin heading
+# -y, having flown in along -y 1 m a step: its right is -x, its left +x, up +z. Each test
+# asserts the exact replacement the shield executes and the reason it records.
+
+Box = tuple[tuple[float, float, float], tuple[float, float, float]]  # (extents, centre)
+
+
+def cave(passage: Box, *rocks: Box) -> CaveMesh:
+    """A closed box ``passage`` with the boxes ``rocks`` standing in it (a pillar, a ledge)."""
+    parts = [trimesh.creation.box(extents=e).apply_translation(c) for e, c in (passage, *rocks)]
+    joined = trimesh.util.concatenate(parts)
+    return make_mesh(joined.vertices, joined.faces, "test-cave")
+
+
+def flown_in(mesh: CaveMesh, views: int = 3) -> list[Observation]:
+    """The last ``views`` observations of a vehicle that flew 1 m a step along -y to the
+    origin: the memory holds what the camera saw ahead of it from ``views - 1`` m back."""
+    rig = SensorRig(RayCaster(mesh), SensorConfig().with_resolution(160, 120))
+    seen_on_the_way = [rig.observe(Pose(0.0, float(back), 0.0, 0.0)) for back in range(views)]
+    first, *later = reversed(seen_on_the_way)
+    return [first, *(replace(obs, previous_action=Action(forward=1.0)) for obs in later)]
+
+
+WIDE = ((6.0, 20.0, 6.0), (0.0, 0.0, 0.0))  # walls, ceiling and floor 3 m away
+
+
+def beside(right_wall_m: float) -> Box:
+    """A passage 6 m high with its right wall ``right_wall_m`` from the centre, the left 3 m."""
+    width = right_wall_m + 3.0
+    return ((width, 20.0, 6.0), (3.0 - width / 2, 0.0, 0.0))
+
+
+@pytest.fixture(scope="module")
+def pillar_ahead() -> list[Observation]:
+    """A pillar 0.4 m square whose face is 1 m ahead of the centre (0.8 m from the camera),
+    a little right of the axis, in a wide passage."""
+    return flown_in(cave(WIDE, ((0.4, 0.4, 6.0), (-0.1, -1.2, 0.0))))
+
+
+def test_rule_1_a_pillar_0_8_m_ahead_stops_forward_motion(pillar_ahead) -> None:
+    verdict = judged("forward 1 m", *pillar_ahead)
+    # What is left is the standoff's shift away from it (it is right of the axis): left.
+    assert verdict.action == Action(right=pytest.approx(-0.1))
+    assert verdict.reason == "obstacle 0.8 m ahead, within 1.5 m: no forward motion"
+    # A turn keeps its turn and loses its forward motion: the pillar is still ahead.
+    verdict = judged("forward 1 m, turn left 15 deg", *pillar_ahead)
+    assert verdict.action == Action(yaw_deg=15.0)
+    assert verdict.reason.endswith("m ahead, within 1.5 m: no forward motion")
+    # Rule 1 looks along the new heading: turned 45 degrees left the pillar is off it.
+    assert not judged("forward 0.2 m, turn left 45 deg", *pillar_ahead).intervened
+
+
+def test_rule_2_inside_the_standoff_forward_is_0_2_m_with_a_shift_away() -> None:
+    views = flown_in(cave(beside(1.2)))  # a wall 1.2 m to the right, within the 2 m standoff
+    verdict = judged("forward 1 m", *views)
+    assert verdict.action == Action(forward=pytest.approx(0.2), right=pytest.approx(-0.1))
+    assert verdict.reason.endswith("inside the 2 m standoff: forward at most 0.2 m")
+    verdict = judged("forward 0.2 m", *views)
+    assert verdict.action == Action(forward=pytest.approx(0.2), right=pytest.approx(-0.1))
+    assert verdict.reason == "inside the standoff, forward motion must come with a turn or a shift"
+
+
+def test_rule_3_in_the_open_a_move_keeps_0_61_m_from_every_surface_seen() -> None:
+    # A wall 0.75 m to the right: 0.5 m toward it would end 0.25 m away, 0.2 m 0.55 m away,
+    # both nearer than the body's half-diagonal (0.31 m) plus the open margin (0.3 m).
+    verdict = judged("strafe right 0.5 m", *flown_in(cave(beside(0.75))))
+    assert verdict.action == Action(right=pytest.approx(0.1))
+    assert verdict.reason == "the move would pass within 0.61 m of a surface seen"
+
+
+def test_rule_3_a_wall_passing_at_0_5_m_lets_a_move_come_5_cm_nearer_not_10() -> None:
+    views = flown_in(cave(beside(0.5)))
+    verdict = judged("strafe right 0.1 m", *views)
+    assert verdict.action == Action(right=pytest.approx(-0.1))  # the standoff's shift away
+    assert verdict.reason == "the move would pass within 0.45 m of a surface seen"
+    # Turning 5 degrees toward it while going 0.2 m comes 2 cm nearer: allowed.
+    assert not judged("forward 0.2 m, turn right 5 deg", *views).intervened
+
+
+def test_rule_3_in_a_crawlway_a_move_keeps_the_turning_bodys_reach_plus_0_1_m() -> None:
+    # 1.15 m square: walls 0.575 m away on every side, a crawlway. 0.2 m right would end
+    # 0.375 m from the wall, within the corners' reach (0.29 m) plus 0.1 m; 0.1 m is fine.
+    views = flown_in(cave(((1.15, 20.0, 1.15), (0.0, 0.0, 0.0))))
+    verdict = judged("strafe right 0.5 m", *views)
+    assert verdict.action == Action(right=pytest.approx(0.1))
+    assert verdict.reason == "the move would pass within 0.39 m of a surface seen"
+
+
+def test_rule_3_a_floor_at_the_sounders_edge_counts_as_level_under_the_whole_move() -> None:
+    # A ledge 0.93 m below whose edge lies 0.1 m behind the centre, inside the downward
+    # sounder's cone; behind it the floor drops to 3 m, but the shield knows the floor only
+    # from the sounder and takes it as level. Backing up 1 m while descending 0.64 m
+    # passes far from every point seen, yet would end 0.29 m above that plane; the
+    # descent it keeps must leave the body's half-diagonal (0.31 m) plus 0.3 m.
+    ledge = ((6.0, 9.0, 2.07), (0.0, 0.1 - 4.5, -3.0 + 2.07 / 2))
+    views = flown_in(cave(WIDE, ledge), views=5)  # the camera 3.8 m back saw the space behind
+    assert views[-1].d_bottom == pytest.approx(0.93, abs=0.01)
+    verdict = judged("back 1 m, descend 0.64 m", *views)
+    assert verdict.action == Action(forward=pytest.approx(-1.0), up=pytest.approx(-0.1))
+    assert verdict.reason == "the move would end within 0.61 m of the floor (0.93 m away)"
+
+
+def test_rule_3_under_a_low_ceiling_a_climb_is_refused_and_the_shift_is_down() -> None:
+    views = flown_in(cave(((6.0, 20.0, 3.7), (0.0, 0.0, -1.15))))  # the ceiling 0.7 m above
+    assert views[-1].d_top == pytest.approx(0.7, abs=0.01)
+    verdict = judged("ascend 0.2 m", *views)
+    assert verdict.action == Action(up=pytest.approx(-0.1))
+    assert verdict.reason == "the move would pass within 0.61 m of a surface seen"
+
+
+def test_rule_4_a_side_never_seen_is_refused_however_far_its_walls() -> None:
+    # One view: the space beside the vehicle has not been in the camera's view.
+    verdict = judged("forward 0.5 m, strafe right 0.5 m", *flown_in(cave(WIDE), views=1))
+    # It keeps what the camera's view takes in beside it, 0.2 m, and the forward move.
+    assert verdict.action == Action(forward=pytest.approx(0.5), right=pytest.approx(0.2))
+    assert "the move would enter space never seen free" in verdict.reason
+    assert "right of the vehicle" in verdict.reason
+
+
+def test_no_room_to_turn_a_wall_0_25_m_beside_refuses_a_turn() -> None:
+    # The corners reach 0.29 m from the centre when the body turns in place: with 5 cm to
+    # spare, a wall nearer than 0.34 m at the body's height leaves no room to turn.
+    verdict = judged("turn left 15 deg", *flown_in(cave(beside(0.25))))
+    assert verdict.action == Action(right=pytest.approx(-0.1))  # away from the wall, unturned
+    assert verdict.reason == "a surface 0.25 m beside the centre leaves no room to turn"
+
+
+@pytest.mark.parametrize(("wall_m", "turns"), [(0.32, False), (0.4, True)])
+def test_no_room_to_turn_keeps_5_cm_beyond_the_corners_reach(wall_m: float, turns: bool) -> None:
+    verdict = judged("turn left 15 deg", *flown_in(cave(beside(wall_m))))
+    assert verdict.intervened is not turns, verdict.reason
+    assert turns or verdict.reason.endswith("m beside the centre leaves no room to turn")
+
+
+def test_the_shield_wrapper_stops_a_vehicle_driven_at_a_pillar_and_steps_it_aside() -> None:
+    # End to end: the environment renders, the wrapper judges, the vehicle executes the
+    # replacement. Driven straight at a pillar whose face is 3 m ahead, it flies 2 m, then
+    # with the face 1 m ahead (0.8 m from the camera) sidesteps away from it instead.
+    scenario = Scenario(
+        name="pillar",
+        mesh=cave(WIDE, ((0.4, 0.4, 6.0), (-0.1, -1.2, 0.0))),
+        start=Pose(0.0, 2.0, 0.0, 0.0),
+        exits=(ExitPortal((0.0, -8.0, 0.0), (0.0, -1.0, 0.0), 3.0),),
+    )
+    env = SafetyShield(CaveNavEnv(scenario, resolution=(160, 120)))
+    env.reset(seed=0)
+    flown = [env.step("forward 1 m")[4] for _ in range(4)]
+    assert [step["shield"] for step in flown[:2]] == [None, None]
+    for step in flown[2:]:
+        assert step["shield"] == {
+            "proposed": "forward 1 m",
+            "replacement": "strafe left 0.1 m",
+            "reason": "obstacle 0.8 m ahead, within 1.5 m: no forward motion",
+        }
+    assert [(step["pose"]["x"], step["pose"]["y"]) for step in flown] == [
+        pytest.approx(xy, abs=1e-6) for xy in [(0.0, 1.0), (0.0, 0.0), (0.1, 0.0), (0.2, 0.0)]
+    ]  # left is +x heading -y
+    assert not any(step["collision"] for step in flown) and env.interventions == 2

@@ -695,7 +695,8 @@ class _Situation:
         around = Surroundings.of(obs, memory, body, cfg.margins, cfg.rules.no_forward_within_m)
         cloud = around.cloud  # the nearest point is within reach: it is kept
         shift = 0.1
-        if min(obs.d_top, obs.d_bottom) < around.nearest_m:
+        # The sounders' readings are points of the cloud too: a tie means they are nearest.
+        if min(obs.d_top, obs.d_bottom) <= around.nearest_m + 1e-6:
             away = Action(up=-shift if obs.d_top < obs.d_bottom else shift)
         elif len(cloud):  # away from a wall on the left is to the right
             nearest = int(np.argmin(np.linalg.norm(cloud, axis=1)))
