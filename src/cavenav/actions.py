@@ -204,9 +204,13 @@ def _normalise(text: str) -> str:
     text = re.sub(r"\b(centimeters?|centimetres?)\b", "cm", text)
     # "0.5m" -> "0.5 m", "15deg" -> "15 deg"
     text = re.sub(rf"({_NUMBER})(m|cm|deg|rad)\b", r"\1 \2", text)
+    # The signed keys d_f, d_r, d_z, d_psi keep their underscore; elsewhere it is emphasis.
+    text = re.sub(r"\bd_(f|r|z|psi)\b", r"d\1", text)
     text = re.sub(r"[\"'`*_()\[\]{}]", " ", text)
     text = re.sub(r"\s+", " ", text)
-    return text.strip(" .!")
+    # A full stop ends a sentence, but one that opens the text may be a decimal point:
+    # ".1 m ahead" is 0.1 m, not 1 m.
+    return re.sub(r"^[ .!]+(?!\d)", "", text.rstrip(" .!"))
 
 
 def _words(clause: str) -> set[str]:
