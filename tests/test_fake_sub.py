@@ -3,12 +3,14 @@
 Each test starts a fake sub that sends to a free local port, where a ground station listens
 with ``udpin`` (as a GCS behind BlueOS does), and checks one thing ArduSub documents: what
 its HEARTBEAT says, how it acknowledges commands, how the sticks, the pilot-input failsafe
-and GUIDED targets move it. Speeds are checked against the velocities it reports and the
-time it reports, not the test's clock, so that a loaded machine does not fail them.
+and GUIDED targets move it. Speeds, rates and timeouts are checked against the velocities
+it reports and the time it reports (``time_boot_ms``), not the test's clock, so that a
+loaded machine does not fail them: the test's clock only bounds how long a test waits.
 """
 
 from __future__ import annotations
 
+import itertools
 import math
 import re
 import socket
@@ -86,21 +88,28 @@ class Link:
                 return message
         return None
 
-    def count(self, kind: str, seconds: float) -> int:
-        """How many messages of ``kind`` arrive in the next ``seconds``."""
-        count, deadline = 0, time.monotonic() + seconds
-        while self.receive(kind, timeout=deadline - time.monotonic()) is not None:
-            count += 1
-        return count
-
-    def kinds(self, seconds: float) -> set[str]:
-        """The types of message that arrive in the next ``seconds``."""
-        seen, deadline = set(), time.monotonic() + seconds
-        while (left := deadline - time.monotonic()) > 0.0:
+    def gather(self, enough: Callable[[list[Any]], bool], timeout: float = 10.0) -> list[Any]:
+        """Every message that arrives, in order, until ``enough`` holds of them; fails if
+        it does not within ``timeout`` (a generous wait, not a claim about speed)."""
+        messages: list[Any] = []
+        deadline = time.monotonic() + timeout
+        while not enough(messages):
+            left = deadline - time.monotonic()
+            assert left > 0.0, f"not enough after {timeout} s: {len(messages)} messages"
             message = self.gcs.recv_match(blocking=True, timeout=left)
-            if message is not None:
-                seen.add(message.get_type())
-        return seen
+            if message is not None and message.get_type() != "BAD_DATA":
+                messages.append(message)
+        return messages
+
+    def stream_for(self, kind: str, ms: int) -> list[Any]:
+        """Every message that arrives until messages of ``kind`` span ``ms`` milliseconds
+        of the fake sub's own clock (``time_boot_ms``), from the first one after now."""
+
+        def spanned(messages: list[Any]) -> bool:
+            times = [m.time_boot_ms for m in messages if m.get_type() == kind]
+            return bool(times) and times[-1] - times[0] >= ms
+
+        return self.gather(spanned)
 
     def command(self, command: int, *params: float, text: str | None = None) -> Any:
         """Send a COMMAND_LONG and return its COMMAND_ACK, after the STATUSTEXT ``text``
@@ -264,8 +273,8 @@ def test_without_a_position_estimate_there_is_no_guided_and_no_local_position(la
     assert link.set_mode(GUIDED, text=text).result == MAV.MAV_RESULT_FAILED
     assert link.sub.state().mode == MANUAL
 
-    seen = link.kinds(0.5)
-    assert "ATTITUDE" in seen
+    # Half a second of its own clock (10 ATTITUDE at 20 Hz), and no position among them.
+    seen = {m.get_type() for m in link.stream_for("ATTITUDE", 500)}
     assert "LOCAL_POSITION_NED" not in seen
 
 
@@ -276,15 +285,39 @@ def test_telemetry_reports_the_pose_at_the_requested_rates(launch) -> None:
     assert velocity(position) == (0.0, 0.0, 0.0)
     assert link.receive("ATTITUDE").yaw == pytest.approx(-math.pi / 2)
 
-    # Counts in a window: wide enough for a loaded machine, apart enough to tell the rates.
-    assert 7 <= link.count("ATTITUDE", 1.0) <= 24  # 20 Hz by default
+    # LOCAL_POSITION_NED asked faster than the physics goes out at every physics step:
+    # its time_boot_ms marks each step of the fake's own clock.
     interval = MAV.MAV_CMD_SET_MESSAGE_INTERVAL
+    ack = link.command(interval, MAV.MAVLINK_MSG_ID_LOCAL_POSITION_NED, 1_000)
+    assert ack.result == MAV.MAV_RESULT_ACCEPTED
+    assert_streamed_every(link, "ATTITUDE", 50)  # 20 Hz by default
     ack = link.command(interval, MAV.MAVLINK_MSG_ID_ATTITUDE, 250_000)  # 4 Hz
     assert ack.result == MAV.MAV_RESULT_ACCEPTED
-    assert 1 <= link.count("ATTITUDE", 1.0) <= 6
+    assert_streamed_every(link, "ATTITUDE", 250)
+
     ack = link.command(interval, MAV.MAVLINK_MSG_ID_LOCAL_POSITION_NED, -1)  # stop it
     assert ack.result == MAV.MAV_RESULT_ACCEPTED
-    assert link.count("LOCAL_POSITION_NED", 0.5) == 0
+    # What arrives after the acknowledgement was sent after it: 0.5 s of ATTITUDE, no position.
+    seen = {m.get_type() for m in link.stream_for("ATTITUDE", 500)}
+    assert "LOCAL_POSITION_NED" not in seen
+
+
+def assert_streamed_every(link: Link, kind: str, period_ms: int, count: int = 6) -> None:
+    """``count`` messages of ``kind`` went out every ``period_ms`` of the fake sub's clock,
+    as ArduSub streams them: never sooner than the interval, and at the first physics step
+    on which one is due (told by LOCAL_POSITION_NED, which goes out at every step).
+
+    One sent late by a late step is followed by the next on time, less than a period after
+    it, so "never sooner" is over the whole run: n messages span more than n - 2 periods.
+    Times are whole milliseconds, hence 1 ms of slack.
+    """
+    messages = link.gather(lambda got: sum(m.get_type() == kind for m in got) >= count)
+    sent = [m.time_boot_ms for m in messages if m.get_type() == kind]
+    steps = [m.time_boot_ms for m in messages if m.get_type() == "LOCAL_POSITION_NED"]
+    assert sent[-1] - sent[0] >= (count - 2) * period_ms - 1, f"too soon: {sent}"
+    for before, after in itertools.pairwise(sent):
+        skipped = [t for t in steps if before + period_ms + 1 < t < after]
+        assert not skipped, f"{kind} due at {before + period_ms} ms, sent at {after} ms"
 
 
 def test_the_sticks_fly_along_the_heading_at_their_speeds(launch) -> None:
@@ -337,17 +370,35 @@ def test_sticks_from_another_system_or_aimed_elsewhere_are_ignored(launch) -> No
 
 def test_lost_pilot_input_neutralises_the_sticks_and_disarms_once(launch) -> None:
     link = launch(pilot_failsafe="disarm")
-    link.sticks(x=300)
-    last_input = time.monotonic()
+    link.sticks()
     link.arm()
-    assert link.sub.state().sticks == (300, 0, 500, 0)
+    every_step = link.command(
+        MAV.MAV_CMD_SET_MESSAGE_INTERVAL, MAV.MAVLINK_MSG_ID_LOCAL_POSITION_NED, 1_000
+    )
+    assert every_step.result == MAV.MAV_RESULT_ACCEPTED
+    still = link.receive("LOCAL_POSITION_NED")  # measured before the last input was sent
+    link.sticks(x=300)  # the last pilot input: 1.2 m/s forward, then nothing
 
-    state = wait_until(link.sub, lambda s: not s.armed)
-    assert time.monotonic() - last_input >= 0.55  # FS_PILOT_TIMEOUT 0.6 s, less one tick
-    assert state.sticks == NEUTRAL_STICKS
-    assert state.failsafe
-    text = link.receive("STATUSTEXT", where=lambda m: m.text == "Lost manual control")
-    assert text is not None and text.severity == MAV.MAV_SEVERITY_CRITICAL
+    def stopped_after_moving(messages: list[Any]) -> bool:
+        track = [m.vx for m in messages if m.get_type() == "LOCAL_POSITION_NED"]
+        moved = next((i for i, vx in enumerate(track) if vx > 0.0), len(track))
+        return 0.0 in track[moved:]
+
+    messages = link.gather(stopped_after_moving)
+    track = [m for m in messages if m.get_type() == "LOCAL_POSITION_NED"]
+    moving = [m for m in track if m.vx > 0.0]
+    assert all(velocity(m) == pytest.approx((1.2, 0.0, 0.0)) for m in moving)
+    stopped = next(m for m in track if m.time_boot_ms > moving[0].time_boot_ms and m.vx == 0.0)
+    # FS_PILOT_TIMEOUT (0.6 s) on the fake sub's clock: the sticks stayed in effect until
+    # 600 ms after the input came (which was after `still`, and before the first step
+    # moving on them), and no longer.
+    assert stopped.time_boot_ms - still.time_boot_ms >= 600
+    assert moving[-1].time_boot_ms <= moving[0].time_boot_ms + 600 + 1
+    assert velocity(stopped) == (0.0, 0.0, 0.0)
+    text = next(m for m in messages if m.get_type() == "STATUSTEXT")
+    assert (text.text, text.severity) == ("Lost manual control", MAV.MAV_SEVERITY_CRITICAL)
+    state = link.sub.state()
+    assert (state.armed, state.sticks, state.failsafe) == (False, NEUTRAL_STICKS, True)
 
     link.arm()  # the failsafe acts once per loss: re-armed, it stays armed
     assert holds_throughout(link.sub, lambda s: s.armed, 0.3)
@@ -453,13 +504,14 @@ def test_noise_misses_a_guided_target_by_a_bounded_amount_repeatable_by_seed(lau
     assert 1e-4 < math.dist(misses[0], (0.0, 0.0, 0.0)) < 5 * 0.1 * 2.0 * math.sqrt(3)
 
 
-def test_stop_returns_promptly_and_leaves_no_thread(launch) -> None:
+def test_stop_ends_the_thread_and_the_telemetry(launch) -> None:
     link = launch()
-    started = time.monotonic()
-    link.sub.stop()
-    assert time.monotonic() - started < 2.0
+    link.sub.stop()  # joins the thread (waiting 2 s at most)
     assert not [t for t in threading.enumerate() if t.name == "fake-sub"]
     link.sub.stop()  # again: nothing happens
+    while link.gcs.recv_match(blocking=False) is not None:  # what was sent before the stop
+        pass
+    assert link.gcs.recv_match(blocking=True, timeout=0.3) is None
 
 
 def test_a_paused_heartbeat_leaves_the_telemetry_running(launch) -> None:
@@ -467,8 +519,8 @@ def test_a_paused_heartbeat_leaves_the_telemetry_running(launch) -> None:
     link.sub.pause_heartbeat(True)
     while link.gcs.recv_match(blocking=False) is not None:  # what was sent before the pause
         pass
-    kinds = link.kinds(1.2)
-    assert "ATTITUDE" in kinds
+    # 1.2 s of the fake sub's clock: at 1 Hz a HEARTBEAT would have gone out.
+    kinds = {m.get_type() for m in link.stream_for("ATTITUDE", 1_200)}
     assert "HEARTBEAT" not in kinds
     link.sub.pause_heartbeat(False)
     assert link.receive("HEARTBEAT") is not None
