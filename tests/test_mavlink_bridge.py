@@ -17,6 +17,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
@@ -318,9 +319,10 @@ def listening(motion: ArduSubMotion) -> int:
 
 
 @contextmanager
-def flying(port: int = 0, **settings: object) -> Iterator[ArduSubMotion]:
-    """A bridge to the autopilot on ``port``, closed whatever the test does."""
-    motion = ArduSubMotion(bridge(port, **settings))
+def flying(port: int = 0, log: Path | None = None, **settings: object) -> Iterator[ArduSubMotion]:
+    """A bridge to the autopilot on ``port`` (its command log at ``log``), closed whatever
+    the test does."""
+    motion = ArduSubMotion(bridge(port, **settings), log)
     try:
         yield motion
     finally:
@@ -385,7 +387,13 @@ def test_the_bridge_arms_in_alt_hold_and_disarms_with_neutral_sticks_at_the_end(
         state = sub.state()
         assert state.armed and state.mode_name == "ALT_HOLD"
         reached = motion.move(start, parse_action("forward 1 m"))
-        assert math.dist(reached.position, apply(start, Action(forward=1.0)).position) < 0.2
+        # Straight ahead along the heading; how far is the sticks' time at 1 m/s, judged
+        # only within half a second of the calibrated 1 s.
+        unit = np.subtract(apply(start, Action(forward=1.0)).position, start.position)
+        moved = np.subtract(reached.position, start.position)
+        ahead = float(moved @ unit)
+        assert np.linalg.norm(moved - ahead * unit) < 1e-3
+        assert 0.5 < ahead < 1.5
         motion.close()
         assert wait_until(lambda: not sub.state().armed)
         assert sub.state().sticks == (0, 0, 500, 0)
@@ -429,17 +437,44 @@ def test_no_move_while_the_vehicles_heartbeat_is_stale() -> None:
             motion.move(start, parse_action("forward 1 m"))
         after = sub.state()
         assert math.dist((before.north, before.east), (after.north, after.east)) < 0.01
+        sub.pause_heartbeat(False)  # for the disarm on the way out
 
 
 def test_a_heartbeat_lost_mid_segment_stops_the_segment_with_neutral_sticks() -> None:
-    with flown(heartbeat_timeout_s=0.5, **GENTLE) as (motion, sub):
+    """Stopped short of the move, wherever the heartbeat is lost: what the vehicle flew is
+    read from the autopilot, not from a clock (when it refuses is the next test's)."""
+    slow = {"stick_limit": 50, "forward_mps": 0.2}  # 'forward 1 m' holds the sticks 5 s
+    with flown({"max_speed_mps": 4.0}, heartbeat_timeout_s=1.5, **slow) as (motion, sub):
         start = motion.start(Pose(0, 0, 0))
-        threading.Timer(0.3, sub.pause_heartbeat, (True,)).start()
-        started = time.monotonic()
+        at_start = sub.state()
+
+        def flown_m() -> float:
+            state = sub.state()
+            return math.dist((state.north, state.east), (at_start.north, at_start.east))
+
+        def lose_the_heartbeat_once_moving() -> None:
+            if wait_until(lambda: flown_m() > 0.05, 10.0):
+                sub.pause_heartbeat(True)
+
+        threading.Thread(target=lose_the_heartbeat_once_moving, daemon=True).start()
         with pytest.raises(VehicleError, match="heartbeat is .* old"):
-            motion.move(start, parse_action("forward 1 m, turn left 90 deg"))  # about 3 s
-        assert time.monotonic() - started < 2.5
-        assert wait_until(lambda: sub.state().sticks == (0, 0, 500, 0), 1.0)
+            motion.move(start, parse_action("forward 1 m"))
+        assert wait_until(lambda: sub.state().sticks == (0, 0, 500, 0))
+        assert 0.05 < flown_m() < 1.0  # about 0.35 m: 1.5 s at most after the pause
+        sub.pause_heartbeat(False)  # for the disarm on the way out
+
+
+def test_a_move_is_refused_once_the_heartbeat_is_older_than_the_timeout() -> None:
+    """The age is the link's record of when the last heartbeat came, set back here rather
+    than waited for; 10 s either side of the 30 s timeout, so that no pause of the test
+    tips it."""
+    with one_vehicle(heartbeat_timeout_s=30.0) as (link, _, _):
+        heard = link.telemetry.heartbeat_at
+        link.telemetry.heartbeat_at = heard - 20.0
+        link.check_alive(2)  # armed in ALT_HOLD, 20 s old: goes on
+        link.telemetry.heartbeat_at = heard - 40.0
+        with pytest.raises(VehicleError, match=r"heartbeat is 4\d\.\d s old \(over 30 s\)"):
+            link.check_alive(2)
 
 
 def test_guided_mode_is_refused_by_a_vehicle_with_no_position_estimate() -> None:
@@ -450,11 +485,44 @@ def test_guided_mode_is_refused_by_a_vehicle_with_no_position_estimate() -> None
         motion.start(Pose(0, 0, 0))
 
 
-def test_depth_targets_are_clamped_to_the_limits() -> None:
-    with flown({"start_ned": (0.0, 0.0, 1.0)}, min_depth_m=0.5, **GENTLE) as (motion, _):
-        start = motion.start(Pose(0, 0, 0))
-        reached = motion.move(start, parse_action("ascend 2 m"))
-        assert reached.z == pytest.approx(0.5, abs=0.1)  # 1 m deep, stopped at 0.5 m
+def at_depth(sub: FakeSub, down: float) -> bool:
+    """The autopilot comes to rest at ``down`` (float32, as MAVLink carries a target)."""
+    return wait_until(lambda: sub.state().down == pytest.approx(down, abs=1e-5))
+
+
+def test_guided_depth_targets_stop_at_the_depth_limits() -> None:
+    """The target the autopilot flies to is cut at max_depth_m and min_depth_m; a move
+    within them is not touched."""
+    limits = {"min_depth_m": 2.5, "max_depth_m": 4.0}
+    with flown({"start_ned": (0.0, 0.0, 3.0)}, mode="guided", **limits) as (motion, sub):
+        start = motion.start(Pose(0, 0, 0))  # 3 m deep
+        pose = motion.move(start, parse_action("descend 0.5 m"))
+        assert at_depth(sub, 3.5)
+        pose = motion.move(pose, parse_action("descend 1 m"))  # to 4.5 m, asked
+        assert at_depth(sub, 4.0)
+        assert pose.z == pytest.approx(-1.0, abs=0.06)  # within the position tolerance
+        pose = motion.move(pose, parse_action("ascend 2 m"))  # to 2 m, asked
+        assert at_depth(sub, 2.5)
+        assert pose.z == pytest.approx(0.5, abs=0.06)
+
+
+def test_manual_ascents_and_descents_stop_at_the_depth_limits(tmp_path: Path) -> None:
+    """Sticks are held for the part of a move within the limits, as the command log notes;
+    how far that carries the vehicle depends on timing, so its depth is judged only as
+    nearer the limit than where the whole move would end (0.75 s of sticks and more off)."""
+    log = tmp_path / "mavlink.jsonl"
+    limits = {"min_depth_m": 0.5, "max_depth_m": 1.5}
+    one_m_per_s = {"stick_limit": 250, "forward_mps": 2.0, "vertical_mps": 1.0}
+    with flown({"start_ned": (0.0, 0.0, 1.0)}, log=log, **limits, **one_m_per_s) as (motion, sub):
+        pose = motion.start(Pose(0, 0, 0))  # 1 m deep
+        pose = motion.move(pose, parse_action("ascend 2 m"))  # to 1 m above the surface
+        shallowest = sub.state().down
+        motion.move(pose, parse_action("descend 2 m"))  # to about 2.5 m
+        deepest = sub.state().down
+    assert abs(shallowest - 0.5) < abs(shallowest - (1.0 - 2.0))
+    assert abs(deepest - 1.5) < abs(deepest - (shallowest + 2.0))
+    notes = [(r["asked"], r["flown"]) for r in read_jsonl(log) if r.get("depth_limit")]
+    assert notes == [(2.0, 0.5), (-2.0, pytest.approx(shallowest - 1.5, abs=0.01))]
 
 
 # ---------------------------------------------------------------------------- one vehicle
