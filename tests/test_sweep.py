@@ -144,7 +144,9 @@ def test_worker_processes_give_the_same_episodes_as_one_process(room: str, tmp_p
     pids = set()
     for run in (tmp_path / "pool" / "episodes").iterdir():
         pids.add(json.loads((run / "summary.json").read_text())["pid"])
-    assert len(pids) == 2 and os.getpid() not in pids  # two workers flew them
+    # Flown in the pool's processes, at most two; which worker took which episode (even
+    # whether both took one) is the scheduler's choice.
+    assert 1 <= len(pids) <= 2 and os.getpid() not in pids
 
 
 def test_the_failure_taxonomy_reads_the_last_steps() -> None:
@@ -277,7 +279,7 @@ def test_a_worker_killed_mid_episode_costs_only_that_episode(room: str, tmp_path
     lost = rows[victim["seed"]]
     assert lost["outcome"] == "error" and "worker process died (exit code -9)" in lost["error"]
     others = [r for r in rows if r is not lost]
-    assert [r["outcome"] for r in others] == ["success"] * 5  # the other worker flew the rest
+    assert [r["outcome"] for r in others] == ["success"] * 5  # whichever worker flew them
 
 
 @pytest.mark.parametrize(("frames", "per_step"), [("all", 3), ("png", 2)])
