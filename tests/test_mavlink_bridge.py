@@ -636,10 +636,13 @@ def one_vehicle(**settings: Any) -> Iterator[tuple[ArduSubLink, Any, int]]:
             vehicle.close()
 
 
-def received(connection: Any, kind: str, seconds: float) -> list[Any]:
-    """Every message of ``kind`` ``connection`` receives in the next ``seconds``."""
-    messages, deadline = [], time.monotonic() + seconds
-    while (left := deadline - time.monotonic()) > 0:
+def received(connection: Any, kind: str, count: int, timeout_s: float = 5.0) -> list[Any]:
+    """The next ``count`` messages of ``kind`` that ``connection`` receives; fails if they
+    do not come within ``timeout_s`` (a generous wait, not a claim about speed)."""
+    messages, deadline = [], time.monotonic() + timeout_s
+    while len(messages) < count:
+        left = deadline - time.monotonic()
+        assert left > 0, f"{len(messages)} {kind} of {count} after {timeout_s} s"
         message = connection.recv_match(type=kind, blocking=True, timeout=left)
         if message is not None:
             messages.append(message)
@@ -677,20 +680,27 @@ def test_sticks_held_when_a_second_peer_is_heard_turn_neutral_at_once_and_stay_s
     forward = {"x": 400, "y": 0, "z": 500, "r": 0}
     with one_vehicle(control_hz=50) as (link, vehicle, port):
         link.set_sticks(forward)
-        assert any(m.x == 400 for m in received(vehicle, "MANUAL_CONTROL", 0.1))
+        assert vehicle.recv_match(
+            type="MANUAL_CONTROL", condition="MANUAL_CONTROL.x == 400", blocking=True, timeout=5.0
+        )
         second = mavutil.mavlink_connection(
             f"udpout:127.0.0.1:{port}", source_system=1, source_component=1
         )
         try:
             heartbeat(MAV.MAV_TYPE_SUBMARINE)(second.mav)
+            # The main thread does not look yet: the link thread alone turns them neutral,
+            # and repeats only neutral ones (five at control_hz).
+            assert vehicle.recv_match(
+                type="MANUAL_CONTROL", condition="MANUAL_CONTROL.x == 0", blocking=True, timeout=5
+            )
+            sticks = received(vehicle, "MANUAL_CONTROL", 5)
             with pytest.raises(VehicleError, match="a second peer"):
-                link.wait_for("never", lambda t: False, 5.0)  # the main thread only waits
-            drain(vehicle)  # what was sent before the refusal
+                link.wait_for("never", lambda t: False, 5.0)
             link.set_sticks(forward)  # a segment that began as the refusal came
-            sticks = [(m.x, m.y, m.z, m.r) for m in received(vehicle, "MANUAL_CONTROL", 0.3)]
+            sticks += received(vehicle, "MANUAL_CONTROL", 5)  # that one's and four repeats
         finally:
             second.close()
-    assert sticks and set(sticks) == {NEUTRAL_STICKS}
+    assert {(m.x, m.y, m.z, m.r) for m in sticks} == {NEUTRAL_STICKS}
 
 
 def test_a_peer_heard_while_a_command_is_being_sent_is_a_refusal_not_a_crash() -> None:
