@@ -287,9 +287,14 @@ _near_misses = st.one_of(
 )
 
 
-# Two in three inputs are admissible actions as models word them, so that most (measured:
-# about 70%) are accepted and the checks below run; the rest probe the refusals.
-@given(st.sampled_from([_admissible_text, _admissible_text, _near_misses]).flatmap(lambda s: s))
+# Three in four inputs are admissible actions as models word them, so that most are
+# accepted (measured: 60-88% in eight runs) and the checks below run; the rest probe
+# the refusals.
+@given(
+    st.sampled_from([_admissible_text, _admissible_text, _admissible_text, _near_misses]).flatmap(
+        lambda s: s
+    )
+)
 def test_whatever_the_parser_accepts_is_admissible_canonical_and_written_in_the_text(
     text: str,
 ) -> None:

@@ -29,11 +29,13 @@ class ParsedReply:
     justification: str
 
 
-def _dict_candidates(text: str) -> list[str]:
-    """Every balanced ``{...}`` span, outermost only, in order of appearance; a brace
-    that is never closed is read as prose."""
+def _dict_candidates(text: str, offset: int = 0) -> tuple[list[tuple[int, str]], int]:
+    """Every balanced ``{...}`` span of ``text[offset:]``, outermost only, in order of
+    appearance, each with where it starts; and where a brace still open at the end was
+    opened (-1 if none)."""
     spans, depth, start, quote, escaped = [], 0, -1, "", False
-    for i, ch in enumerate(text):
+    for i in range(offset, len(text)):
+        ch = text[i]
         if quote:
             if escaped:
                 escaped = False
@@ -51,12 +53,8 @@ def _dict_candidates(text: str) -> list[str]:
         elif ch == "}" and depth > 0:
             depth -= 1
             if depth == 0:
-                spans.append(text[start : i + 1])
-    if depth > 0:
-        # A brace (or a quote) left open in the reasoning ("I considered {going left")
-        # would swallow the answer after it: look again past the brace that opened it.
-        spans += _dict_candidates(text[start + 1 :])
-    return spans
+                spans.append((start, text[start : i + 1]))
+    return spans, start if depth > 0 else -1
 
 
 def _load(candidate: str) -> object:
@@ -70,6 +68,32 @@ def _load(candidate: str) -> object:
         return None
 
 
+def _final_dict(text: str, passes: int = 64) -> dict | None:
+    """The last ``{...}`` span of ``text`` that loads as a dictionary.
+
+    A brace in the reasoning must not swallow the answer after it. One never closed ("I
+    considered {going left") is read as prose: the text after it is scanned again. One
+    with an apostrophe after it ("{going left, but it's narrow") can pair with the
+    answer's own quotes and braces into a span that does not load: the text past that
+    span's brace is scanned again. The passes are bounded, so a reply of a thousand
+    braces is refused quickly instead of exhausting the stack.
+    """
+    answer, offset = None, 0
+    for _ in range(passes):
+        spans, still_open = _dict_candidates(text, offset)
+        if spans and still_open < 0 and not isinstance(_load(spans[-1][1]), dict):
+            still_open = spans[-1][0]  # the last span does not load: look inside it
+        for _, span in reversed(spans):
+            loaded = _load(span)
+            if isinstance(loaded, dict):
+                answer = loaded
+                break
+        if still_open < 0:
+            break
+        offset = still_open + 1
+    return answer
+
+
 def parse_reply(text: str, space: ActionSpace = DEFAULT_SPACE) -> ParsedReply:
     """Extract and validate the final answer of a reply.
 
@@ -78,12 +102,7 @@ def parse_reply(text: str, space: ActionSpace = DEFAULT_SPACE) -> ParsedReply:
     """
     if not isinstance(text, str) or not text.strip():
         raise ActionError("the reply is empty")
-    answer = None
-    for candidate in reversed(_dict_candidates(text[-20000:])):
-        loaded = _load(candidate)
-        if isinstance(loaded, dict):
-            answer = loaded
-            break
+    answer = _final_dict(text[-20000:])
     if answer is None:
         raise ActionError(
             'no final dictionary found; end the reply with {"<action>": "<justification>"}'
