@@ -8,7 +8,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 TEST_STAMP := $(VENV)/.installed-test
 
-.PHONY: setup setup-test demo test bench lint clean
+.PHONY: setup setup-test demo test bench mutate lint clean
 
 setup: $(STAMP)
 setup-test: $(TEST_STAMP)
@@ -47,8 +47,13 @@ bench: setup-test
 	$(BIN)/python benchmarks/env_steps.py
 	$(BIN)/python benchmarks/mavlink_action.py
 
+# Mutation testing of the shield, the action grammar and the reply parser (not in CI).
+mutate: setup-test
+	$(BIN)/python -m pip install -q mutmut==3.8.1
+	$(BIN)/python benchmarks/mutation.py
+
 lint: setup-test
 	$(BIN)/ruff check src tests benchmarks
 
 clean:
-	rm -rf $(VENV) runs
+	rm -rf $(VENV) runs .mutation
