@@ -185,6 +185,7 @@ def test_a_move_hazard_names_the_rule_it_breaks() -> None:
         hazard = move_hazard(
             parse_action(move), around, body=VehicleBody(), margins=Margins(), crawlway=False
         )
+        assert bool(hazard) == bool(hazard.kind)  # the pilot asks "any hazard?" by truth
         return hazard.kind
 
     assert kind("forward 1 m") == ""
