@@ -86,3 +86,41 @@ def test_the_episode_layer_never_takes_apart_backend_objects() -> None:
     for path in modules("episode"):
         assert "cavenav.pilots.backends" not in imports_of(path), path.name
         assert ".completion" not in path.read_text(), path.name
+
+
+def module_name(path: Path) -> str:
+    """``src/cavenav/world/mesh.py`` -> ``cavenav.world.mesh``; a package is its ``__init__``."""
+    parts = ["cavenav", *path.relative_to(SRC).with_suffix("").parts]
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def import_circles() -> list[list[str]]:
+    """Every group of cavenav modules that import one another, directly or by a detour
+    (the strongly connected parts of the import graph), each sorted.
+
+    Built from the source, not from what ``import`` happens to load: every import
+    statement counts, at the top or inside a function. An import put inside a function
+    to break a circle still makes the two modules need each other (each can only be
+    understood, tested or moved with the other), and it only hides the circle from
+    Python until the day someone hoists the import. An edge goes to the modules the
+    statement names (``from cavenav.world import mesh`` and ``from cavenav.world.mesh
+    import CaveMesh`` both to ``cavenav.world.mesh``), not to the packages above them,
+    whose ``__init__`` files import nothing of cavenav.
+    """
+    names = {module_name(path): path for path in SRC.rglob("*.py")}
+    graph = {name: imports_of(path) & names.keys() - {name} for name, path in names.items()}
+    reach: dict[str, set[str]] = {}
+    for name in graph:  # every module reachable from each, by a walk over the graph
+        seen, todo = set(), [name]
+        while todo:
+            for other in graph[todo.pop()] - seen:
+                seen.add(other)
+                todo.append(other)
+        reach[name] = seen
+    groups = {tuple(sorted(m for m in reach[n] if n in reach[m])) for n in graph if n in reach[n]}
+    return [list(group) for group in sorted(groups)]
+
+
+def test_no_two_modules_import_each_other_even_by_a_detour() -> None:
+    circles = import_circles()
+    assert not circles, "modules that import one another: " + "; ".join(map(", ".join, circles))

@@ -18,9 +18,10 @@ import trimesh
 from cavenav.errors import CavenavWarning
 from cavenav.sensors import lighting
 from cavenav.sensors.optics import Optics
-from cavenav.world.mesh import check_units, likely_scale, load_mesh, make_mesh
+from cavenav.world.mesh import load_mesh, make_mesh
 from cavenav.world.raycast import RayCaster
 from cavenav.world.scenarios import SCENARIOS, load_scenario
+from cavenav.world.units import check_units, likely_scale
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 # One of the Open Robotics tiles (also in /work/shared/data/meshes): a 5 m tube along y,

@@ -27,7 +27,7 @@ __all__ = ["RayCaster"]
 _THREADS = int(os.environ.get("CAVENAV_THREADS") or 0)
 
 # Scenes by mesh and thread, while the mesh lives: loading a scenario file measures its
-# passage (`cavenav.world.mesh.check_units`), then the environment asks again for the same
+# passage (`cavenav.world.units.check_units`), then the environment asks again for the same
 # mesh, and building the BVH takes 1.5-5 s at 3 million triangles. Threads do not share
 # a scene: sweeps fly one cave on several threads, each with a scene of its own as before.
 _SCENES: weakref.WeakKeyDictionary[CaveMesh, dict[int, Any]] = weakref.WeakKeyDictionary()

@@ -30,7 +30,7 @@ from scipy.spatial import cKDTree
 from cavenav.errors import ConfigError, MeshError, ScenarioError
 from cavenav.types import Pose
 from cavenav.world.collision import VehicleBody
-from cavenav.world.mesh import CaveMesh, check_units, load_mesh, sphere_directions
+from cavenav.world.mesh import CaveMesh, load_mesh, sphere_directions
 from cavenav.world.procedural import (
     Boulder,
     Branch,
@@ -41,6 +41,7 @@ from cavenav.world.procedural import (
     resample,
 )
 from cavenav.world.raycast import RayCaster
+from cavenav.world.units import check_units
 
 __all__ = [
     "HELD_OUT_SEEDS",
