@@ -18,14 +18,12 @@ from typing import Any
 from cavenav import __version__
 from cavenav.actions import format_action, to_twist
 from cavenav.episode.metrics import path_length, summarise_clearance
+from cavenav.episode.records import TERMINATED, TERMINATIONS, TRUNCATED, EpisodeSummary, StepRecord
 from cavenav.errors import PilotFailure
 from cavenav.types import Action, Decision, Observation, Pose, Rules, Usage
 from cavenav.world.scenarios import Scenario
 
 __all__ = ["TERMINATIONS", "EpisodeLog"]
-
-TERMINATIONS = ("exit", "collision", "budget", "pilot_failure", "exited_entrance", "stuck")
-_TERMINATED = ("exit", "collision", "exited_entrance", "pilot_failure")  # the rest truncate
 
 _TWIST_KEYS = ("linear_x", "linear_y", "linear_z", "angular_z")
 
@@ -138,7 +136,12 @@ class EpisodeLog:
         if decision.usage is not None:
             self.usage.append(decision.usage)
             record["vlm"] = decision.usage.to_dict()
+        return self._append(record, timing_ms)
+
+    def _append(self, record: dict[str, Any], timing_ms: dict[str, float]) -> dict[str, Any]:
+        """Log a step's record, timings last, as steps.jsonl holds it (a `StepRecord`)."""
         record["timing_ms"] = {k: round(v, 2) for k, v in timing_ms.items()}
+        record = StepRecord.model_validate(record).to_dict()
         self.steps.append(record)
         return record
 
@@ -153,9 +156,7 @@ class EpisodeLog:
             record["vlm"] = failure.usage.to_dict()
         self.failure_cause = getattr(failure, "cause", "reply")
         record.update(action=None, failure=self.failure, failure_cause=self.failure_cause)
-        record["timing_ms"] = {k: round(v, 2) for k, v in timing_ms.items()}
-        self.steps.append(record)
-        return record
+        return self._append(record, timing_ms)
 
     def mark(self) -> tuple:
         """Where the log stands, to `rewind` to when a step cannot be recorded."""
@@ -174,42 +175,48 @@ class EpisodeLog:
         self.failure, self.failure_cause = error, None
 
     def summary(self, status: str) -> dict[str, Any]:
-        """summary.json: ``status`` is running, finished, interrupted or crashed."""
+        """summary.json as written (`summary_record` as its file holds it)."""
+        return self.summary_record(status).to_dict()
+
+    def summary_record(self, status: str) -> EpisodeSummary:
+        """The episode's summary: ``status`` is running, finished, interrupted or crashed."""
         end = self.poses[-1].position
         interventions = sum(1 for s in self.steps if s.get("shield"))
-        return {
-            "scenario": self.scenario.name,
-            "pilot": self.pilot,
-            "seed": self.scenario.seed,
-            "status": status,
-            "success": self.termination == "exit",
-            "termination": self.termination,
-            "terminated": self.termination in _TERMINATED,
-            "truncated": self.termination in ("budget", "stuck"),
-            "collisions": int(self.collision_pose is not None),
-            "shield": self.shielded,
-            "shield_interventions": interventions,
-            "invalid_actions": sum(1 for s in self.steps if s.get("invalid_action")),
-            "steps": len(self.steps),
-            "path_length_m": round(path_length(self.poses), 4),
-            "progress_m": round(self.progress_m, 4),
-            "passage_length_m": round(self.scenario.passage_length_m, 4),
-            **summarise_clearance(self.clearances, self.rules.standoff_m),
-            "final_pose": self.poses[-1].to_dict(),
-            "collision_pose": self.collision_pose,
-            "exit_distance_m": round(self.scenario.exit_distance(end), 4),
-            "failure": self.failure,
-            "failure_cause": self.failure_cause,
-            "wall_time_s": round(time.perf_counter() - self._started, 3),
-            # The first sensing pays one-off costs (loading or compiling the kernels, cold
-            # caches): reported apart so that the mean is what a step costs.
-            "first_sense_ms": self.steps[0]["timing_ms"]["sense"] if self.steps else None,
-            "mean_sense_ms": _mean_timing(self.steps[1:] or self.steps, "sense"),
-            "mean_pilot_ms": _mean_timing(self.steps, "pilot"),
-            "usage": Usage.total(self.usage),
-            **_drift(self.steps),
-            **self._meta,
-        }
+        return EpisodeSummary.model_validate(
+            {
+                "scenario": self.scenario.name,
+                "pilot": self.pilot,
+                "seed": self.scenario.seed,
+                "status": status,
+                "success": self.termination == "exit",
+                "termination": self.termination,
+                "terminated": self.termination in TERMINATED,
+                "truncated": self.termination in TRUNCATED,
+                "collisions": int(self.collision_pose is not None),
+                "shield": self.shielded,
+                "shield_interventions": interventions,
+                "invalid_actions": sum(1 for s in self.steps if s.get("invalid_action")),
+                "steps": len(self.steps),
+                "path_length_m": round(path_length(self.poses), 4),
+                "progress_m": round(self.progress_m, 4),
+                "passage_length_m": round(self.scenario.passage_length_m, 4),
+                **summarise_clearance(self.clearances, self.rules.standoff_m),
+                "final_pose": self.poses[-1].to_dict(),
+                "collision_pose": self.collision_pose,
+                "exit_distance_m": round(self.scenario.exit_distance(end), 4),
+                "failure": self.failure,
+                "failure_cause": self.failure_cause,
+                "wall_time_s": round(time.perf_counter() - self._started, 3),
+                # The first sensing pays one-off costs (loading or compiling the kernels, cold
+                # caches): reported apart so that the mean is what a step costs.
+                "first_sense_ms": self.steps[0]["timing_ms"]["sense"] if self.steps else None,
+                "mean_sense_ms": _mean_timing(self.steps[1:] or self.steps, "sense"),
+                "mean_pilot_ms": _mean_timing(self.steps, "pilot"),
+                "usage": Usage.total(self.usage),
+                **_drift(self.steps),
+                **self._meta,
+            }
+        )
 
 
 def _drift(steps: list[dict[str, Any]]) -> dict[str, float]:

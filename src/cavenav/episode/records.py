@@ -1,16 +1,20 @@
-"""Records read back: a run folder's summary.json, steps.jsonl and exchanges.jsonl, and a
-sweep's sweep.json.
+"""The run folder's records as types: summary.json is an `EpisodeSummary`, each line of
+steps.jsonl a `StepRecord`, and the words they end with (`TERMINATIONS`) and are judged by
+(`OUTCOMES`) are written here once. Also read back here: exchanges.jsonl and a sweep's
+sweep.json.
 
-Every command that reads a record it did not just write (`report`, `compare`, `video`, a
+The recorder (`cavenav.episode.record`) builds these types and writes each as given
+(`to_dict`: its fields, values and order, so a run folder is the same file for file);
+every command that reads a record it did not just write (`report`, `compare`, `video`, a
 resumed `eval`) reads it here, so a file damaged by hand or by another tool (``{}``,
 ``[1, 2]``, ``"steps": "many"``) is one line naming the file and the field, a
-`RecordError`, instead of a traceback wherever the value is first used. The models check
-the fields those readers use and keep every other field as written (``extra="allow"``):
-records of another cavenav version still read.
+`RecordError`, instead of a traceback wherever the value is first used. The models keep
+every field they do not name as written (``extra="allow"``): records of another cavenav
+version still read.
 
-The readers return plain dicts, the values converted to the types below (a "3" read as
-steps becomes 3), holding only the keys the file held: a reader's ``.get(key, default)``
-means what it meant before.
+`load_summary` and `load_steps` give the types; `read_summary` and `read_steps` the same
+records as plain dicts, the values converted to the types below (a "3" read as steps
+becomes 3), holding only the keys the file held, for code that rewrites a record.
 """
 
 from __future__ import annotations
@@ -18,14 +22,61 @@ from __future__ import annotations
 import json
 import warnings
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, Literal, TypeVar, get_args
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    PrivateAttr,
+    ValidationError,
+    ValidatorFunctionWrapHandler,
+    model_validator,
+)
 
 from cavenav.episode.run_folder import numbered_jsonl
 from cavenav.errors import CavenavWarning, RecordError, invalid_field
 
-__all__ = ["read_exchanges", "read_steps", "read_summary", "read_sweep_file"]
+__all__ = [
+    "OUTCOMES",
+    "TERMINATED",
+    "TERMINATIONS",
+    "TRUNCATED",
+    "EpisodeSummary",
+    "Outcome",
+    "StepRecord",
+    "Termination",
+    "load_steps",
+    "load_summary",
+    "read_exchanges",
+    "read_steps",
+    "read_summary",
+    "read_sweep_file",
+]
+
+# How an episode ended (summary.json's ``termination``): `TERMINATED` ones end the task
+# (Gymnasium's ``terminated``), `TRUNCATED` ones cut it short (``truncated``).
+Termination = Literal["exit", "collision", "budget", "pilot_failure", "exited_entrance", "stuck"]
+TERMINATIONS: tuple[Termination, ...] = get_args(Termination)
+TRUNCATED: tuple[Termination, ...] = ("budget", "stuck")
+TERMINATED: tuple[Termination, ...] = tuple(t for t in TERMINATIONS if t not in TRUNCATED)
+
+# An episode's place in the failure taxonomy (`cavenav.evaluation.results.outcome`): an
+# exit is "success", the other terminations are their own outcome, but for a budget
+# ending, told apart by the last steps as "budget", "stuck" or "oscillating"; "error" and
+# "incomplete" are episodes that did not finish.
+Outcome = Literal[
+    "success",
+    "collision",
+    "pilot_failure",
+    "exited_entrance",
+    "budget",
+    "stuck",
+    "oscillating",
+    "error",
+    "incomplete",
+]
+OUTCOMES: tuple[Outcome, ...] = get_args(Outcome)
 
 _Vector = tuple[float, float, float]
 # Difficulty knobs: a count (obstacles = 3) must read back whole, or Difficulty refuses it.
@@ -33,7 +84,24 @@ _Knobs = dict[str, int | float]
 
 
 class _Record(BaseModel):
-    model_config = ConfigDict(extra="allow")
+    """A record as read (values converted to the declared types) that also keeps what it
+    was given, to write it back as given (`to_dict`)."""
+
+    model_config = ConfigDict(extra="allow", frozen=True)
+    _given: dict[str, Any] = PrivateAttr(default_factory=dict)
+
+    @model_validator(mode="wrap")
+    @classmethod
+    def _keep_given(cls, data: Any, handler: ValidatorFunctionWrapHandler) -> Any:  # noqa: ANN401
+        record = handler(data)
+        if isinstance(data, dict):
+            record._given = dict(data)
+        return record
+
+    def to_dict(self) -> dict[str, Any]:
+        """The record as its JSON file holds it: the keys given, in their order, with the
+        values as given (a radius of 3 stays 3, not 3.0)."""
+        return dict(self._given)
 
 
 class _Pose(_Record):
@@ -44,6 +112,7 @@ class _Pose(_Record):
 
 
 class _Usage(_Record):
+    model_steps: int | None = None
     prompt_tokens: int | None = None
     completion_tokens: int | None = None
     requeries: int | None = None
@@ -53,7 +122,7 @@ class _Usage(_Record):
 
 
 class _Portal(_Record):
-    model_config = ConfigDict(extra="allow", allow_inf_nan=False)
+    model_config = ConfigDict(extra="allow", allow_inf_nan=False, frozen=True)
     point: _Vector
     normal: _Vector
     radius: float = Field(gt=0, le=1e4)  # a scenario file's bound (cavenav.world.scenarios)
@@ -64,59 +133,105 @@ class _EpisodeSettings(_Record):
     plots: bool = True
 
 
-class _Summary(_Record):
-    """summary.json: what `cavenav.evaluation.results.episode_row`, the report and the
-    video read of it."""
+class EpisodeSummary(_Record):
+    """summary.json: how an episode ended and what it measured (SPEC section 7).
+
+    Rewritten after every step (status "running") and at the end ("finished",
+    "interrupted" or "crashed"). Every field is optional on reading: a summary written
+    before the first step, by an older cavenav or by a sweep recording a crash holds
+    fewer. The drift fields are there only when a vehicle flew the episode (`cavenav
+    fly`), ``plots`` only once the plots are drawn, ``error`` only when a sweep recorded
+    the episode's crash.
+    """
 
     scenario: str | None = None
-    scenario_description: str | None = None
-    seed: int | None = None
     pilot: str | None = None
-    mesh: str | None = None
-    status: str | None = None
+    seed: int | None = None
+    status: str | None = None  # running, finished, interrupted or crashed
     success: bool | None = None
-    termination: str | None = None
-    failure: str | None = None
-    failure_cause: str | None = None
-    error: str | None = None
-    steps: int | None = None
+    termination: Termination | None = None
+    terminated: bool | None = None
+    truncated: bool | None = None
     collisions: int | None = None
-    invalid_actions: int | None = None
-    steps_below_standoff: int | None = None
     shield: bool | None = None
     shield_interventions: int | None = None
+    invalid_actions: int | None = None
+    steps: int | None = None
+    path_length_m: float | None = None
     progress_m: float | None = None
     passage_length_m: float | None = None
-    path_length_m: float | None = None
     min_clearance_m: float | None = None
     mean_clearance_m: float | None = None
+    steps_below_standoff: int | None = None
+    final_pose: _Pose | None = None
+    collision_pose: _Pose | None = None
     exit_distance_m: float | None = None
-    mean_pilot_ms: float | None = None
-    mean_sense_ms: float | None = None
+    failure: str | None = None
+    failure_cause: str | None = None  # `PilotFailure.cause`: reply, backend or auth
     wall_time_s: float | None = None
+    first_sense_ms: float | None = None
+    mean_sense_ms: float | None = None
+    mean_pilot_ms: float | None = None
     usage: _Usage | None = None
-    exits: list[_Portal] = Field(default_factory=list)
+    mean_drift_m: float | None = None
+    max_drift_m: float | None = None
+    mean_drift_deg: float | None = None
+    max_drift_deg: float | None = None
+    mean_physics_ms: float | None = None
+    cavenav_version: str | None = None
+    python: str | None = None
+    host: str | None = None
+    pid: int | None = None
+    started_at: str | None = None
+    scenario_description: str | None = None
     difficulty: _Knobs | None = None
+    mesh: str | None = None
+    triangles: int | None = None
+    start_pose: _Pose | None = None
+    exits: list[_Portal] = Field(default_factory=list)
+    entrances: list[dict[str, Any]] = Field(default_factory=list)
     config: _EpisodeSettings | None = None
+    plots: dict[str, str] = Field(default_factory=dict)
+    error: str | None = None
 
 
-class _Step(_Record):
-    """One line of steps.jsonl: what the outcome, the report and the video read of it."""
+class StepRecord(_Record):
+    """One line of steps.jsonl: where the vehicle was, what it sensed and did, and what
+    came of it.
+
+    A step that flew an action has ``action``, ``pose`` (before it) and ``progress_m``
+    (after it); the step at which the pilot gave up has ``action`` None and ``failure``.
+    ``frames`` names the images saved (empty with frames off); ``model_images`` the
+    stored images of the current observation as the model was sent them
+    ({"rgb", "depth_png"}, model pilots only).
+    """
 
     step: int
     pose: _Pose | None = None
-    next_pose: _Pose | None = None
-    action: str | None = None
-    progress_m: float | None = None
     clearance_m: float | None = None
     d_top_m: float | None = None
     d_bottom_m: float | None = None
+    action: str | None = None
+    justification: str | None = None
+    twist: dict[str, float] | None = None
+    next_pose: _Pose | None = None
     collision: bool = False
-    frames: dict[str, str] = Field(default_factory=dict)
+    progress_m: float | None = None
+    commanded_pose: _Pose | None = None
+    drift_m: float | None = None
+    drift_deg: float | None = None
     shield: dict[str, Any] | None = None
+    invalid_action: str | None = None
+    proposed: str | None = None
+    vlm: dict[str, Any] | None = None
+    failure: str | None = None
+    failure_cause: str | None = None
+    timing_ms: dict[str, float] = Field(default_factory=dict)
+    frames: dict[str, str] = Field(default_factory=dict)
+    model_images: dict[str, str] = Field(default_factory=dict)
 
     @model_validator(mode="after")
-    def _moved(self) -> _Step:
+    def _moved(self) -> StepRecord:
         # A step that flew an action is judged by where it was and how far it had got.
         if self.action is not None and (self.pose is None or self.progress_m is None):
             raise ValueError("a step with an action needs its pose and progress_m")
@@ -178,19 +293,19 @@ def _json_kind(value: Any) -> str:
     return next((kind for types, kind in kinds if isinstance(value, types)), "an object")
 
 
-def _checked(model: type[_Model], data: Any, where: str) -> dict[str, Any]:
-    """``data`` as ``model`` reads it, as a dict of the keys it held; else one line."""
+def _checked(model: type[_Model], data: Any, where: str) -> _Model:
+    """``data`` as ``model`` reads it; else one line naming ``where`` and the field."""
     if not isinstance(data, dict):
         raise RecordError(
             f"{where}: holds {_json_kind(data)}, not a JSON object: the record is damaged"
         )
     try:
-        return model.model_validate(data).model_dump(exclude_unset=True)
+        return model.model_validate(data)
     except ValidationError as exc:
         raise RecordError(str(invalid_field(exc, where))) from None
 
 
-def _read_json(path: Path, model: type[_Model]) -> dict[str, Any]:
+def _read_json(path: Path, model: type[_Model]) -> _Model:
     try:
         data = json.loads(Path(path).read_text(encoding="utf-8"))
     except OSError as exc:
@@ -200,17 +315,17 @@ def _read_json(path: Path, model: type[_Model]) -> dict[str, Any]:
     return _checked(model, data, str(path))
 
 
-def read_summary(path: Path) -> dict[str, Any]:
+def load_summary(path: Path) -> EpisodeSummary:
     """A run folder's summary.json, checked.
 
     Raises:
         RecordError: the file is missing, unreadable, not JSON, not an object, or holds a
             field of the wrong type (the message names the field).
     """
-    return _read_json(path, _Summary)
+    return _read_json(path, EpisodeSummary)
 
 
-def read_steps(path: Path) -> list[dict[str, Any]]:
+def load_steps(path: Path) -> list[StepRecord]:
     """A run folder's steps.jsonl, every line checked ([] when there is none).
 
     A line that is not JSON is skipped, as `cavenav.episode.run_folder.read_jsonl` does: a
@@ -222,7 +337,17 @@ def read_steps(path: Path) -> list[dict[str, Any]]:
             of the wrong type, naming the line and the field.
     """
     path = Path(path)
-    return [_checked(_Step, data, f"{path} line {n}") for n, data in _lines(path)]
+    return [_checked(StepRecord, data, f"{path} line {n}") for n, data in _lines(path)]
+
+
+def read_summary(path: Path) -> dict[str, Any]:
+    """`load_summary` as a dict of the keys the file held, values converted."""
+    return load_summary(path).model_dump(exclude_unset=True)
+
+
+def read_steps(path: Path) -> list[dict[str, Any]]:
+    """`load_steps` as dicts of the keys each line held, values converted."""
+    return [step.model_dump(exclude_unset=True) for step in load_steps(path)]
 
 
 def read_exchanges(path: Path) -> list[dict[str, Any]]:
@@ -242,7 +367,8 @@ def read_exchanges(path: Path) -> list[dict[str, Any]]:
     exchanges, damaged = [], []
     for number, data in lines:
         try:
-            exchanges.append(_checked(_Exchange, data, f"{path} line {number}"))
+            exchange = _checked(_Exchange, data, f"{path} line {number}")
+            exchanges.append(exchange.model_dump(exclude_unset=True))
         except RecordError as exc:
             damaged.append(exc)
     if damaged:
@@ -271,4 +397,4 @@ def read_sweep_file(path: Path) -> dict[str, Any]:
         RecordError: the file is unreadable, not JSON, not an object, or a field the
             sweep's configuration needs is missing or of the wrong type.
     """
-    return _read_json(path, _SweepFile)
+    return _read_json(path, _SweepFile).model_dump(exclude_unset=True)
