@@ -18,7 +18,7 @@ import numbers
 import reprlib
 import string
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
 
@@ -28,7 +28,7 @@ from gymnasium import spaces
 
 from cavenav.actions import DEFAULT_SPACE, ActionSpace, format_action, parse_action
 from cavenav.errors import ActionError, ConfigError
-from cavenav.kinematics import Kinematic, Motion, apply, turn_deg
+from cavenav.kinematics import Kinematic, Motion
 from cavenav.sensors.camera import pixel_size
 from cavenav.sensors.rig import SensorConfig, SensorRig
 from cavenav.types import DEFAULT_RULES, Action, Observation, Pose, Rules, VehicleBody
@@ -36,7 +36,14 @@ from cavenav.world.collision import clearance, swept_collision
 from cavenav.world.raycast import RayCaster
 from cavenav.world.scenarios import SCENARIOS, Scenario, load_scenario, validate_start
 
-__all__ = ["ACTION_CHARSET", "TRAINING_SEEDS", "CaveNavEnv", "snap_action"]
+__all__ = [
+    "ACTION_CHARSET",
+    "TRAINING_SEEDS",
+    "CaveNavEnv",
+    "Timings",
+    "read_action",
+    "snap_action",
+]
 
 # Every character the action grammar needs: words of both cases, numbers, units, signs.
 ACTION_CHARSET = string.ascii_letters + string.digits + " .,-+°"
@@ -107,6 +114,71 @@ def _four_numbers(vector: object) -> np.ndarray:
     return v
 
 
+def read_action(
+    action: object, space: ActionSpace, action_format: Literal["text", "vector"] = "text"
+) -> tuple[Action, str | None]:
+    """The action ``action`` asks for and, when it is not admissible, why (then hold).
+
+    What `CaveNavEnv.step` accepts: an action string, an action vector (with
+    ``action_format="vector"``) or an `Action`; anything else holds, saying why. A
+    wrapper that judges actions before the environment (`cavenav.wrappers.SafetyShield`)
+    reads them the same way.
+    """
+    try:
+        if isinstance(action, Action):
+            return space.validate(action), None
+        if action_format == "vector" and not isinstance(action, str):
+            return snap_action(action, space), None
+        return parse_action(action, space), None
+    except ActionError as exc:
+        return Action(), str(exc)
+
+
+def _observation_space(sensors: SensorConfig) -> spaces.Dict:
+    """The ``Dict`` of images and sounder ranges that ``sensors`` produce."""
+    camera, d_max = sensors.camera, float(sensors.depth_max_m)
+    sounder = float(sensors.sounder_max_range_m)
+    image = (camera.height, camera.width)
+    return spaces.Dict(
+        {
+            "rgb": spaces.Box(0, 255, (*image, 3), np.uint8),
+            "depth": spaces.Box(0, 255, image, np.uint8),
+            "depth_m": spaces.Box(0.0, d_max, image, np.float32),
+            "d_top": spaces.Box(0.0, sounder, (), np.float32),
+            "d_bottom": spaces.Box(0.0, sounder, (), np.float32),
+        }
+    )
+
+
+def _action_space(action_format: str, space: ActionSpace) -> spaces.Space:
+    """Action strings over `ACTION_CHARSET`, or a ``Box`` of the largest magnitudes."""
+    if action_format == "text":
+        return spaces.Text(300, charset=ACTION_CHARSET)
+    high = np.array(
+        [max(space.forward_m), max(space.lateral_m), space.vertical_range_m[1], max(space.yaw_deg)],
+        np.float32,
+    )
+    return spaces.Box(-high, high, dtype=np.float32)
+
+
+@dataclass(frozen=True)
+class Timings:
+    """How long a reset or a step took on this machine, in milliseconds.
+
+    Any two compare equal (no field takes part in ``==``): the same step is the same
+    step however fast the machine ran it, and ``info`` must compare equal across two runs
+    of one seed and one action sequence (Gymnasium's determinism check), timings and all.
+
+    Attributes:
+        sense_ms: rendering the observation: camera, depth and echo sounders.
+        physics_ms: reading the action, moving the vehicle and the swept collision check;
+            None after a reset.
+    """
+
+    sense_ms: float = field(compare=False)
+    physics_ms: float | None = field(default=None, compare=False)
+
+
 @dataclass(frozen=True)
 class _World:
     """One cave ready to fly: scenario, ray caster and sensor rig."""
@@ -125,7 +197,7 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
     (H, W) uint8 normalised depth, dark near, as a VLM sees it; ``depth_m`` (H, W)
     float32 planar depth in metres, D_max where nothing is nearer; ``d_top`` and
     ``d_bottom`` float32 arrays of shape () from the echo sounders, bounded by their
-    range. The same observation, typed as a pilot receives it, is `observation`.
+    range. The same observation, typed as a pilot receives it, is ``info["observation"]``.
 
     Action: an action string of the grammar in `cavenav.actions` (``spaces.Text`` over
     `ACTION_CHARSET`), or with ``action_format="vector"`` a ``Box`` of (df, dr, dz, dpsi
@@ -149,9 +221,14 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
     Info: ``pose`` (x, y, z, yaw_deg), ``clearance_m`` (exact distance to the nearest
     surface), ``collision``, ``exit``, ``entrance`` (left through the entrance),
     ``action`` (the action executed, canonical), ``invalid_action`` (the reason, or
-    None), ``progress_m`` (made good since the start), ``collision_pose`` and
-    ``scenario``/``cave_seed``. Timings stay out of ``info``, which must be
-    deterministic; they are in `timings_ms`.
+    None), ``progress_m`` (made good since the start), ``collision_pose``,
+    ``scenario``/``cave_seed`` and ``termination`` ("exit", "collision",
+    "exited_entrance" or None while the episode goes on). For drivers, typed:
+    ``observation`` (the `Observation` a pilot receives; its ``previous_action`` is the
+    action executed), ``vehicle_pose`` (the `Pose`, unrounded) and ``timings``
+    (`Timings`, equal whatever they hold, so that ``info`` stays deterministic). A
+    `Motion` that drifts from its commands (a vehicle) adds ``commanded_pose``,
+    ``drift_m`` and ``drift_deg`` (`cavenav.kinematics.Drift`).
 
     Reset options (for that reset only): ``scenario`` (a family name, a scenario file's path,
     or a `Scenario`), ``cave_seed`` (which cave of a procedural family). Seeds are drawn
@@ -195,8 +272,8 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
             render_mode: None or "rgb_array" (the forward colour image).
             motion: who carries out the actions: the kinematics of SPEC section 5 (the
                 default), or a vehicle (`cavenav.vehicle.mavlink.ArduSubMotion`), whose
-                reported pose is then sensed and checked; ``info`` gains ``drift_m`` and
-                ``drift_deg``, how far it ended from the pose the kinematics command.
+                reported pose is then sensed and checked; ``info`` gains the move's
+                drift from the pose the kinematics command (`Motion.drift`).
         """
         if render_mode not in (None, "rgb_array"):
             raise ConfigError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
@@ -207,50 +284,20 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
         if resolution is not None:
             self.sensors = self.sensors.with_resolution(*pixel_size(resolution, "resolution"))
         self.body = body or VehicleBody()
-        self.rules = rules
-        self.space = space
-        self.action_format = action_format
+        self.rules, self.space, self.action_format = rules, space, action_format
         self.collision_penalty = collision_penalty
         self.motion: Motion = motion or Kinematic()
-        self._default_scenario = scenario
-        self._default_cave_seed = cave_seed
+        self._default_scenario, self._default_cave_seed = scenario, cave_seed
         self._world: _World | None = None
-
-        camera, d_max = self.sensors.camera, float(self.sensors.depth_max_m)
-        sounder = float(self.sensors.sounder_max_range_m)
-        image = (camera.height, camera.width)
-        self.observation_space = spaces.Dict(
-            {
-                "rgb": spaces.Box(0, 255, (*image, 3), np.uint8),
-                "depth": spaces.Box(0, 255, image, np.uint8),
-                "depth_m": spaces.Box(0.0, d_max, image, np.float32),
-                "d_top": spaces.Box(0.0, sounder, (), np.float32),
-                "d_bottom": spaces.Box(0.0, sounder, (), np.float32),
-            }
-        )
-        if action_format == "text":
-            self.action_space: spaces.Space = spaces.Text(300, charset=ACTION_CHARSET)
-        else:
-            high = np.array(
-                [
-                    max(space.forward_m),
-                    max(space.lateral_m),
-                    space.vertical_range_m[1],
-                    max(space.yaw_deg),
-                ],
-                np.float32,
-            )
-            self.action_space = spaces.Box(-high, high, dtype=np.float32)
-
+        self.observation_space = _observation_space(self.sensors)
+        self.action_space = _action_space(action_format, space)
         self.pose: Pose | None = None
         self.observation: Observation | None = None
-        self.timings_ms: dict[str, float] = {}
+        self._timings = Timings(0.0)
         self._clearance = math.inf
         self._progress = 0.0
-        self._steps = 0
-        self._ended = False
-        self._left_by_entrance = False
-        self._noise_seed = 0
+        self._steps = self._noise_seed = 0
+        self._ended = self._left_by_entrance = False
 
     # ------------------------------------------------------------------ the cave
     @property
@@ -309,7 +356,7 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
         self._ended = self._left_by_entrance = False
         started = time.perf_counter()
         self.observation = self._world.rig.observe(self.pose, 0, self._noise_seed)
-        self.timings_ms = {"sense": 1e3 * (time.perf_counter() - started)}
+        self._timings = Timings(sense_ms=1e3 * (time.perf_counter() - started))
         return self._observation_dict(), self._info(Action(), None, None)
 
     def step(
@@ -342,16 +389,13 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
         sensed = time.perf_counter()
         observation = self._world.rig.observe(self.pose, self._steps, self._noise_seed)
         self.observation = replace(observation, previous_action=command)
-        self.timings_ms = {
-            "physics": 1e3 * (sensed - started),
-            "sense": 1e3 * (time.perf_counter() - sensed),
-        }
+        self._timings = Timings(
+            physics_ms=1e3 * (sensed - started), sense_ms=1e3 * (time.perf_counter() - sensed)
+        )
         info = self._info(command, invalid, collision_pose)
-        if not isinstance(self.motion, Kinematic):
-            commanded = apply(start, command)
-            info["commanded_pose"] = commanded.to_dict()
-            info["drift_m"] = float(np.linalg.norm(moved.position - commanded.position))
-            info["drift_deg"] = turn_deg(moved.psi, commanded.psi)
+        drift = self.motion.drift(start, command, moved)
+        if drift is not None:
+            info.update(drift.to_info())
         return self._observation_dict(), float(reward), self._ended, False, info
 
     def render(self) -> np.ndarray | None:
@@ -362,19 +406,9 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
 
     # ------------------------------------------------------------------ helpers
     def command(self, action: object) -> tuple[Action, str | None]:
-        """The action ``action`` asks for and, when it is not admissible, why (then hold).
-
-        Accepts what `step` accepts: an action string, an action vector (with
-        ``action_format="vector"``) or an `Action`; anything else holds, saying why.
-        """
-        try:
-            if isinstance(action, Action):
-                return self.space.validate(action), None
-            if self.action_format == "vector" and not isinstance(action, str):
-                return snap_action(action, self.space), None
-            return parse_action(action, self.space), None
-        except ActionError as exc:
-            return Action(), str(exc)
+        """The action ``action`` asks for and, when it is not admissible, why (then hold):
+        `read_action` in this environment's action space and format."""
+        return read_action(action, self.space, self.action_format)
 
     def _observation_dict(self) -> dict[str, np.ndarray]:
         obs, cfg = self.observation, self.sensors
@@ -392,16 +426,23 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
         self, executed: Action, invalid: str | None, collision_pose: Pose | None
     ) -> dict[str, Any]:
         assert self.pose is not None and self._world is not None
+        collided, entrance = collision_pose is not None, self._left_by_entrance
+        exited = self._ended and not collided and not entrance
+        ending = {"collision": collided, "exit": exited, "exited_entrance": entrance}
         return {
             "pose": self.pose.to_dict(),
             "clearance_m": float(self._clearance),
-            "collision": collision_pose is not None,
-            "exit": self._ended and collision_pose is None and not self._left_by_entrance,
-            "entrance": self._left_by_entrance,
+            "collision": collided,
+            "exit": exited,
+            "entrance": entrance,
             "action": format_action(executed),
             "invalid_action": invalid,
             "progress_m": float(self._progress),
             "collision_pose": collision_pose.to_dict() if collision_pose else None,
             "scenario": self.scenario.name,
             "cave_seed": self._world.key[1],
+            "termination": next((name for name, ended in ending.items() if ended), None),
+            "observation": self.observation,
+            "vehicle_pose": self.pose,
+            "timings": self._timings,
         }

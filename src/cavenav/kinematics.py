@@ -9,17 +9,21 @@ The vehicle first turns in place, then translates along a straight line in the n
 heading; collision checks sweep the body through exactly these two phases.
 
 Who carries an action out is a `Motion`: these kinematics (`Kinematic`, the simulator's
-default) or a vehicle that reports where it got to (`cavenav.vehicle.mavlink`).
+default) or a vehicle that reports where it got to (`cavenav.vehicle.mavlink`), and the
+`Drift` between where it got to and where these equations would have put it.
 """
 
 from __future__ import annotations
 
 import math
-from typing import Protocol
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import numpy as np
 
 from cavenav.types import Action, Pose
 
-__all__ = ["Kinematic", "Motion", "apply", "turn_deg", "wrap_angle"]
+__all__ = ["Drift", "Kinematic", "Motion", "apply", "turn_deg", "wrap_angle"]
 
 
 def wrap_angle(psi: float) -> float:
@@ -44,8 +48,44 @@ def apply(pose: Pose, action: Action) -> Pose:
     )
 
 
+@dataclass(frozen=True)
+class Drift:
+    """How far a move ended from the pose `apply` commands: a vehicle's currents, noise
+    and controller, which the kinematics do not have.
+
+    Attributes:
+        commanded: the pose `apply` gives for the move.
+        metres: distance between the commanded and the reached positions.
+        degrees: the turn between the commanded and the reached headings (0 to 180).
+    """
+
+    commanded: Pose
+    metres: float
+    degrees: float
+
+    @classmethod
+    def of(cls, pose: Pose, action: Action, reached: Pose) -> Drift:
+        """The drift of a move of ``action`` from ``pose`` that ended at ``reached``."""
+        commanded = apply(pose, action)
+        return cls(
+            commanded,
+            float(np.linalg.norm(reached.position - commanded.position)),
+            turn_deg(reached.psi, commanded.psi),
+        )
+
+    def to_info(self) -> dict[str, Any]:
+        """The environment's ``info`` keys for it: ``commanded_pose``, ``drift_m``,
+        ``drift_deg``."""
+        return {
+            "commanded_pose": self.commanded.to_dict(),
+            "drift_m": self.metres,
+            "drift_deg": self.degrees,
+        }
+
+
 class Motion(Protocol):
-    """Carries out actions: the environment asks it where each action took the vehicle."""
+    """Carries out actions: the environment asks it where each action took the vehicle,
+    and how far that is from where the action was commanded to take it."""
 
     def start(self, pose: Pose) -> Pose:
         """The vehicle begins at ``pose`` (the scenario's start); where it is."""
@@ -55,12 +95,20 @@ class Motion(Protocol):
         """Carry out ``action`` from ``pose``; the pose reached."""
         ...
 
+    def drift(self, pose: Pose, action: Action, reached: Pose) -> Drift | None:
+        """How far ``reached``, where `move` took the vehicle from ``pose``, is from the
+        pose ``action`` commands; None where the two are one by construction."""
+        ...
+
 
 class Kinematic:
-    """`apply`, exactly: the pose commanded is the pose reached."""
+    """`apply`, exactly: the pose commanded is the pose reached, so there is no drift."""
 
     def start(self, pose: Pose) -> Pose:
         return pose
 
     def move(self, pose: Pose, action: Action) -> Pose:
         return apply(pose, action)
+
+    def drift(self, pose: Pose, action: Action, reached: Pose) -> Drift | None:
+        return None

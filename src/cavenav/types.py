@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from functools import cached_property
 from typing import Any
 
@@ -193,6 +193,17 @@ class Observation:
     step: int = 0
     previous_action: Action | None = None
     has_depth: bool = True
+
+    def __eq__(self, other: object) -> bool:
+        """Field by field, the images by value (NaN equal to NaN): two renderings of one
+        step are equal, so an environment's ``info`` that carries them can be compared."""
+        if not isinstance(other, Observation):
+            return NotImplemented
+        pairs = ((getattr(self, f.name), getattr(other, f.name)) for f in fields(self))
+        return all(
+            np.array_equal(a, b, equal_nan=True) if isinstance(a, np.ndarray) else a == b
+            for a, b in pairs
+        )
 
 
 @dataclass(frozen=True)

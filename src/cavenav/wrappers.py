@@ -2,7 +2,9 @@
 
 `SafetyShield` stands between any pilot and the vehicle (see `cavenav.shield` for the
 rules); it judges from the observations only, so it behaves the same in front of a real
-vehicle. `StuckLimit` ends an episode that has stopped getting anywhere, whoever flies it.
+vehicle. Both drive the environment through Gymnasium's API alone: `reset`, `step` and the
+``info`` they return, and the settings any wrapper reads (`gym.Env.get_wrapper_attr`).
+`StuckLimit` ends an episode that has stopped getting anywhere, whoever flies it.
 """
 
 from __future__ import annotations
@@ -12,7 +14,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from cavenav.env import CaveNavEnv
+from cavenav.env import read_action
 from cavenav.shield import Shield, ShieldConfig
 from cavenav.types import Action
 
@@ -31,37 +33,34 @@ class SafetyShield(gym.Wrapper):
     Each step's ``info["shield"]`` is None when the action passed, otherwise
     ``{"proposed", "replacement", "reason"}``; `interventions` counts them over the
     episode. Inadmissible actions pass through untouched: the environment holds and
-    says why in ``info["invalid_action"]``.
+    says why in ``info["invalid_action"]``. It wraps a `cavenav.env.CaveNavEnv`, whose
+    ``rules``, ``body``, ``space`` and ``action_format`` it reads, and whose
+    ``info["observation"]`` it judges from.
     """
 
     def __init__(self, env: gym.Env, config: ShieldConfig | None = None):
         super().__init__(env)
-        base = self._base
-        self.shield = Shield(config or ShieldConfig(rules=base.rules, body=base.body), base.space)
+        rules, body = env.get_wrapper_attr("rules"), env.get_wrapper_attr("body")
+        self._space = env.get_wrapper_attr("space")
+        self._action_format = env.get_wrapper_attr("action_format")
+        self.shield = Shield(config or ShieldConfig(rules=rules, body=body), self._space)
         self.interventions = 0
-
-    @property
-    def _base(self) -> CaveNavEnv:
-        base = self.env.unwrapped
-        if not isinstance(base, CaveNavEnv):
-            raise TypeError(f"SafetyShield wraps a CaveNavEnv, not {type(base).__name__}")
-        return base
 
     def reset(self, **kwargs: Any) -> tuple[Any, dict[str, Any]]:
         obs, info = self.env.reset(**kwargs)
         self.shield.reset()
         self.interventions = 0
-        self.shield.observe(self._base.observation)
+        self.shield.observe(info["observation"])
         return obs, {**info, "shield": None}
 
     def step(self, action: str | np.ndarray | Action) -> tuple[Any, float, bool, bool, dict]:
-        proposed, invalid = self._base.command(action)
+        proposed, invalid = read_action(action, self._space, self._action_format)
         verdict = None if invalid else self.shield.judge(proposed)
         if verdict is not None:
             action = verdict.action  # already parsed: the environment only validates it
             self.interventions += verdict.intervened
         obs, reward, terminated, truncated, info = self.env.step(action)
-        self.shield.observe(self._base.observation)
+        self.shield.observe(info["observation"])
         info["shield"] = verdict.to_dict() if verdict is not None and verdict.intervened else None
         return obs, reward, terminated, truncated, info
 

@@ -25,7 +25,7 @@ from typing import Any
 import gymnasium as gym
 from gymnasium.wrappers import TimeLimit
 
-from cavenav.env import CaveNavEnv
+from cavenav.env import CaveNavEnv, Timings
 from cavenav.episode.record import TERMINATIONS, EpisodeLog
 from cavenav.episode.run_folder import LostStep, RunFolder
 from cavenav.errors import CavenavError, PilotFailure, RecordingError
@@ -145,62 +145,21 @@ def run_episode(
     config = config or EpisodeConfig()
     config = replace(config, max_steps=step_budget(scenario, config))  # recorded as flown
     env = make_env(scenario, config, motion)
-    vehicle: CaveNavEnv = env.unwrapped  # type: ignore[assignment]
     _, info = env.reset(seed=config.seed)  # checks the start before any folder is written
-    assert vehicle.pose is not None
-    log = EpisodeLog(
-        scenario, pilot.name, config.rules, config.shield, vehicle.pose, info["clearance_m"], config
-    )
-    folder = (
-        RunFolder(
-            run_dir, config.save_frames, config.save_exr, exr_compression=config.exr_compression
-        )
-        if run_dir is not None
-        else None
-    )
+    start, clearance = info["vehicle_pose"], info["clearance_m"]
+    log = EpisodeLog(scenario, pilot.name, config.rules, config.shield, start, clearance, config)
+    folder = _run_folder(run_dir, config)
     status = "crashed"
     try:
         pilot.reset()
         if folder:
             _write(folder.write_json, folder.path, "summary.json", log.summary("running"))
-        while log.termination is None:
-            observation = vehicle.observation
-            assert observation is not None
-            timing = {"sense": vehicle.timings_ms["sense"]}
-            started = time.perf_counter()
-            mark = log.mark()
-            try:
-                decision = pilot.decide(observation)
-            except PilotFailure as failure:
-                timing["pilot"] = 1e3 * (time.perf_counter() - started)
-                record = log.pilot_failed(observation, failure, timing)
-                exchanges = failure.exchanges
-            else:
-                timing["pilot"] = 1e3 * (time.perf_counter() - started)
-                _, _, _, truncated, info = env.step(decision.action_text)
-                timing["physics"] = vehicle.timings_ms["physics"]
-                executed = vehicle.observation.previous_action
-                record = log.stepped(
-                    observation, decision, info, executed, vehicle.pose, truncated, timing
-                )
-                exchanges = decision.exchanges
-            if folder:
-                _hand_over(folder, log, mark, record, observation, exchanges)
-            if on_step:
-                on_step(record)
-        if folder:
-            _settle(folder, log)
+        _fly(env, pilot, log, info, folder, on_step)
         status = "finished"
     except KeyboardInterrupt:
         status = "interrupted"
-        if folder:  # keep the steps flown: they are queued, whole
-            with contextlib.suppress(RecordingError):
-                _settle(folder, log)
         raise
     except Exception as exc:
-        if folder:  # a lost step was reported once: settling again finds nothing new
-            with contextlib.suppress(RecordingError):
-                _settle(folder, log)
         log.crashed(
             f"{type(exc).__name__}: {exc}" if not isinstance(exc, CavenavError) else str(exc)
         )
@@ -208,11 +167,81 @@ def run_episode(
     finally:
         summary = log.summary(status)
         if folder:
-            folder.finish(summary, log, vehicle.caster, plots=config.plots and status == "finished")
+            caster = env.get_wrapper_attr("caster")
+            folder.finish(summary, log, caster, plots=config.plots and status == "finished")
         env.close()
     return EpisodeResult(
         summary, log.poses, log.clearances, log.steps, folder.path if folder else None
     )
+
+
+def _run_folder(run_dir: str | Path | None, config: EpisodeConfig) -> RunFolder | None:
+    """The run folder ``config`` asks for at ``run_dir``; None records nothing."""
+    if run_dir is None:
+        return None
+    return RunFolder(
+        run_dir, config.save_frames, config.save_exr, exr_compression=config.exr_compression
+    )
+
+
+def _fly(
+    env: gym.Env,
+    pilot: Pilot,
+    log: EpisodeLog,
+    info: dict[str, Any],
+    folder: RunFolder | None,
+    on_step: Callable[[dict[str, Any]], None] | None,
+) -> None:
+    """Step until the episode ends, from the ``info`` of the reset, and settle the folder.
+
+    However the loop stops, even on Ctrl-C, the folder keeps the steps handed to it, whole
+    (`_settle`), so that it agrees with the log: a lost step was reported once, and
+    settling again after it finds nothing new.
+
+    Raises:
+        RecordingError: a step could not be written.
+    """
+    try:
+        while log.termination is None:
+            mark = log.mark()
+            observation = info["observation"]
+            record, exchanges, info = _step(env, pilot, log, observation, info["timings"])
+            if folder:
+                _hand_over(folder, log, mark, record, observation, exchanges)
+            if on_step:
+                on_step(record)
+        if folder:
+            _settle(folder, log)
+    except (KeyboardInterrupt, Exception):
+        if folder:
+            with contextlib.suppress(RecordingError):
+                _settle(folder, log)
+        raise
+
+
+def _step(
+    env: gym.Env, pilot: Pilot, log: EpisodeLog, observation: Observation, sensed: Timings
+) -> tuple[dict[str, Any], Sequence[Mapping[str, Any]], dict[str, Any]]:
+    """The pilot decides on ``observation`` (sensed in ``sensed``), the environment
+    carries it out and the log records the step.
+
+    Returns:
+        The step's record, the pilot's exchanges with its model, and the environment's
+        ``info`` (empty when the pilot failed: the episode ends there).
+    """
+    timing = {"sense": sensed.sense_ms}
+    started = time.perf_counter()
+    try:
+        decision = pilot.decide(observation)
+    except PilotFailure as failure:
+        timing["pilot"] = 1e3 * (time.perf_counter() - started)
+        return log.pilot_failed(observation, failure, timing), failure.exchanges, {}
+    timing["pilot"] = 1e3 * (time.perf_counter() - started)
+    _, _, _, truncated, info = env.step(decision.action_text)
+    timing["physics"] = info["timings"].physics_ms
+    executed, pose = info["observation"].previous_action, info["vehicle_pose"]
+    record = log.stepped(observation, decision, info, executed, pose, truncated, timing)
+    return record, decision.exchanges, info
 
 
 def _hand_over(

@@ -59,7 +59,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from cavenav.actions import format_action
 from cavenav.errors import ConfigError, DependencyError, VehicleError, invalid_field
-from cavenav.kinematics import turn_deg, wrap_angle
+from cavenav.kinematics import Drift, turn_deg, wrap_angle
 from cavenav.types import Action, Pose
 from cavenav.vehicle.frames import NedFrame, NedPose, body_offset, body_to_ned
 
@@ -795,6 +795,10 @@ class ArduSubMotion:
             self._stop_moving(link)
             raise
         return frame.to_world(link.pose())
+
+    def drift(self, pose: Pose, action: Action, reached: Pose) -> Drift:
+        """Against the whole ``action``, even where the depth limits cut it short."""
+        return Drift.of(pose, action, reached)
 
     def _within_depth_limits(self, link: ArduSubLink, action: Action) -> Action:
         """``action`` with its vertical part cut so that the depth stays within limits."""
