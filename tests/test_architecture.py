@@ -99,13 +99,14 @@ def import_circles() -> list[list[str]]:
     (the strongly connected parts of the import graph), each sorted.
 
     Built from the source, not from what ``import`` happens to load: every import
-    statement counts, at the top or inside a function. An import put inside a function
-    to break a circle still makes the two modules need each other (each can only be
-    understood, tested or moved with the other), and it only hides the circle from
-    Python until the day someone hoists the import. An edge goes to the modules the
-    statement names (``from cavenav.world import mesh`` and ``from cavenav.world.mesh
-    import CaveMesh`` both to ``cavenav.world.mesh``), not to the packages above them,
-    whose ``__init__`` files import nothing of cavenav.
+    statement counts, at the top, inside a function or under ``if TYPE_CHECKING``. An
+    import put inside a function to break a circle still makes the two modules need each
+    other (each can only be understood, tested or moved with the other), and it only
+    hides the circle from Python until the day someone hoists the import; a module whose
+    signatures name another's type depends on it as much as one that calls it. An edge
+    goes to the modules the statement names (``from cavenav.world import mesh`` and
+    ``from cavenav.world.mesh import CaveMesh`` both to ``cavenav.world.mesh``), not to
+    the packages above them, whose ``__init__`` files import nothing of cavenav.
     """
     names = {module_name(path): path for path in SRC.rglob("*.py")}
     graph = {name: imports_of(path) & names.keys() - {name} for name, path in names.items()}

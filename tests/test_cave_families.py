@@ -19,7 +19,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from cavenav.errors import CavenavWarning, ScenarioError
-from cavenav.world import scenarios as scenarios_module
+from cavenav.world import scenario as scenarios_module
 from cavenav.world.collision import VehicleBody
 from cavenav.world.mesh import CaveMesh
 from cavenav.world.procedural import PassageSpec, build_cave

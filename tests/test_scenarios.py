@@ -6,6 +6,7 @@ import inspect
 import json
 import math
 import os
+import re
 from pathlib import Path
 
 import numpy as np
@@ -16,15 +17,18 @@ from hypothesis import strategies as st
 from cavenav.errors import ConfigError, MeshError, ScenarioError
 from cavenav.sensors.rig import SensorConfig
 from cavenav.types import Pose
-from cavenav.world import scenarios as scenarios_module
+from cavenav.world import scenario as scenarios_module
 from cavenav.world.collision import VehicleBody, clearance
 from cavenav.world.procedural import cache_dir, resample
 from cavenav.world.raycast import RayCaster
+from cavenav.world.scenario import KNOB_FACTS
 from cavenav.world.scenarios import (
     HELD_OUT_SEEDS,
+    KNOBS,
     SCENARIOS,
     Difficulty,
     Scenario,
+    check_scenario,
     difficulty_table,
     load_scenario,
     load_scenario_file,
@@ -472,6 +476,32 @@ def test_held_out_seeds_begin_where_the_training_seeds_end() -> None:
 
     assert HELD_OUT_SEEDS.start == TRAINING_SEEDS
     assert TRAINING_SEEDS - 1 not in HELD_OUT_SEEDS and 1234 in HELD_OUT_SEEDS
+
+
+@pytest.mark.parametrize("knob", KNOBS)
+def test_a_knob_past_its_range_is_refused_for_its_one_reason_from_the_command_line_and_a_file(
+    knob: str, tmp_path: Path
+) -> None:
+    family = next(f for f in SCENARIOS.values() if knob in f.knobs)
+    value = family.knobs[knob].high + 1
+    text = f"{int(value)}" if KNOB_FACTS[knob].count else f"{value:g}"
+    why = re.escape(f"{knob}={text} is outside {family.knobs[knob]}: {KNOB_FACTS[knob].limits}")
+    with pytest.raises(ScenarioError, match=why):
+        check_scenario(family.name, parse_difficulty([f"{knob}={text}"]))
+    path = tmp_path / "hard.toml"
+    path.write_text(f'family = "{family.name}"\n[difficulty]\n{knob} = {text}\n')
+    with pytest.raises(ConfigError, match=f"{re.escape(str(path))}: \\[difficulty\\]: .*{why}"):
+        check_scenario(str(path))
+
+
+@pytest.mark.parametrize("knob", KNOBS)
+def test_a_count_knob_takes_whole_numbers_and_the_others_real_ones(knob: str) -> None:
+    if KNOB_FACTS[knob].count:
+        with pytest.raises(ConfigError, match=f"{knob} takes a whole number"):
+            parse_difficulty([f"{knob}=1.5"])
+        assert parse_difficulty([f"{knob}=2"]).to_dict() == {knob: 2}
+    else:
+        assert parse_difficulty([f"{knob}=1.5"]).to_dict() == {knob: 1.5}
 
 
 def test_the_knob_table_in_the_docs_is_the_one_the_families_declare() -> None:

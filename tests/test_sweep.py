@@ -345,7 +345,7 @@ def test_a_grid_that_could_only_crash_is_refused_before_anything_is_written(
     tmp_path: Path, scenario: str, knobs: dict, refusal: str, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     import cavenav.evaluation.sweep as sweeps
-    import cavenav.world.scenarios as scenarios
+    import cavenav.world.scenario_file as scenarios
 
     def built(*args: object, **kwargs: object) -> None:
         raise AssertionError("a cave was built to find out")

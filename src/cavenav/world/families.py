@@ -1,0 +1,621 @@
+"""The cave families: one builder per family, drawing a passage from a seed and knobs.
+
+Each builder takes the family's generator (seeded by the cave seed and the family's
+number, see `cavenav.world.scenario.SCENARIOS`), the cave seed and every knob of the
+family resolved to a value, and returns the `Layout` of a passage before meshing: its
+centre line and profiles, boulders and side branches, the start pose and a description.
+S1-S5 are the SPEC's five topologies (section 6); crawl, maze and long are harder.
+What the knobs mean and the ranges each family accepts are declared with
+`cavenav.world.scenario.Difficulty` and the registry; the builders only read them.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from cavenav.errors import ScenarioError
+from cavenav.types import Pose
+from cavenav.world.procedural import (
+    Boulder,
+    Branch,
+    PassageSpec,
+    cpu_independent,
+    gaussian_smooth,
+    resample,
+)
+
+__all__ = ["Layout", "crawl", "long", "maze", "s1", "s2", "s3", "s4", "s5"]
+
+
+def _vec3(v: np.ndarray) -> tuple[float, float, float]:
+    return float(v[0]), float(v[1]), float(v[2])
+
+
+def _smooth_noise(s: np.ndarray, wavelength: float, rng: np.random.Generator) -> np.ndarray:
+    """Smooth 1-D noise along arc length ``s``, roughly in [-1, 1]."""
+    knots = np.arange(s[0] - wavelength, s[-1] + 2 * wavelength, wavelength)
+    values = rng.uniform(-1.0, 1.0, len(knots))
+    curve = np.interp(s, knots, values)
+    step = float(s[1] - s[0])
+    return gaussian_smooth(curve, 0.35 * wavelength / step) * 1.6
+
+
+def _dips(s: np.ndarray, centres: list[float], depth: float, sigma: float = 1.6) -> np.ndarray:
+    """Sum of Gaussian narrowings of ``depth`` metres centred at ``centres``."""
+    out = np.zeros_like(s)
+    for c in centres:
+        out = np.maximum(out, depth * cpu_independent(math.exp, -0.5 * ((s - c) / sigma) ** 2))
+    return out
+
+
+def _dip_depth(half_width: float, narrowest_m: float) -> float:
+    """How deep dips must be to narrow a passage of ``half_width`` to ``narrowest_m`` across.
+
+    Rounded to the nanometre so that the decimal defaults give back the depths the families
+    were written with bit for bit: 3.2 - 3.8 / 2 is 1.3000000000000003 in floating point.
+    """
+    return round(half_width - narrowest_m / 2, 9)
+
+
+def _straighten_ends(
+    s: np.ndarray, values: np.ndarray, length: float, margin: float = 6.0
+) -> np.ndarray:
+    """Hold a profile constant before s=2 and after s=length-margin: straight portals."""
+    head = np.interp(2.0, s, values)
+    tail = np.interp(length - margin, s, values)
+    out = values.copy()
+    out[s < 2.0] = head
+    out[s > length - margin] = tail
+    return gaussian_smooth(out, 4)
+
+
+def _winding(s: np.ndarray, heading: np.ndarray, length: float) -> tuple[np.ndarray, np.ndarray]:
+    """The plan (x, y) of a passage along -y that turns by ``heading`` (radians, positive
+    to +x) at stations ``s``: straight near the start and, so that the exit runs along
+    the axis the grid is cut across, over the last 8 m. The start is at the origin."""
+    heading = _straighten_ends(s, heading, length)
+    heading[s > length - 8] = 0.0
+    heading = gaussian_smooth(heading, 6)
+    heading[s > length - 3] = 0.0
+    step = s[1] - s[0]
+    x = np.cumsum(cpu_independent(math.sin, heading)) * step
+    y = -np.cumsum(cpu_independent(math.cos, heading)) * step
+    return x - np.interp(0.0, s, x), y - np.interp(0.0, s, y)
+
+
+def _scaled(radii: tuple[float, float, float], scale: float) -> tuple[float, float, float]:
+    """Semi-axes times ``obstacle_scale`` (exact at the default 1.0)."""
+    return radii[0] * scale, radii[1] * scale, radii[2] * scale
+
+
+@dataclass(frozen=True)
+class Layout:
+    """A generated passage before meshing: spec plus where the vehicle starts.
+
+    ``step_budget`` is `Scenario.step_budget`: None for S1-S5, which the SPEC's 150
+    steps fit.
+    """
+
+    spec: PassageSpec
+    start: Pose
+    description: str
+    step_budget: int | None = None
+
+    @property
+    def exit_plane(self) -> tuple[tuple[float, float, float], tuple[float, float, float], float]:
+        """Point, outward normal and radius of the exit portal: across the passage at the
+        exit station, along the centre line there, 1.5 m wider than the widest profile so
+        that no part of the passage's end lies outside it."""
+        spec = self.spec
+        tangent = spec.centreline[spec.exit_index + 1] - spec.centreline[spec.exit_index - 1]
+        tangent /= np.linalg.norm(tangent)
+        radius = float(max(spec.half_width.max(), spec.half_height.max()) + 1.5)
+        return _vec3(spec.centreline[spec.exit_index]), _vec3(tangent), radius
+
+
+def _layout_from_profiles(
+    s: np.ndarray,
+    points: np.ndarray,
+    half_width: np.ndarray,
+    half_height: np.ndarray,
+    length: float,
+    seed: int,
+    *,
+    roughness: float,
+    boulders: tuple[Boulder, ...] = (),
+    branches: tuple[Branch, ...] = (),
+    start_offset: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    steps_per_m: float | None = None,
+    description: str = "",
+) -> Layout:
+    """The layout of a passage sampled at stations ``s`` (0 at the start, ``length`` at
+    the exit); ``steps_per_m`` gives a step budget for that many steps per metre of
+    centre-line from the start to the exit, rounded up to a multiple of 10."""
+    exit_index = int(np.searchsorted(s, length))
+    start_index = int(np.searchsorted(s, 0.0))
+    heading = points[start_index + 1] - points[start_index]
+    start = Pose.facing(points[start_index] + np.asarray(start_offset), heading)
+    spec = PassageSpec(
+        points,
+        half_width,
+        half_height,
+        boulders,
+        exit_index,
+        roughness=roughness,
+        seed=seed,
+        branches=branches,
+    )
+    budget = None
+    if steps_per_m is not None:
+        passage = np.linalg.norm(np.diff(points[start_index : exit_index + 1], axis=0), axis=1)
+        budget = 10 * math.ceil(steps_per_m * float(passage.sum()) / 10)
+    return Layout(spec, start, description, budget)
+
+
+def s1(rng: np.random.Generator, seed: int, knobs: Mapping[str, float]) -> Layout:
+    """S1, constrictions: a gently winding passage narrowed in three places."""
+    length = 55.0
+    s = np.arange(-4.0, length + 4.0, 0.25)
+    phase = 2 * np.pi * s / rng.uniform(26, 34) + rng.uniform(0, 6.3)
+    x = _straighten_ends(s, 1.6 * cpu_independent(math.sin, phase), length)
+    z = _straighten_ends(s, 0.5 * _smooth_noise(s, 12.0, rng), length)
+    points = np.stack([x, -s, z], axis=1)
+    necks = [c + rng.uniform(-2, 2) for c in (15.0, 29.0, 42.0)]
+    half_w = 3.5 - _dips(s, necks, _dip_depth(3.5, knobs["constriction_m"]))
+    half_h = 3.0 - _dips(s, necks[1:2], 1.0)
+    return _layout_from_profiles(
+        s,
+        points,
+        half_w,
+        half_h,
+        length,
+        seed,
+        roughness=knobs["roughness_m"],
+        description="narrow passage with three constrictions to about "
+        f"{knobs['constriction_m']:.1f} m",
+    )
+
+
+def s2(rng: np.random.Generator, seed: int, knobs: Mapping[str, float]) -> Layout:
+    """S2, undulations: a passage rising and falling, narrowed on two of its slopes."""
+    length = 55.0
+    s = np.arange(-4.0, length + 4.0, 0.25)
+    x = _straighten_ends(s, 1.0 * _smooth_noise(s, 15.0, rng), length)
+    # Slopes of at most atan(2 pi amplitude / 30): 23 degrees at the default 4 m peak to
+    # peak; larger undulations are steeper (see Difficulty).
+    period = rng.uniform(30, 34)
+    amplitude = knobs["undulation_m"] / 2
+    z = _straighten_ends(s, amplitude * cpu_independent(math.sin, 2 * np.pi * s / period), length)
+    points = np.stack([x, -s, z], axis=1)
+    # Constrictions on the slopes, between a crest and a trough.
+    necks = [period * (k / 2 + 0.5) + rng.uniform(-1.5, 1.5) for k in (0, 1)]
+    half_w = 3.2 - _dips(s, necks, _dip_depth(3.2, knobs["constriction_m"]))
+    half_h = 2.9 - _dips(s, necks, 0.8)
+    return _layout_from_profiles(
+        s,
+        points,
+        half_w,
+        half_h,
+        length,
+        seed,
+        roughness=knobs["roughness_m"],
+        description=f"narrow passage with vertical undulations of about "
+        f"{knobs['undulation_m']:g} m and two constrictions",
+    )
+
+
+def s3(rng: np.random.Generator, seed: int, knobs: Mapping[str, float]) -> Layout:
+    """S3, obstacles: a straight passage with boulders, alternately frontal and lateral."""
+    length = 45.0
+    s = np.arange(-4.0, length + 4.0, 0.25)
+    points = np.stack([np.zeros_like(s), -s, np.zeros_like(s)], axis=1)
+    half_w = np.full_like(s, 3.5)
+    half_h = np.full_like(s, 3.0)
+    wall_side = 1.0 if rng.random() < 0.5 else -1.0  # +x is the vehicle's left at psi = 0
+    count, scale = int(knobs["obstacles"]), knobs["obstacle_scale"]
+    # Stations from 14.5 m on, 29 m / count apart: the default two at 14.5 m and 29 m, and
+    # the last of eight by 41 m, clear of the exit at 45 m. Each draws its place in turn.
+    spacing = 29.0 / max(count, 1)
+    boulders = []
+    for k in range(count):
+        station = 14.5 + k * spacing
+        if k % 2 == 0:  # frontal: at the start height, in line with the start near the wall
+            jitter = min(1.5, spacing / 4)
+            y = -rng.uniform(station - jitter, station + jitter)
+            boulder = Boulder((-wall_side * 0.9, y, 0.0), _scaled((1.7, 1.5, 1.7), scale))
+        else:  # lateral: jutting from the other wall
+            jitter = min(2.0, spacing / 4)
+            y = -rng.uniform(station - jitter, station + jitter)
+            boulder = Boulder((wall_side * 3.6, y, -0.3), _scaled((2.3, 1.8, 1.9), scale))
+        boulders.append(boulder)
+    kinds = {0: "no obstacle", 1: "a frontal obstacle", 2: "a frontal and a lateral obstacle"}
+    obstacles = kinds.get(count, f"{count} obstacles, alternately frontal and lateral")
+    start = "start near the wall at the frontal obstacle's height" if count else "start near a wall"
+    return _layout_from_profiles(
+        s,
+        points,
+        half_w,
+        half_h,
+        length,
+        seed,
+        roughness=knobs["roughness_m"],
+        boulders=tuple(boulders),
+        start_offset=(-wall_side * 2.0, 0.0, 0.0),
+        description=f"straight passage with {obstacles}; {start}",
+    )
+
+
+def s4(rng: np.random.Generator, seed: int, knobs: Mapping[str, float]) -> Layout:
+    """S4, bend: two straight legs meeting at a sharp turn."""
+    leg = 30.0
+    side = 1.0 if rng.random() < 0.5 else -1.0
+    bend = knobs["bend_deg"]
+    # The grid is cut across the exit direction, which must be an axis: the second leg
+    # runs along side * x and the first leg is turned instead. ``back`` points from the
+    # corner up the first leg: +y for 90 degrees, tilted toward the second leg for less.
+    tilt = math.radians(bend - 90.0)
+    back = np.array([side * math.sin(tilt), math.cos(tilt), 0.0])
+    # A hairpin's first leg reaches back toward the exit plane: past about 130 degrees it
+    # is shortened so that its closed end (4 m behind the start, plus a wall) stays 7 m
+    # behind that plane, and so on the 0.25 m grid, where the corner falls on a sample.
+    reach = -math.cos(math.radians(bend))
+    first = leg if reach <= 0 else min(leg, math.floor(4 * ((leg - 7.0) / reach - 4.0)) / 4)
+    corner = np.array([0.0, -leg, 0.0])
+    corners = np.array(
+        [corner + (first + 4.0) * back, corner, corner + np.array([side * (leg + 4.0), 0, 0])]
+    )
+    points, s = resample(corners, 0.25)
+    s = s - 4.0
+    length = first + leg
+    half_w = 2.9 + 0.3 * _smooth_noise(s, 10.0, rng)
+    half_h = 2.7 + 0.2 * _smooth_noise(s, 10.0, rng)
+    return _layout_from_profiles(
+        s,
+        points,
+        half_w,
+        half_h,
+        length,
+        seed,
+        roughness=knobs["roughness_m"],
+        description=f"sharp {bend:g}-degree bend to the {'left' if side > 0 else 'right'}",
+    )
+
+
+def _rocks(
+    rng: np.random.Generator,
+    s: np.ndarray,
+    stations: np.ndarray,
+    points: np.ndarray,
+    half_w: np.ndarray,
+    half_h: np.ndarray,
+    scale: float,
+) -> list[Boulder]:
+    """S5's rocks, one within 2 m of each station: every third on the floor, the others
+    against a wall, 0.8-1.25 m across times ``scale``."""
+    tangent = np.gradient(points, axis=0)
+    boulders = []
+    for k, at in enumerate(stations):
+        i = int(np.searchsorted(s, at + rng.uniform(-2, 2)))
+        t = tangent[i] / np.linalg.norm(tangent[i])
+        left = np.array([-t[1], t[0], 0.0]) / max(np.hypot(t[0], t[1]), 1e-9)
+        r = rng.uniform(0.8, 1.25)
+        if k % 3 == 2:  # a rock on the floor
+            centre = points[i] + np.array([0.0, 0.0, -half_h[i] + 0.3 * r])
+            centre = centre + left * rng.uniform(-1.0, 1.0)
+        else:  # a rock against a wall
+            side = 1.0 if rng.random() < 0.5 else -1.0
+            centre = points[i] + side * left * (half_w[i] - 0.2 * r)
+            centre = centre + np.array([0.0, 0.0, rng.uniform(-0.8, 0.8)])
+        boulders.append(Boulder(_vec3(centre), _scaled((r, r * 1.1, r * 0.9), scale)))
+    return boulders
+
+
+def s5(rng: np.random.Generator, seed: int, knobs: Mapping[str, float]) -> Layout:
+    """S5, irregular: a winding passage of changing size with rocks spread along it."""
+    length = 60.0
+    s = np.arange(-4.0, length + 4.0, 0.25)
+    x, y = _winding(s, 0.55 * _smooth_noise(s, 14.0, rng), length)
+    z = _straighten_ends(s, 1.2 * _smooth_noise(s, 11.0, rng), length)
+    points = np.stack([x, y, z], axis=1)
+    half_w = 3.3 + 0.7 * _smooth_noise(s, 9.0, rng)
+    half_h = 2.8 + 0.3 * _smooth_noise(s, 9.0, rng)
+    count, scale = int(knobs["obstacles"]), knobs["obstacle_scale"]
+    stations = np.linspace(9.0, length - 9.0, count)
+    boulders = _rocks(rng, s, stations, points, half_w, half_h, scale)
+    return _layout_from_profiles(
+        s,
+        points,
+        half_w,
+        half_h,
+        length,
+        seed,
+        roughness=knobs["roughness_m"],
+        boulders=tuple(boulders),
+        description="irregular winding passage with rocks spread along it"
+        if count
+        else "irregular winding passage",
+    )
+
+
+# ------------------------------------------------------------------ harder families
+
+
+def crawl(rng: np.random.Generator, seed: int, knobs: Mapping[str, float]) -> Layout:
+    """crawl: a winding crawlway too narrow for any standoff, pinched in three places."""
+    length = float(rng.integers(42, 59))  # whole metres
+    s = np.arange(-4.0, length + 4.0, 0.25)
+    # Meanders every 18-26 m, made irregular: the heading swings some 25 degrees either
+    # way and never reaches 90 (at most 65), so the passage never doubles back on itself.
+    meander = 0.45 * cpu_independent(
+        math.sin, 2 * np.pi * s / rng.uniform(18.0, 26.0) + rng.uniform(0, 2 * np.pi)
+    )
+    x, y = _winding(s, meander + 0.4 * _smooth_noise(s, 12.0, rng), length)
+    z = _straighten_ends(s, 0.7 * _smooth_noise(s, 14.0, rng), length)
+    points = np.stack([x, y, z], axis=1)
+    narrowest = knobs["constriction_m"]
+    # 1.7-2.5 m across between the pinches, never under the pinches' width; each pinch
+    # centred on a sample, so that the narrowest width is the knob's to the millimetre.
+    # 1.5-2.2 m high: with 1.5 m at the pinches and 0.08 m of wall noise, the vehicle's
+    # 0.30 m half-diagonal keeps 0.2 m from the walls even where they bulge 3 standard
+    # deviations in from both sides.
+    width = np.maximum(np.clip(2.1 + 0.3 * _smooth_noise(s, 8.0, rng), 1.7, 2.5), narrowest)
+    pinches = [round(4 * (length * k / 4 + rng.uniform(-3, 3))) / 4 for k in (1, 2, 3)]
+    half_w = 0.5 * (width - _dips(s, pinches, 1.0, sigma=1.2) * (width - narrowest))
+    half_h = 0.5 * np.clip(1.8 + 0.3 * _smooth_noise(s, 10.0, rng), 1.5, 2.2)
+    return _layout_from_profiles(
+        s,
+        points,
+        half_w,
+        half_h,
+        length,
+        seed,
+        roughness=knobs["roughness_m"],
+        steps_per_m=7.0,
+        description=f"crawlway: a {length:.0f} m winding passage 1.7-2.5 m across and "
+        f"1.5-2.2 m high, pinched to {narrowest:.1f} m across in three places",
+    )
+
+
+def _heading_left(tangent: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Horizontal unit forward and left vectors of a (3,) tangent."""
+    forward = np.array([tangent[0], tangent[1], 0.0])
+    forward /= np.linalg.norm(forward)
+    return forward, np.array([-forward[1], forward[0], 0.0])
+
+
+def _blind_tube(
+    rng: np.random.Generator,
+    junction: np.ndarray,
+    forward: np.ndarray,
+    left: np.ndarray,
+    angle: float,
+    length: float,
+    half_width: float,
+    half_height: float,
+) -> Branch:
+    """A blind passage from ``junction``, ``angle`` radians to the left of ``forward``
+    (negative: right), curving up to 25 degrees farther away as it goes, ending closed."""
+    t = np.arange(0.0, length + 1e-9, 0.25)
+    bend = math.copysign(rng.uniform(0.0, math.radians(25)), angle) * (t / length) ** 2
+    heading = angle + bend
+    step = np.stack([cpu_independent(f, heading) for f in (math.cos, math.sin)], axis=1) * 0.25
+    ahead, aside = np.vstack([np.zeros(2), np.cumsum(step, axis=0)[:-1]]).T
+    points = junction + ahead[:, None] * forward + aside[:, None] * left
+    points[:, 2] += rng.uniform(-1.0, 1.0) * t / length  # a gentle slope up or down
+    return Branch(points, np.full(len(t), half_width), np.full(len(t), half_height))
+
+
+def _own_part(branch: Branch, clear_from: float) -> np.ndarray:
+    """The branch's points past ``clear_from`` metres: out of the passage it leaves."""
+    return branch.centreline[int(math.ceil(clear_from / 0.25)) :]
+
+
+def _keeps_rock(
+    points: np.ndarray,
+    half_width: float,
+    tubes: Sequence[tuple[np.ndarray, np.ndarray]],
+    gap: float,
+) -> bool:
+    """Whether a tube of ``points`` and ``half_width`` keeps ``gap`` metres of rock from
+    each of ``tubes``, given as ((m, 3) points, (m,) half-widths)."""
+    for other, other_hw in tubes:
+        if len(points) == 0 or len(other) == 0:
+            continue
+        dist, i = cKDTree(other).query(points)
+        if np.any(dist < half_width + other_hw[i] + gap):
+            return False
+    return True
+
+
+@dataclass(frozen=True)
+class _Junction:
+    """Where a side branch of the maze leaves the passage, and the branch's size.
+
+    Attributes:
+        point: (3,) the passage's centre line at the junction.
+        forward: (3,) horizontal unit vector along the passage.
+        left: (3,) horizontal unit vector to the passage's left.
+        passage_half_width: the passage's half-width there, metres.
+        half_width: the branch's half-width, metres.
+        half_height: the branch's half-height, metres.
+        side: +1 when the branch leaves to the left, -1 to the right.
+    """
+
+    point: np.ndarray
+    forward: np.ndarray
+    left: np.ndarray
+    passage_half_width: float
+    half_width: float
+    half_height: float
+    side: float
+
+
+def _side_branch(
+    rng: np.random.Generator,
+    at: _Junction,
+    shallow: bool,
+    tubes: Sequence[tuple[np.ndarray, np.ndarray]],
+    gap: float,
+    exit_y: float,
+) -> tuple[Branch, np.ndarray] | None:
+    """A blind branch from ``at`` and its own part (past the passage it leaves), keeping
+    ``gap`` metres of rock from each of ``tubes`` (the passage and the branches placed so
+    far) and clear of the exit plane at ``exit_y``; None when 200 tries find no room.
+
+    A ``shallow`` branch leaves at 24-38 degrees, in view as the vehicle comes up to the
+    junction; the others leave steeply, at 35-90; after 100 tries, at any angle.
+    """
+    hw, hh = at.half_width, at.half_height
+    for attempt in range(200):
+        low, high = (24.0, 38.0) if shallow else (35.0, 90.0)
+        angle = math.radians(rng.uniform(low, high) if attempt < 100 else rng.uniform(24, 90))
+        clear_from = (at.passage_half_width + hw + gap) / math.sin(angle)
+        blind = rng.uniform(max(6.0, clear_from + 2.0), max(15.0, clear_from + 2.0))
+        branch = _blind_tube(rng, at.point, at.forward, at.left, at.side * angle, blind, hw, hh)
+        own = _own_part(branch, clear_from)
+        if (
+            _keeps_rock(own, hw, tubes, gap)
+            and branch.centreline[:, 1].min() > exit_y + hw + gap + 1.5
+        ):
+            return branch, own
+    return None
+
+
+def maze(rng: np.random.Generator, seed: int, knobs: Mapping[str, float]) -> Layout:
+    """maze: a passage with blind side branches, the tempting ones as wide as the way on."""
+    count = int(knobs["branches"])
+    length = float(rng.integers(48, 56) + 3 * count)  # 60-67 m with the default 4 branches
+    s = np.arange(-4.0, length + 4.0, 0.25)
+    x = _straighten_ends(s, 1.5 * _smooth_noise(s, 18.0, rng), length)
+    z = _straighten_ends(s, 0.6 * _smooth_noise(s, 14.0, rng), length)
+    points = np.stack([x, -s, z], axis=1)
+    half_w = 2.9 + 0.3 * _smooth_noise(s, 10.0, rng)
+    half_h = 2.7 + 0.2 * _smooth_noise(s, 10.0, rng)
+    roughness = knobs["roughness_m"]
+    gap = 1.0 + 3.0 * roughness  # rock between two passages, against 3 sigma of wall noise
+    exit_y = -length
+    main = (points, half_w)
+    placed: list[tuple[np.ndarray, np.ndarray]] = []  # each branch's own part
+    branches: list[Branch] = []
+    side = 1.0 if rng.random() < 0.5 else -1.0
+    # Junctions spread from 10 m to 22 m before the exit (a single one halfway along).
+    stations = np.linspace(10.0, length - 22.0, count) if count > 1 else [length / 2 - 6] * count
+    for k, station in enumerate(stations):
+        j = int(np.searchsorted(s, station + rng.uniform(-1.5, 1.5)))
+        forward, left = _heading_left(points[j + 1] - points[j - 1])
+        # Every other branch as wide as the passage or wider: the tempting ones.
+        factor = rng.uniform(1.0, 1.2) if k % 2 == 0 else rng.uniform(0.7, 0.95)
+        hw, hh = factor * half_w[j], rng.uniform(0.85, 1.05) * half_h[j]
+        junction = _Junction(points[j], forward, left, half_w[j], hw, hh, side)
+        # The third of up to 4 (a wide one) leaves at a shallow angle, the real temptation
+        # (with 5, the junctions are too close for its length).
+        found = _side_branch(rng, junction, k == 2 and count <= 4, [main, *placed], gap, exit_y)
+        if found is None:  # not met in seeds 0-399 and 1000-1399 at 4 or 5 branches, 0.3 or 0.6 m
+            raise ScenarioError(
+                f"maze seed {seed}: no room for side branch {k + 1} of {count}; "
+                "try fewer branches or smoother walls"
+            )
+        branch, own = found
+        branches.append(branch)
+        placed.append((own, np.full(len(own), hw)))
+        side = -side
+    description = (
+        f"a {length:.0f} m passage with {count} blind side branches, every other one as "
+        "wide as the way on or wider; one exit"
+    )
+    return _layout_from_profiles(
+        s,
+        points,
+        half_w,
+        half_h,
+        length,
+        seed,
+        roughness=roughness,
+        branches=tuple(branches),
+        steps_per_m=4.0,
+        description=description,
+    )
+
+
+def _window(u: np.ndarray, start: float, end: float) -> np.ndarray:
+    """1 between stations ``start`` and ``end``, 0 outside, eased over about 2 m."""
+    box = ((u >= start) & (u <= end)).astype(float)
+    return gaussian_smooth(box, 2.0 / (u[1] - u[0]))
+
+
+# The long cave's plan (metres along the passage): leg A runs along -y with constrictions
+# (S1, 0-35), a rise and fall with two more (S2, from 35 on) and a frontal and a lateral
+# boulder (S3, 70-100). Two sharp 90-degree bends 16 m apart turn it around (S4), and leg
+# B winds back along +y among rocks (S5) to an exit 12 m beyond the start's closed end,
+# which keeps that end behind the exit plane. Folded so, 228 m fit a grid of about
+# 30 x 120 x 15 m: 7 M voxels, which mesh in seconds.
+_LEG_A, _ACROSS, _PAST_START = 100.0, 16.0, 12.0
+_LONG = _LEG_A + _ACROSS + (_LEG_A + _PAST_START)
+_LEG_B = _LEG_A + _ACROSS  # where leg B begins
+
+
+def _long_centreline(
+    rng: np.random.Generator, u: np.ndarray, side: float, undulation: float
+) -> tuple[np.ndarray, float]:
+    """(n, 3) points at stations ``u``, turning toward ``side`` (+-x), and the period of
+    the rise and fall (30-34 m, one full swing of ``undulation`` metres peak to peak)."""
+    x = np.where(u <= _LEG_A, 0.0, side * np.minimum(u - _LEG_A, _ACROSS))
+    y = np.where(u <= _LEG_A, -u, np.where(u < _LEG_B, -_LEG_A, u - _LEG_B - _LEG_A))
+    x = x + 1.2 * _smooth_noise(u, 16.0, rng) * _window(u, 4.0, 62.0)
+    leg_b = _window(u, _LEG_B + 6, _LONG - 8)  # straight out of the bend and to the exit
+    x = x + side * 1.5 * _smooth_noise(u, 14.0, rng) * leg_b
+    period = rng.uniform(30.0, 34.0)
+    wave = cpu_independent(math.sin, 2 * np.pi * (u - 35) / period)
+    swing = np.where((u >= 35.0) & (u <= 35.0 + period), wave, 0)
+    z = undulation / 2 * gaussian_smooth(swing, 4)
+    z = z + 1.0 * _smooth_noise(u, 11.0, rng) * leg_b
+    return np.stack([x, y, z], axis=1), period
+
+
+def long(rng: np.random.Generator, seed: int, knobs: Mapping[str, float]) -> Layout:
+    """long: 228 m chaining the five topologies, folded back on itself by two bends."""
+    u = np.arange(-4.0, _LONG + 4.0, 0.25)
+    side = 1.0 if rng.random() < 0.5 else -1.0
+    narrowest, undulation = knobs["constriction_m"], knobs["undulation_m"]
+    points, period = _long_centreline(rng, u, side, undulation)
+    # Each stretch as wide and high as its family, eased into the next over a few metres.
+    stretches = [u < 35, u < 70, u <= _LEG_A, u < _LEG_B]
+    base_w = gaussian_smooth(np.select(stretches, [3.5, 3.2, 3.5, 2.9], 3.3), 8)
+    base_h = gaussian_smooth(np.select(stretches, [3.0, 2.9, 3.0, 2.7], 2.8), 8)
+    base_w = base_w + 0.7 * _smooth_noise(u, 9.0, rng) * (u >= _LEG_B)
+    base_h = base_h + 0.3 * _smooth_noise(u, 9.0, rng) * (u >= _LEG_B)
+    # Necks on the 0.25 m grid, where the stretch is flat: the narrowest is the knob's.
+    necks_1 = [round(4 * (c + rng.uniform(-2, 2))) / 4 for c in (9.0, 18.0, 27.0)]
+    necks_2 = [round(4 * (35 + period * f + rng.uniform(-1.5, 1.5))) / 4 for f in (0.25, 0.75)]
+    half_w = base_w - np.maximum(
+        _dips(u, necks_1, _dip_depth(3.5, narrowest)),
+        _dips(u, necks_2, _dip_depth(3.2, narrowest)),
+    )
+    half_h = base_h - np.maximum(_dips(u, necks_1[1:2], 1.0), _dips(u, necks_2, 0.8))
+
+    scale = knobs["obstacle_scale"]
+    wall = 1.0 if rng.random() < 0.5 else -1.0  # S3's: frontal off one wall, lateral from the other
+    frontal = Boulder((-wall * 0.9, -rng.uniform(76, 80), 0.0), _scaled((1.7, 1.5, 1.7), scale))
+    lateral = Boulder((wall * 3.6, -rng.uniform(86, 90), -0.3), _scaled((2.3, 1.8, 1.9), scale))
+    stations = np.linspace(_LEG_B + 9, _LONG - 9, 8)
+    rocks = _rocks(rng, u, stations, points, half_w, half_h, scale)
+    return _layout_from_profiles(
+        u,
+        points,
+        half_w,
+        half_h,
+        _LONG,
+        seed,
+        roughness=knobs["roughness_m"],
+        boulders=(frontal, lateral, *rocks),
+        steps_per_m=3.0,
+        description=f"a {_LONG:.0f} m cave chaining the five: constrictions to about "
+        f"{narrowest:.1f} m, a rise and fall of about {undulation:g} m, a frontal and a "
+        "lateral boulder, two sharp 90-degree bends that turn it around, then a winding "
+        "passage with rocks",
+    )
