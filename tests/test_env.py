@@ -2,27 +2,28 @@
 
 from __future__ import annotations
 
-from dataclasses import astuple
+from dataclasses import astuple, replace
 from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
 import pytest
-from gymnasium.utils.env_checker import check_env
+from gymnasium.utils.env_checker import check_env, data_equivalence
 from hypothesis import example, given
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
 import cavenav  # noqa: F401 - registers cavenav/CaveNav-v0
-from cavenav.env import CaveNavEnv, snap_action
+from cavenav.env import CaveNavEnv, Timings, snap_action
 from cavenav.episode.loop import EpisodeConfig, run_episode
 from cavenav.errors import ActionError, ConfigError
+from cavenav.kinematics import Drift, apply
 from cavenav.pilots.geometric import GeometricPilot
 from cavenav.pilots.random_pilot import RandomPilot
 from cavenav.sensors.depth import normalise_depth
 from cavenav.sensors.rig import SensorConfig
 from cavenav.shield import DepthMemory
-from cavenav.types import Action, Observation
+from cavenav.types import Action, Observation, Pose
 from cavenav.world.scenarios import Scenario, load_scenario
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
@@ -108,6 +109,76 @@ def test_reaching_the_exit_terminates_and_the_rewards_add_up_to_the_progress(
         total += reward
     assert info["exit"] and not info["collision"]
     assert total == pytest.approx(14.0) == pytest.approx(info["progress_m"])
+
+
+def test_info_carries_what_a_pilot_sees_where_the_vehicle_is_and_how_long_it_took() -> None:
+    env = CaveNavEnv("S1", resolution=(64, 48))
+    obs, info = env.reset(seed=0)
+    seen = info["observation"]
+    assert isinstance(seen, Observation) and np.array_equal(seen.rgb, obs["rgb"])
+    assert seen.previous_action is None and info["timings"].physics_ms is None
+    obs, _, _, _, info = env.step("forward 1 m, turn left 10 deg")
+    seen, pose = info["observation"], info["vehicle_pose"]
+    assert seen.step == 1 and np.array_equal(seen.depth_png, obs["depth"])
+    assert seen.previous_action == Action(forward=1.0, yaw_deg=10.0)  # the action executed
+    assert pose == apply(env.scenario.start, Action(forward=1.0, yaw_deg=10.0))  # unrounded
+    assert pose.to_dict() == info["pose"]
+    assert info["timings"].physics_ms > 0 and info["timings"].sense_ms > 0
+
+
+def test_two_runs_of_one_seed_give_equal_info_whatever_the_timings() -> None:
+    """Gymnasium's determinism check compares ``info`` whole: the typed observation by
+    its images, the timings not at all (the same step is the same step on any machine)."""
+
+    def fly() -> dict:
+        env = CaveNavEnv("S1", resolution=(64, 48))
+        env.reset(seed=5)
+        return env.step("forward 0.5 m")[-1]
+
+    first, again = fly(), fly()
+    assert data_equivalence(first, again, exact=True)
+    assert Timings(1.0, 2.0) == Timings(30.0)
+    darker = replace(first["observation"], rgb=first["observation"].rgb // 2)
+    assert darker != first["observation"] and first["observation"] == again["observation"]
+
+
+def test_the_termination_names_how_the_episode_ended(room_scenario: Scenario) -> None:
+    env = CaveNavEnv(room_scenario)
+    assert env.reset(seed=0)[1]["termination"] is None
+    assert env.step("strafe right 1 m")[-1]["termination"] is None
+    assert env.step("strafe right 1 m")[-1]["termination"] == "collision"  # wall at 2 m
+    env.reset(seed=0)
+    info: dict = {}
+    while not info.get("exit"):
+        info = env.step("forward 1 m")[-1]
+    assert info["termination"] == "exit"
+
+
+class Overshooting:
+    """A stand-in vehicle that flies every move 10% too far and says so."""
+
+    def start(self, pose: Pose) -> Pose:
+        return pose
+
+    def move(self, pose: Pose, action: Action) -> Pose:
+        return apply(pose, replace(action, forward=1.1 * action.forward))
+
+    def drift(self, pose: Pose, action: Action, reached: Pose) -> Drift:
+        return Drift.of(pose, action, reached)
+
+
+def test_a_motion_that_drifts_reports_it_in_info_and_the_kinematics_report_none(
+    room_scenario: Scenario,
+) -> None:
+    env = CaveNavEnv(room_scenario, motion=Overshooting())
+    _, start = env.reset(seed=0)
+    *_, info = env.step("forward 1 m")
+    assert info["drift_m"] == pytest.approx(0.1) and info["drift_deg"] == 0.0
+    assert info["commanded_pose"]["y"] == pytest.approx(start["pose"]["y"] - 1.0)
+    assert info["pose"]["y"] == pytest.approx(start["pose"]["y"] - 1.1)  # where it went
+    plain = CaveNavEnv(room_scenario)
+    plain.reset(seed=0)
+    assert not {"drift_m", "drift_deg", "commanded_pose"} & set(plain.step("forward 1 m")[-1])
 
 
 def test_reset_options_choose_the_cave_for_that_reset(room_scenario: Scenario) -> None:

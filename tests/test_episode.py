@@ -14,8 +14,9 @@ from PIL import Image
 from cavenav.actions import format_action
 from cavenav.episode.loop import EpisodeConfig, run_episode
 from cavenav.errors import PilotFailure
+from cavenav.kinematics import Drift, apply
 from cavenav.sensors.depth import read_exr
-from cavenav.types import Action, Decision, Observation, Usage
+from cavenav.types import Action, Decision, Observation, Pose, Usage
 from cavenav.world.scenarios import ExitPortal, Scenario
 
 SUMMARY_FIELDS = {
@@ -352,3 +353,30 @@ def test_usage_is_summed_once_and_a_failed_step_still_counts(room_scenario: Scen
     assert usage["cost_usd"] == pytest.approx(0.05)
     assert usage["mean_latency_s"] == pytest.approx(5 / 3, abs=1e-4)
     assert [s["vlm"]["prompt_tokens"] for s in result.steps] == [100, 100, 300]
+
+
+class Overshooting:
+    """A stand-in vehicle that flies every move 10% too far, and reports the drift."""
+
+    def start(self, pose: Pose) -> Pose:
+        return pose
+
+    def move(self, pose: Pose, action: Action) -> Pose:
+        return apply(pose, replace(action, forward=1.1 * action.forward))
+
+    def drift(self, pose: Pose, action: Action, reached: Pose) -> Drift:
+        return Drift.of(pose, action, reached)
+
+
+def test_the_drift_a_vehicle_reports_is_recorded_at_each_step_and_summed(
+    room_scenario: Scenario,
+) -> None:
+    result = run_episode(room_scenario, Scripted(Action(forward=1.0)), FAST, motion=Overshooting())
+    assert result.termination == "exit" and result.summary["steps"] == 13  # 14 m at 1.1 m
+    assert all(s["drift_m"] == pytest.approx(0.1) for s in result.steps)
+    assert result.steps[0]["commanded_pose"]["y"] == pytest.approx(8.0 - 1.0)
+    assert result.steps[0]["next_pose"]["y"] == pytest.approx(8.0 - 1.1)
+    assert result.summary["mean_drift_m"] == pytest.approx(0.1) == result.summary["max_drift_m"]
+    assert result.summary["max_drift_deg"] == 0.0
+    kinematic = run_episode(room_scenario, Scripted(Action(forward=1.0)), FAST)
+    assert "mean_drift_m" not in kinematic.summary and "drift_m" not in kinematic.steps[0]

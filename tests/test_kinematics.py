@@ -9,7 +9,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from cavenav.actions import parse_action
-from cavenav.kinematics import apply
+from cavenav.kinematics import Drift, Kinematic, apply
 from cavenav.types import Action, Pose
 
 
@@ -57,3 +57,24 @@ def test_a_move_has_the_length_of_its_horizontal_command(
 ) -> None:
     pose = apply(Pose(x, y, 0, psi), Action(forward=df, right=0.5))
     assert math.hypot(pose.x - x, pose.y - y) == pytest.approx(math.hypot(df, 0.5))
+
+
+def test_the_kinematics_reach_the_pose_commanded_so_they_report_no_drift() -> None:
+    start, action = Pose(1.0, 2.0, -0.5, 0.4), parse_action("forward 1 m, turn left 30 deg")
+    motion = Kinematic()
+    assert motion.start(start) == start
+    reached = motion.move(start, action)
+    assert reached == apply(start, action) and motion.drift(start, action, reached) is None
+
+
+def test_drift_is_how_far_and_how_much_turned_a_move_ended_from_the_command() -> None:
+    start, action = Pose(0, 0, 0, 0), Action(forward=1.0)  # commanded: (0, -1, 0) heading -y
+    reached = Pose(0.3, -1.0, 0.4, math.radians(-10))
+    drift = Drift.of(start, action, reached)
+    assert drift.commanded == apply(start, action)
+    assert drift.metres == pytest.approx(0.5) and drift.degrees == pytest.approx(10.0)
+    assert drift.to_info() == {
+        "commanded_pose": drift.commanded.to_dict(),
+        "drift_m": drift.metres,
+        "drift_deg": drift.degrees,
+    }
