@@ -7,7 +7,7 @@ actions, so the vehicle really moves, collides and reaches exits) and prints:
 - 1 env steps/s:   one ``gymnasium.make("cavenav/CaveNav-v0", ...)`` (with its TimeLimit),
                    reset whenever an episode ends; the resets' time is counted in
 - ms/step:         the same as milliseconds per step, split into what the environment
-                   measures itself (`CaveNavEnv.timings_ms`): sense (the observation's
+                   measures itself (``info["timings"]``): sense (the observation's
                    ray cast and shading) and physics (swept collision, clearance,
                    progress), and the rest (resets, wrappers, the action's sampling and
                    snapping, the info dict)
@@ -53,7 +53,6 @@ def single(resolution: tuple[int, int], steps: int, warmup: int) -> dict[str, fl
     env = make(resolution)
     env.action_space.seed(0)
     env.reset(seed=0)
-    base = env.unwrapped
     for _ in range(warmup):
         *_, terminated, truncated, _ = env.step(env.action_space.sample())
         if terminated or truncated:
@@ -62,9 +61,9 @@ def single(resolution: tuple[int, int], steps: int, warmup: int) -> dict[str, fl
     resets = 0
     start = time.perf_counter()
     for _ in range(steps):
-        *_, terminated, truncated, _ = env.step(env.action_space.sample())
-        sense += base.timings_ms["sense"]
-        physics += base.timings_ms["physics"]
+        *_, terminated, truncated, info = env.step(env.action_space.sample())
+        sense += info["timings"].sense_ms
+        physics += info["timings"].physics_ms
         if terminated or truncated:
             env.reset()
             resets += 1
