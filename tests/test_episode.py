@@ -14,6 +14,7 @@ from PIL import Image
 from cavenav.actions import format_action
 from cavenav.episode.loop import EpisodeConfig, run_episode
 from cavenav.errors import PilotFailure
+from cavenav.evaluation.results import outcome
 from cavenav.kinematics import Drift, apply
 from cavenav.sensors.depth import read_exr
 from cavenav.types import Action, Decision, Observation, Pose, Usage
@@ -118,6 +119,34 @@ def test_a_pilot_going_nowhere_ends_stuck_after_the_steps_allowed(
     assert result.summary["truncated"] and not result.summary["terminated"]
     never = run_episode(room_scenario, Alternating(), replace(config, stuck_after=None))
     assert never.termination == "budget" and never.summary["steps"] == 100
+
+
+class Bobbing:
+    """A pilot that bobs up and down 0.4 m, never getting further on."""
+
+    name = "bobbing"
+
+    def reset(self) -> None:
+        self.calls = 0
+
+    def decide(self, observation: Observation) -> Decision:
+        self.calls += 1
+        action = Action(up=0.4 if self.calls % 2 else -0.4)
+        return Decision(action, format_action(action), "bobbing")
+
+
+def test_an_episode_ended_stuck_is_reported_stuck_however_much_it_moved(
+    room_scenario: Scenario,
+) -> None:
+    """The driver and the results count headway alike (`cavenav.headway`): bobbing ends
+    the episode as stuck, and the report says stuck, not oscillating."""
+    config = EpisodeConfig(max_steps=100, stuck_after=12, plots=False)
+    result = run_episode(room_scenario, Bobbing(), config)
+    assert result.termination == "stuck" and result.summary["path_length_m"] > 4.0
+    assert outcome(result.summary, result.steps) == "stuck"
+    out_of_steps = run_episode(room_scenario, Bobbing(), replace(config, stuck_after=None))
+    assert out_of_steps.termination == "budget"
+    assert outcome(out_of_steps.summary, out_of_steps.steps) == "oscillating"
 
 
 def test_slow_headway_is_not_being_stuck(room_scenario: Scenario) -> None:

@@ -15,16 +15,11 @@ import gymnasium as gym
 import numpy as np
 
 from cavenav.env import read_action
+from cavenav.headway import Headway
 from cavenav.shield import Shield, ShieldConfig
 from cavenav.types import Action
 
 __all__ = ["SafetyShield", "StuckLimit"]
-
-# Headway, for `StuckLimit`: the best progress toward the exit grows by this much, or the
-# vehicle enters a cube of this side it never was in (a side passage explored is headway;
-# flying back over old ground, or to and fro on one spot, is not).
-STUCK_PROGRESS_M = 0.5
-GROUND_CELL_M = 2.0
 
 
 class SafetyShield(gym.Wrapper):
@@ -68,10 +63,10 @@ class SafetyShield(gym.Wrapper):
 class StuckLimit(gym.Wrapper):
     """Truncates an episode after ``steps`` steps in a row without headway.
 
-    Headway is `STUCK_PROGRESS_M` more progress toward the exit than the best counted
-    before, or a `GROUND_CELL_M` cube of the cave entered for the first time; turning on
-    one spot, going to and fro, or circling over old ground makes none. The step that ends it has
-    ``truncated`` and ``info["stuck"]`` true (false on every other step).
+    Headway is as `cavenav.headway` defines it (the results judge a budget ending by the
+    same count): new progress toward the exit, or ground never entered; turning on one
+    spot, going to and fro, or circling over old ground makes none. The step that ends it
+    has ``truncated`` and ``info["stuck"]`` true (false on every other step).
     """
 
     def __init__(self, env: gym.Env, steps: int):
@@ -79,23 +74,20 @@ class StuckLimit(gym.Wrapper):
         if steps < 1:
             raise ValueError(f"StuckLimit needs at least 1 step, got {steps}")
         self.steps = steps
-        self._best = 0.0  # the best progress counted as headway, metres
-        self._ground: set[tuple[int, int, int]] = set()  # the cubes entered
+        self._headway: Headway | None = None  # from the start of the episode
         self._without_headway = 0
 
     def reset(self, **kwargs: Any) -> tuple[Any, dict[str, Any]]:
         obs, info = self.env.reset(**kwargs)
-        self._best = info["progress_m"]
-        self._ground = {_cell(info["pose"])}
+        self._headway = Headway(info["progress_m"], _position(info["pose"]))
         self._without_headway = 0
         return obs, {**info, "stuck": False}
 
     def step(self, action: Any) -> tuple[Any, float, bool, bool, dict]:  # noqa: ANN401
         obs, reward, terminated, truncated, info = self.env.step(action)
-        cell = _cell(info["pose"])
-        if info["progress_m"] >= self._best + STUCK_PROGRESS_M or cell not in self._ground:
-            self._best = max(self._best, info["progress_m"])
-            self._ground.add(cell)
+        if self._headway is None:
+            raise gym.error.ResetNeeded("StuckLimit: call reset before step")
+        if self._headway.advance(info["progress_m"], _position(info["pose"])):
             self._without_headway = 0
         else:
             self._without_headway += 1
@@ -103,9 +95,5 @@ class StuckLimit(gym.Wrapper):
         return obs, reward, terminated, truncated or info["stuck"], info
 
 
-def _cell(pose: dict[str, float]) -> tuple[int, int, int]:
-    return (
-        int(pose["x"] // GROUND_CELL_M),
-        int(pose["y"] // GROUND_CELL_M),
-        int(pose["z"] // GROUND_CELL_M),
-    )
+def _position(pose: dict[str, float]) -> tuple[float, float, float]:
+    return pose["x"], pose["y"], pose["z"]

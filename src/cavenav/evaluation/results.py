@@ -9,12 +9,13 @@ Outcomes (the failure taxonomy, one per episode):
     collision      it touched a surface
     pilot_failure  the pilot could not produce a valid action (e.g. persistent bad replies)
     exited_entrance  it left the cave through its entrance, the way it came in
-    budget         out of steps while still making headway: the last `WINDOW` steps got
-                   past the farthest point reached before them (too slow, not lost)
-    stuck          out of steps, or ended by the driver for want of headway (termination
-                   ``stuck``), having barely moved during the last `WINDOW` steps
-    oscillating    the same, having moved during the last `WINDOW` steps without making
-                   headway: back and forth, or round in circles
+    budget         out of steps while still making headway: one of the last `WINDOW`
+                   steps made headway as `cavenav.headway` counts it (too slow, not lost)
+    stuck          ended by the driver for want of headway (termination ``stuck``, by
+                   that same count), or out of steps without headway over the last
+                   `WINDOW` steps, having barely moved during them
+    oscillating    out of steps without headway over the last `WINDOW` steps, having
+                   moved during them: back and forth, or round in circles
     error          the episode raised an error (recorded in its summary), its worker died,
                    or the model server failed it (no answer in time, a refused key, a
                    proxy's page): not the model's fault, so a resumed sweep flies it again;
@@ -37,9 +38,17 @@ from typing import Any
 import numpy as np
 from scipy.stats import binomtest
 
-from cavenav.episode.records import read_steps, read_summary
+from cavenav.episode.records import (
+    OUTCOMES,
+    EpisodeSummary,
+    Outcome,
+    StepRecord,
+    load_steps,
+    load_summary,
+)
 from cavenav.episode.run_folder import write_atomic, write_json
 from cavenav.errors import CavenavWarning, RecordError
+from cavenav.headway import Headway
 
 __all__ = [
     "COLUMNS",
@@ -55,22 +64,10 @@ __all__ = [
     "write_results",
 ]
 
-OUTCOMES = (
-    "success",
-    "collision",
-    "pilot_failure",
-    "exited_entrance",
-    "budget",
-    "stuck",
-    "oscillating",
-    "error",
-    "incomplete",
-)
-# A budget ending is judged on the last WINDOW steps: headway below HEADWAY_M there means
-# the pilot was no longer getting anywhere; a path below MOVED_M there means it barely moved
-# (both scaled down for a budget shorter than the window).
+# A budget ending is judged on the last WINDOW steps: none of them making headway means the
+# pilot was no longer getting anywhere; a path below MOVED_M there means it barely moved
+# (scaled down for a budget shorter than the window).
 WINDOW = 30
-HEADWAY_M = 1.0
 MOVED_M = 1.5
 
 COLUMNS = (
@@ -107,50 +104,68 @@ COLUMNS = (
 )
 
 
-def server_failed(summary: Mapping[str, Any]) -> bool:
+def server_failed(summary: EpisodeSummary | Mapping[str, Any]) -> bool:
     """The pilot failed because its model server did (`PilotFailure.cause`), not its replies."""
-    return summary.get("termination") == "pilot_failure" and summary.get("failure_cause") in (
-        "backend",
-        "auth",
-    )
+    summary = EpisodeSummary.model_validate(summary)
+    return summary.termination == "pilot_failure" and summary.failure_cause in ("backend", "auth")
 
 
-def outcome(summary: Mapping[str, Any], steps: Sequence[Mapping[str, Any]]) -> str:
+def outcome(
+    summary: EpisodeSummary | Mapping[str, Any],
+    steps: Sequence[StepRecord | Mapping[str, Any]],
+) -> Outcome:
     """The episode's place in the failure taxonomy (see the module docstring)."""
-    status = summary.get("status")
-    if status == "crashed" or summary.get("error") or server_failed(summary):
+    summary = EpisodeSummary.model_validate(summary)
+    if summary.status == "crashed" or summary.error or server_failed(summary):
         return "error"
-    if status != "finished":
+    if summary.status != "finished":
         return "incomplete"
-    termination = summary.get("termination")
+    termination = summary.termination
     if termination == "exit":
         return "success"
-    if termination in ("collision", "pilot_failure", "exited_entrance"):
-        return str(termination)
-    moves = [s for s in steps if s.get("action")]
-    window, earlier = moves[-WINDOW:], moves[:-WINDOW]
+    if termination in ("collision", "pilot_failure", "exited_entrance", "stuck"):
+        return termination
+    moves = [_step(s) for s in steps]
+    window = [s for s in moves if s.action][-WINDOW:]
     if len(window) < 2:
         return "stuck"
-    share = len(window) / WINDOW  # a budget shorter than the window scales the thresholds
-    # Headway: how far the window got past the best point reached before it. The best,
-    # not the last: near a bend the nearest centre-line point jumps as the vehicle circles.
-    reached = max(float(s["progress_m"]) for s in earlier or window[:1])
-    headway = max(float(s["progress_m"]) for s in window) - reached
-    if headway >= HEADWAY_M * share and termination != "stuck":
+    if any(_made_headway(moves)[-len(window) :]):
         return "budget"
-    positions = np.array([[s["pose"][k] for k in "xyz"] for s in window])
+    positions = np.array([[s.pose.x, s.pose.y, s.pose.z] for s in window if s.pose])
     moved = float(np.linalg.norm(np.diff(positions, axis=0), axis=1).sum())
-    return "oscillating" if moved >= MOVED_M * share else "stuck"
+    # A budget shorter than the window scales the path down.
+    return "oscillating" if moved >= MOVED_M * len(window) / WINDOW else "stuck"
 
 
-def read_episode(run_dir: Path) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+def _step(step: StepRecord | Mapping[str, Any]) -> StepRecord:
+    """A step record, from a dict as well (a step number is not needed to judge it)."""
+    if isinstance(step, StepRecord):
+        return step
+    return StepRecord.model_validate({"step": -1, **step})
+
+
+def _made_headway(steps: Sequence[StepRecord]) -> list[bool]:
+    """Whether each step that flew an action made headway, as `StuckLimit` counts it:
+    from where the first one started, at the progress the first one reached."""
+    moves = [s for s in steps if s.action and s.pose and s.progress_m is not None]
+    if not moves:
+        return []
+    headway = Headway(moves[0].progress_m, _position(moves[0].pose))
+    return [headway.advance(s.progress_m, _position(s.next_pose or s.pose)) for s in moves]
+
+
+def _position(pose: Any) -> tuple[float, float, float]:  # noqa: ANN401 - a recorded pose
+    return pose.x, pose.y, pose.z
+
+
+def read_episode(run_dir: Path) -> tuple[EpisodeSummary, list[StepRecord]]:
     """A run folder's summary.json and steps.jsonl, as every judge of an episode reads
     them: its results row, and a resumed sweep deciding what to fly again.
 
     Raises:
         RecordError: either is missing or damaged (`cavenav.episode.records`).
     """
-    return read_summary(run_dir / "summary.json"), read_steps(run_dir / "steps.jsonl")
+    return load_summary(run_dir / "summary.json"), load_steps(run_dir / "steps.jsonl")
 
 
 def episode_row(run_dir: Path, root: Path | None = None) -> dict[str, Any]:
@@ -172,45 +187,56 @@ def episode_row(run_dir: Path, root: Path | None = None) -> dict[str, Any]:
         warnings.warn(f"{exc}; the episode counts as an error", CavenavWarning, stacklevel=2)
         return {"episode": run_dir.name, "status": "damaged", "outcome": "error",
                 "error": str(exc), "run_dir": relative}  # fmt: skip
-    usage = summary.get("usage") or {}
-    path_m, progress_m = summary.get("path_length_m"), summary.get("progress_m")
-    efficiency = None
-    if path_m and progress_m is not None:
-        efficiency = round(max(float(progress_m), 0.0) / float(path_m), 4)
     return {
         "episode": run_dir.name,
-        "scenario": summary.get("scenario"),
-        "seed": summary.get("seed"),
-        "pilot": summary.get("pilot"),
-        "status": summary.get("status"),
-        "success": summary.get("success"),
-        "termination": summary.get("termination"),
+        **_summary_columns(summary),
         "outcome": outcome(summary, steps),
-        "steps": summary.get("steps"),
-        "collisions": summary.get("collisions"),
-        "progress_m": progress_m,
-        "passage_length_m": summary.get("passage_length_m"),
-        "path_length_m": path_m,
-        "path_efficiency": efficiency,
-        "min_clearance_m": summary.get("min_clearance_m"),
-        "mean_clearance_m": summary.get("mean_clearance_m"),
-        "steps_below_standoff": summary.get("steps_below_standoff"),
-        "shield_interventions": summary.get("shield_interventions")
-        if summary.get("shield")
-        else None,  # fmt: skip
-        "invalid_actions": summary.get("invalid_actions"),
-        "requeries": usage.get("requeries"),
-        "transport_retries": usage.get("transport_retries"),
-        "prompt_tokens": usage.get("prompt_tokens"),
-        "completion_tokens": usage.get("completion_tokens"),
-        "cost_usd": usage.get("cost_usd"),
-        "mean_model_latency_s": usage.get("mean_latency_s"),
-        "mean_pilot_ms": summary.get("mean_pilot_ms"),
-        "mean_sense_ms": summary.get("mean_sense_ms"),
-        "wall_time_s": summary.get("wall_time_s"),
-        "error": summary.get("error")
-        or (summary.get("failure") if server_failed(summary) else None),
+        **_usage_columns(summary),
+        "error": summary.error or (summary.failure if server_failed(summary) else None),
         "run_dir": relative,
+    }
+
+
+def _summary_columns(s: EpisodeSummary) -> dict[str, Any]:
+    """The columns a summary gives as it stands, and the path efficiency (metres of
+    centre line per metre flown)."""
+    efficiency = None
+    if s.path_length_m and s.progress_m is not None:
+        efficiency = round(max(s.progress_m, 0.0) / s.path_length_m, 4)
+    return {
+        "scenario": s.scenario,
+        "seed": s.seed,
+        "pilot": s.pilot,
+        "status": s.status,
+        "success": s.success,
+        "termination": s.termination,
+        "steps": s.steps,
+        "collisions": s.collisions,
+        "progress_m": s.progress_m,
+        "passage_length_m": s.passage_length_m,
+        "path_length_m": s.path_length_m,
+        "path_efficiency": efficiency,
+        "min_clearance_m": s.min_clearance_m,
+        "mean_clearance_m": s.mean_clearance_m,
+        "steps_below_standoff": s.steps_below_standoff,
+        "shield_interventions": s.shield_interventions if s.shield else None,
+        "invalid_actions": s.invalid_actions,
+        "mean_pilot_ms": s.mean_pilot_ms,
+        "mean_sense_ms": s.mean_sense_ms,
+        "wall_time_s": s.wall_time_s,
+    }
+
+
+def _usage_columns(s: EpisodeSummary) -> dict[str, Any]:
+    """What the model cost, for a model pilot (empty columns for the others)."""
+    usage = s.usage
+    return {
+        "requeries": usage and usage.requeries,
+        "transport_retries": usage and usage.transport_retries,
+        "prompt_tokens": usage and usage.prompt_tokens,
+        "completion_tokens": usage and usage.completion_tokens,
+        "cost_usd": usage and usage.cost_usd,
+        "mean_model_latency_s": usage and usage.mean_latency_s,
     }
 
 
