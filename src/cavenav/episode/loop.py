@@ -3,7 +3,9 @@
 The step itself (sense, move, check) lives in `cavenav.env.CaveNavEnv`; this driver asks
 the pilot for each action, hands it to the environment (behind the safety shield when
 asked), and lets the recorders keep what happened: the `EpisodeLog` (records and
-summary), the run folder, the progress callback.
+summary), the run folder, the progress callback. It drives the environment as any
+Gymnasium user would, through `reset` and `step` alone: what the pilot sees, where the
+vehicle is and how long each stage took come back in ``info``.
 
 Each episode ends in exactly one of six ways: ``exit`` (the exit portal was reached),
 ``collision`` (the body touched a surface along the move), ``exited_entrance`` (it left
