@@ -307,8 +307,13 @@ def _as_written(error: ValidationError, raw: dict[str, Any]) -> ValidationError:
     loc = first["loc"]
     if len(loc) < 2 or not isinstance(loc[1], int) or isinstance(raw.get(str(loc[0])), list):
         return error
-    details = {key: first[key] for key in ("type", "input", "ctx") if key in first}
-    line = InitErrorDetails(**details, loc=(loc[0], *loc[2:]))  # type: ignore[typeddict-item]
+    line: InitErrorDetails = {
+        "type": first["type"],
+        "loc": (loc[0], *loc[2:]),
+        "input": first["input"],
+    }
+    if "ctx" in first:
+        line["ctx"] = first["ctx"]
     return ValidationError.from_exception_data(error.title, [line])
 
 
