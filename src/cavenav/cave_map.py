@@ -1,11 +1,11 @@
 """A map of the cave made only of what the vehicle saw: free space, surfaces, the path flown.
 
 Each depth image is placed by dead reckoning on the actions the vehicle executed (never
-the mesh, never the true pose) and carved into a voxel grid: the cells a camera ray
-crossed count as seen free, the cell where it met a surface as seen occupied. With the
-path flown, that is enough to tell a way the vehicle came from a new one, to find
-openings it passed that are out of view now, and to draw a top-down picture of what is
-known for a VLM pilot (``--map-image``).
+the mesh, never the true pose; `cavenav.reckoning`, as the safety shield's memory is) and
+carved into a voxel grid: the cells a camera ray crossed count as seen free, the cell
+where it met a surface as seen occupied. With the path flown, that is enough to tell a
+way the vehicle came from a new one, to find openings it passed that are out of view
+now, and to draw a top-down picture of what is known for a VLM pilot (``--map-image``).
 
 It is a plain structure read by whoever needs it: the geometric pilot steers by it, the
 VLM pilot can be shown its picture, and it reads the same observations the safety shield
@@ -24,8 +24,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from cavenav.sensors.depth import denormalise_depth, pixel_slopes
-from cavenav.shield import sampling_stride
+from cavenav.reckoning import DepthSamples, reckon, sampling_stride, to_body, to_map
 from cavenav.types import Action, Observation
 
 __all__ = ["FREE", "OCCUPIED", "UNKNOWN", "CaveMap", "MapConfig", "Opening"]
@@ -142,24 +141,18 @@ class CaveMap:
 
     def move(self, action: Action) -> None:
         """Dead reckoning of SPEC section 5 in the map frame: turn, then translate."""
-        self.heading += math.radians(action.yaw_deg)
-        before = self.position.copy()
-        self.position = self.to_map(np.array([[action.forward, -action.right, action.up]]))[0]
+        before = self.position
+        self.position, self.heading = reckon(self.position, self.heading, action)
         self.travelled_m += float(np.linalg.norm(self.position - before))
 
     def _carve(self, obs: Observation) -> None:
-        h, w = obs.depth_png.shape
-        s = sampling_stride(w, None, self.config.columns)
-        depth = denormalise_depth(obs.depth_png[s // 2 :: s, s // 2 :: s], *obs.depth_range)
-        leftward, upward = pixel_slopes((h, w), obs.hfov_deg, s, first=s // 2, dtype=np.float64)
-        d_max = obs.depth_range[1]
-        reach = np.minimum(depth, self.config.max_range_m).astype(np.float64)
-        surface = (depth < 0.995 * d_max) & (depth <= self.config.max_range_m)
+        s = sampling_stride(obs.depth_png.shape[1], None, self.config.columns)
+        # One ray through the middle of every s x s block, carved as far as it reaches.
+        seen = DepthSamples.of(obs, s, first=s // 2, dtype=np.float64)
+        reach = np.minimum(seen.depth, self.config.max_range_m).astype(np.float64)
+        surface = seen.surface & (seen.depth <= self.config.max_range_m)
         camera = np.array([obs.camera_offset_m, 0.0, 0.0])
-        ends = np.stack(
-            [camera[0] + reach, leftward * reach, upward * reach],
-            axis=-1,
-        ).reshape(-1, 3)
+        ends = seen.points(reach, ahead_m=obs.camera_offset_m).reshape(-1, 3)
         # The sounders: free up to the ceiling and the floor, and a surface at each (a
         # reading that is not a number says nothing).
         sounded = np.array([[0.0, 0.0, obs.d_top], [0.0, 0.0, -obs.d_bottom]])
@@ -199,17 +192,11 @@ class CaveMap:
     # ------------------------------------------------------------------ reading
     def to_map(self, body_points: np.ndarray) -> np.ndarray:
         """(n, 3) body-frame points (forward, left, up) in the map frame."""
-        c, s = math.cos(self.heading), math.sin(self.heading)
-        p = np.asarray(body_points, np.float64)
-        return self.position + np.stack(
-            [c * p[:, 0] - s * p[:, 1], s * p[:, 0] + c * p[:, 1], p[:, 2]], axis=1
-        )
+        return to_map(body_points, self.position, self.heading)
 
     def to_body(self, map_points: np.ndarray) -> np.ndarray:
         """(n, 3) map-frame points in the current body frame."""
-        c, s = math.cos(self.heading), math.sin(self.heading)
-        p = np.asarray(map_points, np.float64) - self.position
-        return np.stack([c * p[:, 0] + s * p[:, 1], -s * p[:, 0] + c * p[:, 1], p[:, 2]], axis=1)
+        return to_body(map_points, self.position, self.heading)
 
     def state(self, map_points: np.ndarray) -> np.ndarray:
         """(n,) UNKNOWN, FREE or OCCUPIED for the cell of each map-frame point.

@@ -2,8 +2,9 @@
 
 The shield sees the current depth image, the echo sounders and its own memory of the
 last few depth images, each placed by dead reckoning on the actions the vehicle executed
-(never the mesh, never the true pose), so the same code can stand between a pilot and
-a real BlueROV2. It enforces, with the numbers of `Rules` (SPEC section 3):
+(never the mesh, never the true pose; `cavenav.reckoning`, as the cave map is), so the
+same code can stand between a pilot and a real BlueROV2. It enforces, with the numbers
+of `Rules` (SPEC section 3):
 
 1. No forward motion when an obstacle ahead of the new heading is closer than
    ``no_forward_within_m`` (measured from the camera, as the depth image is, in a
@@ -46,7 +47,16 @@ import numpy as np
 
 from cavenav.actions import DEFAULT_SPACE, ActionSpace, format_action
 from cavenav.errors import ConfigError
-from cavenav.sensors.depth import denormalise_depth, pixel_slopes
+from cavenav.reckoning import (
+    DepthSamples,
+    body_step,
+    executed_since,
+    move_points,
+    sampling_stride,
+    translation,
+    yaw_matrix,
+)
+from cavenav.sensors.depth import denormalise_depth
 from cavenav.types import DEFAULT_RULES, Action, Observation, Rules, VehicleBody
 
 __all__ = [
@@ -66,52 +76,12 @@ __all__ = [
 ]
 
 
-def sampling_stride(width: int, stride: int | None, columns: int) -> int:
-    """Every how many pixels a depth image ``width`` wide is read: ``stride``, or, when
-    None, as many as keep about ``columns`` of its columns (so that readers tuned at
-    640x480 read an 84x84 image whole rather than a handful of its pixels).
-
-    Raises:
-        ConfigError: a stride or a column count below 1.
-    """
-    if (stride is not None and stride < 1) or columns < 1:
-        raise ConfigError(
-            f"stride {stride} and columns {columns}: give a stride of at least 1 (or None) "
-            "and at least 1 column"
-        )
-    return stride if stride is not None else max(1, width // columns)
-
-
-def _yaw_matrix(yaw_deg: float) -> np.ndarray:
-    a = math.radians(yaw_deg)
-    return np.array(
-        [[math.cos(a), -math.sin(a), 0.0], [math.sin(a), math.cos(a), 0.0], [0.0, 0.0, 1.0]],
-        np.float32,
-    )
-
-
-def move_points(points: np.ndarray, action: Action) -> np.ndarray:
-    """(n, 3) body-frame points as seen after the vehicle executes ``action``.
-
-    The vehicle turns by dpsi (left positive), then translates by (df, -dr, dz) in its new
-    frame (SPEC section 5); fixed points therefore turn by -dpsi and shift back.
-    """
-    shift = np.array([action.forward, -action.right, action.up], np.float32)
-    return points @ _yaw_matrix(-action.yaw_deg).T - shift
-
-
-def translation(action: Action) -> np.ndarray:
-    """(3,) the straight move of ``action`` in the body frame before it (after its turn)."""
-    move = np.array([action.forward, -action.right, action.up], np.float32)
-    return _yaw_matrix(action.yaw_deg) @ move
-
-
 def clearance_of_move(cloud: np.ndarray, action: Action) -> float:
     """Smallest distance from the points ``cloud`` (n, 3) to the straight move of the centre."""
     if not len(cloud):
         return math.inf
-    pts = cloud @ _yaw_matrix(-action.yaw_deg).T  # in the frame after the turn
-    move = np.array([action.forward, -action.right, action.up], np.float32)
+    pts = cloud @ yaw_matrix(-action.yaw_deg).T  # in the frame after the turn
+    move = body_step(action)
     length2 = float(move @ move)
     t = np.clip(pts @ move / length2, 0.0, 1.0) if length2 > 0 else np.zeros(len(pts), np.float32)
     return float(np.linalg.norm(pts - t[:, None] * move, axis=1).min())
@@ -226,20 +196,11 @@ class DepthMemory:
     def _frame(self, obs: Observation) -> SeenFrame:
         h, w = obs.depth_png.shape
         s = sampling_stride(w, self.stride, self.columns)
-        d_max = obs.depth_range[1]
         focal = 0.5 * w / math.tan(math.radians(obs.hfov_deg) / 2)
         # Surface points at every s-th pixel, as the geometric pilot has always kept them.
-        depth = denormalise_depth(obs.depth_png[::s, ::s], *obs.depth_range)
-        leftward, upward = pixel_slopes((h, w), obs.hfov_deg, s)
-        keep = (depth < 0.995 * d_max) & (depth < self.max_range_m)
-        points = np.stack(
-            [
-                depth[keep] + obs.camera_offset_m,
-                (leftward * depth)[keep],
-                (upward * depth)[keep],
-            ],
-            axis=1,
-        ).astype(np.float32)
+        seen = DepthSamples.of(obs, s)
+        keep = seen.surface & (seen.depth < self.max_range_m)
+        points = seen.points(ahead_m=obs.camera_offset_m)[keep].astype(np.float32)
         sounded = [(0.0, 0.0, z) for z in (obs.d_top, -obs.d_bottom) if abs(z) < self.max_range_m]
         points = np.concatenate([points, np.array(sounded, np.float32).reshape(-1, 3)])
         # Free space: the nearest depth in each block and its neighbours.
@@ -430,7 +391,7 @@ def crawlway_move(
     if action.forward <= 0:
         return MoveMargins(around.pinched, math.inf)
     # The cloud in the frame of the new heading: along it from the camera, and across it.
-    pts = around.cloud @ _yaw_matrix(-action.yaw_deg).T
+    pts = around.cloud @ yaw_matrix(-action.yaw_deg).T
     along = pts[:, 0] - around.camera_offset_m
     across = np.hypot(pts[:, 1], pts[:, 2])
     thin, wide = margins.corridor_m(body, True), margins.corridor_m(body, False)
@@ -580,10 +541,7 @@ class Shield:
     def observe(self, observation: Observation) -> None:
         """Take in a new observation; the memory moves by the action executed before it,
         or, when the observation does not say, by the last action this shield judged."""
-        moved_by = observation.previous_action
-        if moved_by is None and self.memory.frames:
-            moved_by = self._last
-        self.memory.update(observation, moved_by)
+        self.memory.update(observation, executed_since(observation, self._last))
         self._observation = observation
 
     def judge(self, proposed: Action) -> Verdict:
