@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import fields
 from pathlib import Path
 
 import numpy as np
@@ -213,3 +214,68 @@ def test_eval_flies_every_episode_at_the_resolution_it_was_given(tmp_path: Path)
     recorded = json.loads((out / "sweep.json").read_text())["sensors"]
     assert recorded["resolution"] == [84, 84] and recorded["sounder_resolution"] == [4, 3]
     assert camera_of(out / "episodes") == ([84, 84], [4, 3])
+
+
+def test_every_vlm_option_is_one_flag_with_one_help_in_run_eval_and_fly() -> None:
+    import typer.main
+
+    from cavenav.cli import app
+    from cavenav.pilots.factory import VLMOptions
+
+    commands = typer.main.get_command(app).commands  # type: ignore[attr-defined]
+    helps = {name: {p.name: p.help for p in commands[name].params} for name in commands}
+    for name in ("run", "eval", "fly"):
+        for field in fields(VLMOptions):
+            assert field.name in helps[name], f"{name} lacks --{field.name.replace('_', '-')}"
+            assert helps[name][field.name] == helps["run"][field.name]
+    asked = set(helps["ask"])
+    assert {"history", "map_image", "price", "cache"}.isdisjoint(asked) and "model" in asked
+
+
+def test_an_option_the_value_does_not_take_is_refused_when_declared() -> None:
+    from typing import Annotated
+
+    import typer
+
+    from cavenav.cli_options import VLM, Flag, OptionGroup, takes
+    from cavenav.pilots.factory import VLMOptions
+
+    renamed = Flag("max_token", Annotated[int, typer.Option(help="tokens")], 1024)
+    with pytest.raises(TypeError, match="VLMOptions takes no option max_token"):
+        OptionGroup((*VLM.flags, renamed), VLMOptions)
+    with pytest.raises(TypeError, match="no option colour"):
+        VLM.only("model", "colour")
+    with pytest.raises(TypeError, match="declares model twice"):
+
+        @takes(vlm=VLM)
+        def command(model: str = "", vlm: object = None) -> None: ...
+
+
+def test_fly_takes_the_sensor_optics_resolution_and_difficulty_flags(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from typer.testing import CliRunner
+
+    from cavenav import cli
+
+    flown = {}
+    monkeypatch.setattr(
+        cli, "fly_vehicle", lambda bridge, cave, flyer, episode, *_, **__: flown.update(
+            cave=cave, episode=episode
+        )
+    )  # fmt: skip
+    done = CliRunner().invoke(
+        cli.app,
+        ["fly", "--sim", "S1", "--yes", "--out", str(tmp_path), "--no-shield", "--steps", "7",
+         "--water", "turbid", "--light-power", "5", "--resolution", "160x120",
+         "--sounder", "beam", "--difficulty", "constriction_m=3.0"],
+    )  # fmt: skip
+    assert done.exit_code == 0, done.output
+    episode, cave = flown["episode"], flown["cave"]
+    assert episode.max_steps == 7 and not episode.shield
+    assert episode.sensors.optics.water_name == "turbid" and episode.sensors.optics.light_power == 5
+    assert (episode.sensors.camera.width, episode.sensors.camera.height) == (160, 120)
+    assert episode.sensors.sounder == "beam"
+    assert cave.difficulty.to_dict() == {"constriction_m": 3.0}
+    refused = cavenav("fly", "--sim", "S1", "--yes", "--resolution", "160", "--out", str(tmp_path))
+    assert refused.returncode == 2 and "--resolution: '160' is not a resolution" in refused.stderr

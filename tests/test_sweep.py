@@ -15,6 +15,7 @@ from pathlib import Path
 import pytest
 from scipy.stats import binomtest
 
+from cavenav.episode.settings import EpisodeSettings
 from cavenav.errors import CavenavError, ConfigError, RecordingError
 from cavenav.evaluation.executors import InProcess, LocalPool
 from cavenav.evaluation.results import aggregate, compare, outcome
@@ -24,7 +25,9 @@ from cavenav.evaluation.sweep import (
     SweepConfig,
     parse_seeds,
     plan,
+    prepare,
     read_rows,
+    read_sweep,
     run_sweep,
 )
 from cavenav.pilots.factory import PilotSpec, VLMOptions
@@ -123,6 +126,61 @@ def test_a_sweep_begun_before_stuck_endings_resumes_with_the_options_it_was_flow
         run_sweep(today, out, InProcess())
     rows = run_sweep(replace(today, stuck_after=None), out, InProcess())
     assert len(rows) == 1
+
+
+def test_a_sweep_json_written_before_episode_settings_resumes_as_the_same_sweep(
+    room: str, tmp_path: Path
+) -> None:
+    # As `cavenav eval --scenarios ROOM --seeds 0-1 --steps 6 --frames png --shield
+    # --sounder beam --depth-max 12 --water turbid --depth-noise 0.05 --resolution 160x120`
+    # wrote it when SweepConfig kept loose "sensors".
+    written = {
+        "format": 1,
+        "scenarios": [room],
+        "seeds": [0, 1],
+        "pilot": {"name": "geometric", "label": "geometric"},
+        "episode": {"steps": 6, "stuck_after": 50, "shield": True, "frames": "png"},
+        "difficulty": {},
+        "sensors": {
+            "sounder": "beam",
+            "depth_max_m": 12.0,
+            "optics": {"water": "turbid", "depth_noise_m": 0.05},
+            "resolution": [160, 120],
+        },
+        "created_at": "2026-11-20T10:00:00+00:00",
+        "cavenav_version": "0.1.0",
+    }
+    out = tmp_path / "sweep"
+    (out / "episodes").mkdir(parents=True)
+    (out / "sweep.json").write_text(json.dumps(written))
+    config, _ = read_sweep(out)
+    assert config.settings == EpisodeSettings(
+        steps=6,
+        shield=True,
+        save_exr=False,
+        sounder="beam",
+        depth_max_m=12.0,
+        optics={"water": "turbid", "depth_noise_m": 0.05},
+        resolution=(160, 120),
+    )
+    stamps = ("created_at", "cavenav_version")
+    again = {k: v for k, v in config.to_dict().items() if k not in stamps}
+    assert again == {k: v for k, v in written.items() if k not in stamps}
+    assert json.dumps(again) == json.dumps({k: written[k] for k in again})  # key order too
+    assert len(prepare(config, out)) == 2  # the same command resumes it
+    with pytest.raises(ConfigError, match=r"sensors.resolution: \[160, 120\] there, null now"):
+        settings = replace(config.settings, resolution=None)
+        prepare(SweepConfig((room,), (0, 1), settings=settings), out)
+
+
+def test_episode_settings_are_given_by_name_and_a_wrong_name_is_refused() -> None:
+    config = SweepConfig(("S1",), (0,), steps=6, frames="png", difficulty={"constriction_m": 3.0})
+    assert config.settings.steps == 6 and config.settings.frames == "png"
+    assert config.settings.save_frames and not config.settings.save_exr
+    with pytest.raises(TypeError, match="step"):
+        SweepConfig(("S1",), (0,), step=6)
+    with pytest.raises(ConfigError, match="--frames must be one of all, png, none, got 'jpeg'"):
+        SweepConfig(("S1",), (0,), frames="jpeg")
 
 
 def test_a_failing_episode_is_recorded_and_the_sweep_goes_on(room: str, tmp_path: Path) -> None:

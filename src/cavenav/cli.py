@@ -10,6 +10,10 @@ cavenav report DIR                     the HTML report of a sweep or a run folde
 cavenav video RUN                      an MP4 of one episode
 cavenav fly --sim S4 --yes             the same pilots on an ArduSub vehicle over MAVLink
 cavenav fake-sub                       a simulated ArduSub autopilot to fly against
+
+The options several commands share (the VLM pilot's, the episode's, the sensors' and
+optics') are declared once in `cavenav.cli_options`; `cavenav.cli_flights` flies with a
+progress bar and handles Ctrl-C; `cavenav.cli_output` prints the tables.
 """
 
 from __future__ import annotations
@@ -17,252 +21,53 @@ from __future__ import annotations
 import contextlib
 import math
 import os
-import signal
 import sys
 import warnings
-from collections.abc import Iterator
 from dataclasses import replace
 from enum import StrEnum
 from pathlib import Path
 from typing import Annotated, Any
 
 import typer
-from rich.console import Console
 from rich.markup import escape
-from rich.progress import (
-    BarColumn,
-    MofNCompleteColumn,
-    Progress,
-    TextColumn,
-    TimeElapsedColumn,
-    TimeRemainingColumn,
-)
 from rich.table import Table
 
+from cavenav.cli_flights import fly_episode, fly_sweep, fly_vehicle
+from cavenav.cli_options import SETTINGS, VLM, ExrCompression, finite, takes
+from cavenav.cli_output import console, errors, print_comparison, print_groups
+from cavenav.episode.settings import EpisodeSettings
 from cavenav.errors import CavenavError
+from cavenav.pilots.factory import VLMOptions
 from cavenav.redaction import redact
-from cavenav.sensors.depth import DEPTH_RANGE_M, EXR_COMPRESSIONS
 
 app = typer.Typer(
     add_completion=False,
     no_args_is_help=True,
     help="cavenav: VLM-steered navigation of an underwater vehicle through unseen caves.",
 )
-console = Console()
-errors = Console(stderr=True, soft_wrap=True)
 
 
-class Sounder(StrEnum):
-    """Echo-sounder models (see `cavenav.sensors.rig.SensorConfig`)."""
-
-    camera = "camera"
-    beam = "beam"
-
-
-# Depth EXR compressions, all lossless (measured in `cavenav.sensors.depth`).
-ExrCompression = StrEnum("ExrCompression", {name: name for name in EXR_COMPRESSIONS})
-
-
-class Backend(StrEnum):
-    openai = "openai"
-    transformers = "transformers"
-
-
-class WaterType(StrEnum):
-    """Water presets (see `cavenav.sensors.optics.WATER_TYPES`)."""
-
-    clear = "clear"
-    ocean = "ocean"
-    coastal = "coastal"
-    turbid = "turbid"
-
-
-def _finite(value: float | None) -> float | None:
-    """A range's bounds let infinity through: refuse it (and NaN) by name."""
-    if value is not None and not math.isfinite(value):
-        raise typer.BadParameter(f"{value} is not finite; give a number")
-    return value
-
-
-def _positive(value: float) -> float:
-    if not (math.isfinite(value) and value > 0):
-        raise typer.BadParameter(f"{value} m: give a finite distance above 0")
-    return value
-
-
-# Options shared by `run` and `render`: how the cave looks. None keeps the scenario's own.
-WaterOpt = Annotated[WaterType | None, typer.Option(help="water preset (default: clear)")]
-LightPower = Annotated[
-    float | None,
-    typer.Option(min=0, callback=_finite, help="lamp power; 0 turns the lamps off (default 20)"),
+ScenarioArg = Annotated[
+    str, typer.Argument(help="a family (S1..S5, crawl, maze, long) or a scenario .toml file")
 ]
-Daylight = Annotated[
-    float | None,
-    typer.Option(min=0, callback=_finite, help="open-water brightness at exits (default 1)"),
-]
-Particles = Annotated[
-    float | None,
-    typer.Option(min=0, callback=_finite, help="marine snow, particles per m³ (default 2)"),
-]
-Noise = Annotated[
-    float | None, typer.Option(min=0, callback=_finite, help="sensor noise, 0 = none (default 1)")
-]
-DepthDropout = Annotated[
-    float | None,
-    typer.Option(
-        min=0,
-        callback=_finite,
-        help="drop depth where returned lamp light is below this (default 0)",
-    ),
-]
-DepthNoise = Annotated[
-    float | None,
-    typer.Option(min=0, callback=_finite, help="depth noise std at 10 m, metres (default 0)"),
-]
-
-
-def _optics_flags(**options: Any) -> dict[str, Any]:
-    """The optics flags that were given (None keeps the scenario's or the default)."""
-    return {
-        k: (v.value if isinstance(v, StrEnum) else v) for k, v in options.items() if v is not None
-    }
-
-
-# Options shared by `run`, `render` and `eval`: pixel counts. None keeps the scenario's.
-Resolution = Annotated[
-    str | None,
-    typer.Option(
-        metavar="WxH",
-        help="forward camera pixels, e.g. 160x120 or 84x84 (default: the scenario file's "
-        "\\[sensors] table, else 640x480); the horizontal field of view stays 53 degrees",
-    ),
-]
-SounderResolution = Annotated[
-    str | None,
-    typer.Option(metavar="WxH", help="pixels of each echo sounder's depth camera (default 32x24)"),
-]
-
-
-def _sizes(resolution: str | None, sounder_resolution: str | None) -> dict[str, Any]:
-    """The pixel counts that were given, parsed (a bad one is refused before any work)."""
-    from cavenav.sensors.camera import parse_resolution
-
-    given = {"resolution": resolution, "sounder_resolution": sounder_resolution}
-    return {
-        key: parse_resolution(text, f"--{key.replace('_', '-')}")
-        for key, text in given.items()
-        if text is not None
-    }
-
-
-def _sensors(  # noqa: ANN401 - lazy imports
-    cave: Any, base: Any, sizes: dict[str, Any] | None = None, **options: Any
-) -> Any:
-    """``base`` SensorConfig with the scenario's [optics] and [sensors] tables, then the
-    CLI options (optics flags, then the pixel counts ``sizes``)."""
-    return base.for_scenario(
-        cave.name, cave.optics, _optics_flags(**options), cave.sensors, sizes or {}
-    )
-
-
-DepthMax = Annotated[
-    float, typer.Option(callback=_positive, help="D_max of the depth PNG, metres (above 0)")
-]
-DifficultyOpt = Annotated[
-    list[str] | None,
-    typer.Option(
-        help="a difficulty knob of the cave family, KEY=VALUE (repeat for more), "
-        "e.g. constriction_m=2.5; see the README's cave families"
-    ),
-]
-
-# Options shared by `run --pilot vlm` and `ask`.
-BaseUrl = Annotated[
-    str | None,
-    typer.Option(
-        help="OpenAI-compatible endpoint, e.g. http://localhost:8000/v1 (vLLM, "
-        "SGLang, Ollama, llama.cpp); default: api.openai.com"
-    ),
-]
-Model = Annotated[str | None, typer.Option(help="model name, or a local folder for transformers")]
-BackendOpt = Annotated[Backend, typer.Option(help="where the model runs")]
-ApiKeyEnv = Annotated[str, typer.Option(help="environment variable that holds the API key")]
-Timeout = Annotated[
-    float, typer.Option(min=0.1, callback=_finite, help="seconds one attempt may take, whole")
-]
-Deadline = Annotated[
-    float | None,
-    typer.Option(
-        min=0.1,
-        callback=_finite,
-        help="seconds a request may take, retries and waits included "
-        "(default: timeout x (retries + 1))",
-    ),
-]
-Retries = Annotated[int, typer.Option(min=0, help="transport retries per request")]
-Temperature = Annotated[float, typer.Option(min=0, callback=_finite, help="sampling temperature")]
-MaxTokens = Annotated[int, typer.Option(min=16, help="maximum output tokens per reply")]
-Detail = Annotated[str | None, typer.Option(help="image detail sent with images: low, high, auto")]
-Requeries = Annotated[int, typer.Option(min=0, help="re-queries after an unusable reply")]
-History = Annotated[int, typer.Option(min=0, help="earlier observations sent (K)")]
-PromptFile = Annotated[Path | None, typer.Option(help="your own system-prompt template")]
-Structured = Annotated[bool, typer.Option(help="ask for a JSON schema with fixed keys")]
-MapImage = Annotated[
-    bool,
-    typer.Option(
-        "--map-image",
-        help="send a top-down picture of the pilot's own map (what it saw, where it flew) "
-        "with every step: the memory ablation",
-    ),
-]
-Price = Annotated[str | None, typer.Option(help="USD per million tokens, 'input,output'")]
-Cache = Annotated[Path | None, typer.Option(help="reply cache folder (keyed by request hash)")]
-Device = Annotated[str, typer.Option(help="transformers device: auto, cpu, cuda")]
-Steps = Annotated[
-    int | None,
-    typer.Option(min=1, help="step budget (default: the scenario's; 150 for S1-S5)"),
-]
-StuckAfter = Annotated[
-    int,
-    typer.Option(
-        min=0,
-        help="end as 'stuck' after this many steps without headway (new progress toward "
-        "the exit or new ground); 0: never",
-    ),
-]
-
-
-def _vlm_options(flags: dict[str, Any], **overrides: Any) -> Any:  # noqa: ANN401
-    """`VLMOptions` from a command's flags (its ``locals()``): the flags share its names."""
-    from dataclasses import fields
-
-    from cavenav.pilots.factory import VLMOptions
-
-    values = {f.name: flags[f.name] for f in fields(VLMOptions) if f.name in flags}
-    values.update(overrides)
-    plain = {
-        k: v.value if isinstance(v, StrEnum) else str(v) if isinstance(v, Path) else v
-        for k, v in values.items()
-    }
-    return VLMOptions(**plain)
+PilotOpt = Annotated[str, typer.Option(help="pilot to fly: geometric, vlm, replay, random")]
+RunsOut = Annotated[Path, typer.Option(help="folder that receives the run folder")]
+FramesOpt = Annotated[bool, typer.Option(help="save RGB, depth PNG and EXR of every step")]
+FromOpt = Annotated[Path | None, typer.Option("--from", help="run folder to replay")]
+# What `takes` replaces with the values of the flags (`cavenav.cli_options`).
+FROM_FLAGS, VLM_FROM_FLAGS = EpisodeSettings(), VLMOptions()
 
 
 @app.command()
+@takes(settings=SETTINGS, vlm=VLM)
 def run(
-    scenario: Annotated[
-        str, typer.Argument(help="a family (S1..S5, crawl, maze, long) or a scenario .toml file")
-    ],
-    pilot: Annotated[
-        str, typer.Option(help="pilot to fly: geometric, vlm, replay, random")
-    ] = "geometric",
+    scenario: ScenarioArg,
+    pilot: PilotOpt = "geometric",
     seed: Annotated[
-        int,
-        typer.Option(min=0, help="seed of the procedural cave and of the random pilot"),
+        int, typer.Option(min=0, help="seed of the procedural cave and of the random pilot")
     ] = 0,
-    out: Annotated[Path, typer.Option(help="folder that receives the run folder")] = Path("runs"),
-    steps: Steps = None,
-    stuck_after: StuckAfter = 50,
-    frames: Annotated[bool, typer.Option(help="save RGB, depth PNG and EXR of every step")] = True,
+    out: RunsOut = Path("runs"),
+    frames: FramesOpt = True,
     exr_compression: Annotated[
         ExrCompression,
         typer.Option(
@@ -273,199 +78,66 @@ def run(
     shield: Annotated[
         bool, typer.Option(help="safety shield between pilot and vehicle (cavenav.shield)")
     ] = False,
-    sounder: Annotated[Sounder, typer.Option(help="echo-sounder model")] = Sounder.camera,
-    depth_max: DepthMax = DEPTH_RANGE_M[1],
-    water: WaterOpt = None,
-    light_power: LightPower = None,
-    daylight: Daylight = None,
-    particles: Particles = None,
-    noise: Noise = None,
-    depth_dropout: DepthDropout = None,
-    depth_noise: DepthNoise = None,
-    resolution: Resolution = None,
-    sounder_resolution: SounderResolution = None,
-    from_: Annotated[Path | None, typer.Option("--from", help="run folder to replay")] = None,
-    difficulty: DifficultyOpt = None,
-    backend: BackendOpt = Backend.openai,
-    base_url: BaseUrl = None,
-    model: Model = None,
-    api_key_env: ApiKeyEnv = "OPENAI_API_KEY",
-    timeout: Timeout = 60.0,
-    deadline: Deadline = None,
-    retries: Retries = 4,
-    temperature: Temperature = 0.2,
-    max_tokens: MaxTokens = 1024,
-    detail: Detail = None,
-    requeries: Requeries = 3,
-    history: History = 2,
-    prompt_file: PromptFile = None,
-    structured: Structured = False,
-    map_image: MapImage = False,
-    price: Price = None,
-    cache: Cache = None,
-    device: Device = "auto",
+    from_: FromOpt = None,
+    settings: EpisodeSettings = FROM_FLAGS,
+    vlm: VLMOptions = VLM_FROM_FLAGS,
 ) -> None:
     """Fly one episode and write its run folder (summary, steps, frames, plots)."""
-    sizes = _sizes(resolution, sounder_resolution)
-    from cavenav.episode.loop import EpisodeConfig
     from cavenav.episode.run_folder import new_run_dir, prepare_root
     from cavenav.pilots.factory import PilotSpec
-    from cavenav.sensors.rig import SensorConfig
-    from cavenav.world.scenarios import load_scenario, parse_difficulty
 
-    spec = PilotSpec(
-        pilot,
-        _vlm_options(locals()),
-        recording=str(from_) if from_ else None,
-    )
+    spec = PilotSpec(pilot, vlm, recording=str(from_) if from_ else None)
     if pilot == "replay":
-        from cavenav.pilots.replay import recorded_scenario
-
-        recorded, recorded_seed = recorded_scenario(str(from_))
-        if recorded.casefold() != scenario.casefold() and Path(scenario).stem not in recorded:
-            console.print(
-                f"[yellow]note:[/] the recording flew {recorded}, replaying in {scenario}"
-            )
-        seed = recorded_seed if recorded_seed is not None else seed
+        seed = _recorded_seed(scenario, spec, seed)
     flyer = spec.build(seed=seed)  # a refused pilot or recording leaves no folder behind
     prepare_root(out)  # a folder that cannot be written is refused before the cave is built
+    settings = replace(
+        settings, save_frames=frames, exr_compression=exr_compression.value, shield=shield
+    )
     with console.status(f"building {scenario} (seed {seed})"):
-        cave = load_scenario(scenario, seed, difficulty=parse_difficulty(difficulty or []))
-    sensors = _sensors(
-        cave,
-        replace(SensorConfig(), sounder=sounder.value, depth_max_m=depth_max),
-        sizes,
-        water=water,
-        light_power=light_power,
-        daylight=daylight,
-        particles=particles,
-        noise=noise,
-        depth_dropout=depth_dropout,
-        depth_noise_m=depth_noise,
-    )
-    config = EpisodeConfig(
-        max_steps=steps,
-        stuck_after=stuck_after or None,
-        save_frames=frames,
-        exr_compression=exr_compression.value,
-        shield=shield,
-        sensors=sensors,
-    )
+        cave = settings.load(scenario, seed)
+    config = settings.episode_config(cave)
     console.print(
         f"[bold]{cave.name}[/]: {cave.description or cave.mesh.name} "
         f"({cave.mesh.triangle_count:,} triangles)"
     )
     run_dir = new_run_dir(out, cave.name, pilot, cave.seed)
-    _fly_episode(cave, flyer, config, run_dir)
+    fly_episode(cave, flyer, config, run_dir)
 
 
-def _fly_episode(
-    cave: Any,  # noqa: ANN401 - lazy imports
-    flyer: Any,  # noqa: ANN401
-    config: Any,  # noqa: ANN401
-    run_dir: Path,
-    motion: Any = None,  # noqa: ANN401
-) -> None:
-    """Fly the episode with a progress bar, print its summary, and exit as the README says."""
-    from cavenav.episode.loop import run_episode, step_budget
+def _recorded_seed(scenario: str, spec: Any, seed: int) -> int:  # noqa: ANN401 - lazy import
+    """The seed the replayed recording flew (``seed`` if it names none), with a note when
+    it flew another scenario."""
+    from cavenav.pilots.replay import recorded_scenario
 
-    with Progress(
-        TextColumn("[progress.description]{task.description}"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TextColumn("{task.fields[status]}"),
-        TimeElapsedColumn(),
-        console=console,
-    ) as progress:
-        # Before the first step: the kernels load (the first run on a machine compiles
-        # them, about a minute), the lighting tables are built and the start is checked.
-        task = progress.add_task(
-            f"preparing {cave.name}",
-            total=step_budget(cave, config),
-            status="sensors, lighting, start check",
-        )
-
-        def on_step(record: dict) -> None:
-            status = f"clearance {record['clearance_m']:.2f} m  {record.get('action') or ''}"
-            progress.update(task, advance=1, description=f"flying {cave.name}", status=status[:60])
-
-        try:
-            result = run_episode(cave, flyer, config, run_dir, on_step, motion)
-        except KeyboardInterrupt:
-            progress.stop()
-            errors.print(_interrupted(run_dir), soft_wrap=True)
-            raise typer.Exit(130) from None
-        except CavenavError as exc:
-            progress.stop()
-            _remove_if_empty(run_dir)  # refused before anything was written (the start)
-            if (run_dir / "summary.json").is_file():
-                exc.args = (f"{exc} (the record so far is in {run_dir})",)
-            raise
-    _print_summary(result.summary)
-    # soft_wrap: paths stay on one line, whatever the terminal width, for copy and paste.
-    console.print(f"run folder: [bold]{run_dir}[/]", soft_wrap=True)
-    for name in result.summary.get("plots", {}).values():
-        console.print(f"plot:       {run_dir / name}", soft_wrap=True)
-    if result.termination == "pilot_failure":
-        raise typer.Exit(1)
-
-
-def _interrupted(run_dir: Path) -> str:
-    """What Ctrl-C left: a partial record, or a whole episode without its plots."""
-    import json
-
-    try:
-        status = json.loads((run_dir / "summary.json").read_text())["status"]
-    except (OSError, ValueError, KeyError):
-        status = None
-    if status == "finished":
-        return f"interrupted while drawing the plots: the episode's record is whole in {run_dir}"
-    return f"interrupted: the partial record is in {run_dir}"
-
-
-def _remove_if_empty(folder: Path) -> None:
-    with contextlib.suppress(OSError):  # not empty: it holds the record
-        folder.rmdir()
+    recorded, recorded_seed = recorded_scenario(str(spec.recording))
+    if recorded.casefold() != scenario.casefold() and Path(scenario).stem not in recorded:
+        console.print(f"[yellow]note:[/] the recording flew {recorded}, replaying in {scenario}")
+    return recorded_seed if recorded_seed is not None else seed
 
 
 @app.command()
+@takes(
+    settings=SETTINGS.only(
+        "depth_max", "water", "light_power", "daylight", "particles", "noise",
+        "resolution", "sounder_resolution", "difficulty",
+    )
+)  # fmt: skip
 def render(
-    scenario: Annotated[
-        str, typer.Argument(help="a family (S1..S5, crawl, maze, long) or a scenario .toml file")
-    ],
-    water: WaterOpt = None,
+    scenario: ScenarioArg,
     seed: Annotated[int, typer.Option(min=0, help="seed of the procedural cave")] = 0,
     views: Annotated[int, typer.Option(min=1, max=24, help="poses along the passage")] = 6,
     out: Annotated[
         Path | None, typer.Option(help="PNG to write (default: render-SCENARIO-WATER.png)")
     ] = None,
-    light_power: LightPower = None,
-    daylight: Daylight = None,
-    particles: Particles = None,
-    noise: Noise = None,
-    depth_max: DepthMax = DEPTH_RANGE_M[1],
-    difficulty: DifficultyOpt = None,
-    resolution: Resolution = None,
-    sounder_resolution: SounderResolution = None,
+    settings: EpisodeSettings = FROM_FLAGS,
 ) -> None:
     """Write a contact sheet: colour and depth views from poses along the passage."""
-    sizes = _sizes(resolution, sounder_resolution)
     from cavenav.episode.gallery import passage_poses, write_contact_sheet
-    from cavenav.sensors.rig import SensorConfig
-    from cavenav.world.scenarios import load_scenario, parse_difficulty
 
     with console.status(f"building {scenario} (seed {seed})"):
-        cave = load_scenario(scenario, seed, difficulty=parse_difficulty(difficulty or []))
-    sensors = _sensors(
-        cave,
-        replace(SensorConfig(), depth_max_m=depth_max),
-        sizes,
-        water=water,
-        light_power=light_power,
-        daylight=daylight,
-        particles=particles,
-        noise=noise,
-    )
+        cave = settings.load(scenario, seed)
+    sensors = settings.sensors_for(cave)
     path = out or Path(f"render-{cave.name}-{sensors.optics.water_name}.png")
     with console.status(f"finding {views} poses along {cave.name}"):
         poses = passage_poses(cave, views)
@@ -475,25 +147,13 @@ def render(
 
 
 @app.command()
+@takes(vlm=VLM.without("history", "map_image", "price", "cache"))
 def ask(
     image: Annotated[Path, typer.Argument(help="a colour photograph (PNG or JPEG)")],
     depth: Annotated[Path | None, typer.Option(help="a depth PNG (dark near, bright far)")] = None,
     top: Annotated[float | None, typer.Option(help="d_top: metres to the ceiling")] = None,
     bottom: Annotated[float | None, typer.Option(help="d_bottom: metres to the floor")] = None,
-    backend: BackendOpt = Backend.openai,
-    base_url: BaseUrl = None,
-    model: Model = None,
-    api_key_env: ApiKeyEnv = "OPENAI_API_KEY",
-    timeout: Timeout = 60.0,
-    deadline: Deadline = None,
-    retries: Retries = 4,
-    temperature: Temperature = 0.2,
-    max_tokens: MaxTokens = 1024,
-    detail: Detail = None,
-    requeries: Requeries = 3,
-    prompt_file: PromptFile = None,
-    structured: Structured = False,
-    device: Device = "auto",
+    vlm: VLMOptions = VLM_FROM_FLAGS,
 ) -> None:
     """Send one query for a single image (e.g. a photograph from a real cave).
 
@@ -501,23 +161,21 @@ def ask(
     --depth the request carries no depth image and says so, and a missing --top or
     --bottom is sent as "unknown".
     """
+    from cavenav.actions import to_twist
     from cavenav.pilots.factory import PilotSpec
     from cavenav.pilots.photo import load_photo
 
     # The images first: a bad one is refused before the endpoint is contacted.
-    observation, notes = load_photo(image, depth, d_top=top, d_bottom=bottom, detail=detail)
+    observation, notes = load_photo(image, depth, d_top=top, d_bottom=bottom, detail=vlm.detail)
     for note in notes:
         console.print(f"[yellow]note:[/] {escape(note)}", soft_wrap=True)
-    options = _vlm_options(locals(), history=0, price=None, cache=None)
-    pilot = PilotSpec("vlm", options).build()
+    pilot = PilotSpec("vlm", replace(vlm, history=0)).build()  # one image, no history
     decision = pilot.decide(observation)
     console.rule("reasoning")
     console.print(decision.raw, markup=False, highlight=False)
     console.rule("parsed action")
     console.print(f"action:        {decision.action_text}", markup=False)
     console.print(f"justification: {decision.justification}", markup=False)
-    from cavenav.actions import to_twist
-
     console.print(f"twist:         {to_twist(decision.action)}", markup=False)
 
 
@@ -530,6 +188,7 @@ class FramesMode(StrEnum):
 
 
 @app.command("eval")
+@takes(settings=SETTINGS, vlm=VLM)
 def eval_(
     scenarios: Annotated[
         str,
@@ -555,146 +214,33 @@ def eval_(
     frames: Annotated[
         FramesMode, typer.Option(help="all: PNG + EXR; png: no EXR; none: no images")
     ] = FramesMode.all,
-    steps: Steps = None,
-    stuck_after: StuckAfter = 50,
     shield: Annotated[bool, typer.Option(help="safety shield between pilot and vehicle")] = False,
     report: Annotated[bool, typer.Option(help="write the HTML report at the end")] = True,
-    difficulty: DifficultyOpt = None,
-    sounder: Annotated[Sounder, typer.Option(help="echo-sounder model")] = Sounder.camera,
-    depth_max: DepthMax = DEPTH_RANGE_M[1],
-    water: WaterOpt = None,
-    light_power: LightPower = None,
-    daylight: Daylight = None,
-    particles: Particles = None,
-    noise: Noise = None,
-    depth_dropout: DepthDropout = None,
-    depth_noise: DepthNoise = None,
-    resolution: Resolution = None,
-    sounder_resolution: SounderResolution = None,
-    backend: BackendOpt = Backend.openai,
-    base_url: BaseUrl = None,
-    model: Model = None,
-    api_key_env: ApiKeyEnv = "OPENAI_API_KEY",
-    timeout: Timeout = 60.0,
-    deadline: Deadline = None,
-    retries: Retries = 4,
-    temperature: Temperature = 0.2,
-    max_tokens: MaxTokens = 1024,
-    detail: Detail = None,
-    requeries: Requeries = 3,
-    history: History = 2,
-    prompt_file: PromptFile = None,
-    structured: Structured = False,
-    map_image: MapImage = False,
-    price: Price = None,
-    cache: Cache = None,
-    device: Device = "auto",
+    settings: EpisodeSettings = FROM_FLAGS,
+    vlm: VLMOptions = VLM_FROM_FLAGS,
 ) -> None:
     """Fly a pilot over scenarios x seeds; results.csv, aggregate.json and an HTML report."""
-    sizes = _sizes(resolution, sounder_resolution)
     from cavenav.episode.run_folder import prepare_root
-    from cavenav.errors import RecordingError
-    from cavenav.evaluation.sweep import SweepConfig, check_grid, parse_seeds, run_sweep
+    from cavenav.evaluation.sweep import SweepConfig, check_grid, parse_seeds
     from cavenav.pilots.factory import PilotSpec
-    from cavenav.world.scenarios import parse_difficulty
 
     if pilot == "replay":
         raise CavenavError("a sweep flies geometric, vlm or random pilots, not replay")
-    spec = PilotSpec(
-        pilot,
-        _vlm_options(locals()),
-    )
-    optics = _optics_flags(
-        water=water,
-        light_power=light_power,
-        daylight=daylight,
-        particles=particles,
-        noise=noise,
-        depth_dropout=depth_dropout,
-        depth_noise_m=depth_noise,
-    )
-    config = SweepConfig(
-        scenarios=_scenario_list(scenarios),
-        seeds=parse_seeds(seeds),
-        pilot=spec,
-        steps=steps,
-        stuck_after=stuck_after or None,
-        shield=shield,
-        frames=frames.value,
-        difficulty=parse_difficulty(difficulty or []).to_dict(),
-        sensors={"sounder": sounder.value, "depth_max_m": depth_max, "optics": optics, **sizes},
-    )
+    spec = PilotSpec(pilot, vlm)
+    settings = replace(settings, shield=shield).with_frames(frames.value)
+    config = SweepConfig(_scenario_list(scenarios), parse_seeds(seeds), spec, settings)
     check_grid(config)  # every scenario and knob, in milliseconds, before anything is written
     if pilot == "vlm":
         spec.build()  # a missing key or an unreachable server fails now, not in a worker
     prepare_root(out)  # only now: a refused grid or pilot leaves no folder behind
-    executor = _executor(workers, concurrency, ray_address)
-    counts = {"done": 0, "success": 0}
-    with Progress(
-        TextColumn("[progress.description]{task.description}"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TextColumn("{task.fields[status]}"),
-        TimeElapsedColumn(),
-        TextColumn("ETA"),
-        TimeRemainingColumn(),
-        console=console,
-    ) as progress:
-        task = progress.add_task("episodes", total=None, status="")
-
-        def started(left: int, grid: int) -> None:
-            if left < grid:
-                progress.console.print(f"resuming {out}: {grid - left} of {grid} episodes done")
-            progress.update(task, total=left)
-
-        def done(row: dict) -> None:
-            counts["done"] += 1
-            counts["success"] += row.get("outcome") == "success"
-            status = f"{counts['success']}/{counts['done']} succeeded  last: {row['episode']} "
-            progress.update(task, advance=1, status=status + str(row.get("outcome")))
-
-        terminated: list[int] = []
-        try:
-            with _sigterm_as_ctrl_c(terminated):
-                rows = run_sweep(config, out, executor, done, started)
-        except KeyboardInterrupt:
-            progress.stop()
-            errors.print(
-                f"interrupted after {counts['done']} episodes: results so far are in {out}; "
-                "run the same command again to resume"
-            )
-            raise typer.Exit(143 if terminated else 130) from None
-        except RecordingError as exc:
-            progress.stop()
-            raise RecordingError(
-                f"{exc}; the sweep stopped after {counts['done']} episodes, each record whole: "
-                "make room, then run the same command again to resume"
-            ) from None
-    _print_groups(rows)
+    rows = fly_sweep(config, out, _executor(workers, concurrency, ray_address))
+    print_groups(rows)
     console.print(f"sweep folder: [bold]{out}[/]", soft_wrap=True)
     console.print(f"results:      {out / 'results.csv'}", soft_wrap=True)
     if report:
         from cavenav.evaluation.report import write_report
 
         console.print(f"report:       {write_report(out, rows)}", soft_wrap=True)
-
-
-@contextlib.contextmanager
-def _sigterm_as_ctrl_c(caught: list[int]) -> Iterator[None]:
-    """SIGTERM (kill, a batch scheduler's stop) ends the block as Ctrl-C does: the workers
-    are stopped and the tables written; ``caught`` gets the signal, for the exit status
-    (143 = 128 + SIGTERM). A second SIGTERM while stopping is ignored."""
-
-    def stop(signum: int, frame: object) -> None:
-        caught.append(signum)
-        signal.signal(signal.SIGTERM, signal.SIG_IGN)
-        raise KeyboardInterrupt
-
-    previous = signal.signal(signal.SIGTERM, stop)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, previous)
 
 
 def _scenario_list(text: str) -> tuple[str, ...]:
@@ -711,34 +257,6 @@ def _executor(workers: int | None, concurrency: int, ray_address: str | None) ->
         return RayCluster(ray_address, workers, concurrency)
     workers = workers or len(os.sched_getaffinity(0))
     return InProcess(concurrency) if workers == 1 else LocalPool(workers, concurrency)
-
-
-def _print_groups(rows: list[dict]) -> None:
-    from cavenav.evaluation.results import aggregate
-
-    groups = aggregate(rows)
-    pilots = sorted({g["pilot"] for g in groups})
-    table = Table(title=f"{', '.join(pilots)}: success with its 95% Wilson interval")
-    for column in ("scenario", "done", "success", "95% CI", "collided", "other outcomes",
-                   "min clear.", "path eff.", "steps"):  # fmt: skip
-        table.add_column(column)
-    for g in groups:
-        ci = g["success_ci95"]
-        others = ", ".join(
-            f"{k} {v}" for k, v in g["outcomes"].items() if k not in ("success", "collision")
-        )
-        table.add_row(
-            g["scenario"],
-            f"{g['completed']}/{g['episodes']}",
-            "-" if g["success_rate"] is None else f"{g['success_rate']:.0%}",
-            "-" if ci is None else f"{ci[0]:.0%}-{ci[1]:.0%}",
-            str(g["collisions"]),
-            others or "-",
-            _metres(g["min_clearance_m"]["min"]),
-            "-" if g["path_efficiency"] is None else f"{g['path_efficiency']:.2f}",
-            "-" if g["steps"] is None else f"{g['steps']:.0f}",
-        )
-    console.print(table)
 
 
 @app.command()
@@ -758,43 +276,16 @@ def compare(
     if json_out is not None and json_out.is_dir():
         raise ConfigError(f"--json {json_out} is a folder: name the file to write")
     (config_a, _), (config_b, _) = read_sweep(sweep_a), read_sweep(sweep_b)
-    if dict(config_a.difficulty) != dict(config_b.difficulty):
+    knobs_a, knobs_b = dict(config_a.settings.difficulty), dict(config_b.settings.difficulty)
+    if knobs_a != knobs_b:
         raise CavenavError(
-            f"the sweeps flew different caves: difficulty {dict(config_a.difficulty)} in "
-            f"{sweep_a}, {dict(config_b.difficulty)} in {sweep_b}"
+            f"the sweeps flew different caves: difficulty {knobs_a} in {sweep_a}, "
+            f"{knobs_b} in {sweep_b}"
         )
     result = compare_rows(read_rows(sweep_a, write=False), read_rows(sweep_b, write=False))
     label_a, label_b = config_a.pilot.label, config_b.pilot.label
-    table = Table(title=f"A = {label_a} ({sweep_a})   B = {label_b} ({sweep_b})")
-    for column in ("scenario", "pairs", "A success", "B success", "A - B", "only A", "only B",
-                   "McNemar exact p"):  # fmt: skip
-        table.add_column(column)
-    entries = [*result["per_scenario"].items(), ("all", result["overall"])]
-    for name, r in entries:
-        if not r["pairs"]:
-            continue
-        table.add_row(
-            name,
-            str(r["pairs"]),
-            f"{r['success_rate_a']:.0%}",
-            f"{r['success_rate_b']:.0%}",
-            f"{r['difference']:+.0%}",
-            str(len(r["only_a"])),
-            str(len(r["only_b"])),
-            f"{r['mcnemar_p']:.4g}",
-        )
-    console.print(table)
-    if result["unpaired"]:
-        console.print(f"{result['unpaired']} caves were completed in one sweep only (left out)")
-    shown = 12
-    for side, folder in (("a", sweep_a), ("b", sweep_b)):
-        caves = result["overall"][f"only_{side}"]
-        if caves:
-            console.print(f"[bold]only {side.upper()} got through ({len(caves)}):[/]")
-            for cave in caves[:shown]:
-                console.print(f"  {cave['cave']}: {folder / cave[side]}", soft_wrap=True)
-            if len(caves) > shown:
-                console.print(f"  ... {len(caves) - shown} more (all of them with --json FILE)")
+    title = f"A = {label_a} ({sweep_a})   B = {label_b} ({sweep_b})"
+    print_comparison(result, title, (sweep_a, sweep_b))
     if json_out:
         try:
             write_json(json_out, result)
@@ -853,14 +344,13 @@ commands of an action with --dry-run --action TEXT."""
 
 
 @app.command()
+@takes(settings=SETTINGS, vlm=VLM)
 def fly(
     connect: Annotated[
         str | None,
         typer.Option(help="MAVLink address of the vehicle (default udpin:0.0.0.0:14550)"),
     ] = None,
-    pilot: Annotated[
-        str, typer.Option(help="pilot to fly: geometric, vlm, replay, random")
-    ] = "geometric",
+    pilot: PilotOpt = "geometric",
     sim: Annotated[
         str | None,
         typer.Option(
@@ -884,32 +374,14 @@ def fly(
         list[str] | None, typer.Option(help="an action string for --dry-run (repeat for more)")
     ] = None,
     seed: Annotated[int, typer.Option(min=0, help="seed of the procedural cave")] = 0,
-    out: Annotated[Path, typer.Option(help="folder that receives the run folder")] = Path("runs"),
-    steps: Steps = None,
-    stuck_after: StuckAfter = 50,
-    frames: Annotated[bool, typer.Option(help="save RGB, depth PNG and EXR of every step")] = True,
+    out: RunsOut = Path("runs"),
+    frames: FramesOpt = True,
     shield: Annotated[
         bool, typer.Option(help="safety shield between pilot and vehicle (on by default here)")
     ] = True,
-    from_: Annotated[Path | None, typer.Option("--from", help="run folder to replay")] = None,
-    backend: BackendOpt = Backend.openai,
-    base_url: BaseUrl = None,
-    model: Model = None,
-    api_key_env: ApiKeyEnv = "OPENAI_API_KEY",
-    timeout: Timeout = 60.0,
-    deadline: Deadline = None,
-    retries: Retries = 4,
-    temperature: Temperature = 0.2,
-    max_tokens: MaxTokens = 1024,
-    detail: Detail = None,
-    requeries: Requeries = 3,
-    history: History = 2,
-    prompt_file: PromptFile = None,
-    structured: Structured = False,
-    map_image: MapImage = False,
-    price: Price = None,
-    cache: Cache = None,
-    device: Device = "auto",
+    from_: FromOpt = None,
+    settings: EpisodeSettings = FROM_FLAGS,
+    vlm: VLMOptions = VLM_FROM_FLAGS,
 ) -> None:
     """Fly a pilot on an ArduSub vehicle over MAVLink (BlueROV2); with --sim, in a cave."""
     from cavenav.vehicle.mavlink import load_bridge_config
@@ -921,49 +393,18 @@ def fly(
     if sim is None:
         errors.print(REAL_VEHICLE_INPUTS, highlight=False)
         raise typer.Exit(2)
-    from cavenav.episode.loop import EpisodeConfig
     from cavenav.episode.run_folder import new_run_dir, prepare_root
     from cavenav.pilots.factory import PilotSpec
-    from cavenav.sensors.rig import SensorConfig
-    from cavenav.vehicle.mavlink import ArduSubMotion
-    from cavenav.world.scenarios import load_scenario
 
-    spec = PilotSpec(pilot, _vlm_options(locals()), recording=str(from_) if from_ else None)
+    spec = PilotSpec(pilot, vlm, recording=str(from_) if from_ else None)
     prepare_root(out)
     flyer = spec.build(seed=seed)
+    settings = replace(settings, save_frames=frames, shield=shield)
     with console.status(f"building {sim} (seed {seed})"):
-        cave = load_scenario(sim, seed)
-    sensors = _sensors(cave, SensorConfig())
-    episode = EpisodeConfig(
-        max_steps=steps,
-        stuck_after=stuck_after or None,
-        save_frames=frames,
-        shield=shield,
-        sensors=sensors,
-    )
+        cave = settings.load(sim, seed)
+    episode = settings.episode_config(cave)
     run_dir = new_run_dir(out, cave.name, pilot, cave.seed)
-    motion = ArduSubMotion(
-        bridge, run_dir / "mavlink.jsonl", confirm=None if yes else typer.confirm
-    )
-    try:
-        listening = motion.listen()  # with udpin:HOST:0, the port the system chose
-        where = f", listening on {listening[0]}:{listening[1]}" if listening else ""
-        console.print(
-            f"[bold]{cave.name}[/] through MAVLink ({bridge.mode} mode, {bridge.connect}{where}): "
-            "waiting for the vehicle's heartbeat",
-            soft_wrap=True,
-            highlight=False,
-        )
-        _fly_episode(cave, flyer, episode, run_dir, motion)
-    except CavenavError:
-        motion.close()  # closes the command log
-        if not (run_dir / "summary.json").exists():  # failed to connect: nothing was flown,
-            (run_dir / "mavlink.jsonl").unlink(missing_ok=True)  # so no folder looks like a run
-            _remove_if_empty(run_dir)
-        raise
-    finally:
-        motion.close()
-    console.print(f"commands:   {run_dir / 'mavlink.jsonl'}", soft_wrap=True)
+    fly_vehicle(bridge, cave, flyer, episode, run_dir, confirm=None if yes else typer.confirm)
 
 
 def _print_dry_run(bridge: Any, actions: list[str]) -> None:  # noqa: ANN401
@@ -985,17 +426,17 @@ def fake_sub(
         str, typer.Option(help="where to send (the bridge listens there with udpin)")
     ] = "udpout:127.0.0.1:14550",
     noise: Annotated[
-        float, typer.Option(min=0, callback=_finite, help="execution noise (relative gain error)")
+        float, typer.Option(min=0, callback=finite, help="execution noise (relative gain error)")
     ] = 0.0,
     current: Annotated[
         str, typer.Option(metavar="N,E,D", help="water current, m/s north, east, down")
     ] = "0,0,0",
-    depth: Annotated[float, typer.Option(min=0, callback=_finite, help="start depth, m")] = 30.0,
+    depth: Annotated[float, typer.Option(min=0, callback=finite, help="start depth, m")] = 30.0,
     position: Annotated[
         bool, typer.Option(help="report LOCAL_POSITION_NED and allow GUIDED (a DVL)")
     ] = True,
     pilot_timeout: Annotated[
-        float, typer.Option(min=0.1, callback=_finite, help="FS_PILOT_TIMEOUT, seconds")
+        float, typer.Option(min=0.1, callback=finite, help="FS_PILOT_TIMEOUT, seconds")
     ] = 3.0,
     seed: Annotated[int, typer.Option(min=0, help="seed of the execution noise")] = 0,
 ) -> None:
@@ -1033,59 +474,6 @@ def fake_sub(
     console.print(f"fake ArduSub sending to {connect}; Ctrl-C stops it")
     with contextlib.suppress(KeyboardInterrupt):
         serve(settings, on_state=show)
-
-
-def _print_summary(summary: dict) -> None:
-    table = Table(title="episode summary", show_header=False)
-    table.add_column(style="bold")
-    table.add_column()
-    rows = [
-        ("scenario", summary["scenario"]),
-        ("pilot", summary["pilot"]),
-        ("seed", summary["seed"]),
-        ("termination", summary["termination"]),
-        ("success", "yes" if summary["success"] else "no"),
-        ("steps", summary["steps"]),
-        ("collisions", summary["collisions"]),
-        ("path length", f"{summary['path_length_m']:.1f} m"),
-        ("min clearance", _metres(summary["min_clearance_m"])),
-        ("mean clearance", _metres(summary["mean_clearance_m"])),
-        ("steps below standoff", summary["steps_below_standoff"]),
-        ("sensing per step", f"{summary['mean_sense_ms']} ms"),
-        ("first sensing", f"{summary.get('first_sense_ms')} ms (with loading the kernels)"),
-        ("pilot per step", f"{summary['mean_pilot_ms']} ms"),
-    ]
-    if summary.get("shield"):
-        rows.append(("shield interventions", summary["shield_interventions"]))
-    if summary.get("invalid_actions"):
-        rows.append(("invalid actions (held)", summary["invalid_actions"]))
-    usage = summary.get("usage")
-    if usage:
-        rows += [
-            ("prompt tokens", usage["prompt_tokens"]),
-            ("completion tokens", usage["completion_tokens"]),
-            ("mean model latency", f"{usage['mean_latency_s']:.2f} s"),
-            ("re-queries", usage["requeries"]),
-            ("transport retries", usage["transport_retries"]),
-            ("cost", "-" if usage["cost_usd"] is None else f"${usage['cost_usd']:.4f}"),
-        ]
-    if "mean_drift_m" in summary:  # flown on a vehicle (cavenav fly)
-        rows += [
-            ("drift from command", f"{summary['mean_drift_m']:.3f} m mean, "
-             f"{summary['max_drift_m']:.3f} m max, {summary['max_drift_deg']:.1f} deg max"),
-            ("action on the vehicle", f"{summary['mean_physics_ms'] / 1e3:.2f} s mean"),
-        ]  # fmt: skip
-    if summary.get("failure"):
-        rows.append(("failure", summary["failure"]))
-    for key, value in rows:
-        # Escaped: a failure quoting a server or a reply ("[redacted]", "[/]") is text,
-        # not rich markup, which would swallow it or fail on it.
-        table.add_row(key, "-" if value is None else escape(str(value)))
-    console.print(table)
-
-
-def _metres(value: float | None) -> str:
-    return "-" if value is None else f"{value:.2f} m"
 
 
 @app.command()

@@ -31,20 +31,20 @@ import time
 import traceback
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager, suppress
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any, Protocol
 
 from cavenav import __version__
-from cavenav.episode.loop import DEFAULT_STEPS, EpisodeConfig, run_episode
+from cavenav.episode.loop import DEFAULT_STEPS, run_episode
 from cavenav.episode.records import read_summary, read_sweep_file
 from cavenav.episode.run_folder import prepare_root, write_atomic, write_json
+from cavenav.episode.settings import FRAME_MODES, EpisodeSettings
 from cavenav.errors import CavenavError, ConfigError, RecordError, RecordingError
 from cavenav.evaluation.results import episode_row, outcome, read_episode, write_results
 from cavenav.pilots.base import Pilot
 from cavenav.pilots.factory import PilotSpec, VLMOptions
-from cavenav.sensors.rig import SENSOR_KEYS, SensorConfig
 from cavenav.world.scenarios import (
     SCENARIOS,
     Difficulty,
@@ -70,7 +70,7 @@ __all__ = [
     "run_sweep",
 ]
 
-FRAMES = ("all", "png", "none")
+FRAMES = tuple(FRAME_MODES)  # what a sweep keeps of each step's images
 FORMAT = 1
 # Pilot settings that change how a request travels, not what the pilot does: a resumed
 # sweep may change them (a longer timeout, more retries, a reply cache).
@@ -87,7 +87,7 @@ LEFTOVER_GRACE_S = 5.0
 _FOLDER_FAULTS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, init=False)
 class SweepConfig:
     """What a sweep flies; everything that changes its results, nothing about how it runs.
 
@@ -95,26 +95,41 @@ class SweepConfig:
         scenarios: family names (S1..S5, crawl, maze, long) or scenario-file paths.
         seeds: caves drawn from each family (development seeds below 1000, test split
             from 1000; see `cavenav.world.scenarios.HELD_OUT_SEEDS`).
-        difficulty: `Difficulty` knobs, each set on the families that have it.
-        sensors: sounder, depth_max_m, an "optics" table of flag overrides and, where
-            given, "resolution" and "sounder_resolution" ([width, height] over each
-            scenario file's [sensors] table).
-        frames: "all" (PNG and EXR), "png" (no EXR) or "none".
+        pilot: which pilot flies every episode.
+        settings: every episode's settings; its difficulty knobs are each set on the
+            families that have them (`difficulty_for`).
     """
 
     scenarios: tuple[str, ...]
     seeds: tuple[int, ...]
-    pilot: PilotSpec = field(default_factory=PilotSpec)
-    steps: int | None = None  # None: each scenario's own budget
-    stuck_after: int | None = 50
-    shield: bool = False
-    frames: str = "all"
-    difficulty: Mapping[str, float] = field(default_factory=dict)
-    sensors: Mapping[str, Any] = field(default_factory=dict)
+    pilot: PilotSpec
+    settings: EpisodeSettings
 
-    def __post_init__(self) -> None:
-        if self.frames not in FRAMES:
-            raise ConfigError(f"--frames must be one of {', '.join(FRAMES)}, got '{self.frames}'")
+    def __init__(
+        self,
+        scenarios: Sequence[str],
+        seeds: Sequence[int],
+        pilot: PilotSpec | None = None,
+        settings: EpisodeSettings | None = None,
+        **fields: Any,
+    ) -> None:
+        """``fields`` are `EpisodeSettings` fields set over ``settings``, and ``frames``,
+        a `FRAMES` mode: ``SweepConfig(("S1",), (0,), steps=6, frames="none")``.
+
+        Raises:
+            ConfigError: an empty grid, one over `MAX_EPISODES`, a bad frames mode, or a
+                difficulty knob that applies to none of the scenarios.
+            TypeError: a name that is not a settings field.
+        """
+        frames = fields.pop("frames", None)
+        settings = replace(settings or EpisodeSettings(), **fields)
+        object.__setattr__(self, "scenarios", tuple(scenarios))
+        object.__setattr__(self, "seeds", tuple(seeds))
+        object.__setattr__(self, "pilot", pilot or PilotSpec())
+        object.__setattr__(self, "settings", settings.with_frames(frames or settings.frames))
+        self._check()
+
+    def _check(self) -> None:
         if not self.scenarios:
             raise ConfigError("give at least one scenario, e.g. --scenarios S1,S2")
         if not self.seeds:
@@ -124,9 +139,8 @@ class SweepConfig:
                 f"{len(self.scenarios)} scenarios x {len(self.seeds)} seeds is more than the "
                 f"{MAX_EPISODES:,} episodes a sweep flies; split it into several sweeps"
             )
-        knobs = Difficulty.from_dict(self.difficulty).to_dict()  # fails here, not in a worker
         files = [s for s in self.scenarios if s not in SCENARIOS]
-        for knob in knobs:
+        for knob in self.settings.difficulty:
             if not files and not any(knob in SCENARIOS[s].knobs for s in self.scenarios):
                 raise ConfigError(
                     f"difficulty knob {knob} applies to none of {', '.join(self.scenarios)}"
@@ -135,7 +149,7 @@ class SweepConfig:
     def difficulty_for(self, scenario: str) -> Difficulty:
         """The knobs ``scenario`` takes: a sweep over several families sets each knob on
         the families that have it (constriction_m on S1 and S2, bend_deg on S4, ...)."""
-        knobs = Difficulty.from_dict(self.difficulty)
+        knobs = Difficulty.from_dict(self.settings.difficulty)
         family = SCENARIOS.get(scenario)
         if family is None:  # a scenario file: its family, if any, judges the knobs
             return knobs
@@ -148,14 +162,7 @@ class SweepConfig:
             "scenarios": list(self.scenarios),
             "seeds": list(self.seeds),
             "pilot": self.pilot.to_dict(),
-            "episode": {
-                "steps": self.steps,
-                "stuck_after": self.stuck_after,
-                "shield": self.shield,
-                "frames": self.frames,
-            },
-            "difficulty": dict(self.difficulty),
-            "sensors": json.loads(json.dumps(self.sensors)),
+            **self.settings.to_dict(),  # "episode", "difficulty", "sensors"
             "created_at": datetime.now(UTC).isoformat(timespec="seconds"),
             "cavenav_version": __version__,
         }
@@ -163,26 +170,21 @@ class SweepConfig:
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> SweepConfig:
         """The configuration a sweep.json describes (compare, report, resumed sweeps)."""
-        pilot, episode = data["pilot"], data["episode"]
+        pilot, episode = data["pilot"], dict(data["episode"])
         # A sweep begun before scenarios had budgets of their own and episodes could end
         # stuck: its 150 steps are the budget every scenario it could fly now gets by
         # default, and it never ended an episode stuck.
-        before_stuck_endings = "stuck_after" not in episode
-        steps = episode["steps"]
-        if before_stuck_endings and steps == DEFAULT_STEPS:
-            steps = None
+        if "stuck_after" not in episode:
+            episode["stuck_after"] = None
+            if episode["steps"] == DEFAULT_STEPS:
+                episode["steps"] = None
         return cls(
             scenarios=tuple(data["scenarios"]),
             seeds=tuple(data["seeds"]),
             pilot=PilotSpec(
                 pilot["name"], VLMOptions(**pilot.get("options", {})), pilot.get("recording")
             ),
-            steps=steps,
-            stuck_after=None if before_stuck_endings else episode["stuck_after"],
-            shield=episode["shield"],
-            frames=episode["frames"],
-            difficulty=data.get("difficulty", {}),
-            sensors=data.get("sensors", {}),
+            settings=EpisodeSettings.from_dict({**data, "episode": episode}),
         )
 
 
@@ -303,7 +305,7 @@ def prepare(config: SweepConfig, folder: Path) -> list[EpisodeJob]:
         if _identity(recorded) != _identity(wanted):
             hint = (
                 " (it was flown without stuck endings: add --stuck-after 0)"
-                if recorded["episode"]["stuck_after"] is None and config.stuck_after
+                if recorded["episode"]["stuck_after"] is None and config.settings.stuck_after
                 else ""
             )
             raise ConfigError(
@@ -372,22 +374,6 @@ class EpisodeWorker:
             self._local.pilot = spec.build()
         return self._local.pilot
 
-    def episode_config(self, cave: Scenario) -> EpisodeConfig:
-        settings = dict(self.config.sensors)
-        optics = settings.pop("optics", {})
-        sizes = {key: settings.pop(key) for key in SENSOR_KEYS if key in settings}
-        sensors = replace(SensorConfig(), **settings).for_scenario(
-            cave.name, cave.optics, optics, cave.sensors, sizes
-        )
-        return EpisodeConfig(
-            max_steps=self.config.steps,
-            stuck_after=self.config.stuck_after,
-            save_frames=self.config.frames != "none",
-            save_exr=self.config.frames == "all",
-            shield=self.config.shield,
-            sensors=sensors,
-        )
-
     def fly(self, job: EpisodeJob) -> dict[str, Any]:
         """Fly one episode into a fresh run folder; its results row.
 
@@ -406,7 +392,7 @@ class EpisodeWorker:
             if run_dir.exists():
                 shutil.rmtree(run_dir)  # an interrupted or crashed attempt: start again
             cave = self._cave(job)
-            run_episode(cave, self._pilot(job), self.episode_config(cave), run_dir)
+            run_episode(cave, self._pilot(job), self.config.settings.episode_config(cave), run_dir)
         except Exception as exc:  # noqa: BLE001 - recorded, and the sweep goes on
             fault = _folder_fault(job, exc)
             try:

@@ -1,0 +1,193 @@
+"""How the command line flies: an episode, a sweep or a vehicle, with a progress bar, and
+what Ctrl-C, SIGTERM or a refused start leave behind (the exit statuses of `cavenav.cli`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import signal
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import typer
+from rich.progress import (
+    BarColumn,
+    MofNCompleteColumn,
+    Progress,
+    ProgressColumn,
+    TextColumn,
+    TimeElapsedColumn,
+    TimeRemainingColumn,
+)
+
+from cavenav.cli_output import console, errors, print_summary
+from cavenav.errors import CavenavError
+
+__all__ = ["fly_episode", "fly_sweep", "fly_vehicle"]
+
+
+def fly_episode(
+    cave: Any,  # noqa: ANN401 - lazy imports
+    flyer: Any,  # noqa: ANN401
+    config: Any,  # noqa: ANN401
+    run_dir: Path,
+    motion: Any = None,  # noqa: ANN401
+) -> None:
+    """Fly the episode with a progress bar, print its summary, and exit as the README says."""
+    from cavenav.episode.loop import run_episode, step_budget
+    from cavenav.episode.records import EpisodeSummary
+
+    with Progress(*_bar(), console=console) as progress:
+        # Before the first step: the kernels load (the first run on a machine compiles
+        # them, about a minute), the lighting tables are built and the start is checked.
+        task = progress.add_task(
+            f"preparing {cave.name}",
+            total=step_budget(cave, config),
+            status="sensors, lighting, start check",
+        )
+
+        def on_step(record: dict) -> None:
+            status = f"clearance {record['clearance_m']:.2f} m  {record.get('action') or ''}"
+            progress.update(task, advance=1, description=f"flying {cave.name}", status=status[:60])
+
+        try:
+            result = run_episode(cave, flyer, config, run_dir, on_step, motion)
+        except KeyboardInterrupt:
+            progress.stop()
+            errors.print(_interrupted(run_dir), soft_wrap=True)
+            raise typer.Exit(130) from None
+        except CavenavError as exc:
+            progress.stop()
+            _remove_if_empty(run_dir)  # refused before anything was written (the start)
+            if (run_dir / "summary.json").is_file():
+                exc.args = (f"{exc} (the record so far is in {run_dir})",)
+            raise
+    summary = EpisodeSummary.model_validate(result.summary)
+    print_summary(summary)
+    # soft_wrap: paths stay on one line, whatever the terminal width, for copy and paste.
+    console.print(f"run folder: [bold]{run_dir}[/]", soft_wrap=True)
+    for name in summary.plots.values():
+        console.print(f"plot:       {run_dir / name}", soft_wrap=True)
+    if summary.termination == "pilot_failure":
+        raise typer.Exit(1)
+
+
+def _bar() -> tuple[ProgressColumn, ...]:
+    """A progress bar's columns: what, how far, a status line and the time spent."""
+    return (
+        TextColumn("[progress.description]{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TextColumn("{task.fields[status]}"),
+        TimeElapsedColumn(),
+    )
+
+
+def _interrupted(run_dir: Path) -> str:
+    """What Ctrl-C left: a partial record, or a whole episode without its plots."""
+    from cavenav.episode.records import load_summary
+    from cavenav.errors import RecordError
+
+    try:
+        status = load_summary(run_dir / "summary.json").status
+    except RecordError:  # none yet, or cut short
+        status = None
+    if status == "finished":
+        return f"interrupted while drawing the plots: the episode's record is whole in {run_dir}"
+    return f"interrupted: the partial record is in {run_dir}"
+
+
+def _remove_if_empty(folder: Path) -> None:
+    with contextlib.suppress(OSError):  # not empty: it holds the record
+        folder.rmdir()
+
+
+def fly_sweep(config: Any, out: Path, executor: Any) -> list[dict]:  # noqa: ANN401
+    """`run_sweep` with a progress bar; Ctrl-C or SIGTERM stop it with the tables written."""
+    from cavenav.errors import RecordingError
+    from cavenav.evaluation.sweep import run_sweep
+
+    counts = {"done": 0, "success": 0}
+    with Progress(*_bar(), TextColumn("ETA"), TimeRemainingColumn(), console=console) as progress:
+        task = progress.add_task("episodes", total=None, status="")
+
+        def started(left: int, grid: int) -> None:
+            if left < grid:
+                progress.console.print(f"resuming {out}: {grid - left} of {grid} episodes done")
+            progress.update(task, total=left)
+
+        def done(row: dict) -> None:
+            counts["done"] += 1
+            counts["success"] += row.get("outcome") == "success"
+            status = f"{counts['success']}/{counts['done']} succeeded  last: {row['episode']} "
+            progress.update(task, advance=1, status=status + str(row.get("outcome")))
+
+        terminated: list[int] = []
+        try:
+            with _sigterm_as_ctrl_c(terminated):
+                return run_sweep(config, out, executor, done, started)
+        except KeyboardInterrupt:
+            progress.stop()
+            errors.print(
+                f"interrupted after {counts['done']} episodes: results so far are in {out}; "
+                "run the same command again to resume"
+            )
+            raise typer.Exit(143 if terminated else 130) from None
+        except RecordingError as exc:
+            progress.stop()
+            raise RecordingError(
+                f"{exc}; the sweep stopped after {counts['done']} episodes, each record whole: "
+                "make room, then run the same command again to resume"
+            ) from None
+
+
+@contextlib.contextmanager
+def _sigterm_as_ctrl_c(caught: list[int]) -> Iterator[None]:
+    """SIGTERM (kill, a batch scheduler's stop) ends the block as Ctrl-C does: the workers
+    are stopped and the tables written; ``caught`` gets the signal, for the exit status
+    (143 = 128 + SIGTERM). A second SIGTERM while stopping is ignored."""
+
+    def stop(signum: int, frame: object) -> None:
+        caught.append(signum)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, stop)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def fly_vehicle(
+    bridge: Any,  # noqa: ANN401 - lazy imports
+    cave: Any,  # noqa: ANN401
+    flyer: Any,  # noqa: ANN401
+    episode: Any,  # noqa: ANN401
+    run_dir: Path,
+    confirm: Any,  # noqa: ANN401
+) -> None:
+    """Fly the episode through the MAVLink bridge; a failed connection leaves no folder."""
+    from cavenav.vehicle.mavlink import ArduSubMotion
+
+    motion = ArduSubMotion(bridge, run_dir / "mavlink.jsonl", confirm=confirm)
+    try:
+        listening = motion.listen()  # with udpin:HOST:0, the port the system chose
+        where = f", listening on {listening[0]}:{listening[1]}" if listening else ""
+        console.print(
+            f"[bold]{cave.name}[/] through MAVLink ({bridge.mode} mode, {bridge.connect}{where}): "
+            "waiting for the vehicle's heartbeat",
+            soft_wrap=True,
+            highlight=False,
+        )
+        fly_episode(cave, flyer, episode, run_dir, motion)
+    except CavenavError:
+        motion.close()  # closes the command log
+        if not (run_dir / "summary.json").exists():  # failed to connect: nothing was flown,
+            (run_dir / "mavlink.jsonl").unlink(missing_ok=True)  # so no folder looks like a run
+            _remove_if_empty(run_dir)
+        raise
+    finally:
+        motion.close()
+    console.print(f"commands:   {run_dir / 'mavlink.jsonl'}", soft_wrap=True)

@@ -1,0 +1,389 @@
+"""The command line's shared options, each declared once: its flag, type, help and default.
+
+A command names the value it wants (``vlm: VLMOptions``, ``settings: EpisodeSettings``)
+and `takes` puts the options of that group into its signature in that value's place, so
+typer shows them, then builds the value from what was given. A group's defaults are its
+value's defaults (`VLMOptions`, `EpisodeSettings`); a flag the value does not take is an
+error when the command is declared, not an option silently dropped.
+"""
+
+from __future__ import annotations
+
+import functools
+import inspect
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from enum import StrEnum
+from pathlib import Path
+from typing import Annotated, Any, TypeVar
+
+import typer
+
+from cavenav.episode.settings import EpisodeSettings
+from cavenav.pilots.factory import VLMOptions
+from cavenav.sensors.depth import EXR_COMPRESSIONS
+
+__all__ = [
+    "SETTINGS",
+    "VLM",
+    "Backend",
+    "ExrCompression",
+    "Flag",
+    "OptionGroup",
+    "Sounder",
+    "WaterType",
+    "episode_settings",
+    "finite",
+    "takes",
+]
+
+Command = TypeVar("Command", bound=Callable[..., Any])
+
+
+class Sounder(StrEnum):
+    """Echo-sounder models (see `cavenav.sensors.rig.SensorConfig`)."""
+
+    camera = "camera"
+    beam = "beam"
+
+
+# Depth EXR compressions, all lossless (measured in `cavenav.sensors.depth`).
+ExrCompression = StrEnum("ExrCompression", {name: name for name in EXR_COMPRESSIONS})
+
+
+class Backend(StrEnum):
+    """Where the VLM pilot's model runs (`cavenav.pilots.backends`)."""
+
+    openai = "openai"
+    transformers = "transformers"
+
+
+class WaterType(StrEnum):
+    """Water presets (see `cavenav.sensors.optics.WATER_TYPES`)."""
+
+    clear = "clear"
+    ocean = "ocean"
+    coastal = "coastal"
+    turbid = "turbid"
+
+
+def finite(value: float | None) -> float | None:
+    """A range's bounds let infinity through: refuse it (and NaN) by name."""
+    if value is not None and not math.isfinite(value):
+        raise typer.BadParameter(f"{value} is not finite; give a number")
+    return value
+
+
+def _positive(value: float) -> float:
+    if not (math.isfinite(value) and value > 0):
+        raise typer.BadParameter(f"{value} m: give a finite distance above 0")
+    return value
+
+
+@dataclass(frozen=True)
+class Flag:
+    """One option: its parameter name (the flag, with dashes), type with help, default."""
+
+    name: str
+    kind: Any  # Annotated[type, typer.Option(...)]
+    default: Any = None
+
+
+@dataclass(frozen=True)
+class OptionGroup:
+    """Options that make one value: ``build`` is called with each flag by name, enums
+    and paths given as plain strings (JSON-able for sweep.json and run folders).
+
+    Raises:
+        TypeError: a flag that ``build`` does not take (a renamed field, a typo).
+    """
+
+    flags: tuple[Flag, ...]
+    build: Callable[..., Any]
+
+    def __post_init__(self) -> None:
+        takes_names = inspect.signature(self.build).parameters
+        unknown = [flag.name for flag in self.flags if flag.name not in takes_names]
+        if unknown:
+            raise TypeError(f"{self.build.__name__} takes no option {', '.join(unknown)}")
+
+    def only(self, *names: str) -> OptionGroup:
+        """The group with just ``names``, in the group's order; the others keep the
+        value's defaults (a command that shows fewer options)."""
+        kept = self._known(names)
+        return replace(self, flags=tuple(f for f in self.flags if f.name in kept))
+
+    def without(self, *names: str) -> OptionGroup:
+        """The group less ``names``: those keep the value's defaults."""
+        gone = self._known(names)
+        return replace(self, flags=tuple(f for f in self.flags if f.name not in gone))
+
+    def _known(self, names: tuple[str, ...]) -> set[str]:
+        unknown = set(names) - {flag.name for flag in self.flags}
+        if unknown:
+            raise TypeError(f"no option {', '.join(sorted(unknown))} for {self.build.__name__}")
+        return set(names)
+
+    def value(self, given: dict[str, Any]) -> Any:
+        """Build the value from the command's arguments, taking this group's out of it."""
+        return self.build(**{flag.name: _plain(given.pop(flag.name)) for flag in self.flags})
+
+
+def _plain(value: Any) -> Any:
+    """A flag's value as JSON keeps it: an enum by its value, a path as text."""
+    if isinstance(value, StrEnum):
+        return value.value
+    return str(value) if isinstance(value, Path) else value
+
+
+def takes(**groups: OptionGroup) -> Callable[[Command], Command]:
+    """Put each group's options into the command's signature in place of the parameter
+    of that name, and call the command with the group's value there.
+
+    Example::
+
+        @app.command()
+        @takes(vlm=VLM)
+        def ask(image: ..., vlm: VLMOptions = VLMOptions()) -> None: ...
+    """
+
+    def decorate(command: Command) -> Command:
+        signature = inspect.signature(command, eval_str=True)
+        missing = set(groups) - set(signature.parameters)
+        if missing:
+            raise TypeError(f"{command.__name__} has no parameter {', '.join(sorted(missing))}")
+        names = [f.name for group in groups.values() for f in group.flags]
+        twice = set(signature.parameters) & set(names) | {n for n in names if names.count(n) > 1}
+        if twice:
+            raise TypeError(f"{command.__name__} declares {', '.join(sorted(twice))} twice")
+        parameters = []
+        for parameter in signature.parameters.values():
+            group = groups.get(parameter.name)
+            if group is None:
+                parameters.append(parameter)
+                continue
+            kind = inspect.Parameter.POSITIONAL_OR_KEYWORD
+            parameters += [
+                inspect.Parameter(f.name, kind, default=f.default, annotation=f.kind)
+                for f in group.flags
+            ]
+
+        @functools.wraps(command)
+        def run(**given: Any) -> Any:
+            for name, group in groups.items():
+                given[name] = group.value(given)
+            return command(**given)
+
+        run.__signature__ = signature.replace(parameters=parameters)  # type: ignore[attr-defined]
+        run.__annotations__ = {p.name: p.annotation for p in parameters}
+        return run  # type: ignore[return-value]
+
+    return decorate
+
+
+def _flag(name: str, kind: Any, default: Any, text: str, *decls: str, **limits: Any) -> Flag:
+    """An option of type ``kind`` (None allowed when that is its default), helped by
+    ``text``; ``decls`` and ``limits`` go to `typer.Option`."""
+    if isinstance(kind, type) and issubclass(kind, StrEnum) and default is not None:
+        default = kind(default)
+    allowed = kind if default is not None else kind | None
+    return Flag(name, Annotated[allowed, typer.Option(*decls, help=text, **limits)], default)
+
+
+def _vlm(name: str, kind: Any, text: str, *decls: str, **limits: Any) -> Flag:
+    """A VLM option, its default `VLMOptions`'s."""
+    return _flag(name, kind, getattr(VLMOptions(), name), text, *decls, **limits)
+
+
+# The VLM pilot's options: `run`, `eval`, `fly`, and `ask` less history, map, price, cache.
+VLM = OptionGroup(
+    (
+        _vlm("backend", Backend, "where the model runs"),
+        _vlm(
+            "base_url",
+            str,
+            "OpenAI-compatible endpoint, e.g. http://localhost:8000/v1 (vLLM, SGLang, Ollama, "
+            "llama.cpp); default: api.openai.com",
+        ),
+        _vlm("model", str, "model name, or a local folder for transformers"),
+        _vlm("api_key_env", str, "environment variable that holds the API key"),
+        _vlm("timeout", float, "seconds one attempt may take, whole", min=0.1, callback=finite),
+        _vlm(
+            "deadline",
+            float,
+            "seconds a request may take, retries and waits included "
+            "(default: timeout x (retries + 1))",
+            min=0.1,
+            callback=finite,
+        ),
+        _vlm("retries", int, "transport retries per request", min=0),
+        _vlm("temperature", float, "sampling temperature", min=0, callback=finite),
+        _vlm("max_tokens", int, "maximum output tokens per reply", min=16),
+        _vlm("detail", str, "image detail sent with images: low, high, auto"),
+        _vlm("requeries", int, "re-queries after an unusable reply", min=0),
+        _vlm("history", int, "earlier observations sent (K)", min=0),
+        _vlm("prompt_file", Path, "your own system-prompt template"),
+        _vlm("structured", bool, "ask for a JSON schema with fixed keys"),
+        _vlm(
+            "map_image",
+            bool,
+            "send a top-down picture of the pilot's own map (what it saw, where it flew) with "
+            "every step: the memory ablation",
+            "--map-image",
+        ),
+        _vlm("price", str, "USD per million tokens, 'input,output'"),
+        _vlm("cache", Path, "reply cache folder (keyed by request hash)"),
+        _vlm("device", str, "transformers device: auto, cpu, cuda"),
+    ),
+    VLMOptions,
+)
+
+_SETTINGS = EpisodeSettings()
+
+
+def episode_settings(
+    *,
+    steps: int | None = _SETTINGS.steps,
+    stuck_after: int | None = _SETTINGS.stuck_after,
+    sounder: str = _SETTINGS.sounder,
+    depth_max: float = _SETTINGS.depth_max_m,
+    water: str | None = None,
+    light_power: float | None = None,
+    daylight: float | None = None,
+    particles: float | None = None,
+    noise: float | None = None,
+    depth_dropout: float | None = None,
+    depth_noise: float | None = None,
+    resolution: str | None = None,
+    sounder_resolution: str | None = None,
+    difficulty: list[str] | None = None,
+) -> EpisodeSettings:
+    """`EpisodeSettings` from the episode, sensor and optics flags, one keyword each (so a
+    flag renamed in `SETTINGS` alone fails when a command is declared); frames and
+    shield, which each command words its own way, stay the defaults.
+
+    Raises:
+        ConfigError: a bad pixel count or difficulty knob, refused before any work.
+    """
+    from cavenav.sensors.camera import parse_resolution
+    from cavenav.world.scenarios import parse_difficulty
+
+    optics = {  # the keys of `cavenav.sensors.optics.optics_from_table`
+        "water": water,
+        "light_power": light_power,
+        "daylight": daylight,
+        "particles": particles,
+        "noise": noise,
+        "depth_dropout": depth_dropout,
+        "depth_noise_m": depth_noise,
+    }
+    sizes = {"resolution": resolution, "sounder_resolution": sounder_resolution}
+    return EpisodeSettings(
+        steps=steps,
+        stuck_after=stuck_after or None,  # the flag's 0 is "never"
+        sounder=sounder,
+        depth_max_m=depth_max,
+        optics={key: value for key, value in optics.items() if value is not None},
+        **{
+            key: parse_resolution(text, f"--{key.replace('_', '-')}")
+            for key, text in sizes.items()
+            if text is not None
+        },
+        difficulty=parse_difficulty(difficulty or []).to_dict(),
+    )
+
+
+# The episode's options, its sensors' and their optics (None keeps the scenario's own).
+SETTINGS = OptionGroup(
+    (
+        _flag(
+            "steps",
+            int,
+            _SETTINGS.steps,
+            "step budget (default: the scenario's; 150 for S1-S5)",
+            min=1,
+        ),
+        _flag(
+            "stuck_after",
+            int,
+            _SETTINGS.stuck_after,
+            "end as 'stuck' after this many steps without headway (new progress toward the "
+            "exit or new ground); 0: never",
+            min=0,
+        ),
+        _flag("sounder", Sounder, _SETTINGS.sounder, "echo-sounder model"),
+        _flag(
+            "depth_max",
+            float,
+            _SETTINGS.depth_max_m,
+            "D_max of the depth PNG, metres (above 0)",
+            callback=_positive,
+        ),
+        _flag("water", WaterType, None, "water preset (default: clear)"),
+        _flag(
+            "light_power",
+            float,
+            None,
+            "lamp power; 0 turns the lamps off (default 20)",
+            min=0,
+            callback=finite,
+        ),
+        _flag(
+            "daylight",
+            float,
+            None,
+            "open-water brightness at exits (default 1)",
+            min=0,
+            callback=finite,
+        ),
+        _flag(
+            "particles",
+            float,
+            None,
+            "marine snow, particles per m³ (default 2)",
+            min=0,
+            callback=finite,
+        ),
+        _flag("noise", float, None, "sensor noise, 0 = none (default 1)", min=0, callback=finite),
+        _flag(
+            "depth_dropout",
+            float,
+            None,
+            "drop depth where returned lamp light is below this (default 0)",
+            min=0,
+            callback=finite,
+        ),
+        _flag(
+            "depth_noise",
+            float,
+            None,
+            "depth noise std at 10 m, metres (default 0)",
+            min=0,
+            callback=finite,
+        ),
+        _flag(
+            "resolution",
+            str,
+            None,
+            "forward camera pixels, e.g. 160x120 or 84x84 (default: the scenario file's "
+            "\\[sensors] table, else 640x480); the horizontal field of view stays 53 degrees",
+            metavar="WxH",
+        ),
+        _flag(
+            "sounder_resolution",
+            str,
+            None,
+            "pixels of each echo sounder's depth camera (default 32x24)",
+            metavar="WxH",
+        ),
+        _flag(
+            "difficulty",
+            list[str],
+            None,
+            "a difficulty knob of the cave family, KEY=VALUE (repeat for more), "
+            "e.g. constriction_m=2.5; see the README's cave families",
+        ),
+    ),
+    episode_settings,
+)

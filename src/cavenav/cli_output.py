@@ -1,0 +1,148 @@
+"""What the command line prints, and where: the two consoles, and the tables of an
+episode's summary, a sweep's groups and a comparison of two sweeps, drawn with rich from
+the records as written.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from rich.console import Console
+from rich.markup import escape
+from rich.table import Table
+
+if TYPE_CHECKING:
+    from cavenav.episode.records import EpisodeSummary
+
+__all__ = ["console", "errors", "print_comparison", "print_groups", "print_summary"]
+
+console = Console()
+errors = Console(stderr=True, soft_wrap=True)
+
+# Caves of each side listed under a comparison; all of them go to --json FILE.
+SHOWN_CAVES = 12
+
+
+def metres(value: float | None) -> str:
+    return "-" if value is None else f"{value:.2f} m"
+
+
+def print_summary(summary: EpisodeSummary) -> None:
+    """An episode's summary as a two-column table."""
+    table = Table(title="episode summary", show_header=False)
+    table.add_column(style="bold")
+    table.add_column()
+    for key, value in _summary_rows(summary):
+        # Escaped: a failure quoting a server or a reply ("[redacted]", "[/]") is text,
+        # not rich markup, which would swallow it or fail on it.
+        table.add_row(key, "-" if value is None else escape(str(value)))
+    console.print(table)
+
+
+def _summary_rows(s: EpisodeSummary) -> list[tuple[str, Any]]:
+    rows = [
+        ("scenario", s.scenario),
+        ("pilot", s.pilot),
+        ("seed", s.seed),
+        ("termination", s.termination),
+        ("success", "yes" if s.success else "no"),
+        ("steps", s.steps),
+        ("collisions", s.collisions),
+        ("path length", f"{s.path_length_m:.1f} m"),
+        ("min clearance", metres(s.min_clearance_m)),
+        ("mean clearance", metres(s.mean_clearance_m)),
+        ("steps below standoff", s.steps_below_standoff),
+        ("sensing per step", f"{s.mean_sense_ms} ms"),
+        ("first sensing", f"{s.first_sense_ms} ms (with loading the kernels)"),
+        ("pilot per step", f"{s.mean_pilot_ms} ms"),
+    ]
+    if s.shield:
+        rows.append(("shield interventions", s.shield_interventions))
+    if s.invalid_actions:
+        rows.append(("invalid actions (held)", s.invalid_actions))
+    usage = s.usage
+    if usage:
+        rows += [
+            ("prompt tokens", usage.prompt_tokens),
+            ("completion tokens", usage.completion_tokens),
+            ("mean model latency", f"{usage.mean_latency_s:.2f} s"),
+            ("re-queries", usage.requeries),
+            ("transport retries", usage.transport_retries),
+            ("cost", "-" if usage.cost_usd is None else f"${usage.cost_usd:.4f}"),
+        ]
+    if s.mean_drift_m is not None:  # flown on a vehicle (cavenav fly)
+        rows += [
+            ("drift from command", f"{s.mean_drift_m:.3f} m mean, "
+             f"{s.max_drift_m:.3f} m max, {s.max_drift_deg:.1f} deg max"),
+            ("action on the vehicle", f"{s.mean_physics_ms / 1e3:.2f} s mean"),
+        ]  # fmt: skip
+    if s.failure:
+        rows.append(("failure", s.failure))
+    return rows
+
+
+def print_groups(rows: list[dict]) -> None:
+    """A sweep's results, one line per scenario (`cavenav.evaluation.results.aggregate`)."""
+    from cavenav.evaluation.results import aggregate
+
+    groups = aggregate(rows)
+    pilots = sorted({g["pilot"] for g in groups})
+    table = Table(title=f"{', '.join(pilots)}: success with its 95% Wilson interval")
+    for column in ("scenario", "done", "success", "95% CI", "collided", "other outcomes",
+                   "min clear.", "path eff.", "steps"):  # fmt: skip
+        table.add_column(column)
+    for g in groups:
+        ci = g["success_ci95"]
+        others = ", ".join(
+            f"{k} {v}" for k, v in g["outcomes"].items() if k not in ("success", "collision")
+        )
+        table.add_row(
+            g["scenario"],
+            f"{g['completed']}/{g['episodes']}",
+            "-" if g["success_rate"] is None else f"{g['success_rate']:.0%}",
+            "-" if ci is None else f"{ci[0]:.0%}-{ci[1]:.0%}",
+            str(g["collisions"]),
+            others or "-",
+            metres(g["min_clearance_m"]["min"]),
+            "-" if g["path_efficiency"] is None else f"{g['path_efficiency']:.2f}",
+            "-" if g["steps"] is None else f"{g['steps']:.0f}",
+        )
+    console.print(table)
+
+
+def print_comparison(result: Mapping[str, Any], title: str, folders: tuple[Path, Path]) -> None:
+    """Two sweeps paired by cave (`cavenav.evaluation.results.compare`): per scenario and
+    overall, then the caves only one of them got through, under ``folders`` (A, B)."""
+    table = Table(title=title)
+    for column in ("scenario", "pairs", "A success", "B success", "A - B", "only A", "only B",
+                   "McNemar exact p"):  # fmt: skip
+        table.add_column(column)
+    entries = [*result["per_scenario"].items(), ("all", result["overall"])]
+    for name, r in entries:
+        if not r["pairs"]:
+            continue
+        table.add_row(
+            name,
+            str(r["pairs"]),
+            f"{r['success_rate_a']:.0%}",
+            f"{r['success_rate_b']:.0%}",
+            f"{r['difference']:+.0%}",
+            str(len(r["only_a"])),
+            str(len(r["only_b"])),
+            f"{r['mcnemar_p']:.4g}",
+        )
+    console.print(table)
+    if result["unpaired"]:
+        console.print(f"{result['unpaired']} caves were completed in one sweep only (left out)")
+    for side, folder in zip(("a", "b"), folders, strict=True):
+        caves = result["overall"][f"only_{side}"]
+        if caves:
+            console.print(f"[bold]only {side.upper()} got through ({len(caves)}):[/]")
+            for cave in caves[:SHOWN_CAVES]:
+                console.print(f"  {cave['cave']}: {folder / cave[side]}", soft_wrap=True)
+            if len(caves) > SHOWN_CAVES:
+                console.print(
+                    f"  ... {len(caves) - SHOWN_CAVES} more (all of them with --json FILE)"
+                )
