@@ -226,3 +226,17 @@ def test_with_the_same_room_either_side_its_5_degree_turns_go_the_same_way(monke
     assert instead_of_a_shift.forward > 0 and after_a_refused_shift.forward > 0
     assert abs(instead_of_a_shift.yaw_deg) == 5.0
     assert instead_of_a_shift.yaw_deg == after_a_refused_shift.yaw_deg
+
+
+def test_boxed_in_it_searches_a_full_circle_then_backs_out() -> None:
+    # Nothing new anywhere: it searches by turning one way; once it has turned all round
+    # the place is a dead end, and it backs out (turning on, as no way back is in view).
+    pilot = GeometricPilot()
+    assert pilot.state.mode.name == "follow"
+    modes = []
+    for _ in range(10):
+        pilot.decide(synthetic(1.0))
+        modes.append(pilot.state.mode.name)
+    assert modes == ["search"] * 8 + ["back out"] * 2
+    pilot.reset()
+    assert pilot.state.mode.name == "follow"

@@ -17,7 +17,8 @@ the prompt's strategy (SPEC section 3), so it is the yardstick a VLM pilot must 
    failing that, search by turning in place one way (never back and forth) through a full
    circle; only then is it a dead end, and the pilot backs out along the way it came,
    taking the first unexplored opening it passes. Turning back and forth on one spot
-   (a heading it cannot take) starts that search too.
+   (a heading it cannot take) starts that search too. Follow, search and back out are
+   the pilot's modes (`_Mode`), changed only by the named transitions of its `_State`.
 4. Centre vertically between ceiling and floor, following the passage's slope ahead.
 5. Cap forward motion by the standoff rules: none within 1.5 m of an obstacle ahead,
    0.1-0.2 m (with a turn or a shift) below the 2.0 m standoff, otherwise 0.5-1.0 m.
@@ -34,8 +35,8 @@ the prompt's strategy (SPEC section 3), so it is the yardstick a VLM pilot must 
 from __future__ import annotations
 
 import math
-from collections import deque
 from dataclasses import dataclass, field, replace
+from typing import Literal, NamedTuple
 
 import numba
 import numpy as np
@@ -43,16 +44,8 @@ from scipy import ndimage
 
 from cavenav.actions import DEFAULT_SPACE, ActionSpace, format_action
 from cavenav.cave_map import CaveMap, Opening
-from cavenav.sensors.depth import denormalise_depth, pixel_slopes
-from cavenav.shield import (
-    DepthMemory,
-    Hazard,
-    Margins,
-    Surroundings,
-    crawlway_move,
-    move_hazard,
-    sampling_stride,
-)
+from cavenav.reckoning import DepthSamples, executed_since, sampling_stride
+from cavenav.shield import DepthMemory, Hazard, Margins, Surroundings, crawlway_move, move_hazard
 from cavenav.types import DEFAULT_RULES, Action, Decision, Observation, Rules, VehicleBody
 
 __all__ = ["GeometricPilot", "GeometricPilotConfig"]
@@ -162,7 +155,6 @@ class _Scene:
     ahead_m: float  # free corridor straight ahead
     nearest_m: float  # nearest remembered surface point beside or ahead, from the centre
     nearest_left: bool  # whether it lies to the left
-    cloud: np.ndarray  # (n, 3) remembered surface points, body frame
     around: Surroundings  # what the shield's judgement of a move reads, measured once
     crawling: bool  # a surface is nearer than the open margin allows
     beside_m: float  # sideways distance of the nearer wall over the next 2 m
@@ -183,8 +175,144 @@ class _Heading:
     situation: str
 
 
+@dataclass(frozen=True)
+class _Search:
+    """A search for a way on by turning in place one way, never back and forth, until a
+    full circle has been seen."""
+
+    origin: np.ndarray  # (3,) map position where it began
+    side: float  # the way it turns: 1 left, -1 right
+    turned_deg: float = 0.0
+
+
+@dataclass(frozen=True)
+class _Mode:
+    """What the pilot is doing: following the way on, searching round for one, or backing
+    out of a dead end.
+
+    It follows while no search is under way and it is not backing out. A search ends when
+    a new way on is found or the vehicle has moved 2 m from where it began; backing out
+    begins once a search has turned all round, and ends when a new way on is found. The
+    search that found the dead end stays under way while backing out begins, so that
+    turning on that spot goes on the same way.
+    """
+
+    search: _Search | None = None
+    backing_out: bool = False
+
+    @property
+    def name(self) -> Literal["follow", "search", "back out"]:
+        return "back out" if self.backing_out else "search" if self.search else "follow"
+
+    @property
+    def searched_deg(self) -> float:
+        """Degrees turned by the search under way (0 when none is)."""
+        return self.search.turned_deg if self.search is not None else 0.0
+
+    @property
+    def strict(self) -> bool:
+        """Whether a new opening must reach far: while searching or backing out, the
+        short diagonals of the chamber it is turning in are no way on."""
+        return self.backing_out or self.search is not None
+
+
+@dataclass(frozen=True)
+class _State:
+    """Everything the pilot carries from one decision to the next besides its map and its
+    memory of depth images; each change is a named transition that returns a new state.
+
+    Attributes:
+        mode: follow, search or back out (`_Mode`).
+        last: the action it chose last (the memory and the map move by it when an
+            observation does not say what was executed).
+        recent: its latest actions, oldest first, at most `_DITHER_STEPS`.
+        look_back: the turn back after turning to look at a side, if one is due.
+        looked_from: map position of the last look at a side.
+        dead_ends: map positions of dead ends searched all round.
+        set_aside: map positions of remembered openings found impassable.
+    """
+
+    mode: _Mode = field(default_factory=_Mode)
+    last: Action | None = None
+    recent: tuple[Action, ...] = ()
+    look_back: float = 0.0
+    looked_from: np.ndarray | None = None
+    dead_ends: tuple[np.ndarray, ...] = ()
+    set_aside: tuple[np.ndarray, ...] = ()
+
+    # ------------------------------------------------------------------ queries
+    def dithering(self) -> bool:
+        """Whether its latest actions turned back and forth on one spot."""
+        recent = self.recent
+        return (
+            len(recent) == _DITHER_STEPS
+            and not any(a.forward or a.right or a.up for a in recent)
+            and abs(sum(a.yaw_deg for a in recent)) < 45.0
+        )
+
+    def in_dead_end(self, point: np.ndarray) -> bool:
+        """Whether a map point lies in a dead end searched all round (the vehicle stops
+        short of its end wall, out of the path's reach)."""
+        return _near_any(point, self.dead_ends, 5.0)
+
+    # ------------------------------------------------------------------ transitions
+    def search_started(self, position: np.ndarray, side: float) -> _State:
+        """A search begins here, turning toward ``side``."""
+        return replace(self, mode=replace(self.mode, search=_Search(position.copy(), side)))
+
+    def dithered(self, position: np.ndarray, side: float) -> _State:
+        """Turning back and forth on one spot: a search begins instead, and the turns that
+        were dithering are forgotten."""
+        return replace(self.search_started(position, side), recent=())
+
+    def moved_to(self, position: np.ndarray) -> _State:
+        """The vehicle is at ``position``: a search it has moved 2 m away from found a way
+        on, and ends."""
+        search = self.mode.search
+        if search is None or np.linalg.norm(position - search.origin) <= 2.0:
+            return self
+        return replace(self, mode=replace(self.mode, search=None))
+
+    def following(self) -> _State:
+        """A new way on was found: follow it."""
+        return replace(self, mode=_Mode())
+
+    def setting_aside(self, points: tuple[np.ndarray, ...]) -> _State:
+        """Remembered openings at ``points`` were found impassable, for good."""
+        return replace(self, set_aside=self.set_aside + points) if points else self
+
+    def backing_out_of(self, dead_end: np.ndarray | None) -> _State:
+        """A dead end searched all round (at ``dead_end`` when newly found): back out."""
+        ends = self.dead_ends + ((dead_end.copy(),) if dead_end is not None else ())
+        return replace(self, mode=replace(self.mode, backing_out=True), dead_ends=ends)
+
+    def search_turned(self) -> _State:
+        """The search turns one more step (45 degrees)."""
+        search = self.mode.search
+        assert search is not None
+        turned = replace(search, turned_deg=search.turned_deg + 45.0)
+        return replace(self, mode=replace(self.mode, search=turned))
+
+    def looking(self, turn_back: float, position: np.ndarray) -> _State:
+        """It turns to look at a side from ``position``; ``turn_back`` is the turn after."""
+        return replace(self, look_back=turn_back, looked_from=position.copy())
+
+    def turned_back(self) -> _State:
+        """No turn back is due any more: made, or the look was not made as chosen."""
+        return replace(self, look_back=0.0)
+
+    def acted(self, action: Action) -> _State:
+        """It chose ``action``."""
+        return replace(self, last=action, recent=(*self.recent, action)[-_DITHER_STEPS:])
+
+
 class GeometricPilot:
-    """A passage follower with a memory; see the module docstring for the strategy."""
+    """A passage follower with a memory; see the module docstring for the strategy.
+
+    Between decisions it carries its map, its memory of depth images and one `_State`
+    (its mode, follow, search or back out, and what it remembers of its own moves), which
+    each decision replaces through named transitions.
+    """
 
     name = "geometric"
 
@@ -202,119 +330,79 @@ class GeometricPilot:
         self.reset()
 
     def reset(self) -> None:
-        self._last: Action | None = None  # the action it chose last
-        self._recent: deque[Action] = deque(maxlen=_DITHER_STEPS)  # its latest actions
-        self._search_from: np.ndarray | None = None  # map position where a search began
-        self._searched_deg = 0.0  # degrees turned by that search
-        self._search_side = 1.0  # its direction: left
-        self._backing_out = False  # a dead end was searched all round: going back
-        self._dead_ends: list[np.ndarray] = []  # map positions of dead ends found
-        self._rejected: list[np.ndarray] = []  # remembered openings found impassable
-        self._look_back = 0.0  # the turn back after turning to look at a side, if any
-        self._looked_from: np.ndarray | None = None  # map position of the last look
+        self.state = _State()
         self.memory.reset()
         self.map.reset()
 
     # ------------------------------------------------------------------ perception
-    def _measure(self, obs: Observation) -> _Scene:
-        cfg = self.config
-        h, w = obs.depth_png.shape
-        stride = sampling_stride(w, cfg.stride, cfg.columns)
-        depth = denormalise_depth(obs.depth_png[::stride, ::stride], *obs.depth_range)
-        half_view = obs.hfov_deg / 2
-        leftward, upward = pixel_slopes((h, w), obs.hfov_deg, stride)
-        forward, left, up = depth, leftward * depth, upward * depth
-        d_max = obs.depth_range[1]
-        surface = depth < 0.995 * d_max  # no-hit pixels read as D_max and block nothing
+    def _remember(self, observation: Observation, state: _State) -> None:
+        """Remember what was seen: surfaces beside the vehicle are out of view now but were
+        in view a few steps ago (the safety shield's memory, in the body frame), and the
+        map of free space and the path flown. Both move by each executed action, or by the
+        one chosen when the observation does not say."""
+        moved_by = executed_since(observation, state.last)
+        self.memory.update(observation, moved_by)
+        self.map.update(observation, moved_by)
 
-        # Remember what was seen: surfaces beside the vehicle are out of view now but were
-        # in view a few steps ago (the safety shield's memory, in the body frame), and the
-        # map of free space and the path flown. Both move by each executed action, or by
-        # the one chosen when the observation does not say.
-        moved_by = obs.previous_action if obs.previous_action is not None else self._last
-        self.memory.update(obs, moved_by)
-        self.map.update(obs, moved_by)
-        cloud = self.memory.cloud
+    def _measure(self, obs: Observation, state: _State) -> _Scene:
+        """What the remembered surfaces and the current depth image say (`_Scene`)."""
+        cfg = self.config
+        seen = DepthSamples.of(
+            obs, sampling_stride(obs.depth_png.shape[1], cfg.stride, cfg.columns)
+        )
         around = Surroundings.of(
             obs, self.memory, cfg.body, cfg.margins, cfg.rules.no_forward_within_m
         )
-
-        # Free length of a corridor the body fits along every direction: with the full
-        # margin, and where that finds nothing new, with the crawlway's thin one.
-        points = np.stack([forward[surface], left[surface], up[surface]], axis=1)
-
-        def free_for(tight: bool) -> np.ndarray:
-            radius = float(cfg.corridor_radius(tight))
-            free = free_lengths(points, self._directions, radius, float(d_max))
-            return free.reshape(len(_BEARINGS), len(_ELEVATIONS))
-
-        free, tight_free = free_for(False), None
-        openings = self._openings(free, obs.camera_offset_m, tight=False)
         # In a crawlway (a surface nearer than the full keep-clear margin) the full
         # corridor fits nowhere but along the axis, and a slight offset reads it blocked:
         # only the thin margin's corridors tell the way on.
         crawling = around.nearest_m < cfg.margins.open_keep_m(cfg.body)
-        if crawling or all(o.visited for o in openings):
-            tight_free = free_for(True)
-            tight_openings = self._openings(tight_free, obs.camera_offset_m, tight=True)
-            openings = tight_openings if crawling else openings + tight_openings
-
+        free, tight_free, openings = self._view(seen, obs, crawling, state)
         # "At the vehicle's height" follows the passage's slope, so that a ceiling or floor
         # ahead of a descent or a climb is not mistaken for a side wall.
         elevation = openings[0].elevation if openings else 0.0
-        slope = math.tan(math.radians(elevation))
-        at_height = (
-            np.abs(cloud[:, 2] - slope * np.maximum(cloud[:, 0], 0.0))
-            < 0.5 * cfg.body.height + cfg.margins.open_m + 0.3
-        )
-        beside = at_height & (cloud[:, 0] > -1.5) & (cloud[:, 0] < 8.0)
-        # Ahead, not beside: nearer the axis than a crawlway's corridor, beyond the bow.
-        beside &= ~((np.abs(cloud[:, 1]) < cfg.corridor_radius(tight=True)) & (cloud[:, 0] > 1.0))
-        span = 8.0 * math.tan(math.radians(half_view))  # an unseen wall is at least this far
-
-        def wall_offsets(
-            window: np.ndarray, unseen: tuple[float, float] = (span, span)
-        ) -> tuple[float, float]:
-            # The 5th percentile: the wall, not the single most protruding knob of rock.
-            lefts, rights = (
-                cloud[window & (cloud[:, 1] > 0), 1],
-                -cloud[window & (cloud[:, 1] < 0), 1],
-            )
-            return (
-                float(np.percentile(lefts, 5)) if lefts.size else unseen[0],
-                float(np.percentile(rights, 5)) if rights.size else unseen[1],
-            )
-
-        left_offset, right_offset = wall_offsets(beside)  # to steer toward the middle
-        # For the standoff: what lies beside the body and the longest move (1 m) ahead;
-        # a side the recent images do not show there (out of view at the start, or
-        # creeping: eight images cover 1.6 m) is taken to continue the wall seen up to
-        # 5 m ahead. Surfaces behind the body's middle fall behind as it moves on.
-        not_behind = cloud[:, 0] > -0.25
-        soon = wall_offsets(beside & not_behind & (cloud[:, 0] < 5.0))
-        beside_now = wall_offsets(beside & not_behind & (cloud[:, 0] < 2.0), soon)
-        distance = np.where(not_behind, np.linalg.norm(cloud, axis=1), np.inf)
-        nearest = int(np.argmin(distance)) if not_behind.any() else -1
-        third = depth.shape[1] // 3
+        walls = _walls(self.memory.cloud, elevation, cfg, obs.hfov_deg / 2, obs.depth_range[1])
+        third = seen.depth.shape[1] // 3
         return _Scene(
             free=free,
             tight_free=tight_free,
             openings=tuple(openings),
             ahead_m=float(free[len(_BEARINGS) // 2, len(_ELEVATIONS) // 2]),
-            nearest_m=float(distance[nearest]) if nearest >= 0 else d_max,
-            nearest_left=bool(cloud[nearest, 1] > 0) if nearest >= 0 else True,
-            cloud=cloud,
+            nearest_m=walls.nearest_m,
+            nearest_left=walls.nearest_left,
             around=around,
             crawling=crawling,
-            beside_m=min(beside_now),
-            left_offset_m=left_offset,
-            right_offset_m=right_offset,
-            left_room_m=float(depth[:, :third].mean()),
-            right_room_m=float(depth[:, -third:].mean()),
+            beside_m=walls.beside_m,
+            left_offset_m=walls.left_offset_m,
+            right_offset_m=walls.right_offset_m,
+            left_room_m=float(seen.depth[:, :third].mean()),
+            right_room_m=float(seen.depth[:, -third:].mean()),
         )
 
+    def _view(
+        self, seen: DepthSamples, obs: Observation, crawling: bool, state: _State
+    ) -> tuple[np.ndarray, np.ndarray | None, list[_ViewOpening]]:
+        """Free length of a corridor the body fits along every direction, with the full
+        margin, and, in a crawlway or where that finds nothing new, with the crawlway's
+        thin one; and the openings they show."""
+        cfg = self.config
+        points = seen.points()[seen.surface]  # no-hit pixels read as D_max: they block nothing
+
+        def free_for(tight: bool) -> np.ndarray:
+            radius = float(cfg.corridor_radius(tight))
+            free = free_lengths(points, self._directions, radius, float(obs.depth_range[1]))
+            return free.reshape(len(_BEARINGS), len(_ELEVATIONS))
+
+        free, tight_free = free_for(False), None
+        openings = self._openings(free, obs.camera_offset_m, False, state)
+        if crawling or all(o.visited for o in openings):
+            tight_free = free_for(True)
+            tight_openings = self._openings(tight_free, obs.camera_offset_m, True, state)
+            openings = tight_openings if crawling else openings + tight_openings
+        return free, tight_free, openings
+
     def _openings(
-        self, free: np.ndarray, camera_offset_m: float, tight: bool
+        self, free: np.ndarray, camera_offset_m: float, tight: bool, state: _State
     ) -> list[_ViewOpening]:
         """The far-reaching openings in ``free``, largest first, each marked new or visited.
 
@@ -345,7 +433,7 @@ class GeometricPilot:
                 [math.cos(e) * math.cos(b), math.cos(e) * math.sin(b), math.sin(e)]
             )
             far[0] += camera_offset_m
-            visited = self._explored(self.map.to_map(far[None])[0])
+            visited = self._explored(self.map.to_map(far[None])[0], state)
             size = float(free[members].sum())
             found.append(
                 _ViewOpening(float(bearing), float(elevation), reaches, size, visited, tight)
@@ -357,7 +445,11 @@ class GeometricPilot:
         """An opening must stay free this far: less is a wall to turn away from."""
         return max(self.config.rules.no_forward_within_m + 1.0, 0.35 * self.config.open_range_m)
 
-    # ------------------------------------------------------------------ decision
+    def _explored(self, point: np.ndarray, state: _State) -> bool:
+        """Whether a map point lies in a dead end searched all round or on the path flown."""
+        return state.in_dead_end(point) or bool(self.map.visited(point[None])[0])
+
+    # ------------------------------------------------------------------ where to go
     def _snap_up(self, metres: float) -> float:
         lo, hi = self.space.vertical_range_m
         if abs(metres) < 0.5 * lo:
@@ -388,136 +480,120 @@ class GeometricPilot:
         options = [y for a in self.space.yaw_deg for y in (a, -a) if 0 < abs(y) <= 90]
         return float(min(options, key=lambda y: (abs(y - bearing), -abs(y))))
 
-    def _heading(self, scene: _Scene, half_view: float) -> _Heading:
-        """Where to go: new ground in view, else new ground remembered, else search round,
-        else back out of the dead end."""
+    def _follow(self, scene: _Scene, opening: _ViewOpening, why: str, half_view: float) -> _Heading:
+        """Head into ``opening`` in view."""
+        free = scene.tight_free if opening.tight else scene.free
+        assert free is not None
+        yaw = self._choose_yaw(free, opening.bearing, opening.elevation, half_view)
+        target_free = self._free_along(free, yaw, opening.elevation)
+        where = _bearing_words(opening.bearing, opening.elevation)
+        crawl = " through a crawlway the body just fits" if opening.tight else ""
+        return _Heading(
+            yaw,
+            opening.elevation,
+            target_free,
+            opening.tight,
+            f"{why} {opening.free_m:.1f} m toward {where}{crawl}",
+        )
 
-        def follow(opening: _ViewOpening, why: str) -> _Heading:
-            free = scene.tight_free if opening.tight else scene.free
-            assert free is not None
-            yaw = self._choose_yaw(free, opening.bearing, opening.elevation, half_view)
-            target_free = self._free_along(free, yaw, opening.elevation)
-            where = _bearing_words(opening.bearing, opening.elevation)
-            crawl = " through a crawlway the body just fits" if opening.tight else ""
-            return _Heading(
-                yaw,
-                opening.elevation,
-                target_free,
-                opening.tight,
-                f"{why} {opening.free_m:.1f} m toward {where}{crawl}",
-            )
-
-        def turn(yaw: float, situation: str) -> _Heading:
-            return _Heading(yaw, 0.0, 0.0, False, situation)
-
-        if self._look_back:
-            side = "left" if self._look_back < 0 else "right"
-            yaw, self._look_back = self._look_back, 0.0
-            return turn(yaw, f"looked at the {side} side; turning back to the way on")
-
-        if self._dithering() and self._search_from is None:
-            self._start_search(scene)  # look round for a way it can take
-            self._recent.clear()
-        # A search that has moved the vehicle 2 m from where it began found a way on.
-        origin = self._search_from
-        if origin is not None and np.linalg.norm(self.map.position - origin) > 2.0:
-            self._search_from, self._searched_deg = None, 0.0
-        # While searching or backing out, a new opening must reach far: the short
-        # diagonals of the chamber it is turning in are no way on.
-        strict = self._backing_out or self._search_from is not None
-        reach = self.config.open_range_m if strict else 0.0
+    def _heading(self, scene: _Scene, half_view: float, state: _State) -> tuple[_Heading, _State]:
+        """Where to go, and the state that follows: back toward the way on after a look at
+        a side; else new ground in view, else new ground remembered, else back out of a
+        dead end searched all round, else search round."""
+        if state.look_back:
+            side = "left" if state.look_back < 0 else "right"
+            situation = f"looked at the {side} side; turning back to the way on"
+            return _turn(state.look_back, situation), state.turned_back()
+        position = self.map.position
+        if state.dithering() and state.mode.search is None:
+            state = state.dithered(position, _toward_roomier(scene, 1.0))  # look round
+        state = state.moved_to(position)
+        reach = self.config.open_range_m if state.mode.strict else 0.0
         new = [o for o in scene.openings if not o.visited and o.free_m >= reach]
         if new:
-            self._backing_out = False
-            self._search_from, self._searched_deg = None, 0.0
-            return follow(new[0], "the passage continues")
-        remembered, in_view = self._unexplored(scene, half_view)
+            heading = self._follow(scene, new[0], "the passage continues", half_view)
+            return heading, state.following()
+        remembered, in_view, impassable = self._unexplored(scene, half_view, state)
+        state = state.setting_aside(impassable)
         if in_view is not None:
-            return follow(in_view, "an unexplored opening seen before continues")
+            why = "an unexplored opening seen before continues"
+            return self._follow(scene, in_view, why, half_view), state
         if remembered is not None:
-            return turn(
-                self._turn_toward(remembered.bearing_deg),
+            situation = (
                 f"nothing new in view; an unexplored opening seen before lies "
-                f"{_bearing_words(remembered.bearing_deg, 0.0)}",
+                f"{_bearing_words(remembered.bearing_deg, 0.0)}"
             )
-        if self._backing_out or self._searched_deg >= 360.0:
-            # Searched all round and found nothing new: a dead end; go back the way it came.
-            if not self._backing_out and not self._explored(self.map.position, dead_ends_only=True):
-                self._dead_ends.append(self.map.position.copy())
-            self._backing_out = True
-            ways_back = [o for o in scene.openings if o.visited] or list(scene.openings)
-            if ways_back:
-                return follow(ways_back[0], "dead end: backing out along the way it came,")
-            back = [o for o in self.map.openings() if self._explored(np.asarray(o.end))]
-            if back:
-                way = min(back, key=lambda o: abs(o.bearing_deg))
-                return turn(
-                    self._turn_toward(way.bearing_deg),
-                    f"dead end: turning to the way it came, {_bearing_words(way.bearing_deg, 0)}",
-                )
-        # Search: turn in place one way, never back and forth, until a full circle is seen.
-        if self._search_from is None:
-            self._start_search(scene)
-        self._searched_deg += 45.0
-        best = float(scene.free.max())
-        what = (
-            "the only way on in view leads back"
-            if scene.openings
-            else f"no direction in view stays free beyond {best:.1f} m"
-        )
-        return turn(
-            self._search_side * 45.0, f"{what}; searching round ({self._searched_deg:.0f} deg)"
-        )
-
-    def _start_search(self, scene: _Scene) -> None:
-        self._search_from, self._searched_deg = self.map.position.copy(), 0.0
-        self._search_side = _toward_roomier(scene, 1.0)
-
-    def _dithering(self) -> bool:
-        """Whether its latest actions turned back and forth on one spot."""
-        recent = self._recent
-        return (
-            len(recent) == recent.maxlen
-            and not any(a.forward or a.right or a.up for a in recent)
-            and abs(sum(a.yaw_deg for a in recent)) < 45.0
-        )
-
-    def _explored(self, point: np.ndarray, dead_ends_only: bool = False) -> bool:
-        """Whether a map point lies in a dead end searched all round (the vehicle stops
-        short of its end wall, out of the path's reach) or on the path flown."""
-        if any(np.linalg.norm(point - end) < 5.0 for end in self._dead_ends):
-            return True
-        return not dead_ends_only and bool(self.map.visited(point[None])[0])
-
-    def _set_aside(self, point: np.ndarray) -> bool:
-        """Whether a map point lies in an opening found impassable."""
-        return any(np.linalg.norm(point - r) < 2.0 for r in self._rejected)
+            return _turn(self._turn_toward(remembered.bearing_deg), situation), state
+        if state.mode.backing_out or state.mode.searched_deg >= 360.0:
+            way_back, state = self._back_out(scene, half_view, state)
+            if way_back is not None:
+                return way_back, state
+        return self._search_round(scene, state)
 
     def _unexplored(
-        self, scene: _Scene, half_view: float
-    ) -> tuple[Opening | None, _ViewOpening | None]:
-        """The nearest-bearing opening the map remembers that leads somewhere new, and
-        the opening in view that continues it when it lies in view.
+        self, scene: _Scene, half_view: float, state: _State
+    ) -> tuple[Opening | None, _ViewOpening | None, tuple[np.ndarray, ...]]:
+        """The nearest-bearing opening the map remembers that leads somewhere new, the
+        opening in view that continues it when it lies in view, and the ends of those
+        found impassable on the way.
 
         One that lies in view while the view finds no opening along it is impassable (a
-        crack too narrow for the body): it is set aside for good.
+        crack too narrow for the body): the caller sets it aside for good.
         """
+        impassable: list[np.ndarray] = []
         for opening in sorted(self.map.openings(), key=lambda o: abs(o.bearing_deg)):
             end = np.asarray(opening.end)
-            if self._explored(end) or self._set_aside(end):
+            set_aside = state.set_aside + tuple(impassable)
+            if self._explored(end, state) or _near_any(end, set_aside, 2.0):
                 continue
             if abs(opening.bearing_deg) > half_view - 5.0:
-                return opening, None
+                return opening, None, tuple(impassable)
             along = [
                 o
                 for o in scene.openings
                 if not o.visited and abs(o.bearing - opening.bearing_deg) <= 10.0
             ]
             if along:
-                return opening, along[0]
-            self._rejected.append(end)
-        return None, None
+                return opening, along[0], tuple(impassable)
+            impassable.append(end)
+        return None, None, tuple(impassable)
 
+    def _back_out(
+        self, scene: _Scene, half_view: float, state: _State
+    ) -> tuple[_Heading | None, _State]:
+        """Searched all round and found nothing new: a dead end; the way it came, if it
+        sees or remembers one."""
+        position = self.map.position
+        found = not state.mode.backing_out and not state.in_dead_end(position)
+        state = state.backing_out_of(position if found else None)
+        ways_back = [o for o in scene.openings if o.visited] or list(scene.openings)
+        if ways_back:
+            why = "dead end: backing out along the way it came,"
+            return self._follow(scene, ways_back[0], why, half_view), state
+        back = [o for o in self.map.openings() if self._explored(np.asarray(o.end), state)]
+        if not back:
+            return None, state
+        way = min(back, key=lambda o: abs(o.bearing_deg))
+        situation = f"dead end: turning to the way it came, {_bearing_words(way.bearing_deg, 0)}"
+        return _turn(self._turn_toward(way.bearing_deg), situation), state
+
+    def _search_round(self, scene: _Scene, state: _State) -> tuple[_Heading, _State]:
+        """Search: turn in place one way, never back and forth, until a full circle is seen."""
+        if state.mode.search is None:
+            state = state.search_started(self.map.position, _toward_roomier(scene, 1.0))
+        state = state.search_turned()
+        search = state.mode.search
+        assert search is not None
+        best = float(scene.free.max())
+        what = (
+            "the only way on in view leads back"
+            if scene.openings
+            else f"no direction in view stays free beyond {best:.1f} m"
+        )
+        situation = f"{what}; searching round ({search.turned_deg:.0f} deg)"
+        return _turn(search.side * 45.0, situation), state
+
+    # ------------------------------------------------------------------ how far
     def _hazard(self, action: Action, around: Surroundings) -> Hazard:
         """Why the move of ``action`` is unsafe by the shield's own judgement of a move,
         with the shield's margins; falsy when it is safe."""
@@ -554,13 +630,13 @@ class GeometricPilot:
                 return candidate, f"{why.text}, so it becomes '{format_action(candidate)}'"
         return turn_only, f"{why.text}: turning in place only"
 
-    def _look_first(self, move: Action, scene: _Scene) -> float:
+    def _look_first(self, move: Action, scene: _Scene, state: _State) -> float:
         """The turn to look at the side that ``move``, with a sideways shift, would enter
         when that space was never seen free (0 when it was, or when a look cannot help)."""
         if not move.right or scene.crawling:  # in a crawlway the turn itself has no room
             return 0.0
-        if self._looked_from is not None and (
-            np.linalg.norm(self.map.position - self._looked_from) < 0.5
+        if state.looked_from is not None and (
+            np.linalg.norm(self.map.position - state.looked_from) < 0.5
         ):
             return 0.0  # it looked from here already: what stays unseen stays unknown
         if self._hazard(move, scene.around).kind != "unseen":
@@ -568,66 +644,45 @@ class GeometricPilot:
         look = max(y for y in self.space.yaw_deg if y <= 90.0)
         return look if move.right < 0 else -look
 
-    def decide(self, observation: Observation) -> Decision:
+    def _lateral(
+        self, scene: _Scene, forward: float, yaw: float, state: _State
+    ) -> tuple[float, float]:
+        """The sideways shift, and the turn to look first at the side it enters (0: none).
+
+        It shifts away from a wall seen closer than the standoff when the other side has
+        more room (0.2 m more: back to the middle, where the standoff may hold again); a
+        side out of view that was never seen free is looked at first.
+        """
         cfg = self.config
-        rules = cfg.rules
-        half_view = observation.hfov_deg / 2
-        scene = self._measure(observation)
-        executed = observation.previous_action
-        if self._look_back and executed is not None and executed.yaw_deg != -self._look_back:
-            self._look_back = 0.0  # the look was not made as chosen: nothing to turn back
-        d_top, d_bottom = observation.d_top, observation.d_bottom
-        heading = self._heading(scene, half_view)
-        yaw, elevation, target_free = heading.yaw, heading.elevation, heading.target_free
-
-        # The standoff counts walls beside the next move's path: they will be beside us.
-        nearest = min(d_top, d_bottom, scene.nearest_m, scene.ahead_m, scene.beside_m)
-        if target_free < rules.no_forward_within_m or abs(yaw) > half_view:
-            forward = 0.0
-            constraint = (
-                f"obstacle within {rules.no_forward_within_m} m ahead: no forward motion"
-                if target_free < rules.no_forward_within_m
-                else "the new heading lies outside the view: turn first, no forward motion"
-            )
-        elif nearest < rules.standoff_m:
-            slowest, slow = rules.slow_forward_m
-            forward = slow if target_free > 3.0 else slowest
-            constraint = (
-                f"nearest surface {nearest:.1f} m is inside the {rules.standoff_m} m standoff: "
-                f"forward capped at {forward} m"
-            )
-        elif abs(yaw) >= 15:
-            # In a bend the inner wall is beside the vehicle, out of view: go gently.
-            forward = 0.5
-            constraint = "turning into a bend whose inner wall is out of view: forward 0.5 m"
-        else:
-            forward = 1.0 if target_free > 6.0 else 0.5
-            constraint = f"all clearances above the {rules.standoff_m} m standoff"
-
-        # Vertical: centre between ceiling and floor, and follow the passage's slope.
-        up = 0.5 * (d_top - d_bottom) + math.tan(math.radians(elevation)) * forward
-        up = self._snap_up(float(np.clip(up, -1.0, 1.0)))
-
-        # Lateral: shift away from a wall seen closer than the standoff when the other
-        # side has more room (0.2 m more: back to the middle, where the standoff may hold
-        # again); a side out of view that was never seen free is looked at first.
-        right = look = 0.0
-        left_is_nearer = scene.left_offset_m < scene.right_offset_m
         near_offset = min(scene.left_offset_m, scene.right_offset_m)
         gap = abs(scene.left_offset_m - scene.right_offset_m)
-        if near_offset < rules.standoff_m and gap > 0.2 and abs(yaw) <= 20:
-            # Never nearer the far wall than a crawlway's margin: the wall beside the
-            # body is out of view and known only as far as it was seen ahead.
-            room = max(scene.left_offset_m, scene.right_offset_m) - cfg.corridor_radius(True)
-            wanted = 0.5 if gap > 2.0 else 0.2 if gap > 1.0 else 0.1
-            magnitude = max((m for m in self.space.lateral_m if m <= min(wanted, room)), default=0)
-            right = magnitude if left_is_nearer else -magnitude
-            look = self._look_first(Action(forward=forward, right=right, yaw_deg=yaw), scene)
+        if not (near_offset < cfg.rules.standoff_m and gap > 0.2 and abs(yaw) <= 20):
+            return 0.0, 0.0
+        # Never nearer the far wall than a crawlway's margin: the wall beside the body is
+        # out of view and known only as far as it was seen ahead.
+        room = max(scene.left_offset_m, scene.right_offset_m) - cfg.corridor_radius(True)
+        wanted = 0.5 if gap > 2.0 else 0.2 if gap > 1.0 else 0.1
+        magnitude = max((m for m in self.space.lateral_m if m <= min(wanted, room)), default=0)
+        right = magnitude if scene.left_offset_m < scene.right_offset_m else -magnitude
+        look = self._look_first(Action(forward=forward, right=right, yaw_deg=yaw), scene, state)
+        return right, look
+
+    def _propose(
+        self, heading: _Heading, scene: _Scene, obs: Observation, nearest: float, state: _State
+    ) -> tuple[Action, str, _State]:
+        """The move toward ``heading`` by the standoff rules, before it is kept clear of
+        what was seen; why it is capped; the state after a look at a side."""
+        rules, yaw = self.config.rules, heading.yaw
+        forward, constraint = _cap_forward(rules, heading, nearest, obs.hfov_deg / 2)
+        # Vertical: centre between ceiling and floor, and follow the passage's slope.
+        up = 0.5 * (obs.d_top - obs.d_bottom) + math.tan(math.radians(heading.elevation)) * forward
+        up = self._snap_up(float(np.clip(up, -1.0, 1.0)))
+        right, look = self._lateral(scene, forward, yaw, state)
         # Below the standoff, forward motion must come with a turn or a shift: in a
         # crawlway, or where the side it would shift to was never seen, a 5-degree turn,
         # which costs no room; elsewhere a shift away from the nearer wall.
         if forward > 0 and nearest < rules.standoff_m and not (yaw or right or up):
-            shift = 0.1 if left_is_nearer else -0.1
+            shift = 0.1 if scene.left_offset_m < scene.right_offset_m else -0.1
             if heading.tight or self._hazard(Action(right=shift), scene.around).kind == "unseen":
                 yaw = _toward_roomier(scene, 5.0)
             else:
@@ -639,17 +694,16 @@ class GeometricPilot:
             constraint += (
                 f"; the {side} side was never seen free: turning to look before moving to it"
             )
-            self._look_back, self._looked_from = -look, self.map.position.copy()
-            forward, right, up, yaw = 0.0, 0.0, 0.0, look
+            return Action(yaw_deg=look), constraint, state.looking(-look, self.map.position)
+        return Action(forward=forward, right=right, up=up, yaw_deg=yaw), constraint, state
 
-        action, shielded = self._keep_clear(
-            Action(forward=forward, right=right, up=up, yaw_deg=yaw), scene.around
-        )
-        if shielded:
-            constraint += f"; {shielded}"
+    def _make_safe(self, proposed: Action, scene: _Scene, nearest: float) -> tuple[Action, str]:
+        """``proposed`` kept clear of what was seen (`_keep_clear`), still with a turn or a
+        shift inside the standoff, and admissible; and why it had to change, if it did."""
+        action, shielded = self._keep_clear(proposed, scene.around)
         if (
             action.forward
-            and nearest < rules.standoff_m
+            and nearest < self.config.rules.standoff_m
             and not (action.yaw_deg or action.right or action.up)
         ):
             # The shift that came with it was refused: a 5-degree turn instead, as the
@@ -658,16 +712,31 @@ class GeometricPilot:
             action = replace(action, yaw_deg=turn)
             if self._hazard(action, scene.around):
                 action = Action(yaw_deg=turn)
-        action = self.space.validate(action)
-        yaw, up, right = action.yaw_deg, action.up, action.right
-        self._last = action
-        self._recent.append(action)
+        return self.space.validate(action), shielded
+
+    def decide(self, observation: Observation) -> Decision:
+        state = self.state
+        self._remember(observation, state)
+        scene = self._measure(observation, state)
+        executed = observation.previous_action
+        if state.look_back and executed is not None and executed.yaw_deg != -state.look_back:
+            state = state.turned_back()  # the look was not made as chosen: nothing to turn back
+        heading, state = self._heading(scene, observation.hfov_deg / 2, state)
+        d_top, d_bottom = observation.d_top, observation.d_bottom
+        # The standoff counts walls beside the next move's path: they will be beside us.
+        nearest = min(d_top, d_bottom, scene.nearest_m, scene.ahead_m, scene.beside_m)
+        proposed, constraint, state = self._propose(heading, scene, observation, nearest, state)
+        action, shielded = self._make_safe(proposed, scene, nearest)
+        if shielded:
+            constraint += f"; {shielded}"
+        self.state = state.acted(action)
         text = format_action(action)
         justification = (
             f"Situation: {heading.situation}; free straight ahead {scene.ahead_m:.1f} m; "
             f"ceiling {d_top:.1f} m, floor {d_bottom:.1f} m; nearest surface "
             f"{scene.nearest_m:.1f} m {'left' if scene.nearest_left else 'right'}. "
-            f"Constraints: {constraint}. Choice: {text}{_why(yaw, up, right)}."
+            f"Constraints: {constraint}. Choice: {text}"
+            f"{_why(action.yaw_deg, action.up, action.right)}."
         )
         return Decision(
             action=action, action_text=text, justification=justification, raw=justification
@@ -698,3 +767,96 @@ def _why(yaw: float, up: float, right: float) -> str:
     if right:
         reasons.append("moving away from the nearer wall")
     return (", " + " and ".join(reasons)) if reasons else ", holding the passage centre"
+
+
+class _Walls(NamedTuple):
+    """Where the remembered surfaces lie beside and ahead of the body (metres)."""
+
+    nearest_m: float  # nearest surface point beside or ahead, from the centre
+    nearest_left: bool  # whether it lies to the left
+    beside_m: float  # sideways distance of the nearer wall over the next 2 m
+    left_offset_m: float  # sideways distance of the walls beside and up to 8 m ahead
+    right_offset_m: float
+
+
+def _walls(
+    cloud: np.ndarray, elevation: float, cfg: GeometricPilotConfig, half_view: float, d_max: float
+) -> _Walls:
+    """Measure the walls in ``cloud`` (n, 3), the remembered surfaces in the body frame,
+    "at the vehicle's height" along a passage climbing at ``elevation`` degrees."""
+    slope = math.tan(math.radians(elevation))
+    at_height = (
+        np.abs(cloud[:, 2] - slope * np.maximum(cloud[:, 0], 0.0))
+        < 0.5 * cfg.body.height + cfg.margins.open_m + 0.3
+    )
+    beside = at_height & (cloud[:, 0] > -1.5) & (cloud[:, 0] < 8.0)
+    # Ahead, not beside: nearer the axis than a crawlway's corridor, beyond the bow.
+    beside &= ~((np.abs(cloud[:, 1]) < cfg.corridor_radius(tight=True)) & (cloud[:, 0] > 1.0))
+    span = 8.0 * math.tan(math.radians(half_view))  # an unseen wall is at least this far
+    left_offset, right_offset = _wall_offsets(cloud, beside, (span, span))  # to the middle
+    # For the standoff: what lies beside the body and the longest move (1 m) ahead;
+    # a side the recent images do not show there (out of view at the start, or
+    # creeping: eight images cover 1.6 m) is taken to continue the wall seen up to
+    # 5 m ahead. Surfaces behind the body's middle fall behind as it moves on.
+    not_behind = cloud[:, 0] > -0.25
+    soon = _wall_offsets(cloud, beside & not_behind & (cloud[:, 0] < 5.0), (span, span))
+    beside_now = _wall_offsets(cloud, beside & not_behind & (cloud[:, 0] < 2.0), soon)
+    distance = np.where(not_behind, np.linalg.norm(cloud, axis=1), np.inf)
+    nearest = int(np.argmin(distance)) if not_behind.any() else -1
+    return _Walls(
+        nearest_m=float(distance[nearest]) if nearest >= 0 else d_max,
+        nearest_left=bool(cloud[nearest, 1] > 0) if nearest >= 0 else True,
+        beside_m=min(beside_now),
+        left_offset_m=left_offset,
+        right_offset_m=right_offset,
+    )
+
+
+def _wall_offsets(
+    cloud: np.ndarray, window: np.ndarray, unseen: tuple[float, float]
+) -> tuple[float, float]:
+    """Sideways distances of the left and right walls among the points of ``cloud`` in
+    ``window`` (n,) bool; ``unseen`` where a side shows none. The 5th percentile: the
+    wall, not the single most protruding knob of rock."""
+    lefts, rights = (
+        cloud[window & (cloud[:, 1] > 0), 1],
+        -cloud[window & (cloud[:, 1] < 0), 1],
+    )
+    return (
+        float(np.percentile(lefts, 5)) if lefts.size else unseen[0],
+        float(np.percentile(rights, 5)) if rights.size else unseen[1],
+    )
+
+
+def _cap_forward(
+    rules: Rules, heading: _Heading, nearest: float, half_view: float
+) -> tuple[float, str]:
+    """The forward step the standoff rules allow toward ``heading``, ``nearest`` the
+    nearest surface, and the rule that set it in words."""
+    yaw, target_free = heading.yaw, heading.target_free
+    if target_free < rules.no_forward_within_m:
+        return 0.0, f"obstacle within {rules.no_forward_within_m} m ahead: no forward motion"
+    if abs(yaw) > half_view:
+        return 0.0, "the new heading lies outside the view: turn first, no forward motion"
+    if nearest < rules.standoff_m:
+        slowest, slow = rules.slow_forward_m
+        forward = slow if target_free > 3.0 else slowest
+        return forward, (
+            f"nearest surface {nearest:.1f} m is inside the {rules.standoff_m} m standoff: "
+            f"forward capped at {forward} m"
+        )
+    if abs(yaw) >= 15:
+        # In a bend the inner wall is beside the vehicle, out of view: go gently.
+        return 0.5, "turning into a bend whose inner wall is out of view: forward 0.5 m"
+    forward = 1.0 if target_free > 6.0 else 0.5
+    return forward, f"all clearances above the {rules.standoff_m} m standoff"
+
+
+def _turn(yaw: float, situation: str) -> _Heading:
+    """A turn in place."""
+    return _Heading(yaw, 0.0, 0.0, False, situation)
+
+
+def _near_any(point: np.ndarray, points: tuple[np.ndarray, ...], distance: float) -> bool:
+    """Whether ``point`` lies within ``distance`` of any of ``points``."""
+    return any(np.linalg.norm(point - p) < distance for p in points)
