@@ -250,6 +250,18 @@ def test_a_run_without_frames_shows_the_images_the_model_was_sent(
     assert len(images) == 2 * 3  # colour and depth for each of the 3 steps
     assert all(i["src"].startswith("images/") and i["loading"] == "lazy" for i in images)
     assert all((runs["vlm"] / i["src"]).is_file() for i in images)
+    # The images shown are the ones steps.jsonl names: those the step's first request
+    # introduced as the current observation, not the earlier ones it also carried.
+    steps = [json.loads(line) for line in (runs["vlm"] / "steps.jsonl").open()]
+    exchanges = [json.loads(line) for line in (runs["vlm"] / "exchanges.jsonl").open()]
+    for step in steps:
+        first = next(e for e in exchanges if e["step"] == step["step"])
+        parts = first["messages"][1]["content"]
+        k = next(i for i, p in enumerate(parts) if p.get("text", "").startswith("Current obs"))
+        current = {"rgb": parts[k + 1]["file"], "depth_png": parts[k + 2]["file"]}
+        assert step["model_images"] == current
+    shown = [unquote(i["src"]) for i in images]
+    assert shown == [s["model_images"][key] for s in steps for key in ("rgb", "depth_png")]
 
 
 def test_the_shield_intervention_and_the_collision_step_are_shown(sweep: Path) -> None:

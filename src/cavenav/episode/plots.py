@@ -11,7 +11,7 @@ not thread-safe, and sweeps finish several episodes at once in one process.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -22,6 +22,7 @@ from matplotlib.collections import LineCollection
 from matplotlib.colors import Normalize
 from matplotlib.figure import Figure
 
+from cavenav.episode.records import EpisodeSummary
 from cavenav.types import Pose
 from cavenav.world.mesh import CaveMesh
 from cavenav.world.raycast import RayCaster
@@ -130,11 +131,11 @@ def draw_exits(ax: Axes, exits: Sequence[ExitPortal]) -> None:
         )
 
 
-def _title(s: dict[str, Any]) -> str:
+def _title(s: EpisodeSummary) -> str:
     return (
-        f"{s['scenario']} · {s['pilot']} · seed {'-' if s['seed'] is None else s['seed']} · "
-        f"{s['termination']} after "
-        f"{s['steps']} steps · min clearance {s['min_clearance_m']:.2f} m"
+        f"{s.scenario} · {s.pilot} · seed {'-' if s.seed is None else s.seed} · "
+        f"{s.termination} after "
+        f"{s.steps} steps · min clearance {s.min_clearance_m:.2f} m"
     )
 
 
@@ -146,7 +147,7 @@ def _finish(fig: Figure, ax: Axes, lines, scenario: Scenario, path: Path) -> Non
 
 
 def plot_episode(
-    summary: dict[str, Any],
+    summary: EpisodeSummary | Mapping[str, Any],
     poses: Sequence[Pose],
     clearances: Sequence[float],
     scenario: Scenario,
@@ -156,40 +157,63 @@ def plot_episode(
     """Write topdown.png and side.png into ``out_dir``; returns their file names.
 
     Args:
-        summary: the episode's summary (title, collision pose).
+        summary: the episode's summary (title, collision pose), or its summary.json fields.
         poses, clearances: the trajectory as recorded, one clearance per pose.
     """
+    summary = EpisodeSummary.model_validate(summary)
     p = np.array([pose.position for pose in poses])
     c = np.asarray(clearances)
     norm = Normalize(vmin=0.0, vmax=max(3.0, float(c.max())))
-    mesh = scenario.mesh
-    collision = summary.get("collision_pose")
+    _plot_topdown(summary, p, c, norm, scenario, out_dir / "topdown.png")
+    _plot_side(summary, p, c, norm, scenario, caster, out_dir / "side.png")
+    return {"topdown": "topdown.png", "side": "side.png"}
 
-    # ---- top-down
+
+def _plot_topdown(
+    summary: EpisodeSummary,
+    p: np.ndarray,
+    c: np.ndarray,
+    norm: Normalize,
+    scenario: Scenario,
+    path: Path,
+) -> None:
+    """The path from above, over the cave's footprint, with the start, exits and collision.
+
+    Args:
+        p: (n, 3) float positions; c: (n,) float clearances, metres.
+    """
     fig = Figure(figsize=(8, 8))
     ax = fig.subplots()
-    draw_footprint(ax, mesh)
+    draw_footprint(ax, scenario.mesh)
     lines = _coloured_path(ax, p[:, 0], p[:, 1], c, norm)
     ax.plot(*p[0, :2], marker="o", color="tab:green", ms=9, zorder=5, label="start")
     draw_exits(ax, scenario.exits)
-    if collision:
-        ax.plot(
-            collision["x"],
-            collision["y"],
-            marker="X",
-            color="tab:red",
-            ms=12,
-            zorder=6,
-            label="collision",
-        )
+    hit = summary.collision_pose
+    if hit:
+        ax.plot(hit.x, hit.y, marker="X", color="tab:red", ms=12, zorder=6, label="collision")
     ax.set_aspect("equal")
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
     ax.set_title(_title(summary), fontsize=9)
     ax.legend(loc="upper left", fontsize=8, framealpha=0.9)
-    _finish(fig, ax, lines, scenario, out_dir / "topdown.png")
+    _finish(fig, ax, lines, scenario, path)
 
-    # ---- side view, unrolled along the path
+
+def _plot_side(
+    summary: EpisodeSummary,
+    p: np.ndarray,
+    c: np.ndarray,
+    norm: Normalize,
+    scenario: Scenario,
+    caster: RayCaster,
+    path: Path,
+) -> None:
+    """The path unrolled: distance along it against height, with the rock straight above
+    and below every 0.25 m of it.
+
+    Args:
+        p: (n, 3) float positions; c: (n,) float clearances, metres.
+    """
     dense, s_dense = _densify(p, 0.25)
     up = caster.first_hit(dense, np.array([0.0, 0.0, 1.0]))
     down = caster.first_hit(dense, np.array([0.0, 0.0, -1.0]))
@@ -205,13 +229,10 @@ def plot_episode(
     ax.fill_between(s_dense, floor, ceiling, color="#d9ecf2", step="mid", label="water")
     lines = _coloured_path(ax, s_pose, p[:, 2], c, norm)
     ax.plot(0, p[0, 2], marker="o", color="tab:green", ms=9, zorder=5, label="start")
-    if collision:
-        s_hit = s_pose[-1] + float(
-            np.linalg.norm(np.array([collision["x"], collision["y"], collision["z"]]) - p[-1])
-        )
-        ax.plot(
-            s_hit, collision["z"], marker="X", color="tab:red", ms=12, zorder=6, label="collision"
-        )
+    hit = summary.collision_pose
+    if hit:
+        s_hit = s_pose[-1] + float(np.linalg.norm(np.array([hit.x, hit.y, hit.z]) - p[-1]))
+        ax.plot(s_hit, hit.z, marker="X", color="tab:red", ms=12, zorder=6, label="collision")
     ax.set_xlim(0, max(s_pose[-1], 1.0))
     ax.set_ylim(lo, hi)
     ax.set_xlabel("distance along the path (m)")
@@ -220,8 +241,7 @@ def plot_episode(
         _title(summary) + " · ceiling and floor straight above and below the path", fontsize=9
     )
     ax.legend(loc="upper right", fontsize=8, ncols=4)
-    _finish(fig, ax, lines, scenario, out_dir / "side.png")
-    return {"topdown": "topdown.png", "side": "side.png"}
+    _finish(fig, ax, lines, scenario, path)
 
 
 def _densify(points: np.ndarray, spacing: float) -> tuple[np.ndarray, np.ndarray]:

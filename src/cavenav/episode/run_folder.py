@@ -395,6 +395,8 @@ class RunFolder:
             self.write_frames(step["frames"], queued.obs)
             if queued.exchanges:
                 self.record_exchanges(step["step"], queued.exchanges)
+                if sent := self._sent_images(queued.obs):
+                    step = {**step, "model_images": sent}
             self.append_step(step)
             self.write_json("summary.json", queued.summary)
         except BaseException:
@@ -421,6 +423,22 @@ class RunFolder:
             lines.append(_dumps(record) + "\n")
         with open(self.path / "exchanges.jsonl", "a", encoding="utf-8") as out:
             out.write("".join(lines))
+
+    def _sent_images(self, obs: Observation) -> dict[str, str]:
+        """The stored images (under images/) that are ``obs``'s colour and depth images as
+        a model pilot sends them (`cavenav.pilots.vlm.png_data_url`): the current
+        observation among the earlier ones and the map that a request also carries, told
+        by their content rather than by the prompt's wording. Empty for a pilot that
+        sends them otherwise."""
+        from cavenav.pilots.vlm import png_data_url  # only steps with a model's requests
+
+        images = {"rgb": obs.rgb, "depth_png": obs.depth_png if obs.has_depth else None}
+        sent = {}
+        for key, image in images.items():
+            name = None if image is None else self._stored.get(png_data_url(image))
+            if name is not None:
+                sent[key] = name
+        return sent
 
     def _strip_images(self, message: dict[str, Any]) -> dict[str, Any]:
         content = message["content"]

@@ -23,7 +23,15 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import quote
 
-from cavenav.episode.records import read_exchanges, read_steps, read_summary, read_sweep_file
+from cavenav.episode.records import (
+    OUTCOMES,
+    EpisodeSummary,
+    StepRecord,
+    load_steps,
+    load_summary,
+    read_exchanges,
+    read_sweep_file,
+)
 from cavenav.episode.run_folder import write_atomic
 from cavenav.errors import CavenavError, DependencyError, RecordError, RecordingError
 from cavenav.evaluation.results import aggregate
@@ -33,15 +41,10 @@ from cavenav.evaluation.sweep import read_rows
 __all__ = ["RunRecord", "SweepRecord", "read_run", "read_sweep_record", "write_report"]
 
 # Outcome -> CSS class: green for success, red for collision, amber for the other ways a
-# finished episode fails, grey for episodes that did not finish (error, incomplete).
-_OUTCOME_CLASS = {
-    "success": "ok",
-    "collision": "bad",
-    "budget": "warn",
-    "stuck": "warn",
-    "oscillating": "warn",
-    "pilot_failure": "warn",
-    "exited_entrance": "warn",
+# finished episode fails, grey ("other") for episodes that did not finish.
+_UNFINISHED = ("error", "incomplete")
+_OUTCOME_CLASS = {"success": "ok", "collision": "bad"} | {
+    outcome: "warn" for outcome in OUTCOMES if outcome not in ("success", "collision", *_UNFINISHED)
 }
 _EMPTY = "—"  # shown for a missing value
 # What the page of an episode with no readable record says of its row's outcome.
@@ -63,8 +66,8 @@ class RunRecord:
     """
 
     path: Path
-    summary: Mapping[str, Any]
-    steps: tuple[Mapping[str, Any], ...]
+    summary: EpisodeSummary
+    steps: tuple[StepRecord, ...]
     exchanges: Mapping[int, tuple[Mapping[str, Any], ...]]
 
 
@@ -99,8 +102,8 @@ def read_run(path: Path) -> RunRecord:
         by_step.setdefault(exchange.get("step", -1), []).append(exchange)
     return RunRecord(
         path=path,
-        summary=read_summary(path / "summary.json"),
-        steps=tuple(read_steps(path / "steps.jsonl")),
+        summary=load_summary(path / "summary.json"),
+        steps=tuple(load_steps(path / "steps.jsonl")),
         exchanges={
             step: tuple(sorted(items, key=lambda e: e.get("attempt", 0)))
             for step, items in by_step.items()
@@ -292,49 +295,40 @@ _EPISODE_COLUMNS = (
 )
 
 
-def _summary_facts(s: Mapping[str, Any], outcome: str) -> list[tuple[str, str]]:
+def _summary_facts(s: EpisodeSummary, outcome: str) -> list[tuple[str, str]]:
     """The header of an episode page: what a reader checks first, in that order."""
-    usage = s.get("usage") or {}
-    config = s.get("config") or {}
-    passage = s.get("passage_length_m")
+    budget = s.config.max_steps if s.config and s.config.max_steps is not None else "?"
     facts = [
-        ("scenario", f"{s.get('scenario')} · {s.get('scenario_description', '')}".rstrip(" ·")),
-        ("seed", _EMPTY if s.get("seed") is None else str(s["seed"])),
-        ("pilot", str(s.get("pilot"))),
+        ("scenario", f"{s.scenario} · {s.scenario_description or ''}".rstrip(" ·")),
+        ("seed", _EMPTY if s.seed is None else str(s.seed)),
+        ("pilot", str(s.pilot)),
         ("outcome", outcome),
-        ("termination", str(s.get("termination"))),
-        ("status", str(s.get("status"))),
-        ("steps", f"{s.get('steps')} of {config.get('max_steps', '?')}"),
-        ("collisions", str(s.get("collisions"))),
-        ("min clearance", _num(s.get("min_clearance_m"), 2, " m")),
-        ("mean clearance", _num(s.get("mean_clearance_m"), 2, " m")),
-        ("steps below standoff", str(s.get("steps_below_standoff"))),
-        ("path length", _num(s.get("path_length_m"), 2, " m")),
-        ("progress / passage", f"{_num(s.get('progress_m'), 2)} / {_num(passage, 2)} m"),
-        ("exit distance", _num(s.get("exit_distance_m"), 2, " m")),
-        (
-            "shield",
-            f"on, {s.get('shield_interventions', 0)} interventions" if s.get("shield") else "off",
-        ),
-        ("invalid actions", str(s.get("invalid_actions", 0))),
-        (
-            "sense / pilot",
-            f"{_num(s.get('mean_sense_ms'), 1)} / {_num(s.get('mean_pilot_ms'), 1)} ms a step",
-        ),
-        ("wall time", _num(s.get("wall_time_s"), 1, " s")),
-        ("started", str(s.get("started_at", _EMPTY))),
+        ("termination", str(s.termination)),
+        ("status", str(s.status)),
+        ("steps", f"{s.steps} of {budget}"),
+        ("collisions", str(s.collisions)),
+        ("min clearance", _num(s.min_clearance_m, 2, " m")),
+        ("mean clearance", _num(s.mean_clearance_m, 2, " m")),
+        ("steps below standoff", str(s.steps_below_standoff)),
+        ("path length", _num(s.path_length_m, 2, " m")),
+        ("progress / passage", f"{_num(s.progress_m, 2)} / {_num(s.passage_length_m, 2)} m"),
+        ("exit distance", _num(s.exit_distance_m, 2, " m")),
+        ("shield", f"on, {s.shield_interventions or 0} interventions" if s.shield else "off"),
+        ("invalid actions", str(s.invalid_actions or 0)),
+        ("sense / pilot", f"{_num(s.mean_sense_ms, 1)} / {_num(s.mean_pilot_ms, 1)} ms a step"),
+        ("wall time", _num(s.wall_time_s, 1, " s")),
+        ("started", s.started_at or _EMPTY),
     ]
-    if usage:
-        tokens = f"{_int(usage.get('prompt_tokens'))} in, {_int(usage.get('completion_tokens'))}"
-        retries = f"{usage.get('requeries')} / {usage.get('transport_retries')}"
+    if s.usage:
+        u = s.usage
         facts += [
-            ("tokens", tokens + " out"),
-            ("model latency", _num(usage.get("mean_latency_s"), 2, " s a step")),
-            ("re-queries / retries", retries),
-            ("cost", _EMPTY if usage.get("cost_usd") is None else f"${usage['cost_usd']:.4f}"),
+            ("tokens", f"{_int(u.prompt_tokens)} in, {_int(u.completion_tokens)} out"),
+            ("model latency", _num(u.mean_latency_s, 2, " s a step")),
+            ("re-queries / retries", f"{u.requeries} / {u.transport_retries}"),
+            ("cost", _EMPTY if u.cost_usd is None else f"${u.cost_usd:.4f}"),
         ]
-    if s.get("failure"):
-        facts.append(("failure", str(s["failure"])))
+    if s.failure:
+        facts.append(("failure", s.failure))
     return facts
 
 
@@ -365,7 +359,7 @@ class StepView:
         attempts: the model's exchanges of the step, first try first.
     """
 
-    record: Mapping[str, Any]
+    record: StepRecord
     pictures: tuple[Picture, ...]
     pictures_note: str
     attempts: tuple[Mapping[str, Any], ...]
@@ -377,10 +371,10 @@ class StepView:
         marks = [
             name
             for name, hit in (
-                ("collision", r.get("collision")),
-                ("shield", r.get("shield")),
-                ("invalid", r.get("invalid_action")),
-                ("failure", r.get("failure")),
+                ("collision", r.collision),
+                ("shield", r.shield),
+                ("invalid", r.invalid_action),
+                ("failure", r.failure),
                 ("requery", len(self.attempts) > 1),
             )
             if hit
@@ -388,62 +382,43 @@ class StepView:
         return tuple(marks)
 
 
-def _sent_images(exchanges: Sequence[Mapping[str, Any]]) -> list[str]:
-    """The current colour and depth images a step's first request carried (files).
-
-    A request lists earlier observations first; the current one follows the text part
-    that starts "Current observation". Without that marker, the last two images.
-    """
-    if not exchanges:
-        return []
-    parts: list[Mapping[str, Any]] = []
-    for message in exchanges[0].get("messages", []):
-        if message.get("role") == "user" and isinstance(message.get("content"), list):
-            parts.extend(message["content"])
-    images = [k for k, p in enumerate(parts) if p.get("type") == "image" and p.get("file")]
-    current = [
-        k
-        for k, p in enumerate(parts)
-        if p.get("type") == "text" and str(p.get("text", "")).startswith("Current observation")
-    ]
-    after = [k for k in images if current and k > current[-1]][:2]
-    return [str(parts[k]["file"]) for k in (after or images[-2:])]
-
-
 def _step_pictures(
-    run: RunRecord, record: Mapping[str, Any], page_dir: Path, no_frames_note: str
+    run: RunRecord, record: StepRecord, page_dir: Path, no_frames_note: str
 ) -> tuple[tuple[Picture, ...], str]:
-    frames = record.get("frames") or {}
-    saved = [
-        Picture(_href(run.path / frames[key], page_dir), label)
-        for key, label in (("rgb", "colour"), ("depth_png", "depth"))
-        if key in frames and (run.path / frames[key]).is_file()
-    ]
+    """The step's saved frames; else the current observation's images as the model was
+    sent them (``model_images``, stored under images/); else a note saying why none."""
+    saved = _pictures(run, page_dir, record.frames, ("colour", "depth"))
     if saved:
-        return tuple(saved), ""
-    sent = [f for f in _sent_images(run.exchanges.get(record.get("step", -1), ())) if f]
-    sent = [f for f in sent if (run.path / f).is_file()]
+        return saved, ""
+    labels = ("colour, as sent to the model", "depth, as sent to the model")
+    sent = _pictures(run, page_dir, record.model_images, labels)
     if sent:
-        labels = ("colour, as sent to the model", "depth, as sent to the model")
-        pictures = tuple(
-            Picture(_href(run.path / f, page_dir), label)
-            for f, label in zip(sent, labels, strict=False)
-        )
-        return pictures, "frames not saved; images from the model request"
-    if frames:
+        return sent, "frames not saved; images from the model request"
+    if record.frames:
         return (), "frames listed in steps.jsonl but missing from the run folder"
     return (), no_frames_note
 
 
-def _missing_plot_reason(summary: Mapping[str, Any]) -> str:
-    status = summary.get("status")
+def _pictures(
+    run: RunRecord, page_dir: Path, files: Mapping[str, str], labels: tuple[str, str]
+) -> tuple[Picture, ...]:
+    """The colour and depth images of ``files`` (keys "rgb", "depth_png") that exist."""
+    return tuple(
+        Picture(_href(run.path / files[key], page_dir), label)
+        for key, label in zip(("rgb", "depth_png"), labels, strict=True)
+        if key in files and (run.path / files[key]).is_file()
+    )
+
+
+def _missing_plot_reason(summary: EpisodeSummary) -> str:
+    status = summary.status
     if status == "interrupted":
         return "episode interrupted: no plot drawn"
     if status == "running":
         return "episode still running (or killed): no plot yet"
     if status == "crashed":
         return "episode crashed before its plots were drawn"
-    if not (summary.get("config") or {}).get("plots", True):
+    if summary.config is not None and not summary.config.plots:
         return "plots turned off for this episode"
     return "plot file missing"
 
@@ -506,9 +481,9 @@ class Neighbours:
     next: str | None = None
 
 
-def _episode_title(summary: Mapping[str, Any]) -> str:
-    seed = summary.get("seed")
-    parts = [summary.get("scenario"), summary.get("pilot")]
+def _episode_title(summary: EpisodeSummary) -> str:
+    seed = summary.seed
+    parts = [summary.scenario, summary.pilot]
     return " · ".join(map(str, parts + ([f"seed {seed}"] if seed is not None else [])))
 
 
@@ -530,7 +505,7 @@ def _write_episode_page(
     steps = []
     for record in run.steps:
         pictures, note = _step_pictures(run, record, page_dir, no_frames_note)
-        attempts = run.exchanges.get(record.get("step", -1), ())
+        attempts = run.exchanges.get(record.step, ())
         steps.append(StepView(record, pictures, note, attempts))
     outcome = outcome or episode_outcome(run.summary, run.steps)
     return _render(
