@@ -88,7 +88,7 @@ def run(
 
     spec = PilotSpec(pilot, vlm, recording=str(from_) if from_ else None)
     if pilot == "replay":
-        seed = _recorded_seed(scenario, spec, seed)
+        seed = _recorded_seed(scenario, str(from_), seed)
     flyer = spec.build(seed=seed)  # a refused pilot or recording leaves no folder behind
     prepare_root(out)  # a folder that cannot be written is refused before the cave is built
     settings = replace(
@@ -105,12 +105,12 @@ def run(
     fly_episode(cave, flyer, config, run_dir)
 
 
-def _recorded_seed(scenario: str, spec: Any, seed: int) -> int:  # noqa: ANN401 - lazy import
-    """The seed the replayed recording flew (``seed`` if it names none), with a note when
-    it flew another scenario."""
+def _recorded_seed(scenario: str, recording: str, seed: int) -> int:
+    """The seed the replayed ``recording`` flew (``seed`` if it names none), with a note
+    when it flew another scenario."""
     from cavenav.pilots.replay import recorded_scenario
 
-    recorded, recorded_seed = recorded_scenario(str(spec.recording))
+    recorded, recorded_seed = recorded_scenario(recording)
     if recorded.casefold() != scenario.casefold() and Path(scenario).stem not in recorded:
         console.print(f"[yellow]note:[/] the recording flew {recorded}, replaying in {scenario}")
     return recorded_seed if recorded_seed is not None else seed

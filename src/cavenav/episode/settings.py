@@ -74,9 +74,10 @@ class EpisodeSettings:
             size = getattr(self, name)
             if size is not None:
                 object.__setattr__(self, name, tuple(size))
-        from cavenav.world.scenarios import Difficulty
+        if self.difficulty:  # a bad knob fails here, not in a worker
+            from cavenav.world.scenarios import Difficulty
 
-        Difficulty.from_dict(self.difficulty)  # a bad knob fails here, not in a worker
+            Difficulty.from_dict(self.difficulty)
 
     @property
     def frames(self) -> str:
