@@ -34,7 +34,6 @@ from pydantic import (
     model_validator,
 )
 
-from cavenav.episode.run_folder import numbered_jsonl
 from cavenav.errors import CavenavWarning, RecordError, invalid_field
 
 __all__ = [
@@ -48,6 +47,7 @@ __all__ = [
     "Termination",
     "load_steps",
     "load_summary",
+    "numbered_jsonl",
     "read_exchanges",
     "read_steps",
     "read_summary",
@@ -328,7 +328,7 @@ def load_summary(path: Path) -> EpisodeSummary:
 def load_steps(path: Path) -> list[StepRecord]:
     """A run folder's steps.jsonl, every line checked ([] when there is none).
 
-    A line that is not JSON is skipped, as `cavenav.episode.run_folder.read_jsonl` does: a
+    A line that is not JSON is skipped, as `numbered_jsonl` does: a
     crash or a kill can cut the last line short, and the record up to it is valid. A line
     that is JSON but not a step is damage.
 
@@ -381,8 +381,26 @@ def read_exchanges(path: Path) -> list[dict[str, Any]]:
     return exchanges
 
 
+def numbered_jsonl(path: Path) -> list[tuple[int, Any]]:
+    """(line number from 1, value) of each line of a JSON-lines file that reads as JSON;
+    [] when there is no file. A line cut short by a crash or a kill is skipped.
+
+    Raises:
+        OSError, UnicodeDecodeError: the file cannot be read as text.
+    """
+    if not path.is_file():
+        return []
+    values = []
+    for number, line in enumerate(path.read_text(encoding="utf-8").splitlines(), start=1):
+        try:
+            values.append((number, json.loads(line)))
+        except json.JSONDecodeError:
+            continue
+    return values
+
+
 def _lines(path: Path) -> list[tuple[int, Any]]:
-    """The JSON values of a JSON-lines record, numbered (`run_folder.numbered_jsonl`)."""
+    """The JSON values of a JSON-lines record, numbered (`numbered_jsonl`)."""
     try:
         return numbered_jsonl(path)
     except (OSError, UnicodeDecodeError) as exc:

@@ -33,6 +33,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from cavenav.episode.records import numbered_jsonl
 from cavenav.errors import ConfigError, RecordingError
 from cavenav.files import write_then_rename
 from cavenav.redaction import redact
@@ -101,24 +102,6 @@ def read_jsonl(path: Path) -> list[dict[str, Any]]:
     A line cut short by a crash or a kill is skipped: the record up to it is valid.
     """
     return [record for _, record in numbered_jsonl(path)]
-
-
-def numbered_jsonl(path: Path) -> list[tuple[int, Any]]:
-    """(line number from 1, value) of each line of a JSON-lines file that reads as JSON;
-    [] when there is no file. A line cut short by a crash or a kill is skipped.
-
-    Raises:
-        OSError, UnicodeDecodeError: the file cannot be read as text.
-    """
-    if not path.is_file():
-        return []
-    values = []
-    for number, line in enumerate(path.read_text(encoding="utf-8").splitlines(), start=1):
-        try:
-            values.append((number, json.loads(line)))
-        except json.JSONDecodeError:
-            continue
-    return values
 
 
 def write_atomic(path: Path, text: str) -> None:
