@@ -275,6 +275,13 @@ def _parse_clause(clause: str) -> tuple[str, float]:
         return "hold", 0.0
     if "rad" in words or "radians" in words or "radian" in words:
         raise ActionError(f"'{clause}': give yaw in degrees, not radians")
+    magnitude = _magnitude(clause, words, numbers)
+    _check_words(clause, words)
+    return _motion(clause, words, magnitude)
+
+
+def _magnitude(clause: str, words: set[str], numbers: list[str]) -> float:
+    """The clause's one unsigned number, in metres or degrees."""
     if not numbers:
         raise ActionError(f"'{clause}' has no magnitude; write e.g. 'forward 0.5 m'")
     if len(numbers) > 1:
@@ -287,45 +294,53 @@ def _parse_clause(clause: str) -> tuple[str, float]:
     magnitude = float(numbers[0])
     if not math.isfinite(magnitude):
         raise ActionError(f"'{clause}': magnitude is not a finite number")
-    if "cm" in words:
-        magnitude /= 100.0
+    return magnitude / 100.0 if "cm" in words else magnitude
 
-    left, right = words & set(_LEFT_WORDS), words & set(_RIGHT_WORDS)
-    up, down = words & set(_UP_WORDS), words & set(_DOWN_WORDS)
-    ahead, back = words & set(_FORWARD_WORDS), words & set(_BACK_WORDS)
-    if "deg" in words and not words & set(_YAW_WORDS) and (ahead or back or up or down):
+
+def _check_words(clause: str, words: set[str]) -> None:
+    """Refuse degrees on a translation, and any word the grammar does not know."""
+    translation = set(_FORWARD_WORDS) | set(_BACK_WORDS) | set(_UP_WORDS) | set(_DOWN_WORDS)
+    if "deg" in words and not words & set(_YAW_WORDS) and words & translation:
         raise ActionError(f"'{clause}': degrees only make sense for a turn")
-    is_yaw = bool(words & set(_YAW_WORDS)) or "deg" in words
-    is_lateral = bool(words & set(_LATERAL_WORDS))
     leftover = words - _FILLER - set(_YAW_WORDS) - set(_UP_WORDS) - set(_DOWN_WORDS)
     leftover -= set(_FORWARD_WORDS) | set(_BACK_WORDS) | set(_LEFT_WORDS) | set(_RIGHT_WORDS)
     leftover -= set(_LATERAL_WORDS)
     if leftover:
         raise ActionError(f"'{clause}': cannot read '{' '.join(sorted(leftover))}'")
 
-    def side(positive: set[str], negative: set[str], what: str) -> float:
-        if positive and negative:
-            raise ActionError(f"'{clause}' names two opposite {what} directions")
-        if not positive and not negative:
-            raise ActionError(f"'{clause}' gives no {what} direction")
-        return 1.0 if positive else -1.0
 
-    if is_yaw:
-        if "m" in words or "cm" in words:
+def _sign(clause: str, positive: set[str], negative: set[str], what: str) -> float:
+    """+1 or -1 from the direction words of one axis; exactly one side must be named."""
+    if positive and negative:
+        raise ActionError(f"'{clause}' names two opposite {what} directions")
+    if not positive and not negative:
+        raise ActionError(f"'{clause}' gives no {what} direction")
+    return 1.0 if positive else -1.0
+
+
+def _motion(clause: str, words: set[str], magnitude: float) -> tuple[str, float]:
+    """The component a checked clause moves along, and its signed magnitude."""
+    left, right = words & set(_LEFT_WORDS), words & set(_RIGHT_WORDS)
+    up, down = words & set(_UP_WORDS), words & set(_DOWN_WORDS)
+    ahead, back = words & set(_FORWARD_WORDS), words & set(_BACK_WORDS)
+    is_lateral = bool(words & set(_LATERAL_WORDS))
+    in_metres = "m" in words or "cm" in words
+    if words & set(_YAW_WORDS) or "deg" in words:
+        if in_metres:
             raise ActionError(f"'{clause}': a turn is measured in degrees, not metres")
-        return "yaw", side(left, right, "turn") * magnitude
+        return "yaw", _sign(clause, left, right, "turn") * magnitude
     kinds = [bool(up or down), bool(ahead or back), bool(left or right or is_lateral)]
     if sum(kinds) > 1:
         raise ActionError(f"'{clause}' mixes several motions; separate them with commas")
     if up or down:
-        return "up", side(up, down, "vertical") * magnitude
+        return "up", _sign(clause, up, down, "vertical") * magnitude
     if ahead or back:
-        return "forward", side(ahead, back, "forward/back") * magnitude
+        return "forward", _sign(clause, ahead, back, "forward/back") * magnitude
     if left or right:
-        if not is_lateral and "m" not in words and "cm" not in words:
+        if not is_lateral and not in_metres:
             raise ActionError(
                 f"'{clause}' is ambiguous: write 'turn {next(iter(left or right))} N deg' "
                 f"or 'strafe {next(iter(left or right))} N m'"
             )
-        return "right", side(right, left, "lateral") * magnitude
+        return "right", _sign(clause, right, left, "lateral") * magnitude
     raise ActionError(f"'{clause}' names no motion (forward, strafe, ascend, turn, hold)")

@@ -195,12 +195,7 @@ def load_photo(
         notes.append(f"resized {what} {_size(upright)} -> {_size(target)} (what the model can use)")
     if depth_png is None:
         notes.append("no depth image: the request tells the model to judge distances without one")
-        # The arrays say "unknown" (NaN) and "touching" (0): a reader that ignores
-        # `has_depth` sees no free space rather than open water.
-        depth_m = np.full(target[::-1], math.nan, np.float32)
-        depth_shown = np.zeros(target[::-1], np.uint8)
-    else:
-        depth_m, depth_shown = denormalise_depth(depth_png, *DEPTH_RANGE_M), depth_png
+    depth_m, depth_shown = _depth_arrays(depth_png, target)
     observation = Observation(
         rgb=rgb,
         depth_m=depth_m,
@@ -212,6 +207,19 @@ def load_photo(
         has_depth=depth_png is not None,
     )
     return observation, notes
+
+
+def _depth_arrays(
+    depth_png: np.ndarray | None, size: tuple[int, int]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Depth in metres and as shown, (height, width) for ``size`` = (width, height).
+
+    Without a depth image the arrays say "unknown" (NaN) and "touching" (0): a reader
+    that ignores `has_depth` sees no free space rather than open water.
+    """
+    if depth_png is None:
+        return np.full(size[::-1], math.nan, np.float32), np.zeros(size[::-1], np.uint8)
+    return denormalise_depth(depth_png, *DEPTH_RANGE_M), depth_png
 
 
 def _size(size: tuple[int, int]) -> str:

@@ -226,17 +226,7 @@ class VLMPilot:
             observation.d_top,
             observation.d_bottom,
         )
-        if self._history and observation.previous_action is not None:
-            # The action actually executed (a shield may have replaced the proposal).
-            last = self._history[-1]
-            self._history[-1] = replace(last, action=format_action(observation.previous_action))
-        system = self._system_for(observation)
-        map_view = None
-        if self.map is not None:
-            self.map.update(observation, observation.previous_action or self._last)
-            span = self.prompt.map_span_m
-            map_view = (self.map.describe(), png_data_url(self.map.top_down(span_m=span)))
-        messages = build_messages(system, current, list(self._history), self.detail, map_view)
+        messages = self._messages(observation, current)
         schema = STRUCTURED_SCHEMA if self.prompt.structured else None
         exchanges: list[Exchange] = []
         reason = ""
@@ -280,6 +270,22 @@ class VLMPilot:
             f"no usable reply after {self.max_requeries + 1} attempts; last problem: {reason}",
             exchanges,
         )
+
+    def _messages(
+        self, observation: Observation, current: EncodedObservation
+    ) -> list[dict[str, Any]]:
+        """The request for this step: system prompt, history, map and current images."""
+        if self._history and observation.previous_action is not None:
+            # The action actually executed (a shield may have replaced the proposal).
+            last = self._history[-1]
+            self._history[-1] = replace(last, action=format_action(observation.previous_action))
+        map_view = None
+        if self.map is not None:
+            self.map.update(observation, observation.previous_action or self._last)
+            span = self.prompt.map_span_m
+            map_view = (self.map.describe(), png_data_url(self.map.top_down(span_m=span)))
+        system = self._system_for(observation)
+        return build_messages(system, current, list(self._history), self.detail, map_view)
 
     def _records(self, exchanges: list[Exchange]) -> tuple[dict[str, Any], ...]:
         return tuple(e.to_record(self.backend.model) for e in exchanges)

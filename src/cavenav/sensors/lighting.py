@@ -22,6 +22,7 @@ import math
 import threading
 import weakref
 from collections import OrderedDict
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
@@ -320,6 +321,26 @@ def surface_patches(
     return patch, order[nearest[first]]
 
 
+def _ray_origins(
+    centre: np.ndarray, normal: np.ndarray, area: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, Callable[[np.ndarray], np.ndarray]]:
+    """Where the surface table's rays leave from, and how to spread their findings.
+
+    Rays leave from every triangle of a mesh of up to SURFACE_PATCHES, else from one per
+    patch; what they find (enclosure, daylight, bounce) is then spread over the patch,
+    while albedo and sediment stay each triangle's own.
+
+    Returns:
+        origins (k, 3), their normals (k, 3), and a function taking (k, ...) per-origin
+        values to (m, ...) per-triangle values.
+    """
+    patches = surface_patches(centre, normal, area)
+    if patches is None:
+        return centre, normal, lambda per_origin: per_origin
+    patch, representative = patches
+    return centre[representative], normal[representative], lambda per_origin: per_origin[patch]
+
+
 def _surface_table(caster: RayCaster, optics: Optics, seed: int, n_rays: int) -> np.ndarray:
     mesh = caster.mesh
     rng = np.random.default_rng([seed, 7])
@@ -331,23 +352,8 @@ def _surface_table(caster: RayCaster, optics: Optics, seed: int, n_rays: int) ->
     sky = optics.sky
     pattern = _hemisphere(n_rays)
     albedo = rock_albedo(mesh, seed, optics.rock_colour)[mesh.faces].mean(axis=1)
-    # Rays leave from every triangle of a mesh of up to SURFACE_PATCHES, else from one per
-    # patch; what they find (enclosure, daylight, bounce) is then spread over the patch,
-    # while albedo and sediment stay each triangle's own.
-    patches = surface_patches(centre, normal, area)
-    if patches is None:
-        origin, facing, k = centre, normal, m
-
-        def spread(per_origin: np.ndarray) -> np.ndarray:
-            return per_origin
-
-    else:
-        patch, representative = patches
-        origin, facing, k = centre[representative], normal[representative], len(representative)
-
-        def spread(per_origin: np.ndarray) -> np.ndarray:
-            return per_origin[patch]
-
+    origin, facing, spread = _ray_origins(centre, normal, area)
+    k = len(origin)
     table = np.zeros((m, 2, 6), np.float32)
     hit_face = np.empty((2, k, n_rays), np.int64)
     hit_side = np.empty((2, k, n_rays), np.int8)

@@ -362,19 +362,9 @@ class SensorRig:
         lamp_pos = (origin + lamps.position @ rot.T).astype(np.float32)
         lamp_axis = (lamps.axis @ rot.T).astype(np.float32)
         lamp_tuple = (lamp_pos, lamp_axis, lamps.power, lamps.cos_inner, lamps.cos_outer)
-        particles = 0
-        if self._speck_blocks.any():  # a render interrupted after drawing its specks
-            self._specks[:] = 0.0
-            self._speck_blocks[:] = 0
-        if optics.particles > 0 and optics.light_power > 0:
-            # Before shading: the specks need the true surfaces behind them, which a
-            # degraded depth image no longer has.
-            particles = splat_particles(
-                origin, rot, lamp_pos, lamp_axis, lamps.power, lamps.cos_inner,
-                lamps.cos_outer, self._attenuation, optics.particles, cfg.seed,
-                PARTICLE_REACH_M, camera.focal_px, camera.width, camera.height, depth,
-                self._specks, self._speck_blocks,
-            )  # fmt: skip
+        # Before shading: the specks need the true surfaces behind them, which a
+        # degraded depth image no longer has.
+        particles = self._splat_specks(origin, rot, lamp_tuple, depth)
         cast = (
             depth,
             raw["primitive_ids"][:n],
@@ -412,6 +402,22 @@ class SensorRig:
             particles,
         )
         return frame, readings
+
+    def _splat_specks(
+        self, origin: np.ndarray, rot: np.ndarray, lamp_tuple: tuple, depth: np.ndarray
+    ) -> int:
+        """Draw the lit marine snow into the speck buffers; the number of specks drawn."""
+        if self._speck_blocks.any():  # a render interrupted after drawing its specks
+            self._specks[:] = 0.0
+            self._speck_blocks[:] = 0
+        optics, camera = self.config.optics, self.config.camera
+        if not (optics.particles > 0 and optics.light_power > 0):
+            return 0
+        return splat_particles(
+            origin, rot, *lamp_tuple, self._attenuation, optics.particles, self.config.seed,
+            PARTICLE_REACH_M, camera.focal_px, camera.width, camera.height, depth,
+            self._specks, self._speck_blocks,
+        )  # fmt: skip
 
     def forward_frame(self, pose: Pose) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Planar depth (H, W) float32 metres, its PNG (H, W) uint8 and colour (H, W, 3) uint8."""
