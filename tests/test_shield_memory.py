@@ -433,13 +433,17 @@ def test_open_water_with_nothing_in_range_passes_a_move_untouched() -> None:
     assert not verdict.intervened, verdict.reason
 
 
-def surfaces_at(*bearings_deg: float, distance_m: float = 0.5) -> Surroundings:
+def surfaces_at(*bearings_deg: float | tuple, distance_m: float = 0.5) -> Surroundings:
     """Measured where the only surfaces seen lie ``distance_m`` from the centre at the
-    given bearings in the horizontal plane (0 ahead, 90 left)."""
-    points = [
-        (distance_m * math.cos(math.radians(b)), distance_m * math.sin(math.radians(b)), 0.0)
+    given bearings in the horizontal plane (0 ahead, 90 left), or along given directions
+    (forward, left, up)."""
+    directions = [
+        np.asarray(b)
+        if isinstance(b, tuple)
+        else (math.cos(math.radians(b)), math.sin(math.radians(b)), 0.0)
         for b in bearings_deg
     ]
+    points = [distance_m * np.asarray(d) / np.linalg.norm(d) for d in directions]
     memory = DepthMemory()
     memory.frames = [replace(frame(np.full((48, 64), 20.0)), points=np.array(points, np.float32))]
     return Surroundings.of(seen(np.inf), memory, BODY, Margins(), 1.5)
@@ -456,9 +460,12 @@ def surfaces_at(*bearings_deg: float, distance_m: float = 0.5) -> Surroundings:
         ((-90.0, 0.0), 0.3, False),  # 90 degrees: a wall beside and one ahead
         ((-90.0, -80.0, -100.0), 0.5, False),  # one wall
         ((90.0, -90.0), 0.7, False),  # both beyond the open margin
+        # A rock above, ahead and left, and a wall right, a little ahead and above: 101 deg.
+        (((1.0, 1.0, 1.0), (0.327, -0.923, 0.203)), 0.5, False),
     ],
 )
 def test_a_passage_is_pinched_by_surfaces_near_on_opposite_sides(
     bearings: tuple, distance_m: float, pinched: bool
 ) -> None:
+    # Opposite: more than 120 degrees apart seen from the centre (within about 10 degrees).
     assert surfaces_at(*bearings, distance_m=distance_m).pinched is pinched
