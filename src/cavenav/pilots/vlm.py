@@ -27,6 +27,7 @@ from cavenav.errors import ActionError, BackendAuthError, BackendError, PilotFai
 from cavenav.pilots.backends import Backend, Completion, Message, request_hash
 from cavenav.pilots.prompt import STRUCTURED_SCHEMA, PromptConfig, render_repair, render_system
 from cavenav.pilots.reply import parse_reply
+from cavenav.reckoning import executed_since
 from cavenav.types import Action, Decision, Observation, Usage
 
 __all__ = ["EncodedObservation", "Exchange", "VLMPilot", "build_messages", "png_data_url"]
@@ -281,7 +282,7 @@ class VLMPilot:
             self._history[-1] = replace(last, action=format_action(observation.previous_action))
         map_view = None
         if self.map is not None:
-            self.map.update(observation, observation.previous_action or self._last)
+            self.map.update(observation, executed_since(observation, self._last))
             span = self.prompt.map_span_m
             map_view = (self.map.describe(), png_data_url(self.map.top_down(span_m=span)))
         system = self._system_for(observation)
