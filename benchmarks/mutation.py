@@ -1,5 +1,5 @@
-"""Mutation scores of the safety-critical code: the shield, the action grammar, the reply
-parser (`make mutate`; outside CI, some tens of minutes on 2 cores).
+"""Mutation scores of the safety-critical code: the shield (with its dead reckoning), the
+action grammar, the reply parser (`make mutate`; outside CI, some tens of minutes on 2 cores).
 
 mutmut (configured under ``[tool.mutmut]`` in pyproject.toml) changes one operator,
 number or name at a time in those modules and runs the quick tests that cover the
@@ -23,7 +23,13 @@ MUTMUT = Path(sys.executable).with_name("mutmut")
 ROOT = Path(__file__).resolve().parents[1]
 COPY = ROOT / ".mutation"
 KNOWN = ("killed", "timeout", "survived")
-TARGETS = {"cavenav.shield": 85.0, "cavenav.actions": 90.0, "cavenav.pilots.reply": None}
+# The shield's dead reckoning and back-projection live in cavenav.reckoning: counted with it.
+TARGETS = {
+    "cavenav.shield": 85.0,
+    "cavenav.reckoning": 85.0,
+    "cavenav.actions": 90.0,
+    "cavenav.pilots.reply": None,
+}
 
 
 def main() -> None:
