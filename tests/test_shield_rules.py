@@ -46,6 +46,7 @@ def test_judging_before_any_observation_is_refused_with_what_to_do() -> None:
         Shield().judge(Action(forward=1.0))
     shield = Shield()
     shield.observe(seen(np.inf))
+    shield.observe(seen(np.inf))  # nothing judged yet: the memory is not moved
     shield.judge(Action(forward=1.0))
     shield.reset()  # a new episode: what was seen before is gone
     with pytest.raises(RuntimeError) as refused:
@@ -278,3 +279,61 @@ def test_the_points_checked_along_a_move_are_spaced_by_the_configured_sample() -
     coarse = ShieldConfig(sample_m=1.0)
     assert not judged("strafe right 0.5 m", seen(np.inf), config=coarse).intervened
     assert judged("strafe right 0.5 m", seen(np.inf)).intervened
+
+
+def test_the_first_unseen_point_is_named_not_the_first_point_of_the_move() -> None:
+    # Seen from 1 m back, the space right of the vehicle is known out to 0.7 m: a 1 m
+    # strafe is refused at 0.6 m, and 0.2 m (its leading edge at 0.5 m) is kept.
+    verdict = judged("strafe right 1 m", *flown_in_open(2))
+    assert verdict.reason == (
+        "the move would enter space never seen free (0.6 m right of the vehicle)"
+    )
+    assert verdict.action == Action(right=pytest.approx(0.2))
+
+
+@pytest.mark.parametrize(("sounder", "move"), [("d_bottom", "descend"), ("d_top", "ascend")])
+def test_in_a_crawlway_the_sounders_column_is_free_to_0_1_m_short_of_the_reading(
+    sounder: str, move: str
+) -> None:
+    # Ceiling and floor both within 0.61 m: a crawlway. 0.1 m toward the one read
+    # brings the body's leading edge 0.4 m from the centre: free when the reading is
+    # 0.5 m (0.1 m short of it), never seen when it is 0.49 m (nor in the camera's view).
+    other = {"d_top": 0.55, "d_bottom": 0.55}
+    assert not judged(f"{move} 0.1 m", seen(np.inf, **{**other, sounder: 0.5})).intervened
+    verdict = judged(f"{move} 0.1 m", seen(np.inf, **{**other, sounder: 0.49}))
+    where = "below" if move == "descend" else "above"
+    assert verdict.reason == (
+        f"the move would enter space never seen free (0.4 m {where} of the vehicle)"
+    )
+    assert verdict.action == parse_action(f"{'ascend' if move == 'descend' else 'descend'} 0.1 m")
+
+
+@pytest.fixture(scope="module")
+def slot_ahead() -> list[Observation]:
+    """Two rocks whose faces stand 0.45 m left and right of the axis, from 0.5 to 0.9 m
+    ahead of the centre: a slot 0.9 m wide that only the crawlway's corridor passes."""
+    rock = (2.55, 0.4, 6.0)
+    return flown_in(cave(WIDE, (rock, (1.725, -0.7, 0.0)), (rock, (-1.725, -0.7, 0.0))))
+
+
+@pytest.mark.parametrize(
+    "move", ["forward 0.2 m, turn left 5 deg", "forward 0.2 m, strafe left 0.1 m"]
+)
+def test_a_slot_just_ahead_pinched_from_both_sides_is_flown_as_a_crawlway(
+    slot_ahead, move: str
+) -> None:
+    # The open margin (0.61 m) would stop the vehicle 0.3 m short of the slot's mouth;
+    # the crawlway's lets it in. Shrunk to the open margin, the shield holds it back.
+    assert not judged(move, *slot_ahead).intervened
+    narrow = ShieldConfig(margins=Margins(crawlway_m=0.3))
+    assert judged(move, *slot_ahead, config=narrow).action.forward == 0
+
+
+def test_a_wall_alongside_and_a_rock_behind_on_the_other_side_are_no_pinch_ahead() -> None:
+    # A wall 0.5 m to the right; on the left a rock 0.45 m from the axis, but behind the
+    # vehicle: nothing pinches the way ahead, so the wall may come only 5 cm nearer.
+    passage = ((3.5, 20.0, 6.0), (1.25, 0.0, 0.0))  # right wall at x = -0.5
+    rock = ((2.55, 2.5, 6.0), (1.725, 1.75, 0.0))  # left, from 0.5 m to 3 m behind
+    verdict = judged("forward 0.2 m, strafe right 0.1 m", *flown_in(cave(passage, rock)))
+    assert verdict.reason == "the move would pass within 0.45 m of a surface seen"
+    assert verdict.action == Action(forward=pytest.approx(0.2), right=pytest.approx(-0.1))
