@@ -411,3 +411,21 @@ def test_the_geometric_pilot_reaches_the_exit_of_s1_at_160x120_without_touching_
     result = run_episode(load_scenario("S1", 0), GeometricPilot(), config)
     assert result.termination == "exit" and result.summary["collisions"] == 0
     assert result.summary["config"]["sensors"]["camera"]["width"] == 160
+
+
+def test_a_motion_written_before_motions_reported_drift_is_measured_against_the_kinematics():
+    """A user's Motion with only ``start`` and ``move`` (the protocol before `drift`)
+    still flies, and the environment reports how far it drifted from the command."""
+
+    class HalfwayForward:
+        def start(self, pose: Pose) -> Pose:
+            return pose
+
+        def move(self, pose: Pose, action: Action) -> Pose:
+            return apply(pose, replace(action, forward=action.forward / 2))
+
+    env = CaveNavEnv("S1", resolution=(32, 24), motion=HalfwayForward())
+    env.reset(seed=0)
+    *_, info = env.step("forward 1 m")
+    assert info["drift_m"] == pytest.approx(0.5)
+    assert info["drift_deg"] == pytest.approx(0.0)

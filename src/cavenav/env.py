@@ -28,7 +28,7 @@ from gymnasium import spaces
 
 from cavenav.actions import DEFAULT_SPACE, ActionSpace, format_action, parse_action
 from cavenav.errors import ActionError, ConfigError
-from cavenav.kinematics import Kinematic, Motion
+from cavenav.kinematics import Drift, Kinematic, Motion
 from cavenav.sensors.camera import pixel_size
 from cavenav.sensors.rig import SensorConfig, SensorRig
 from cavenav.types import DEFAULT_RULES, Action, Observation, Pose, Rules, VehicleBody
@@ -132,6 +132,15 @@ def read_action(
         return parse_action(action, space), None
     except ActionError as exc:
         return Action(), str(exc)
+
+
+def _drift(motion: Motion, pose: Pose, action: Action, reached: Pose) -> Drift | None:
+    """What ``motion`` reports of its drift; a Motion written before `Motion.drift`
+    existed (only ``start`` and ``move``) is measured against the kinematics, as the
+    environment then did for every Motion but `Kinematic`."""
+    if hasattr(motion, "drift"):
+        return motion.drift(pose, action, reached)
+    return Drift.of(pose, action, reached)
 
 
 def _observation_space(sensors: SensorConfig) -> spaces.Dict:
@@ -393,7 +402,7 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
             physics_ms=1e3 * (sensed - started), sense_ms=1e3 * (time.perf_counter() - sensed)
         )
         info = self._info(command, invalid, collision_pose)
-        drift = self.motion.drift(start, command, moved)
+        drift = _drift(self.motion, start, command, moved)
         if drift is not None:
             info.update(drift.to_info())
         return self._observation_dict(), float(reward), self._ended, False, info
