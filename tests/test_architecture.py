@@ -1,5 +1,6 @@
-"""Imports flow one way: types <- world <- sensors <- shield, cave_map <- pilots <- env <-
-episode <- evaluation <- cli; `files` (how every layer writes a file in place) is a leaf like types;
+"""Imports flow one way: types <- world <- sensors <- reckoning <- shield, cave_map <- pilots
+<- env <- episode <- evaluation <- cli; `headway` (what "stuck" means) sits below env;
+`files` (how every layer writes a file in place) is a leaf like types;
 `vehicle` (the MAVLink bridge) knows only types, actions and kinematics: the environment
 takes it as a `Motion` without importing it."""
 
@@ -47,6 +48,22 @@ TOP = ("cavenav.evaluation", "cavenav.cli")  # nothing below them imports these
         ("files.py", ("cavenav.",)),
         ("world", ("cavenav.sensors", "cavenav.pilots", "cavenav.env", "cavenav.episode", *TOP)),
         ("sensors", ("cavenav.pilots", "cavenav.env", "cavenav.episode", "cavenav.shield", *TOP)),
+        (
+            "reckoning.py",
+            (
+                "cavenav.world",
+                "cavenav.shield",
+                "cavenav.cave_map",
+                "cavenav.pilots",
+                "cavenav.env",
+                "cavenav.episode",
+                *TOP,
+            ),
+        ),
+        (
+            "headway.py",
+            ("cavenav.pilots", "cavenav.env", "cavenav.episode", "cavenav.wrappers", *TOP),
+        ),
         ("shield.py", ("cavenav.world", "cavenav.pilots", "cavenav.env", "cavenav.episode", *TOP)),
         (
             "cave_map.py",
@@ -75,6 +92,21 @@ def test_a_layer_never_imports_the_layers_above_it(layer: str, forbidden: tuple[
     for path in modules(layer):
         bad = {m for m in imports_of(path) if m.startswith(forbidden)}
         assert not bad, f"{path.name} imports {bad}"
+
+
+def test_no_function_outside_the_numba_kernels_is_longer_than_60_lines() -> None:
+    """A longer function is asking to be split; the kernels are one loop over pixels each,
+    kept whole so that numba compiles them to one (complexity: ruff's C901, at 15)."""
+    long = []
+    for path in sorted(SRC.rglob("*.py")):
+        if path.name == "kernels.py":
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
+                lines = node.end_lineno - node.lineno + 1
+                if lines > 60:
+                    long.append(f"{path.relative_to(SRC)}:{node.lineno} {node.name} ({lines})")
+    assert not long, f"functions over 60 lines: {long}"
 
 
 def test_the_loop_and_the_plots_do_not_import_each_other() -> None:
