@@ -25,7 +25,9 @@ from .test_shield import WIDE, beside, cave, flown_in
 OPEN_KEEP = Margins().open_keep_m(VehicleBody())  # 0.612 m: half-diagonal plus 0.3 m
 
 
-def judged(action: str | Action, *observations: Observation, config=None) -> Verdict:
+def judged(
+    action: str | Action, *observations: Observation, config: ShieldConfig | None = None
+) -> Verdict:
     shield = Shield(config)
     for obs in observations:
         shield.observe(obs)
@@ -325,8 +327,8 @@ def test_a_slot_just_ahead_pinched_from_both_sides_is_flown_as_a_crawlway(
     # The open margin (0.61 m) would stop the vehicle 0.3 m short of the slot's mouth;
     # the crawlway's lets it in. Shrunk to the open margin, the shield holds it back.
     assert not judged(move, *slot_ahead).intervened
-    narrow = ShieldConfig(margins=Margins(crawlway_m=0.3))
-    assert judged(move, *slot_ahead, config=narrow).action.forward == 0
+    open_only = ShieldConfig(margins=Margins(crawlway_m=0.3))
+    assert judged(move, *slot_ahead, config=open_only).action.forward == 0
 
 
 def test_a_wall_alongside_and_a_rock_behind_on_the_other_side_are_no_pinch_ahead() -> None:
