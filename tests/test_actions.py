@@ -319,3 +319,201 @@ def test_twist_follows_ros_conventions() -> None:
     # ROS: x forward, y left, z up, angular z counter-clockwise (left).
     twist = to_twist(Action(forward=1.0, right=0.5, up=-0.2, yaw_deg=90.0), dt=2.0)
     assert twist == pytest.approx((0.5, -0.25, -0.1, math.pi / 4))
+
+
+# ----------------------------------------------------- wordings the parser must read
+# Each row is a way a model writes a motion that the grammar accepts, with the action it
+# must mean: symbols for degrees, spelled-out units on signed keys, markup around a key.
+
+
+@pytest.mark.parametrize(
+    ("text", "expected"),
+    [
+        ("30° left", Action(yaw_deg=30)),  # the degree sign alone makes it a turn
+        ("15º right", Action(yaw_deg=-15)),  # the masculine ordinal, often typed for °
+        ("15 degrees to the left", Action(yaw_deg=15)),
+        ("dyaw = 15", Action(yaw_deg=15)),
+        ("dpsi = 15 degrees", Action(yaw_deg=15)),
+        ("df = 0.5 meters", Action(forward=0.5)),
+        ("df=0.5m", Action(forward=0.5)),
+        ("`df = 0.5`, (dpsi = -15)", Action(forward=0.5, yaw_deg=-15)),
+        ("... df = 0.5", Action(forward=0.5)),  # a leading ellipsis is no decimal point
+        ("shift left 20 centimetres", Action(right=-0.2)),
+        ("strafe right 0.5", Action(right=0.5)),  # "strafe" says lateral without a unit
+        ("turn left 30 deg, forward 1 m", Action(forward=1.0, yaw_deg=30)),
+    ],
+)
+def test_more_wordings_parse(text: str, expected: Action) -> None:
+    assert parse_action(text) == expected
+
+
+def test_a_reply_padded_with_whitespace_is_measured_by_its_words() -> None:
+    # Models pad with newlines and indentation; 300 characters of layout are not a long
+    # action.
+    assert parse_action("forward 0.5 m,\n" + " " * 300 + "\tturn left 15 deg") == Action(
+        forward=0.5, yaw_deg=15
+    )
+
+
+def test_an_action_of_300_characters_is_read_and_one_of_301_is_too_long() -> None:
+    at_limit = "forward 0.5 m an" + " a" * 142  # filler words, 300 characters in all
+    assert len(at_limit) == 300
+    assert parse_action(at_limit) == Action(forward=0.5)
+    with pytest.raises(ActionError) as refused:
+        parse_action(at_limit + "a")
+    assert str(refused.value) == ("the action string is too long; give only motions and magnitudes")
+
+
+def test_a_signed_zero_is_no_motion_not_a_negative_zero() -> None:
+    # Records and prompts print the action: "-0.0" would read as a direction.
+    action = parse_action("df=-0, dpsi=-0.0")
+    assert action == Action()
+    assert [math.copysign(1.0, v) for v in astuple(action)] == [1.0] * 4
+
+
+# ------------------------------------------------------- what the model is told back
+# The ActionError's message is shown to the model in the re-query, so its wording is the
+# parser's interface: each names the clause as read and the fix.
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        (42, "the action must be a string, got int"),
+        (" . ", "the action string is empty; name at least one motion or 'hold'"),
+        (
+            "forward 1 m, forward 0.5 m",
+            "the action names the forward component twice ('forward 1 m, forward 0.5 m'); "
+            "give each of forward, lateral, vertical and yaw at most once",
+        ),
+        ("turn left 0.5 radians", "'turn left 0.5 radians': give yaw in degrees, not radians"),
+        ("turn left 1 radian", "'turn left 1 radian': give yaw in degrees, not radians"),
+        (
+            "forward 0.5 m 1",
+            "'forward 0.5 m 1' has 2 numbers; give one magnitude per motion",
+        ),
+        (
+            "forward -0.5 m",
+            "'forward -0.5 m': give a magnitude with a direction word (e.g. 'descend 0.5 m'), "
+            "not a signed number",
+        ),
+        ("fly to the moon 5", "'fly to the moon 5': cannot read 'fly moon'"),
+        ("forward 15 deg", "'forward 15 deg': degrees only make sense for a turn"),
+        ("back 15 deg", "'back 15 deg': degrees only make sense for a turn"),
+        ("ascend 15 deg", "'ascend 15 deg': degrees only make sense for a turn"),
+        ("descend 15 deg", "'descend 15 deg': degrees only make sense for a turn"),
+        ("turn left 0.5 m", "'turn left 0.5 m': a turn is measured in degrees, not metres"),
+        ("turn left 20 cm", "'turn left 20 cm': a turn is measured in degrees, not metres"),
+        ("turn 15 deg", "'turn 15 deg' gives no turn direction"),
+        ("turn left right 15 deg", "'turn left right 15 deg' names two opposite turn directions"),
+        ("up down 0.5 m", "'up down 0.5 m' names two opposite vertical directions"),
+        (
+            "forward back 0.5 m",
+            "'forward back 0.5 m' names two opposite forward/back directions",
+        ),
+        (
+            "strafe left right 0.2 m",
+            "'strafe left right 0.2 m' names two opposite lateral directions",
+        ),
+        (
+            "strafe 0.2 m",
+            "'strafe 0.2 m' names no motion (forward, strafe, ascend, turn, hold)",
+        ),
+    ],
+)
+def test_a_refusal_tells_the_model_what_to_fix(text: str, message: str) -> None:
+    with pytest.raises(ActionError) as refused:
+        parse_action(text)  # type: ignore[arg-type]
+    assert str(refused.value) == message
+
+
+@pytest.mark.parametrize(
+    "text",
+    [
+        "ascend forward 0.5 m",
+        "descend back 0.5 m",
+        "forward strafe left 0.2 m",
+        "back right 0.2 m",
+        "up strafe 0.2 m",
+    ],
+)
+def test_one_clause_with_two_motions_is_refused_not_read_as_either(text: str) -> None:
+    with pytest.raises(ActionError) as refused:
+        parse_action(text)
+    assert str(refused.value) == f"'{text}' mixes several motions; separate them with commas"
+
+
+@pytest.mark.parametrize(
+    ("action", "message"),
+    [
+        (
+            Action(forward=0.3),
+            "forward 0.3 m is not admissible: the magnitude must be one of 0, 0.1, 0.2, 0.5, 1 m",
+        ),
+        (
+            Action(yaw_deg=-12),
+            "yaw 12 deg is not admissible: the magnitude must be one of "
+            "0, 5, 10, 15, 20, 30, 45, 90, 180 deg",
+        ),
+        (
+            Action(up=-2.5),
+            "vertical 2.5 m is not admissible: |dz| must be 0 or lie in [0.1, 2] m",
+        ),
+        (
+            Action(right="0.5"),  # type: ignore[arg-type]
+            "lateral '0.5' is not a number of metres: an Action holds four real numbers "
+            "within a float's range",
+        ),
+        (
+            Action(yaw_deg=None),  # type: ignore[arg-type]
+            "yaw None is not a number of degrees: an Action holds four real numbers "
+            "within a float's range",
+        ),
+    ],
+)
+def test_validate_names_the_part_and_what_is_admissible(action: Action, message: str) -> None:
+    with pytest.raises(ActionError) as refused:
+        DEFAULT_SPACE.validate(action)
+    assert str(refused.value) == message
+    assert not DEFAULT_SPACE.is_valid(action)
+
+
+# ------------------------------------------------------------- the canonical wording
+
+
+@pytest.mark.parametrize(
+    ("action", "text"),
+    [
+        (Action(), "hold"),
+        (
+            Action(forward=0.5, right=0.2, up=0.3, yaw_deg=15),
+            "forward 0.5 m, strafe right 0.2 m, ascend 0.3 m, turn left 15 deg",
+        ),
+        (
+            Action(forward=-1.0, right=-0.1, up=-2.0, yaw_deg=-90),
+            "back 1 m, strafe left 0.1 m, descend 2 m, turn right 90 deg",
+        ),
+    ],
+)
+def test_format_action_writes_the_canonical_lowercase_form(action: Action, text: str) -> None:
+    assert format_action(action) == text
+
+
+def test_a_space_with_fine_turns_formats_and_parses_them_back() -> None:
+    fine = replace(DEFAULT_SPACE, yaw_deg=(0.0, 0.5, 1.0, 2.0))
+    for yaw in (0.5, 1.0, -0.5, -1.0):
+        action = Action(yaw_deg=yaw)
+        assert format_action(action) == f"turn {'left' if yaw > 0 else 'right'} {abs(yaw):g} deg"
+        assert parse_action(format_action(action), fine) == action
+
+
+def test_twist_over_one_second_by_default_is_the_action_itself() -> None:
+    assert to_twist(Action(forward=0.5, right=0.2, up=-0.3, yaw_deg=180.0)) == pytest.approx(
+        (0.5, -0.2, -0.3, math.pi)
+    )
+
+
+@pytest.mark.parametrize("dt", [0.0, -1.0])
+def test_twist_refuses_a_step_that_is_not_positive(dt: float) -> None:
+    with pytest.raises(ValueError, match=f"^dt must be positive, got {dt}$"):
+        to_twist(Action(forward=0.5), dt=dt)
