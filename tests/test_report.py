@@ -264,6 +264,23 @@ def test_a_run_without_frames_shows_the_images_the_model_was_sent(
     assert shown == [s["model_images"][key] for s in steps for key in ("rgb", "depth_png")]
 
 
+def test_a_run_written_before_model_images_shows_the_images_its_requests_carried(
+    runs: dict[str, Path], tmp_path: Path
+) -> None:
+    # A VLM run folder as written before steps.jsonl named model_images: no frames, the
+    # images only in exchanges.jsonl, the current ones after the "Current observation" text.
+    old = tmp_path / "old-run"
+    shutil.copytree(runs["vlm"], old)
+    steps = [json.loads(line) for line in (old / "steps.jsonl").open()]
+    current = [step.pop("model_images") for step in steps]
+    assert all(not step.get("frames") for step in steps)
+    (old / "steps.jsonl").write_text("".join(json.dumps(s) + "\n" for s in steps))
+    page = Page(write_report(old))
+    shown = [unquote(attrs["src"]) for tag, attrs in page.tags if tag == "img"]
+    assert shown == [c[key] for c in current for key in ("rgb", "depth_png")]
+    assert page.text.count("frames not saved; images from the model request") == len(steps)
+
+
 def test_the_shield_intervention_and_the_collision_step_are_shown(sweep: Path) -> None:
     crashed = Page(sweep / "report" / "episodes" / "room-seed0000.html")
     steps = [json.loads(line) for line in (sweep / "episodes/room-seed0000/steps.jsonl").open()]

@@ -386,17 +386,48 @@ def _step_pictures(
     run: RunRecord, record: StepRecord, page_dir: Path, no_frames_note: str
 ) -> tuple[tuple[Picture, ...], str]:
     """The step's saved frames; else the current observation's images as the model was
-    sent them (``model_images``, stored under images/); else a note saying why none."""
+    sent them (``model_images``, stored under images/, or for a step recorded before that
+    field existed, read from its first request); else a note saying why none."""
     saved = _pictures(run, page_dir, record.frames, ("colour", "depth"))
     if saved:
         return saved, ""
     labels = ("colour, as sent to the model", "depth, as sent to the model")
-    sent = _pictures(run, page_dir, record.model_images, labels)
+    sent_files = record.model_images or _sent_images_before_model_images(
+        run.exchanges.get(record.step, ())
+    )
+    sent = _pictures(run, page_dir, sent_files, labels)
     if sent:
         return sent, "frames not saved; images from the model request"
     if record.frames:
         return (), "frames listed in steps.jsonl but missing from the run folder"
     return (), no_frames_note
+
+
+def _sent_images_before_model_images(
+    exchanges: Sequence[Mapping[str, Any]],
+) -> dict[str, str]:
+    """The current colour and depth images of a step recorded before ``model_images``.
+
+    Run folders written before steps.jsonl named the images sent to the model keep them
+    only in the step's first request: a request lists earlier observations first, the
+    current one follows the text part that starts "Current observation". Without that
+    marker, the last two images. Keys as in ``model_images`` ("rgb", "depth_png").
+    """
+    if not exchanges:
+        return {}
+    parts: list[Mapping[str, Any]] = []
+    for message in exchanges[0].get("messages", []):
+        if message.get("role") == "user" and isinstance(message.get("content"), list):
+            parts.extend(message["content"])
+    images = [k for k, p in enumerate(parts) if p.get("type") == "image" and p.get("file")]
+    current = [
+        k
+        for k, p in enumerate(parts)
+        if p.get("type") == "text" and str(p.get("text", "")).startswith("Current observation")
+    ]
+    after = [k for k in images if current and k > current[-1]][:2]
+    files = [str(parts[k]["file"]) for k in (after or images[-2:])]
+    return dict(zip(("rgb", "depth_png"), files, strict=False))
 
 
 def _pictures(
