@@ -316,3 +316,60 @@ def test_any_json_value_is_read_exactly_or_refused_with_a_reason(
     event("accepted")
     assert parsed.action == action
     assert parsed.justification == str(justification).strip()
+
+
+# ------------------------------------------------ braces and quotes around the answer
+
+
+@pytest.mark.parametrize(
+    "reply",
+    [
+        # A model copying a template's doubled brace: the stray one opens the reply.
+        '{{"forward 0.5 m, turn left 15 deg": "open ahead"}',
+        'Answer: {{"forward 0.5 m, turn left 15 deg": "open ahead"}',
+        # A closing brace in the reasoning closes nothing.
+        'The passage bends :} then opens.\n{"forward 0.5 m, turn left 15 deg": "open ahead"}',
+        # An escaped quote inside a string does not end it, so its brace stays text.
+        '{"forward 0.5 m, turn left 15 deg": "open ahead, \\"past the arch}\\""}',
+        # Structured mode's two keys alone.
+        '{"action": "forward 0.5 m, turn left 15 deg", "justification": "open ahead"}',
+    ],
+)
+def test_the_answer_is_found_past_stray_braces_and_escaped_quotes(reply: str) -> None:
+    parsed = parse_reply(reply)
+    assert parsed.action == Action(forward=0.5, yaw_deg=15.0)
+    assert parsed.action_text == "forward 0.5 m, turn left 15 deg"
+    assert parsed.justification.startswith("open ahead")
+
+
+def test_a_reply_is_read_against_the_action_space_it_is_given() -> None:
+    coarse = ActionSpace(forward_m=(0.0, 0.3))
+    assert parse_reply('{"forward 0.3 m": "gap"}', coarse).action == Action(forward=0.3)
+    with pytest.raises(ActionError, match="not admissible"):
+        parse_reply('{"forward 0.5 m": "gap"}', coarse)
+
+
+@pytest.mark.parametrize(
+    ("reply", "message"),
+    [
+        ("   \n", "the reply is empty"),
+        (
+            "I would go forward a little.",
+            'no final dictionary found; end the reply with {"<action>": "<justification>"}',
+        ),
+        (
+            '{"forward 0.5 m": "a", "turn left 10 deg": "b"}',
+            "the final dictionary has 2 key-value pairs; give exactly one, "
+            'as {"<action>": "<justification>"}',
+        ),
+        ("{1: 'forward one metre'}", "the dictionary's key must be the action string"),
+        (
+            '{"action": 0.5, "justification": "forward"}',
+            "the dictionary's key must be the action string",
+        ),
+    ],
+)
+def test_an_unusable_reply_is_told_exactly_what_to_fix(reply: str, message: str) -> None:
+    with pytest.raises(ActionError) as refused:
+        parse_reply(reply)
+    assert str(refused.value) == message
