@@ -22,6 +22,7 @@ from cavenav.evaluation.results import aggregate, compare, outcome
 from cavenav.evaluation.sweep import (
     MAX_EPISODES,
     EpisodeJob,
+    EpisodeWorker,
     SweepConfig,
     parse_seeds,
     plan,
@@ -181,6 +182,41 @@ def test_episode_settings_are_given_by_name_and_a_wrong_name_is_refused() -> Non
         SweepConfig(("S1",), (0,), step=6)
     with pytest.raises(ConfigError, match="--frames must be one of all, png, none, got 'jpeg'"):
         SweepConfig(("S1",), (0,), frames="jpeg")
+
+
+def test_a_script_reads_and_sets_the_settings_by_their_names_before_episode_settings(
+    room: str, tmp_path: Path
+) -> None:
+    sensors = {
+        "sounder": "beam",
+        "depth_max_m": 8.0,
+        "optics": {"particles": 20.0},
+        "resolution": [160, 120],
+    }
+    config = SweepConfig(
+        (room,), (0,), steps=6, stuck_after=None, shield=True, frames="png", sensors=sensors
+    )
+    assert (config.steps, config.stuck_after, config.shield, config.frames) == (
+        6,
+        None,
+        True,
+        "png",
+    )
+    assert config.difficulty == {}
+    assert config.sensors == sensors
+    assert config.settings.sounder == "beam" and config.settings.resolution == (160, 120)
+    with pytest.raises(AttributeError):
+        config.steps = 7  # type: ignore[misc]
+    with pytest.raises(ConfigError, match="sensors: unknown key"):
+        SweepConfig((room,), (0,), sensors={"sonar": "beam"})
+    knobs = SweepConfig(("S1",), (0,), difficulty={"constriction_m": 3.0})
+    assert knobs.difficulty == {"constriction_m": 3.0}
+    assert knobs.sensors == {"sounder": "camera", "depth_max_m": 20.0, "optics": {}}
+    cave = config.settings.load(room, 0)
+    episode = EpisodeWorker(config, tmp_path).episode_config(cave)
+    assert episode == config.settings.episode_config(cave)
+    assert (episode.max_steps, episode.shield, episode.save_exr) == (6, True, False)
+    assert episode.sensors.sounder == "beam" and episode.sensors.resolution == (160, 120)
 
 
 def test_a_failing_episode_is_recorded_and_the_sweep_goes_on(room: str, tmp_path: Path) -> None:

@@ -23,13 +23,15 @@ if TYPE_CHECKING:
     from cavenav.sensors.rig import SensorConfig
     from cavenav.world.scenarios import Scenario
 
-__all__ = ["FRAME_MODES", "EpisodeSettings"]
+__all__ = ["FRAME_MODES", "SENSOR_FIELDS", "EpisodeSettings"]
 
 # What a sweep keeps of each step's images, as sweep.json names it: (frames, EXR).
 FRAME_MODES = {"all": (True, True), "png": (True, False), "none": (False, False)}
 # The pixel counts, named as a scenario file's [sensors] table names them
 # (`cavenav.sensors.rig._SIZES`).
 _SIZES = ("resolution", "sounder_resolution")
+# The settings sweep.json keeps under "sensors".
+SENSOR_FIELDS = ("sounder", "depth_max_m", "optics", *_SIZES)
 
 
 @dataclass(frozen=True)
@@ -156,7 +158,7 @@ class EpisodeSettings:
             KeyError: "episode" is missing.
         """
         episode, sensors = dict(data["episode"]), dict(data.get("sensors", {}))
-        unknown = set(sensors) - {"sounder", "depth_max_m", "optics", *_SIZES}
+        unknown = set(sensors) - set(SENSOR_FIELDS)
         if unknown:
             raise ConfigError(f"sensors: unknown key(s) {', '.join(sorted(unknown))}")
         frames = episode.pop("frames", "all")

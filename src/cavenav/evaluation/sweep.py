@@ -37,10 +37,10 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from cavenav import __version__
-from cavenav.episode.loop import DEFAULT_STEPS, run_episode
+from cavenav.episode.loop import DEFAULT_STEPS, EpisodeConfig, run_episode
 from cavenav.episode.records import read_summary, read_sweep_file
 from cavenav.episode.run_folder import prepare_root, write_atomic, write_json
-from cavenav.episode.settings import FRAME_MODES, EpisodeSettings
+from cavenav.episode.settings import FRAME_MODES, SENSOR_FIELDS, EpisodeSettings
 from cavenav.errors import CavenavError, ConfigError, RecordError, RecordingError
 from cavenav.evaluation.results import episode_row, outcome, read_episode, write_results
 from cavenav.pilots.base import Pilot
@@ -113,16 +113,23 @@ class SweepConfig:
         settings: EpisodeSettings | None = None,
         **fields: Any,
     ) -> None:
-        """``fields`` are `EpisodeSettings` fields set over ``settings``, and ``frames``,
-        a `FRAMES` mode: ``SweepConfig(("S1",), (0,), steps=6, frames="none")``.
+        """``fields`` are `EpisodeSettings` fields set over ``settings``, ``frames``, a
+        `FRAMES` mode, and ``sensors``, a mapping laid out as sweep.json's "sensors" (the
+        keyword scripts passed before `EpisodeSettings` existed):
+        ``SweepConfig(("S1",), (0,), steps=6, frames="none")``.
 
         Raises:
-            ConfigError: an empty grid, one over `MAX_EPISODES`, a bad frames mode, or a
-                difficulty knob that applies to none of the scenarios.
+            ConfigError: an empty grid, one over `MAX_EPISODES`, a bad frames mode, an
+                unknown sensors key, or a difficulty knob that applies to none of the
+                scenarios.
             TypeError: a name that is not a settings field.
         """
         frames = fields.pop("frames", None)
-        settings = replace(settings or EpisodeSettings(), **fields)
+        sensors = dict(fields.pop("sensors", {}))
+        unknown = set(sensors) - set(SENSOR_FIELDS)
+        if unknown:
+            raise ConfigError(f"sensors: unknown key(s) {', '.join(sorted(unknown))}")
+        settings = replace(settings or EpisodeSettings(), **sensors, **fields)
         object.__setattr__(self, "scenarios", tuple(scenarios))
         object.__setattr__(self, "seeds", tuple(seeds))
         object.__setattr__(self, "pilot", pilot or PilotSpec())
@@ -145,6 +152,40 @@ class SweepConfig:
                 raise ConfigError(
                     f"difficulty knob {knob} applies to none of {', '.join(self.scenarios)}"
                 )
+
+    # The settings under the names a SweepConfig gave them before it held an
+    # `EpisodeSettings`, read-only, for the scripts that read them.
+
+    @property
+    def steps(self) -> int | None:
+        """Step budget; None gives each scenario its own."""
+        return self.settings.steps
+
+    @property
+    def stuck_after(self) -> int | None:
+        """Steps without headway that end an episode as stuck; None never does."""
+        return self.settings.stuck_after
+
+    @property
+    def shield(self) -> bool:
+        """Whether the safety shield flies every episode."""
+        return self.settings.shield
+
+    @property
+    def frames(self) -> str:
+        """What each step keeps: "all" (PNG and EXR), "png" (no EXR) or "none"."""
+        return self.settings.frames
+
+    @property
+    def difficulty(self) -> Mapping[str, float]:
+        """`Difficulty` knobs, each set on the families that have it."""
+        return self.settings.difficulty
+
+    @property
+    def sensors(self) -> dict[str, Any]:
+        """Sounder, depth_max_m, an "optics" table of flag overrides and, where given,
+        "resolution" and "sounder_resolution" ([width, height]), as in sweep.json."""
+        return self.settings.to_dict()["sensors"]
 
     def difficulty_for(self, scenario: str) -> Difficulty:
         """The knobs ``scenario`` takes: a sweep over several families sets each knob on
@@ -374,6 +415,10 @@ class EpisodeWorker:
             self._local.pilot = spec.build()
         return self._local.pilot
 
+    def episode_config(self, cave: Scenario) -> EpisodeConfig:
+        """The `EpisodeConfig` of this sweep's episode in ``cave``."""
+        return self.config.settings.episode_config(cave)
+
     def fly(self, job: EpisodeJob) -> dict[str, Any]:
         """Fly one episode into a fresh run folder; its results row.
 
@@ -392,7 +437,7 @@ class EpisodeWorker:
             if run_dir.exists():
                 shutil.rmtree(run_dir)  # an interrupted or crashed attempt: start again
             cave = self._cave(job)
-            run_episode(cave, self._pilot(job), self.config.settings.episode_config(cave), run_dir)
+            run_episode(cave, self._pilot(job), self.episode_config(cave), run_dir)
         except Exception as exc:  # noqa: BLE001 - recorded, and the sweep goes on
             fault = _folder_fault(job, exc)
             try:
