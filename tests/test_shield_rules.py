@@ -106,14 +106,14 @@ def test_the_standoff_starts_inside_2_m_a_ceiling_exactly_2_m_above_does_not_slo
 @pytest.mark.parametrize(
     ("move", "where"),
     [
-        ("strafe right 1 m", "0.4 m right"),
-        ("strafe left 1 m", "0.4 m left"),
-        ("back 1 m", "0.4 m behind"),
-        ("forward 0.5 m, ascend 1 m", "0.2 m ahead, 0.4 m above"),
-        ("forward 0.5 m, descend 0.5 m", "0.3 m ahead, 0.3 m below"),
-        ("back 0.5 m, ascend 0.5 m", "0.3 m behind, 0.3 m above"),
-        ("back 0.2 m, strafe left 0.5 m", "0.1 m behind, 0.4 m left"),
-        ("forward 0.2 m, strafe right 0.5 m", "0.1 m ahead, 0.4 m right"),
+        ("strafe right 1 m", "0.4 m right of the vehicle"),
+        ("strafe left 1 m", "0.4 m left of the vehicle"),
+        ("back 1 m", "0.4 m behind the vehicle"),
+        ("forward 0.5 m, ascend 1 m", "0.2 m ahead, 0.4 m above the vehicle"),
+        ("forward 0.5 m, descend 0.5 m", "0.3 m ahead, 0.3 m below the vehicle"),
+        ("back 0.5 m, ascend 0.5 m", "0.3 m behind, 0.3 m above the vehicle"),
+        ("back 0.2 m, strafe left 0.5 m", "0.1 m behind, 0.4 m left of the vehicle"),
+        ("forward 0.2 m, strafe right 0.5 m", "0.1 m ahead, 0.4 m right of the vehicle"),
     ],
 )
 def test_the_reason_names_where_the_first_unseen_point_of_the_move_lies(
@@ -122,9 +122,9 @@ def test_the_reason_names_where_the_first_unseen_point_of_the_move_lies(
     # One view of open water: only the camera's cone ahead and the sounders' column are
     # known; the first point of the move beyond the body that is in neither is named.
     verdict = judged(move, seen(np.inf))
-    assert verdict.reason.startswith(
-        f"the move would enter space never seen free ({where} of the vehicle)"
-    ), verdict.reason
+    assert verdict.reason.startswith(f"the move would enter space never seen free ({where})"), (
+        verdict.reason
+    )
 
 
 # ------------------------------------------------------------------ rule 3: the sounders
@@ -305,7 +305,7 @@ def test_in_a_crawlway_the_sounders_column_is_free_to_0_1_m_short_of_the_reading
     verdict = judged(f"{move} 0.1 m", seen(np.inf, **{**other, sounder: 0.49}))
     where = "below" if move == "descend" else "above"
     assert verdict.reason == (
-        f"the move would enter space never seen free (0.4 m {where} of the vehicle)"
+        f"the move would enter space never seen free (0.4 m {where} the vehicle)"
     )
     assert verdict.action == parse_action(f"{'ascend' if move == 'descend' else 'descend'} 0.1 m")
 

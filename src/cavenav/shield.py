@@ -479,7 +479,7 @@ def move_hazard(
     if known.all():
         return Hazard()
     where = _describe(points[int(np.argmin(known))])
-    return Hazard("unseen", f"the move would enter space never seen free ({where} of the vehicle)")
+    return Hazard("unseen", f"the move would enter space never seen free ({where})")
 
 
 @dataclass(frozen=True)
@@ -672,12 +672,18 @@ class _Situation:
 
 
 def _describe(point: np.ndarray) -> str:
+    """Where a body-frame point lies, as a pilot reads it: "0.3 m behind, 0.2 m above the
+    vehicle", "0.4 m right of the vehicle" (offsets under 5 cm are not named)."""
     f, left, u = (float(v) for v in point)
     parts = []
     if abs(f) >= 0.05:
-        parts.append(f"{abs(f):.1f} m {'ahead' if f > 0 else 'behind'}")
+        parts.append(f"{abs(f):.1f} m {'ahead of' if f > 0 else 'behind'}")
     if abs(left) >= 0.05:
-        parts.append(f"{abs(left):.1f} m {'left' if left > 0 else 'right'}")
+        parts.append(f"{abs(left):.1f} m {'left of' if left > 0 else 'right of'}")
     if abs(u) >= 0.05:
         parts.append(f"{abs(u):.1f} m {'above' if u > 0 else 'below'}")
-    return ", ".join(parts) or "at the centre"
+    if not parts:
+        return "at the vehicle's centre"
+    # Only the last offset takes the preposition: "0.1 m ahead, 0.4 m left of the vehicle".
+    *first, last = parts
+    return ", ".join([p.removesuffix(" of") for p in first] + [f"{last} the vehicle"])
