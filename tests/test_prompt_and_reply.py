@@ -331,6 +331,9 @@ def test_any_json_value_is_read_exactly_or_refused_with_a_reason(
         'The passage bends :} then opens.\n{"forward 0.5 m, turn left 15 deg": "open ahead"}',
         # An escaped quote inside a string does not end it, so its brace stays text.
         '{"forward 0.5 m, turn left 15 deg": "open ahead, \\"past the arch}\\""}',
+        # An answer inside an aside is found whatever prose follows it, a brace included.
+        'I weigh {a, {"forward 0.5 m, turn left 15 deg": "open ahead"}}',
+        'I weigh {a, {"forward 0.5 m, turn left 15 deg": "open ahead"}} then {maybe',
         # Structured mode's two keys alone.
         '{"action": "forward 0.5 m, turn left 15 deg", "justification": "open ahead"}',
     ],

@@ -81,8 +81,10 @@ def _final_dict(text: str, passes: int = 64) -> dict | None:
     answer, offset = None, 0
     for _ in range(passes):
         spans, still_open = _dict_candidates(text, offset)
-        if spans and still_open < 0 and not isinstance(_load(spans[-1][1]), dict):
-            still_open = spans[-1][0]  # the last span does not load: look inside it
+        if spans and not isinstance(_load(spans[-1][1]), dict):
+            # The last span does not load: look inside it, before any brace left open
+            # after it ("{a, {answer}} then {maybe").
+            still_open = spans[-1][0]
         for _, span in reversed(spans):
             loaded = _load(span)
             if isinstance(loaded, dict):
