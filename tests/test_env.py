@@ -126,6 +126,17 @@ def test_info_carries_what_a_pilot_sees_where_the_vehicle_is_and_how_long_it_too
     assert info["timings"].physics_ms > 0 and info["timings"].sense_ms > 0
 
 
+def test_timings_ms_keeps_the_last_reset_or_step_times_as_before_info_carried_them() -> None:
+    env = CaveNavEnv("S1", resolution=(64, 48))
+    assert env.timings_ms == {}  # nothing flown yet
+    _, info = env.reset(seed=0)
+    assert env.timings_ms == {"sense": info["timings"].sense_ms}
+    info = env.step("forward 1 m")[-1]
+    timings = info["timings"]
+    assert env.timings_ms == {"physics": timings.physics_ms, "sense": timings.sense_ms}
+    assert list(env.timings_ms) == ["physics", "sense"] and timings.physics_ms > 0
+
+
 def test_two_runs_of_one_seed_give_equal_info_whatever_the_timings() -> None:
     """Gymnasium's determinism check compares ``info`` whole: the typed observation by
     its images, the timings not at all (the same step is the same step on any machine)."""

@@ -323,6 +323,17 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
             raise gym.error.ResetNeeded("Call reset before using the environment.")
         return self._world.caster
 
+    @property
+    def timings_ms(self) -> dict[str, float]:
+        """How long the last reset or step took, milliseconds: ``{"sense": ...}`` after a
+        reset, ``{"physics": ..., "sense": ...}`` after a step, empty before the first
+        reset. ``info["timings"]`` carries the same as a `Timings`; this is where drivers
+        read them before they travelled in ``info``."""
+        if self.pose is None:
+            return {}
+        sense, physics = self._timings.sense_ms, self._timings.physics_ms
+        return {"sense": sense} if physics is None else {"physics": physics, "sense": sense}
+
     def _load(self, scenario: str | Path | Scenario, cave_seed: int | None) -> _World:
         """The world for ``scenario``, built only when it is not the current one."""
         if isinstance(scenario, Scenario):
