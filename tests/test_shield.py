@@ -5,6 +5,7 @@ from __future__ import annotations
 import re
 from dataclasses import replace
 
+import gymnasium as gym
 import numpy as np
 import pytest
 import trimesh
@@ -21,7 +22,7 @@ from cavenav.types import Action, Observation, Pose, VehicleBody
 from cavenav.world.mesh import CaveMesh, make_mesh
 from cavenav.world.raycast import RayCaster
 from cavenav.world.scenarios import ExitPortal, Scenario
-from cavenav.wrappers import SafetyShield
+from cavenav.wrappers import SafetyShield, StuckLimit
 
 from .conftest import box_room
 from .conftest import synthetic_observation as seen
@@ -391,3 +392,10 @@ def test_the_shield_wrapper_stops_a_vehicle_driven_at_a_pillar_and_steps_it_asid
         pytest.approx(xy, abs=1e-6) for xy in [(0.0, 1.0), (0.0, 0.0), (0.1, 0.0), (0.2, 0.0)]
     ]  # left is +x heading -y
     assert not any(step["collision"] for step in flown) and env.interventions == 2
+
+
+def test_the_shield_wrapper_refuses_an_environment_that_is_not_a_cave_in_one_line() -> None:
+    with pytest.raises(TypeError, match="^SafetyShield wraps a CaveNavEnv, not CartPoleEnv$"):
+        SafetyShield(gym.make("CartPole-v1"))
+    stacked = SafetyShield(StuckLimit(CaveNavEnv("S1", resolution=(64, 48)), steps=5))
+    assert stacked.reset(seed=0)[1]["shield"] is None  # a wrapped cave is a cave

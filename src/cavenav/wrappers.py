@@ -14,7 +14,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from cavenav.env import read_action
+from cavenav.env import CaveNavEnv, read_action
 from cavenav.headway import Headway
 from cavenav.shield import Shield, ShieldConfig
 from cavenav.types import Action
@@ -34,6 +34,14 @@ class SafetyShield(gym.Wrapper):
     """
 
     def __init__(self, env: gym.Env, config: ShieldConfig | None = None):
+        """Refuses here, not with a missing attribute later, an ``env`` that does not
+        wrap the `CaveNavEnv` whose settings and ``info`` the shield reads.
+
+        Raises:
+            TypeError: ``env``'s innermost environment is not a `CaveNavEnv`.
+        """
+        if not isinstance(env.unwrapped, CaveNavEnv):
+            raise TypeError(f"SafetyShield wraps a CaveNavEnv, not {type(env.unwrapped).__name__}")
         super().__init__(env)
         rules, body = env.get_wrapper_attr("rules"), env.get_wrapper_attr("body")
         self._space = env.get_wrapper_attr("space")
