@@ -34,12 +34,12 @@ from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from fractions import Fraction
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
-from cavenav.episode.records import read_steps, read_summary
+from cavenav.episode.records import EpisodeSummary, StepRecord, load_steps, load_summary
 from cavenav.errors import (
     CavenavError,
     CavenavWarning,
@@ -48,6 +48,9 @@ from cavenav.errors import (
     RecordingError,
 )
 from cavenav.files import write_then_rename
+
+if TYPE_CHECKING:
+    from cavenav.world.scenarios import ExitPortal
 
 __all__ = ["CAPTION_HEIGHT", "PANEL_HEIGHT", "write_video"]
 
@@ -78,29 +81,34 @@ class MapCanvas:
         return xy @ self.affine[:, :2].T + self.affine[:, 2]
 
 
-def _rebuild_scenario(summary: Mapping[str, Any]) -> Any:
+def _rebuild_scenario(summary: EpisodeSummary | Mapping[str, Any]) -> Any:
     """The flown cave, rebuilt from its name, seed and difficulty; None where it cannot be.
 
     Only the procedural families rebuild from a name. The rebuilt mesh must carry the
     recorded mesh name (which encodes the difficulty), so a map never shows another cave.
+
+    Args:
+        summary: summary.json as `load_summary` reads it, or its JSON object.
     """
     from cavenav.world.scenarios import SCENARIOS, Difficulty, load_scenario
 
-    name, seed = summary.get("scenario"), summary.get("seed")
-    if not isinstance(name, str) or name not in SCENARIOS or seed is None:
+    if not isinstance(summary, EpisodeSummary):
+        summary = EpisodeSummary.model_validate(summary)
+    name, seed = summary.scenario, summary.seed
+    if name is None or name not in SCENARIOS or seed is None:
         return None
     try:
-        knobs = summary.get("difficulty") or {}
+        knobs = summary.difficulty or {}
         kwargs = {"difficulty": Difficulty.from_dict(knobs)} if knobs else {}
-        scenario = load_scenario(name, int(seed), **kwargs)
+        scenario = load_scenario(name, seed, **kwargs)
     except (CavenavError, TypeError, ValueError):
         return None
-    return scenario if scenario.mesh.name == summary.get("mesh") else None
+    return scenario if scenario.mesh.name == summary.mesh else None
 
 
-def _map_limits(points: np.ndarray, exits: Sequence[Mapping[str, Any]]) -> np.ndarray:
+def _map_limits(points: np.ndarray, exits: Sequence[ExitPortal]) -> np.ndarray:
     """[[xmin, xmax], [ymin, ymax]]: a square around the path and the exits."""
-    xy = [points[:, :2]] + [np.asarray(e["point"], np.float64)[None, :2] for e in exits]
+    xy = [points[:, :2]] + [np.asarray(e.point, np.float64)[None, :2] for e in exits]
     every = np.concatenate(xy)
     lo, hi = every.min(axis=0) - _MARGIN_M, every.max(axis=0) + _MARGIN_M
     centre, half = 0.5 * (lo + hi), 0.5 * max(float((hi - lo).max()), 10.0)
@@ -109,7 +117,7 @@ def _map_limits(points: np.ndarray, exits: Sequence[Mapping[str, Any]]) -> np.nd
 
 def _draw_map(
     positions: np.ndarray,
-    exits: Sequence[Mapping[str, Any]],
+    exits: Sequence[ExitPortal],
     scenario: Any | None,
     size_px: int = PANEL_HEIGHT,
 ) -> MapCanvas:
@@ -117,14 +125,13 @@ def _draw_map(
 
     Args:
         positions: (n, 3) float, every pose of the episode in metres.
-        exits: summary.json's exits (point, normal, radius).
+        exits: the exits summary.json records.
         scenario: the rebuilt `Scenario`, or None for the path alone.
     """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
     from cavenav.episode.plots import draw_exits, draw_footprint
-    from cavenav.world.scenarios import ExitPortal
 
     fig = Figure(figsize=(size_px / 100, size_px / 100), dpi=100)
     canvas = FigureCanvasAgg(fig)
@@ -141,7 +148,7 @@ def _draw_map(
             fontsize=7,
             color="0.45",
         )
-    draw_exits(ax, [ExitPortal(e["point"], e["normal"], e["radius"]) for e in exits])
+    draw_exits(ax, exits)
     ax.plot(positions[:, 0], positions[:, 1], color="0.6", lw=1, ls=":", zorder=3)
     ax.plot(*positions[0, :2], marker="o", color="tab:green", ms=7, zorder=5)
     limits = _map_limits(positions, exits)
@@ -206,10 +213,10 @@ def _map_frame(
 _UNREADABLE = (OSError, Image.DecompressionBombError)
 
 
-def _panel(run_dir: Path, step: Mapping[str, Any], key: str, width: int) -> Image.Image:
+def _panel(run_dir: Path, step: StepRecord, key: str, width: int) -> Image.Image:
     """The step's frame ``key`` scaled to the panel, or a grey panel where it has none or
     it cannot be read (with a warning naming the step and the file)."""
-    name = (step.get("frames") or {}).get(key)
+    name = step.frames.get(key)
     if name is not None:
         try:
             with Image.open(run_dir / name) as image:
@@ -218,18 +225,18 @@ def _panel(run_dir: Path, step: Mapping[str, Any], key: str, width: int) -> Imag
         except _UNREADABLE as exc:
             why = "is missing" if isinstance(exc, FileNotFoundError) else f"cannot be read ({exc})"
             warnings.warn(
-                f"{run_dir}: step {step.get('step')}: {name} {why}; shown as a grey panel",
+                f"{run_dir}: step {step.step}: {name} {why}; shown as a grey panel",
                 CavenavWarning,
                 stacklevel=2,
             )
     return Image.new("RGB", (width, PANEL_HEIGHT), (60, 60, 60))
 
 
-def _panel_width(run_dir: Path, steps: Sequence[Mapping[str, Any]], key: str) -> int:
+def _panel_width(run_dir: Path, steps: Sequence[StepRecord], key: str) -> int:
     """The width of the episode's frames ``key`` once scaled to the panel height, read
     from the first that can be read (640, the default camera's, when none can)."""
     for step in steps:
-        name = (step.get("frames") or {}).get(key)
+        name = step.frames.get(key)
         if name is None:
             continue
         try:
@@ -240,23 +247,21 @@ def _panel_width(run_dir: Path, steps: Sequence[Mapping[str, Any]], key: str) ->
     return 640
 
 
-def _caption(step: Mapping[str, Any], count: int) -> str:
-    def metres(key: str) -> str:  # null where the record holds no finite value
-        value = step.get(key)
+def _caption(step: StepRecord, count: int) -> str:
+    def metres(value: float | None) -> str:  # null where the record holds no finite value
         return "-" if value is None else f"{value:.2f}"
 
-    action = step.get("action")
     parts = [
-        f"step {step.get('step')}/{count - 1}",
-        action if action is not None else "no action (pilot failure)",
-        f"clearance {metres('clearance_m')} m",
-        f"top {metres('d_top_m')} m, bottom {metres('d_bottom_m')} m",
+        f"step {step.step}/{count - 1}",
+        step.action if step.action is not None else "no action (pilot failure)",
+        f"clearance {metres(step.clearance_m)} m",
+        f"top {metres(step.d_top_m)} m, bottom {metres(step.d_bottom_m)} m",
     ]
-    if step.get("shield"):
-        parts.append(f"shield replaced {step['shield'].get('proposed')}")
-    if step.get("invalid_action"):
+    if step.shield:
+        parts.append(f"shield replaced {step.shield.get('proposed')}")
+    if step.invalid_action:
         parts.append("invalid action: held")
-    if step.get("collision"):
+    if step.collision:
         parts.append("COLLISION")
     return "  ·  ".join(parts)
 
@@ -272,19 +277,24 @@ def _font(size: int) -> ImageFont.FreeTypeFont | ImageFont.ImageFont:
 
 
 def _frames(
-    run_dir: Path, steps: Sequence[Mapping[str, Any]], summary: Mapping[str, Any]
+    run_dir: Path, steps: Sequence[StepRecord], summary: EpisodeSummary
 ) -> Iterator[np.ndarray]:
-    """Yield one (h, w, 3) uint8 frame per step, every frame the same even size."""
-    positions = np.array([[s["pose"]["x"], s["pose"]["y"], s["pose"]["z"]] for s in steps])
-    canvas = _draw_map(positions, summary.get("exits") or [], _rebuild_scenario(summary))
+    """Yield one (h, w, 3) uint8 frame per step (each with a pose), every frame the same
+    even size."""
+    from cavenav.world.scenarios import ExitPortal
+
+    poses = [s.pose for s in steps if s.pose is not None]
+    positions = np.array([[p.x, p.y, p.z] for p in poses])
+    exits = [ExitPortal(e.point, e.normal, e.radius) for e in summary.exits]
+    canvas = _draw_map(positions, exits, _rebuild_scenario(summary))
     pixels = canvas.pixels(positions[:, :2])
-    colours = _viridis(np.array([s.get("clearance_m") or 0.0 for s in steps], np.float64))
+    colours = _viridis(np.array([s.clearance_m or 0.0 for s in steps], np.float64))
     widths = [_panel_width(run_dir, steps, key) for key in _IMAGES]
     widths.append(canvas.image.shape[1])
     width = sum(widths) + sum(widths) % 2  # H.264 with yuv420p needs even sizes
     height = PANEL_HEIGHT + CAPTION_HEIGHT
     font, small = _font(17), _font(13)
-    for k, step in enumerate(steps):
+    for k, (step, pose) in enumerate(zip(steps, poses, strict=True)):
         frame = Image.new("RGB", (width, height), (16, 16, 16))
         x = 0
         draw = ImageDraw.Draw(frame)
@@ -300,12 +310,10 @@ def _frames(
             )
             x += w
         crash = None
-        if step.get("collision") and step.get("next_pose"):
-            q = step["next_pose"]
-            crash = canvas.pixels(np.array([[q["x"], q["y"]]]))[0]
-        yaw = float(step["pose"].get("yaw_deg", 0.0))
-        frame.paste(_map_frame(canvas, pixels, colours, k, yaw, crash), (x, 0))
-        colour = (255, 110, 110) if step.get("collision") else (235, 235, 235)
+        if step.collision and step.next_pose:
+            crash = canvas.pixels(np.array([[step.next_pose.x, step.next_pose.y]]))[0]
+        frame.paste(_map_frame(canvas, pixels, colours, k, pose.yaw_deg, crash), (x, 0))
+        colour = (255, 110, 110) if step.collision else (235, 235, 235)
         draw.text((10, PANEL_HEIGHT + 6), _caption(step, len(steps)), fill=colour, font=font)
         yield np.asarray(frame)
 
@@ -431,9 +439,9 @@ def write_video(run_dir: Path, out: Path | None = None, fps: float = 4.0) -> Pat
     run_dir = Path(run_dir)
     if not (run_dir / "summary.json").is_file() or not (run_dir / "steps.jsonl").is_file():
         raise CavenavError(f"{run_dir} is no run folder (no summary.json or steps.jsonl)")
-    summary = read_summary(run_dir / "summary.json")
-    steps = [s for s in read_steps(run_dir / "steps.jsonl") if s.get("pose") is not None]
-    if not any(s.get("frames") for s in steps):
+    summary = load_summary(run_dir / "summary.json")
+    steps = [s for s in load_steps(run_dir / "steps.jsonl") if s.pose is not None]
+    if not any(s.frames for s in steps):
         raise CavenavError(
             f"{run_dir} holds no frames: a video needs the episode flown with frames saved "
             "(cavenav run without --no-frames; cavenav eval --frames png or all)"
