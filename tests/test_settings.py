@@ -6,8 +6,10 @@ import json
 
 import pytest
 
-from cavenav.episode.settings import EpisodeSettings
+from cavenav.cli import FramesMode
+from cavenav.episode.settings import _SIZES, FRAME_MODES, SENSOR_FIELDS, EpisodeSettings
 from cavenav.errors import ConfigError
+from cavenav.sensors.rig import SENSOR_KEYS
 from cavenav.world.scenarios import load_scenario
 
 from .conftest import write_room
@@ -55,3 +57,11 @@ def test_bad_settings_are_refused_naming_them() -> None:
         EpisodeSettings(difficulty={"width": 3.0})
     with pytest.raises(ConfigError, match="sensors: unknown key"):
         EpisodeSettings.from_dict({"episode": {}, "sensors": {"lens": "fisheye"}})
+
+
+def test_the_names_written_twice_agree_with_where_they_are_declared() -> None:
+    # The rig's [sensors] keys, written again in settings so that the command line starts
+    # without the kernels; sweep.json's "sensors" are the sensor settings and those sizes.
+    assert _SIZES == SENSOR_KEYS
+    assert ("sounder", "depth_max_m", "optics", *SENSOR_KEYS) == SENSOR_FIELDS
+    assert [mode.value for mode in FramesMode] == list(FRAME_MODES)  # eval --frames

@@ -15,6 +15,7 @@ from pathlib import Path
 import pytest
 from scipy.stats import binomtest
 
+from cavenav.episode.records import TERMINATIONS
 from cavenav.episode.settings import EpisodeSettings
 from cavenav.errors import CavenavError, ConfigError, RecordingError
 from cavenav.evaluation.executors import InProcess, LocalPool
@@ -266,6 +267,15 @@ def test_the_failure_taxonomy_reads_the_last_steps() -> None:
 def row(scenario: str, seed: int, result: str) -> dict:
     return {"scenario": scenario, "seed": seed, "pilot": "p", "outcome": result,
             "run_dir": f"episodes/{scenario}-seed{seed:04d}"}  # fmt: skip
+
+
+@pytest.mark.parametrize("termination", TERMINATIONS)
+def test_every_termination_but_the_exit_and_the_budget_is_its_own_outcome(
+    termination: str,
+) -> None:
+    finished = {"status": "finished", "termination": termination}
+    expected = {"exit": "success", "budget": "stuck"}.get(termination, termination)
+    assert outcome(finished, []) == expected  # a budget ending with no steps went nowhere
 
 
 def test_comparison_pairs_caves_and_tests_the_discordant_ones() -> None:

@@ -35,7 +35,7 @@ from rich.table import Table
 from cavenav.cli_flights import fly_episode, fly_sweep, fly_vehicle
 from cavenav.cli_options import SETTINGS, VLM, ExrCompression, finite, takes
 from cavenav.cli_output import console, errors, print_comparison, print_groups
-from cavenav.episode.settings import EpisodeSettings
+from cavenav.episode.settings import FRAME_MODES, EpisodeSettings
 from cavenav.errors import CavenavError
 from cavenav.pilots.factory import VLMOptions
 from cavenav.redaction import redact
@@ -179,12 +179,8 @@ def ask(
     console.print(f"twist:         {to_twist(decision.action)}", markup=False)
 
 
-class FramesMode(StrEnum):
-    """What a sweep keeps of each step's images."""
-
-    all = "all"
-    png = "png"
-    none = "none"
+# What a sweep keeps of each step's images (`cavenav.episode.settings.FRAME_MODES`).
+FramesMode = StrEnum("FramesMode", {name: name for name in FRAME_MODES})
 
 
 @app.command("eval")
@@ -213,7 +209,7 @@ def eval_(
     ] = None,
     frames: Annotated[
         FramesMode, typer.Option(help="all: PNG + EXR; png: no EXR; none: no images")
-    ] = FramesMode.all,
+    ] = FramesMode["all"],
     shield: Annotated[bool, typer.Option(help="safety shield between pilot and vehicle")] = False,
     report: Annotated[bool, typer.Option(help="write the HTML report at the end")] = True,
     settings: EpisodeSettings = FROM_FLAGS,

@@ -27,8 +27,9 @@ __all__ = ["FRAME_MODES", "SENSOR_FIELDS", "EpisodeSettings"]
 
 # What a sweep keeps of each step's images, as sweep.json names it: (frames, EXR).
 FRAME_MODES = {"all": (True, True), "png": (True, False), "none": (False, False)}
-# The pixel counts, named as a scenario file's [sensors] table names them
-# (`cavenav.sensors.rig._SIZES`).
+# The pixel counts, named as a scenario file's [sensors] table names them: the keys of
+# `cavenav.sensors.rig.SENSOR_KEYS`, written again here because importing the rig loads
+# its kernels (0.4 s at every command's start); tests/test_settings.py holds them equal.
 _SIZES = ("resolution", "sounder_resolution")
 # The settings sweep.json keeps under "sensors".
 SENSOR_FIELDS = ("sounder", "depth_max_m", "optics", *_SIZES)

@@ -40,6 +40,7 @@ from scipy.stats import binomtest
 
 from cavenav.episode.records import (
     OUTCOMES,
+    TERMINATIONS,
     EpisodeSummary,
     Outcome,
     StepRecord,
@@ -69,6 +70,11 @@ __all__ = [
 # (scaled down for a budget shorter than the window).
 WINDOW = 30
 MOVED_M = 1.5
+# Every termination but the exit (a success) and the budget (judged by the last steps)
+# is an outcome of its own: collision, pilot_failure, exited_entrance, stuck.
+_OWN_OUTCOMES: tuple[Outcome, ...] = tuple(
+    o for o in OUTCOMES if o in TERMINATIONS and o not in ("exit", "budget")
+)
 
 COLUMNS = (
     "episode",
@@ -123,7 +129,7 @@ def outcome(
     termination = summary.termination
     if termination == "exit":
         return "success"
-    if termination in ("collision", "pilot_failure", "exited_entrance", "stuck"):
+    if termination in _OWN_OUTCOMES:
         return termination
     moves = [_step(s) for s in steps]
     window = [s for s in moves if s.action][-WINDOW:]
