@@ -399,3 +399,11 @@ def test_the_shield_wrapper_refuses_an_environment_that_is_not_a_cave_in_one_lin
         SafetyShield(gym.make("CartPole-v1"))
     stacked = SafetyShield(StuckLimit(CaveNavEnv("S1", resolution=(64, 48)), steps=5))
     assert stacked.reset(seed=0)[1]["shield"] is None  # a wrapped cave is a cave
+
+
+def test_stuck_limits_measures_of_headway_still_import_from_the_wrappers() -> None:
+    from cavenav import headway, wrappers
+
+    assert (wrappers.STUCK_PROGRESS_M, wrappers.GROUND_CELL_M) == (0.5, 2.0)
+    assert wrappers.STUCK_PROGRESS_M is headway.STUCK_PROGRESS_M
+    assert wrappers.GROUND_CELL_M is headway.GROUND_CELL_M

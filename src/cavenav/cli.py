@@ -54,8 +54,9 @@ PilotOpt = Annotated[str, typer.Option(help="pilot to fly: geometric, vlm, repla
 RunsOut = Annotated[Path, typer.Option(help="folder that receives the run folder")]
 FramesOpt = Annotated[bool, typer.Option(help="save RGB, depth PNG and EXR of every step")]
 FromOpt = Annotated[Path | None, typer.Option("--from", help="run folder to replay")]
-# What `takes` replaces with the values of the flags (`cavenav.cli_options`).
-FROM_FLAGS, VLM_FROM_FLAGS = EpisodeSettings(), VLMOptions()
+# Placeholder defaults: `takes` puts each group's flags in their place and passes the
+# value built from them (`cavenav.cli_options`), so a command never sees these.
+FILLED_BY_TAKES, VLM_FILLED_BY_TAKES = EpisodeSettings(), VLMOptions()
 
 
 @app.command()
@@ -79,8 +80,8 @@ def run(
         bool, typer.Option(help="safety shield between pilot and vehicle (cavenav.shield)")
     ] = False,
     from_: FromOpt = None,
-    settings: EpisodeSettings = FROM_FLAGS,
-    vlm: VLMOptions = VLM_FROM_FLAGS,
+    settings: EpisodeSettings = FILLED_BY_TAKES,
+    vlm: VLMOptions = VLM_FILLED_BY_TAKES,
 ) -> None:
     """Fly one episode and write its run folder (summary, steps, frames, plots)."""
     from cavenav.episode.run_folder import new_run_dir, prepare_root
@@ -130,7 +131,7 @@ def render(
     out: Annotated[
         Path | None, typer.Option(help="PNG to write (default: render-SCENARIO-WATER.png)")
     ] = None,
-    settings: EpisodeSettings = FROM_FLAGS,
+    settings: EpisodeSettings = FILLED_BY_TAKES,
 ) -> None:
     """Write a contact sheet: colour and depth views from poses along the passage."""
     from cavenav.episode.gallery import passage_poses, write_contact_sheet
@@ -153,7 +154,7 @@ def ask(
     depth: Annotated[Path | None, typer.Option(help="a depth PNG (dark near, bright far)")] = None,
     top: Annotated[float | None, typer.Option(help="d_top: metres to the ceiling")] = None,
     bottom: Annotated[float | None, typer.Option(help="d_bottom: metres to the floor")] = None,
-    vlm: VLMOptions = VLM_FROM_FLAGS,
+    vlm: VLMOptions = VLM_FILLED_BY_TAKES,
 ) -> None:
     """Send one query for a single image (e.g. a photograph from a real cave).
 
@@ -212,8 +213,8 @@ def eval_(
     ] = FramesMode["all"],
     shield: Annotated[bool, typer.Option(help="safety shield between pilot and vehicle")] = False,
     report: Annotated[bool, typer.Option(help="write the HTML report at the end")] = True,
-    settings: EpisodeSettings = FROM_FLAGS,
-    vlm: VLMOptions = VLM_FROM_FLAGS,
+    settings: EpisodeSettings = FILLED_BY_TAKES,
+    vlm: VLMOptions = VLM_FILLED_BY_TAKES,
 ) -> None:
     """Fly a pilot over scenarios x seeds; results.csv, aggregate.json and an HTML report."""
     from cavenav.episode.run_folder import prepare_root
@@ -376,8 +377,8 @@ def fly(
         bool, typer.Option(help="safety shield between pilot and vehicle (on by default here)")
     ] = True,
     from_: FromOpt = None,
-    settings: EpisodeSettings = FROM_FLAGS,
-    vlm: VLMOptions = VLM_FROM_FLAGS,
+    settings: EpisodeSettings = FILLED_BY_TAKES,
+    vlm: VLMOptions = VLM_FILLED_BY_TAKES,
 ) -> None:
     """Fly a pilot on an ArduSub vehicle over MAVLink (BlueROV2); with --sim, in a cave."""
     from cavenav.vehicle.mavlink import load_bridge_config

@@ -25,7 +25,8 @@ errors = Console(stderr=True, soft_wrap=True)
 SHOWN_CAVES = 12
 
 
-def metres(value: float | None) -> str:
+def _metres(value: float | None) -> str:
+    """A distance for the tables: two decimals and the unit, "-" where none was measured."""
     return "-" if value is None else f"{value:.2f} m"
 
 
@@ -51,8 +52,8 @@ def _summary_rows(s: EpisodeSummary) -> list[tuple[str, Any]]:
         ("steps", s.steps),
         ("collisions", s.collisions),
         ("path length", f"{s.path_length_m:.1f} m"),
-        ("min clearance", metres(s.min_clearance_m)),
-        ("mean clearance", metres(s.mean_clearance_m)),
+        ("min clearance", _metres(s.min_clearance_m)),
+        ("mean clearance", _metres(s.mean_clearance_m)),
         ("steps below standoff", s.steps_below_standoff),
         ("sensing per step", f"{s.mean_sense_ms} ms"),
         ("first sensing", f"{s.first_sense_ms} ms (with loading the kernels)"),
@@ -105,7 +106,7 @@ def print_groups(rows: list[dict]) -> None:
             "-" if ci is None else f"{ci[0]:.0%}-{ci[1]:.0%}",
             str(g["collisions"]),
             others or "-",
-            metres(g["min_clearance_m"]["min"]),
+            _metres(g["min_clearance_m"]["min"]),
             "-" if g["path_efficiency"] is None else f"{g['path_efficiency']:.2f}",
             "-" if g["steps"] is None else f"{g['steps']:.0f}",
         )

@@ -15,11 +15,13 @@ import gymnasium as gym
 import numpy as np
 
 from cavenav.env import CaveNavEnv, read_action
-from cavenav.headway import Headway
+from cavenav.headway import GROUND_CELL_M, STUCK_PROGRESS_M, Headway
 from cavenav.shield import Shield, ShieldConfig
 from cavenav.types import Action
 
-__all__ = ["SafetyShield", "StuckLimit"]
+# GROUND_CELL_M and STUCK_PROGRESS_M, StuckLimit's measures of headway, lived here before
+# `cavenav.headway`; they stay importable from here.
+__all__ = ["GROUND_CELL_M", "STUCK_PROGRESS_M", "SafetyShield", "StuckLimit"]
 
 
 class SafetyShield(gym.Wrapper):
