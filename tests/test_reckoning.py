@@ -73,6 +73,23 @@ def test_a_wall_back_projects_to_its_plane_ahead_of_the_camera() -> None:
     assert half_width == pytest.approx(4.0 * math.tan(math.radians(53.13 / 2)), rel=0.03)
 
 
+def test_points_lie_in_the_camera_frame_unless_an_offset_is_given() -> None:
+    # A wall 4 m away (8-bit level 51 of 0-20 m: exactly 4 m).
+    seen = DepthSamples.of(synthetic(4.0), stride=10)
+    camera = seen.points()
+    assert np.unique(camera[..., 0]).tolist() == [4.0]
+    assert np.unique(seen.points(ahead_m=0.25)[..., 0]).tolist() == [4.25]
+
+
+def test_points_are_placed_at_the_depth_given_along_each_pixels_ray() -> None:
+    # The cave map places each pixel's point at its reach (the depth, clipped): 2 m
+    # along the same rays is half as far to the side as the wall 4 m away.
+    seen = DepthSamples.of(synthetic(4.0), stride=10)
+    at_two = seen.points(np.full(seen.depth.shape, 2.0, np.float32))
+    assert np.unique(at_two[..., 0]).tolist() == [2.0]
+    assert (at_two[..., 1:] * 2 == seen.points()[..., 1:]).all()
+
+
 def test_nothing_in_range_is_no_surface() -> None:
     assert not DepthSamples.of(synthetic(np.inf), stride=8).surface.any()
 

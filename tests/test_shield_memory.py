@@ -215,6 +215,32 @@ def test_a_rock_in_one_block_hides_its_neighbours_and_no_farther(
     assert rock_in_one_block.seen_free(point, 0.3).tolist() == [free]
 
 
+def test_a_near_block_darkens_all_eight_blocks_around_it_and_no_farther() -> None:
+    # The free-space map keeps each block's nearest depth among its 3 x 3 neighbours:
+    # a rock 1 m away in block (20, 30) shows in rows 19-21 and columns 29-31 alike,
+    # above and left of it as well as below and right; the ring around them reads far.
+    depth = np.full((480, 640), np.inf, np.float32)
+    depth[200:210, 300:310] = 1.0
+    (kept,) = remembered(seen(depth)).frames
+    rock = 13 * 20.0 / 255  # 1 m in 8-bit levels of 0-20 m: level 13
+    expected = np.full((5, 5), 20.0)
+    expected[1:4, 1:4] = rock
+    assert kept.depth[18:23, 28:33] == pytest.approx(expected, rel=1e-6)
+
+
+def test_a_depth_image_just_remembered_is_read_along_the_current_heading() -> None:
+    # The right half of the view (pixels 320 on) is a wall 1 m away, the left half open
+    # water. 5 m out, the blocks left of the wall's edge are free but for the one beside
+    # it (the map is conservative by a block); a heading read 1 degree off would shift
+    # them by 9 cm, more than a block.
+    depth = np.full((480, 640), np.inf, np.float32)
+    depth[:, 320:] = 1.0
+    memory = remembered(seen(depth))
+    assert memory.frames[-1].yaw_deg == 0.0
+    points = np.concatenate([block(24, col, 5.0) for col in (28, 29, 30, 31, 32, 33)])
+    assert memory.seen_free(points, 0.3).tolist() == [True, True, True, False, False, False]
+
+
 def test_a_point_is_seen_free_only_a_margin_before_the_surface() -> None:
     wall = frame(np.full((48, 64), 3.0))
     points = np.array([[2.5, 0.0, 0.0], [2.8, 0.0, 0.0], [1.0, 0.0, 0.0]])
@@ -377,6 +403,25 @@ def test_a_wall_nearer_than_the_crawlways_reach_refuses_any_move_that_comes_near
         )
 
 
+def test_a_move_straight_away_from_a_wall_nearer_than_the_crawlways_reach_is_allowed() -> None:
+    # A rock 0.35 m away on the right, within the turning corners' reach plus 0.1 m: a
+    # move may come no nearer to it, and 0.1 m to the left, turning or not, goes away from
+    # it wherever it lies on that side. The turn rounds the rock's distance in float32,
+    # which must not read as coming nearer. The space on the left was seen free.
+    looked_left = DepthMemory()
+    looked_left.frames = [frame(np.full((48, 64), 20.0), yaw_deg=90.0)]
+    refused = []
+    for bearing in range(-150, -31, 2):
+        a = math.radians(bearing)
+        rock = around([[0.35 * math.cos(a), 0.35 * math.sin(a), 0.0]], looked_left)
+        for turn in (-10.0, -5.0, 0.0, 5.0, 10.0):
+            move = Action(right=-0.1, yaw_deg=turn)
+            hazard = move_hazard(move, rock, body=BODY, margins=Margins(), crawlway=False)
+            if hazard:
+                refused.append((bearing, turn, hazard.text))
+    assert refused == []
+
+
 def test_how_near_a_move_may_pass_a_surface_seen() -> None:
     margins = Margins()
     open_keep = BODY.bounding_radius + 0.3  # 0.612 m
@@ -391,6 +436,26 @@ def test_how_near_a_move_may_pass_a_surface_seen() -> None:
     # Nearer than the crawlway's distance: no nearer at all.
     assert margins.keep_clear_m(BODY, 0.25, crawlway=False) == pytest.approx(0.25, abs=1e-5)
     assert margins.keep_clear_m(BODY, 0.25, crawlway=True) == pytest.approx(0.25, abs=1e-5)
+
+
+def test_near_the_floor_space_is_seen_free_the_open_margin_before_a_wall_not_the_crawlways():
+    # The floor 0.5 m below lets a move come only 5 cm nearer to it (0.45 m kept), but
+    # that is no crawlway: space must still lie 0.3 m before a surface to count as seen
+    # free. A wall 1.05 m to the right, seen looking right: a 0.5 m strafe toward it puts
+    # the body's leading edge 0.8 m out, 0.25 m before the wall.
+    looked_right = DepthMemory()
+    looked_right.frames = [frame(np.full((48, 64), 1.05), yaw_deg=-90.0)]
+    wall = [[x, -1.05, z] for x in np.arange(-1, 1.01, 0.1) for z in (-0.2, 0.0, 0.2)]
+    near_floor = around([*wall, [0.0, 0.0, -0.5]], looked_right, d_bottom=0.5)
+    assert Margins().keep_clear_m(BODY, near_floor.nearest_m, crawlway=False) == pytest.approx(0.45)
+    strafe = parse_action("strafe right 0.5 m")
+    hazard = move_hazard(strafe, near_floor, body=BODY, margins=Margins(), crawlway=False)
+    assert (hazard.kind, hazard.text) == (
+        "unseen",
+        "the move would enter space never seen free (0.8 m right of the vehicle)",
+    )
+    # In a crawlway 0.1 m before the wall is enough.
+    assert not move_hazard(strafe, near_floor, body=BODY, margins=Margins(), crawlway=True)
 
 
 def test_margins_of_zero_and_a_crawlway_margin_as_wide_as_the_open_one_are_accepted() -> None:

@@ -4,23 +4,29 @@ sounders set by hand) and on small caves rendered by the real sensors."""
 
 from __future__ import annotations
 
+import math
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 
-from cavenav.actions import parse_action
+from cavenav.actions import format_action, parse_action
 from cavenav.shield import (
     DepthMemory,
     Margins,
+    MoveMargins,
     Shield,
     ShieldConfig,
     Surroundings,
     Verdict,
+    crawlway_move,
     move_hazard,
 )
 from cavenav.types import Action, Observation, VehicleBody
 
 from .conftest import synthetic_observation as seen
 from .test_shield import WIDE, beside, cave, flown_in
+from .test_shield_memory import around
 
 OPEN_KEEP = Margins().open_keep_m(VehicleBody())  # 0.612 m: half-diagonal plus 0.3 m
 
@@ -190,6 +196,21 @@ def test_a_smaller_turn_is_nearer_than_dropping_the_forward_motion() -> None:
     assert not judged("forward 0.2 m, turn left 10 deg", *views).intervened
 
 
+def test_45_degrees_of_turn_weigh_as_1_m_of_translation_in_choosing_the_nearest() -> None:
+    # Halving a 1.98 m climb drops 0.99 m, nearer than dropping the whole 45-degree turn.
+    far = SimpleNamespace(nearest_m=math.inf, away=Action())  # outside the standoff
+    nearest = Shield()._candidates(Action(up=1.98, yaw_deg=45.0), far)
+    assert [format_action(a) for a in nearest[:7]] == [
+        "ascend 1.98 m, turn left 30 deg",  # 15 degrees: 0.33 m
+        "ascend 1.98 m, turn left 20 deg",
+        "ascend 1.98 m, turn left 15 deg",
+        "ascend 1.98 m, turn left 10 deg",
+        "ascend 1.98 m, turn left 5 deg",  # 40 degrees: 0.89 m
+        "ascend 0.99 m, turn left 45 deg",  # 0.99 m
+        "ascend 1.98 m",  # 45 degrees: 1 m
+    ]
+
+
 # ------------------------------------------------------------------ the shift away
 @pytest.fixture(scope="module")
 def left_wall_0_5() -> list[Observation]:
@@ -244,6 +265,26 @@ def test_a_pinch_ahead_makes_a_crawlway_only_for_a_move_forward() -> None:
     hole = np.hypot(rows - 239.5, cols - 319.5) < 0.45 / 1.2 * 640
     verdict = judged("descend 0.1 m", seen(np.where(hole, np.inf, 1.2), d_bottom=0.5))
     assert verdict.reason == "the move would pass within 0.45 m of a surface seen"
+
+
+@pytest.mark.parametrize("rim_m", [0.33, 0.4, 0.5])
+def test_a_pinch_ahead_that_only_the_crawlways_corridor_passes_is_a_crawlway_to_its_rim(
+    rim_m: float,
+) -> None:
+    # Rocks 1 m before the camera, rim_m left and right of the axis: inside the open
+    # corridor (0.51 m), outside the crawlway's (0.31 m), down to a third of a metre
+    # from the axis. Only the crawlway's corridor passes, and nothing blocks it.
+    rocks = around([[1.2, rim_m, 0.0], [1.2, -rim_m, 0.0]])
+    judged_move = crawlway_move(
+        Action(forward=0.5), rocks, body=VehicleBody(), margins=Margins(), no_forward_m=1.5
+    )
+    assert judged_move == MoveMargins(crawlway=True, ahead_m=math.inf)
+    # The rock on one side alone is a wall to keep clear of, not a pinch.
+    one_side = around([[1.2, -rim_m, 0.0]])
+    judged_move = crawlway_move(
+        Action(forward=0.5), one_side, body=VehicleBody(), margins=Margins(), no_forward_m=1.5
+    )
+    assert judged_move == MoveMargins(crawlway=False, ahead_m=math.inf)
 
 
 @pytest.fixture(scope="module")
