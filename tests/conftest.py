@@ -13,14 +13,16 @@ import sys
 import tempfile
 import time
 from collections.abc import Iterator, Mapping
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 import trimesh
 
+from cavenav.kinematics import Drift, apply
 from cavenav.sensors.depth import normalise_depth
-from cavenav.types import Observation, Pose
+from cavenav.types import Action, Observation, Pose
 from cavenav.world.mesh import CaveMesh, make_mesh
 from cavenav.world.scenarios import ExitPortal, Scenario
 
@@ -208,3 +210,17 @@ def synthetic_observation(
         camera_offset_m=0.2,
         **fields,
     )
+
+
+class Overshooting:
+    """A stand-in vehicle (a `Motion`) that flies every move 10% too far, and reports
+    the drift."""
+
+    def start(self, pose: Pose) -> Pose:
+        return pose
+
+    def move(self, pose: Pose, action: Action) -> Pose:
+        return apply(pose, replace(action, forward=1.1 * action.forward))
+
+    def drift(self, pose: Pose, action: Action, reached: Pose) -> Drift:
+        return Drift.of(pose, action, reached)

@@ -17,7 +17,7 @@ import cavenav  # noqa: F401 - registers cavenav/CaveNav-v0
 from cavenav.env import CaveNavEnv, Timings, snap_action
 from cavenav.episode.loop import EpisodeConfig, run_episode
 from cavenav.errors import ActionError, ConfigError
-from cavenav.kinematics import Drift, apply
+from cavenav.kinematics import apply
 from cavenav.pilots.geometric import GeometricPilot
 from cavenav.pilots.random_pilot import RandomPilot
 from cavenav.sensors.depth import normalise_depth
@@ -25,6 +25,8 @@ from cavenav.sensors.rig import SensorConfig
 from cavenav.shield import DepthMemory
 from cavenav.types import Action, Observation, Pose
 from cavenav.world.scenarios import Scenario, load_scenario
+
+from .conftest import Overshooting
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 
@@ -163,19 +165,6 @@ def test_the_termination_names_how_the_episode_ended(room_scenario: Scenario) ->
     while not info.get("exit"):
         info = env.step("forward 1 m")[-1]
     assert info["termination"] == "exit"
-
-
-class Overshooting:
-    """A stand-in vehicle that flies every move 10% too far and says so."""
-
-    def start(self, pose: Pose) -> Pose:
-        return pose
-
-    def move(self, pose: Pose, action: Action) -> Pose:
-        return apply(pose, replace(action, forward=1.1 * action.forward))
-
-    def drift(self, pose: Pose, action: Action, reached: Pose) -> Drift:
-        return Drift.of(pose, action, reached)
 
 
 def test_a_motion_that_drifts_reports_it_in_info_and_the_kinematics_report_none(

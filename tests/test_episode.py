@@ -15,10 +15,11 @@ from cavenav.actions import format_action
 from cavenav.episode.loop import EpisodeConfig, run_episode
 from cavenav.errors import PilotFailure
 from cavenav.evaluation.results import outcome
-from cavenav.kinematics import Drift, apply
 from cavenav.sensors.depth import read_exr
 from cavenav.types import Action, Decision, Observation, Pose, Usage
 from cavenav.world.scenarios import ExitPortal, Scenario
+
+from .conftest import Overshooting
 
 SUMMARY_FIELDS = {
     "scenario",
@@ -276,7 +277,6 @@ def test_the_top_down_plot_draws_the_path_where_it_was_flown_darker_where_cleara
     from matplotlib import colormaps
 
     from cavenav.episode.plots import plot_episode
-    from cavenav.types import Pose
     from cavenav.world.raycast import RayCaster
 
     # 1 m right of the centre line, from y = 8 to y = -4, clearance rising from 0.2 to 2.8 m.
@@ -382,19 +382,6 @@ def test_usage_is_summed_once_and_a_failed_step_still_counts(room_scenario: Scen
     assert usage["cost_usd"] == pytest.approx(0.05)
     assert usage["mean_latency_s"] == pytest.approx(5 / 3, abs=1e-4)
     assert [s["vlm"]["prompt_tokens"] for s in result.steps] == [100, 100, 300]
-
-
-class Overshooting:
-    """A stand-in vehicle that flies every move 10% too far, and reports the drift."""
-
-    def start(self, pose: Pose) -> Pose:
-        return pose
-
-    def move(self, pose: Pose, action: Action) -> Pose:
-        return apply(pose, replace(action, forward=1.1 * action.forward))
-
-    def drift(self, pose: Pose, action: Action, reached: Pose) -> Drift:
-        return Drift.of(pose, action, reached)
 
 
 def test_the_drift_a_vehicle_reports_is_recorded_at_each_step_and_summed(
