@@ -455,9 +455,13 @@ class RunFolder:
             if plots:
                 from cavenav.episode.plots import plot_episode
 
-                summary["plots"] = plot_episode(
-                    summary, log.poses, log.clearances, log.scenario, caster, self.path
-                )
+                try:
+                    summary["plots"] = plot_episode(
+                        summary, log.poses, log.clearances, log.scenario, caster, self.path
+                    )
+                except OSError as exc:  # a full disk: the episode is not whole, say so
+                    summary.update(status="crashed", failure=f"plots not written: {exc}")
+                    raise
         finally:
             self._steps.close()
             with interrupts_deferred():
