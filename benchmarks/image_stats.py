@@ -11,31 +11,32 @@ Then the one physical check a cave allows: in clear water, pixels whose rock lie
 the lamps' reach should be near black (max(R, G, B) < 16), and those within it should not.
 The reach is taken from the lamp, water and camera model in the code, per frame:
 
-    A wall facing the lamps on their axis (both lamps at full power, spot = 1,
-    incidence cos = 1) at range r, with the paler of the rock and silt albedos rho
-    (`Optics.rock_colour`, `Optics.sediment_colour`), sends back per channel
-    (`kernels._surface_light`; the lamps sit within 0.25 m of the camera, so their
-    path is taken as r):
+    A wall facing the lamps on their axis (every lamp at its on-axis power, incidence
+    cos = 1) at range r, with the palest of the rock palette and silt albedos rho
+    (`lighting.ROCK_PALETTE` in its palest stratum, `Optics.sediment_colour`), sends
+    back per channel (`kernels._surface_light`; the lamps sit within 0.25 m of the
+    camera, so their path is taken as r):
 
-        L_c(r) = rho_c * P * exp(-2 c_c r) / r^2,   P = sum of the lamps' power
-                                                       (`Optics.light_power` x share)
+        L_c(r) = rho_c * P_c * exp(-2 c_c r) / r^2,   P_c = the lamps' summed power
+                                                        (`Optics.lamp_power`)
 
     with c = a + b the water's attenuation (`Water.attenuation`) on the way out and back.
-    The camera multiplies by the frame's white-balance gain w_c and exposure gain g
-    (`rig.camera_response`, from the frame's metered mean, recomputed here from the
-    frame's linear radiance at the shading grid's pixels, with the lens's vignetting),
-    then applies the tone curve T(x) = sRGB(x / (1 + x)) (`optics.tone_lut`). The
-    reach is the largest r at which the brightest channel still reaches the near-black
-    level: max_c T(g w_c L_c(r)) >= 16 / 255. Beyond it, lamp light alone cannot lift
-    even the best-placed, palest rock out of near black; closer, rock the lamps face
-    squarely is brighter than that.
+    The camera multiplies by the frame's exposure gain g (`rig.camera_response`, from the
+    frame's metered mean, recomputed here from the frame's linear radiance at the
+    shading grid's pixels, with the lens's vignetting), clamps black (b,
+    `Optics.black_level`), white-balances (w_c) and applies its curve, linear below the
+    knee, then sRGB. The reach is the largest r at which the brightest channel still
+    reaches the near-black level: max_c sRGB(w_c (g L_c(r) - b) / (1 - b)) >= 16 / 255.
+    Beyond it, lamp light alone cannot lift even the best-placed, palest rock out of
+    near black; closer, rock the lamps face squarely is brighter than that.
 
     This reach is the lamps' upper bound, not one 8-bit level: a pixel below 16 is
     "near black" by the table's own measure, so a reach defined by one level would call
     rock "within reach" that the statistic counts as black. Rock grain (up to about
-    +-50% albedo), the veil of backscatter, daylight from exits, marine snow and sensor
-    noise can still lift a pixel beyond the reach; rock seen obliquely, off the beam or
-    in a crevice is darker than the bound within it.
+    +-50% albedo), the wet rock's glint, the veil of backscatter, daylight from exits,
+    marine snow and sensor noise can still lift a pixel beyond the reach; rock seen
+    obliquely, off the beam, in a crevice or under a mineral coating is darker than the
+    bound within it.
 
 Pixels are classed at 640x480 by the range of their ray (planar depth x the ray's length
 per unit depth); a 320x240 pixel counts as beyond (within) when all four of its source
@@ -52,13 +53,14 @@ import argparse
 import math
 import statistics
 import time
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 
 import numpy as np
 
 from cavenav.episode.gallery import passage_poses
 from cavenav.sensors.image_stats import NEAR_BLACK, FrameStats, downscale, frame_stats
 from cavenav.sensors.kernels import SHARE
+from cavenav.sensors.lighting import DEFAULT_ROCK, ROCK_PALETTE
 from cavenav.sensors.optics import WATER_TYPES, Optics
 from cavenav.sensors.rig import Frame, SensorConfig, SensorRig, camera_response
 from cavenav.types import Pose
@@ -105,11 +107,24 @@ LABELS = {
 DIGITS = {"near_black": 3, "highlights": 4, "contrast": 3, "uciqe": 3}
 
 
-def _tone_inverse(level: float) -> float:
-    """The linear value x whose tone-mapped sRGB is ``level`` of 255: T(x) = sRGB(x / (1 + x))."""
+def _tone_inverse(level: float, optics: Optics, gains: np.ndarray) -> np.ndarray:
+    """(3,) per channel the raw signal after the gain whose developed sRGB is ``level`` of
+    255: the camera clamps black (b), then white-balances (w_c) and applies its curve,
+    linear below the knee (`optics.camera_curve`):
+    x_c = b + (1 - b) C^-1(sRGB^-1(level)) / w_c."""
     s = level / 255.0
     mapped = s / 12.92 if s <= 0.04045 else ((s + 0.055) / 1.055) ** 2.4
-    return mapped / (1.0 - mapped)
+    if optics.tone == "soft":
+        mapped = mapped / (1.0 - mapped)
+    black = optics.black_level
+    return black + (1.0 - black) * mapped / gains.astype(np.float64)
+
+
+def palest_rock(optics: Optics) -> np.ndarray:
+    """(3,) the palest rock of the palette (`lighting.ROCK_PALETTE`) in its palest stratum
+    (+8%), scaled as `lighting.rock_albedo` scales it by `Optics.rock_colour`."""
+    scale = np.asarray(optics.rock_colour) / np.asarray(DEFAULT_ROCK)
+    return 1.08 * np.max(np.asarray(ROCK_PALETTE), axis=0) * scale
 
 
 def metered_mean(frame: Frame, config: SensorConfig) -> np.ndarray:
@@ -128,12 +143,13 @@ def metered_mean(frame: Frame, config: SensorConfig) -> np.ndarray:
 
 def lamp_reach(optics: Optics, gains: np.ndarray, gain: float, level: float = NEAR_BLACK) -> float:
     """Metres beyond which lamp light cannot lift rock to ``level`` (see the module's
-    docstring): the largest r with max_c g w_c rho_c P exp(-2 c_c r) / r^2 >= T^-1(level)."""
-    power = sum(optics.light_power * lamp.share for lamp in optics.lamps)
-    albedo = np.maximum(optics.rock_colour, optics.sediment_colour)
+    docstring): the largest r with max_c g rho_c P_c exp(-2 c_c r) / r^2 >= x_c (see
+    `_tone_inverse`)."""
+    power = optics.lamp_power.astype(np.float64).sum(axis=0)  # (3,) on the lamps' axes
+    albedo = np.maximum(palest_rock(optics), optics.sediment_colour)
     attenuation = optics.medium.attenuation.astype(np.float64)
-    scale = gain * gains.astype(np.float64) * albedo * power
-    need = _tone_inverse(level)
+    scale = gain * albedo * power
+    need = _tone_inverse(level, optics, gains)
 
     def bright(r: float) -> bool:
         return bool(np.any(scale * np.exp(-2.0 * attenuation * r) / (r * r) >= need))
@@ -147,14 +163,20 @@ def lamp_reach(optics: Optics, gains: np.ndarray, gain: float, level: float = NE
     return lo
 
 
+BEYOND_SHARE = 0.01  # a frame looks beyond the lamps' reach when 1% of its pixels do
+
+
 @dataclass
 class Check:
-    """Near-black pixels among those beyond and within the lamps' reach, summed."""
+    """Near-black pixels among those beyond and within the lamps' reach, summed; and the
+    whole frame's near-black fraction for each frame where the passage runs beyond the
+    reach (at least `BEYOND_SHARE` of its pixels)."""
 
     beyond: int = 0
     beyond_black: int = 0
     within: int = 0
     within_black: int = 0
+    frames_beyond: list[float] = field(default_factory=list)
 
     def add(self, frame: Frame, small_rgb: np.ndarray, reach: float, config: SensorConfig) -> None:
         length = np.linalg.norm(config.camera.directions, axis=2)
@@ -167,6 +189,8 @@ class Check:
         self.beyond_black += int((far & black).sum())
         self.within += int(near.sum())
         self.within_black += int((near & black).sum())
+        if far.mean() >= BEYOND_SHARE:
+            self.frames_beyond.append(float(black.mean()))
 
 
 def scenario_frames(name: str, water: str, poses: list[Pose]) -> list[Frame]:
@@ -200,8 +224,8 @@ def _fmt(key: str, value: float | None) -> str:
 def print_preset(water: str, frames: list[FrameStats]) -> None:
     print(f"\n{water} water: {len(frames)} frames")
     print(f"{'statistic':<25} {'mean':>7} {'sd':>7} {'min':>7} {'max':>7}   real (U45)")
-    for field in fields(FrameStats):
-        key = field.name
+    for statistic in fields(FrameStats):
+        key = statistic.name
         values = [getattr(f, key) for f in frames]
         real = REAL[key]
         real_text = _fmt(key, real.mean) + (f" (sd {_fmt(key, real.sd)})" if real.sd else "")
@@ -215,8 +239,8 @@ def print_preset(water: str, frames: list[FrameStats]) -> None:
 def print_summary(stats: dict[str, list[FrameStats]]) -> None:
     print("\nmean over frames (sd), every water, beside the real photographs")
     print(f"{'statistic':<25} " + " ".join(f"{w:>15}" for w in stats) + f" {'real':>7}")
-    for field in fields(FrameStats):
-        key = field.name
+    for statistic in fields(FrameStats):
+        key = statistic.name
         cells = []
         for frames in stats.values():
             values = [getattr(f, key) for f in frames]
@@ -257,6 +281,13 @@ def main() -> None:
     ):
         share = f"{black / total:.3f}" if total else "- (no such pixels)"
         print(f"near-black fraction of rock pixels {label}: {share} of {total:,} pixels")
+    seen = check.frames_beyond
+    if seen:
+        print(
+            f"frames looking beyond the reach ({BEYOND_SHARE:.0%} of their pixels or more): "
+            f"{len(seen)}; their near-black fraction {min(seen):.3f}-{max(seen):.3f}, "
+            f"median {statistics.median(seen):.3f}"
+        )
     print(f"({time.perf_counter() - start:.0f} s)")
 
 

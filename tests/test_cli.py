@@ -134,6 +134,12 @@ def test_a_scenario_files_optics_table_sets_the_water_and_flags_override_it(
     assert from_file["water"] == "coastal" and from_file["particles"] == 0.5
     overridden = optics_of("--water", "turbid")
     assert overridden["water"] == "turbid" and overridden["particles"] == 0.5
+    lamps = optics_of("--lamps", "4", "--lamp-lumens", "1000", "--lamp-beam", "120",
+                      "--lamp-kelvin", "4000")  # fmt: skip
+    assert (lamps["lamp_count"], lamps["lamp_lumens"]) == (4, 1000.0)
+    assert (lamps["lamp_beam_deg"], lamps["lamp_kelvin"]) == (120.0, 4000.0)
+    too_many = cavenav("run", str(scenario), "--steps", "1", "--lamps", "5")
+    assert too_many.returncode == 2 and "--lamps" in too_many.stderr
 
     scenario.write_text(scenario.read_text() + "fog = 3\n")
     done = cavenav("run", str(scenario), "--steps", "1")

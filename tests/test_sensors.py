@@ -182,7 +182,7 @@ def test_small_and_odd_frames_are_shaded_to_their_last_row_and_column(
     assert frame.radiance is not None and frame.radiance.shape == (height, width, 3)
     assert np.isfinite(frame.depth_m).all()  # a closed room: every pixel sees a wall
     assert np.array_equal(frame.depth_png, normalise_depth(frame.depth_m))
-    brightness = frame.rgb.astype(float).sum(axis=-1)
+    brightness = frame.radiance.astype(float).sum(axis=-1)  # before the camera's black clamp
     assert (brightness > 0).all()
     for edge, inside in [(0, 1), (-1, -2)]:  # first and last rows, then columns
         assert brightness[edge].mean() > 0.5 * brightness[inside].mean()

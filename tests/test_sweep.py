@@ -15,11 +15,12 @@ from pathlib import Path
 import pytest
 from scipy.stats import binomtest
 
+from cavenav import SCENARIO_SET
 from cavenav.episode.records import TERMINATIONS
 from cavenav.episode.settings import EpisodeSettings
 from cavenav.errors import CavenavError, ConfigError, RecordingError
 from cavenav.evaluation.executors import InProcess, LocalPool
-from cavenav.evaluation.results import aggregate, compare, outcome
+from cavenav.evaluation.results import aggregate, compare, episode_row, outcome
 from cavenav.evaluation.sweep import (
     MAX_EPISODES,
     EpisodeJob,
@@ -74,6 +75,22 @@ def test_a_sweep_flies_every_cave_once_and_writes_its_tables(room: str, tmp_path
     assert groups[0]["success_ci95"] == [round(low, 4), round(high, 4)]
     assert json.loads((out / "sweep.json").read_text())["seeds"] == [0, 1, 2]
     assert not list(out.glob("episodes/*/frames"))  # --frames none
+
+
+def test_every_record_names_the_scenario_set_its_caves_and_images_belong_to(
+    room: str, tmp_path: Path
+) -> None:
+    out = tmp_path / "sweep"
+    run_sweep(sweep(room), out, InProcess())
+    assert json.loads((out / "sweep.json").read_text())["scenario_set"] == SCENARIO_SET
+    summary = json.loads((out / "episodes/room-seed0000/summary.json").read_text())
+    assert summary["scenario_set"] == SCENARIO_SET
+    with open(out / "results.csv", newline="") as f:
+        assert {row["scenario_set"] for row in csv.DictReader(f)} == {SCENARIO_SET}
+    # A summary written before sets were recorded belongs to set 1.
+    summary.pop("scenario_set")
+    (out / "episodes/room-seed0000/summary.json").write_text(json.dumps(summary))
+    assert episode_row(out / "episodes/room-seed0000", out)["scenario_set"] == "1"
 
 
 @pytest.mark.slow
@@ -165,7 +182,7 @@ def test_a_sweep_json_written_before_episode_settings_resumes_as_the_same_sweep(
         optics={"water": "turbid", "depth_noise_m": 0.05},
         resolution=(160, 120),
     )
-    stamps = ("created_at", "cavenav_version")
+    stamps = ("created_at", "cavenav_version", "scenario_set")
     again = {k: v for k, v in config.to_dict().items() if k not in stamps}
     assert again == {k: v for k, v in written.items() if k not in stamps}
     assert json.dumps(again) == json.dumps({k: written[k] for k in again})  # key order too

@@ -20,8 +20,15 @@ if os.environ.get("CAVENAV_THREADS"):
 import gymnasium  # noqa: E402
 
 __version__ = "0.1.0"
+# What the caves and the frames of a seed look like. It changes only on purpose, when the
+# geometry of the families or the image formation changes, and every summary.json,
+# sweep.json, results.csv and report carries it: results of different sets do not
+# compare. Set 1: the caves and images up to November 2026. Set 2 (issue 25): lamps
+# rated in lumens with a hot spot, wet rock's specular highlights, a camera with a gain
+# ceiling, black clamp, clipping, noise filter and JPEG compression.
+SCENARIO_SET = "2"
 
-__all__ = ["__version__"]
+__all__ = ["SCENARIO_SET", "__version__"]
 
 if "cavenav/CaveNav-v0" not in gymnasium.registry:
     gymnasium.register(

@@ -120,7 +120,8 @@ def _recorded_seed(scenario: str, recording: str, seed: int) -> int:
 @app.command()
 @takes(
     settings=SETTINGS.only(
-        "depth_max", "water", "light_power", "daylight", "particles", "noise",
+        "depth_max", "water", "light_power", "lamps", "lamp_lumens", "lamp_beam", "lamp_kelvin",
+        "daylight", "particles", "noise",
         "resolution", "sounder_resolution", "difficulty",
     )
 )  # fmt: skip

@@ -106,8 +106,11 @@ def write_contact_sheet(
         )
         depth_ax.set_title(f"depth (0-{sensors.depth_max_m:g} m)", fontsize=8, loc="left")
     optics = sensors.optics
+    lamps = f"{len(optics.lamps or ())} × {optics.lamp_lumens:g} lm"
+    if optics.light_power is not None:
+        lamps = f"lamps {optics.light_power:g}"
     fig.suptitle(
-        f"{scenario.name} · {optics.water_name} water · lamps {optics.light_power:g} · "
+        f"{scenario.name} · {optics.water_name} water · {lamps} · "
         f"daylight {optics.daylight:g} · marine snow {optics.particles:g}/m³ · "
         f"seed {sensors.seed}",
         fontsize=10,

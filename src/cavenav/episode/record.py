@@ -15,7 +15,7 @@ from dataclasses import asdict
 from datetime import UTC, datetime
 from typing import Any
 
-from cavenav import __version__
+from cavenav import SCENARIO_SET, __version__
 from cavenav.actions import format_action, to_twist
 from cavenav.episode.metrics import path_length, summarise_clearance
 from cavenav.episode.records import TERMINATED, TERMINATIONS, TRUNCATED, EpisodeSummary, StepRecord
@@ -57,6 +57,7 @@ class EpisodeLog:
         self._started = time.perf_counter()
         self._meta = {
             "cavenav_version": __version__,
+            "scenario_set": SCENARIO_SET,
             "python": platform.python_version(),
             "host": platform.node(),
             "pid": os.getpid(),  # which sweep worker flew it

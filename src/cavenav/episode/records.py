@@ -179,6 +179,7 @@ class EpisodeSummary(_Record):
     max_drift_deg: float | None = None
     mean_physics_ms: float | None = None
     cavenav_version: str | None = None
+    scenario_set: str | None = None  # `cavenav.SCENARIO_SET`; None: set 1, before it was written
     python: str | None = None
     host: str | None = None
     pid: int | None = None
@@ -278,6 +279,7 @@ class _SweepFile(_Record):
     sensors: dict[str, Any] = Field(default_factory=dict)
     created_at: str | None = None
     cavenav_version: str | None = None
+    scenario_set: str | None = None
 
 
 _Model = TypeVar("_Model", bound=_Record)

@@ -596,6 +596,7 @@ def _sweep_facts(config: Mapping[str, Any]) -> list[tuple[str, str]]:
     return facts + [
         ("created", str(config.get("created_at", _EMPTY))),
         ("cavenav", str(config.get("cavenav_version", _EMPTY))),
+        ("scenario set", str(config.get("scenario_set") or "1")),
     ]
 
 

@@ -80,6 +80,7 @@ COLUMNS = (
     "episode",
     "scenario",
     "seed",
+    "scenario_set",
     "pilot",
     "status",
     "success",
@@ -212,6 +213,7 @@ def _summary_columns(s: EpisodeSummary) -> dict[str, Any]:
     return {
         "scenario": s.scenario,
         "seed": s.seed,
+        "scenario_set": s.scenario_set or "1",  # written from set 2 on
         "pilot": s.pilot,
         "status": s.status,
         "success": s.success,

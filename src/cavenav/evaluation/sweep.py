@@ -36,7 +36,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any, Protocol
 
-from cavenav import __version__
+from cavenav import SCENARIO_SET, __version__
 from cavenav.episode.loop import DEFAULT_STEPS, EpisodeConfig, run_episode
 from cavenav.episode.records import read_summary, read_sweep_file
 from cavenav.episode.run_folder import prepare_root, write_atomic, write_json
@@ -206,6 +206,7 @@ class SweepConfig:
             **self.settings.to_dict(),  # "episode", "difficulty", "sensors"
             "created_at": datetime.now(UTC).isoformat(timespec="seconds"),
             "cavenav_version": __version__,
+            "scenario_set": SCENARIO_SET,
         }
 
     @classmethod
@@ -308,7 +309,8 @@ def plan(config: SweepConfig) -> list[EpisodeJob]:
 
 def _identity(data: Mapping[str, Any]) -> dict[str, Any]:
     """The part of sweep.json a resumed sweep must match."""
-    same = {k: v for k, v in data.items() if k not in ("created_at", "cavenav_version")}
+    stamps = ("created_at", "cavenav_version", "scenario_set")  # what wrote it, and when
+    same = {k: v for k, v in data.items() if k not in stamps}
     pilot = dict(same["pilot"])
     if "options" in pilot:
         pilot["options"] = {

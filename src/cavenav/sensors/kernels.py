@@ -2,11 +2,12 @@
 
 The sensor step must cost little more than its ray cast (target: 1.5x). In numpy each
 formula is a separate pass over 307,200 pixels with its temporaries; here a frame takes
-two parallel passes. `shade_grid` shades every fourth pixel of every fourth row in full
+three parallel passes. `shade_grid` shades every fourth pixel of every fourth row in full
 and meters the frame for the camera; `shade_frame` then reads each hit once, takes the
-smooth part of its light from the grid (or shades it in full at edges), develops it
-through the camera and writes the colour and the depth PNG directly. The model is
-described in `cavenav.sensors.optics`.
+smooth part of its light from the grid (or shades it in full at edges), takes it through
+the sensor (noise, gain) and writes the depth PNG; `develop_image` filters the sensor's
+noise and writes the colour through the camera's curve. The model is described in
+`cavenav.sensors.optics`.
 
 Random numbers come from a counter-based hash (splitmix64) of a key and an index, so
 every pixel and particle draws its own numbers in any thread order: bit-identical images
@@ -36,8 +37,10 @@ from cavenav.sensors.optics import TONE_FLOOR, TONE_SHIFT  # noqa: E402
 numba.config.THREADING_LAYER_PRIORITY = ["omp", "workqueue", "tbb"]  # type: ignore[attr-defined]
 
 __all__ = [
+    "beam_profile",
     "bounce_light",
     "corner_sums",
+    "develop_image",
     "fill_rays",
     "gather_sky",
     "hemisphere_rays",
@@ -98,17 +101,35 @@ def _float_bits(typingctx, value):  # noqa: ANN001, ANN202
     return types.int32(types.float32), codegen
 
 
-@numba.njit(inline="always")
-def _smoothstep(edge0: float, edge1: float, x: float) -> float:
-    s = min(max((x - edge0) / (edge1 - edge0), 0.0), 1.0)
-    return s * s * (3.0 - 2.0 * s)
+# Curves that the shading reads at a cosine, tabulated over [0, 1] in this many steps and
+# read with linear interpolation: a lookup instead of a logarithm and two exponentials
+# per lamp and pixel (error below 0.1% for the lamps' lobes and the glint's cos^60).
+CURVE_STEPS = 1024
+
+
+def beam_profile(wide: float, hot_exp: float, hot: float) -> np.ndarray:
+    """(CURVE_STEPS + 1,) float32 a lamp's relative intensity at cosines 0, 1 / CURVE_STEPS,
+    ..., 1 of the angle off its axis: a wide lobe cos^wide and a hot spot cos^hot_exp
+    holding ``hot`` of the on-axis intensity (see `optics.Lamp`)."""
+    cosine = np.linspace(0.0, 1.0, CURVE_STEPS + 1)
+    return ((1.0 - hot) * cosine**wide + hot * cosine**hot_exp).astype(np.float32)
 
 
 @numba.njit(inline="always")
-def _spot(wx, wy, wz, d, axis, cos_inner, cos_outer) -> float:  # noqa: ANN001
-    """Cone fall-off of a lamp toward a point at offset (wx, wy, wz) = point - lamp, |w| = d."""
-    cos_axis = (wx * axis[0] + wy * axis[1] + wz * axis[2]) / d
-    return _smoothstep(cos_outer, cos_inner, cos_axis)
+def _curve(table: np.ndarray, k: int, cosine: float) -> float:
+    """Row k of a (m, CURVE_STEPS + 1) table of a curve at ``cosine``; 0 at or below 0."""
+    if cosine <= 0.0:
+        return 0.0
+    x = min(cosine, 1.0) * CURVE_STEPS
+    j = min(int(x), CURVE_STEPS - 1)
+    return table[k, j] + (x - j) * (table[k, j + 1] - table[k, j])
+
+
+@numba.njit(inline="always")
+def _spot(wx, wy, wz, d, axis, profile, k) -> float:  # noqa: ANN001
+    """Lamp k's beam (its row of ``profile``) toward a point at offset (wx, wy, wz) =
+    point - lamp, |w| = d."""
+    return _curve(profile, k, (wx * axis[k, 0] + wy * axis[k, 1] + wz * axis[k, 2]) / d)
 
 
 @numba.njit(inline="always")
@@ -195,6 +216,34 @@ def _texture(field: np.ndarray, x: float, y: float, z: float) -> float:
 
 
 @numba.njit(inline="always")
+def _texture_slope(field: np.ndarray, x: float, y: float, z: float):  # noqa: ANN202
+    """`_texture` at world (x, y, z) and its gradient in texture units per metre: the
+    trilinear interpolant's own derivatives, from the same eight texels."""
+    mask = field.shape[0] - 1
+    u = x * _INV_GRAIN + 65536.0
+    v = y * _INV_GRAIN + 65536.0
+    w = z * _INV_GRAIN + 65536.0
+    iu, iv, iw = int(u), int(v), int(w)
+    au, av, aw = u - iu, v - iv, w - iw
+    i0, j0, k0 = iu & mask, iv & mask, iw & mask
+    i1, j1, k1 = (iu + 1) & mask, (iv + 1) & mask, (iw + 1) & mask
+    f000, f001 = float(field[i0, j0, k0]), float(field[i0, j0, k1])
+    f010, f011 = float(field[i0, j1, k0]), float(field[i0, j1, k1])
+    f100, f101 = float(field[i1, j0, k0]), float(field[i1, j0, k1])
+    f110, f111 = float(field[i1, j1, k0]), float(field[i1, j1, k1])
+    c00, c01 = f000 + aw * (f001 - f000), f010 + aw * (f011 - f010)
+    c10, c11 = f100 + aw * (f101 - f100), f110 + aw * (f111 - f110)
+    c0, c1 = c00 + av * (c01 - c00), c10 + av * (c11 - c10)
+    value = c0 + au * (c1 - c0)
+    du = c1 - c0
+    dv = (1.0 - au) * (c01 - c00) + au * (c11 - c10)
+    d00, d01 = f001 - f000, f011 - f010
+    d10, d11 = f101 - f100, f111 - f110
+    dw = (1.0 - au) * (d00 + av * (d01 - d00)) + au * (d10 + av * (d11 - d10))
+    return value, du * _INV_GRAIN, dv * _INV_GRAIN, dw * _INV_GRAIN
+
+
+@numba.njit(inline="always")
 def _leave(o: float, e: float, lo: float, hi: float) -> float:
     """Path length from o along unit component e to the slab [lo, hi] (inf if parallel)."""
     if e > 1e-9:
@@ -209,9 +258,8 @@ def integrate_backscatter(
     dirs: np.ndarray,  # (n, 3) float32 camera-frame directions with unit z
     lamp_pos: np.ndarray,  # (k, 3) float32 camera frame
     lamp_axis: np.ndarray,  # (k, 3) float32 unit
-    lamp_power: np.ndarray,  # (k,)
-    cos_inner: np.ndarray,  # (k,)
-    cos_outer: np.ndarray,  # (k,)
+    lamp_power: np.ndarray,  # (k, 3) per colour channel
+    profile: np.ndarray,  # (k, CURVE_STEPS + 1) the beams, see beam_profile
     scattering: np.ndarray,  # (3,) 1/m
     attenuation: np.ndarray,  # (3,) 1/m
     g: float,  # Henyey-Greenstein asymmetry
@@ -239,16 +287,19 @@ def integrate_backscatter(
                 wy = s * uy - lamp_pos[k, 1]
                 wz = s * uz - lamp_pos[k, 2]
                 d = max(math.sqrt(wx * wx + wy * wy + wz * wz), 1e-3)
-                spot = _spot(wx, wy, wz, d, lamp_axis[k], cos_inner[k], cos_outer[k])
+                spot = _spot(wx, wy, wz, d, lamp_axis, profile, k)
                 if spot <= 0.0:
                     continue
                 cos_theta = (wx * vx + wy * vy + wz * vz) / d  # light's path vs the view
                 phase = hg / (1.0 + g * g - 2.0 * g * cos_theta) ** 1.5
-                # light_power is the radiance of a white wall at 1 m: intensity / pi.
-                intensity = math.pi * lamp_power[k] * spot * phase / (d * d)
+                # The lamps' power is the radiance of a white wall at 1 m: intensity / pi.
+                intensity = math.pi * spot * phase / (d * d)
                 for c in range(3):
                     here[c] += (
-                        scattering[c] * intensity * math.exp(-attenuation[c] * (d + s * length))
+                        scattering[c]
+                        * lamp_power[k, c]
+                        * intensity
+                        * math.exp(-attenuation[c] * (d + s * length))
                     )
             if m > 0:
                 for c in range(3):
@@ -266,9 +317,8 @@ def splat_particles(
     rotation: np.ndarray,  # (3, 3) camera-to-world, columns x right, y down, z forward
     lamp_pos: np.ndarray,  # (k, 3) world
     lamp_axis: np.ndarray,  # (k, 3) world, unit
-    lamp_power: np.ndarray,
-    cos_inner: np.ndarray,
-    cos_outer: np.ndarray,
+    lamp_power: np.ndarray,  # (k, 3)
+    profile: np.ndarray,  # (k, CURVE_STEPS + 1)
     attenuation: np.ndarray,  # (3,)
     density: float,  # particles per cubic metre
     seed: int,
@@ -329,11 +379,14 @@ def splat_particles(
                         ly = qy - lamp_pos[k, 1]
                         lz = qz - lamp_pos[k, 2]
                         d = math.sqrt(lx * lx + ly * ly + lz * lz)
-                        spot = _spot(lx, ly, lz, d, lamp_axis[k], cos_inner[k], cos_outer[k])
+                        spot = _spot(lx, ly, lz, d, lamp_axis, profile, k)
                         if spot > 0.0:
                             for c in range(3):
                                 lit[c] += (
-                                    lamp_power[k] * spot / (d * d) * math.exp(-attenuation[c] * d)
+                                    lamp_power[k, c]
+                                    * spot
+                                    / (d * d)
+                                    * math.exp(-attenuation[c] * d)
                                 )
                     # The speck's light spread over its disc of confusion.
                     amplitude = 0.6 * min(1.0, (0.5 * size_px) ** 2 / (radius * radius))
@@ -359,64 +412,64 @@ def splat_particles(
     return drawn
 
 
-@numba.njit(inline="always")
-def _surface_light(
-    i,
-    tri,
-    r,
-    hx,
-    hy,
-    hz,
-    dx,
-    dy,
-    dz,
-    nx,
-    ny,
-    nz,
-    uvs,
-    faces,
-    vertex_normals,
-    surface,
-    surface_at,
-    lamp_pos,
-    lamp_axis,
-    lamp_power,
-    cos_outer,
-    cone_scale,
-    c0,
-    c1,
-    c2,
-):  # noqa: ANN001, ANN202
-    """Light leaving rock hit by pixel i toward the camera, before the grain texture:
-    (R, G, B, green lamp light returned). r is the path length to the hit (hx, hy, hz),
-    (nx, ny, nz) the hit triangle's normal.
+SHININESS = 60.0  # Blinn-Phong exponent of wet rock: highlights some 10 degrees wide
+_GLINT = (np.linspace(0.0, 1.0, CURVE_STEPS + 1) ** SHININESS).astype(np.float32)[None, :]
+# Height of the rock's small relief per unit of the grain texture: +-2 cm at the texture's
+# extremes over its 6 cm texels, so facets tilt by up to about 20 degrees. It shades the
+# rock (bump mapping); depth and collisions keep the mesh's own surface.
+BUMP_M = 0.02 / 127.0
 
-    The lamps are within 0.25 m of the camera, so each lamp's path differs from the
-    camera's by a short delta, and exp(-c d_k) = exp(-c r) exp(-c delta) takes a
+
+@numba.njit(inline="always")
+def _surface_light(i, tri, r, hit, d, n, slope, uvs, faces, vertex_normals, surface, surface_at, lamps, gloss, c):  # fmt: skip  # noqa: ANN001, ANN202, E501
+    """Light leaving rock hit by pixel i toward the camera, before the grain texture:
+    (R, G, B, green lamp light returned). r is the path length to the hit point ``hit``
+    (3 floats), ``d`` the ray's direction (3 floats), ``n`` the hit triangle's normal,
+    ``slope`` the gradient of the rock's small relief (3 floats, metres per metre; its
+    part along the surface tilts the shading normal), ``gloss`` the rock's specular
+    reflectance there, ``c`` the water's attenuation (3).
+
+    Diffuse light takes the rock's colour; the wet surface's specular reflection
+    (normalised Blinn-Phong, `SHININESS`) keeps the lamps' colour, and at arm's length
+    can clip. The lamps are within 0.25 m of the camera, so each lamp's path differs
+    from the camera's by a short delta, and exp(-c d_k) = exp(-c r) exp(-c delta) takes a
     second-order series for the second factor (error below 1% for c * delta < 0.35):
     three exponentials per pixel instead of nine.
     """
+    hx, hy, hz = hit
+    dx, dy, dz = d
+    nx, ny, nz = n
+    c0, c1, c2 = c
+    lamp_pos, lamp_axis, lamp_power, profile = lamps
     side = 0
     if nx * dx + ny * dy + nz * dz > 0.0:  # the camera sees the triangle's back
         side = 1
         nx, ny, nz = -nx, -ny, -nz
     # Scalars only: views (faces[tri], surface[tri, side]) would cost atomic reference
     # counts in this hottest of paths.
-    a, b, c = faces[tri, 0], faces[tri, 1], faces[tri, 2]
+    a, b, cc = faces[tri, 0], faces[tri, 1], faces[tri, 2]
     u, v = uvs[i, 0], uvs[i, 1]
     w = 1.0 - u - v
-    smooth, nx, ny, nz = _smooth_normal(nx, ny, nz, u, v, a, b, c, vertex_normals)
+    smooth, nx, ny, nz = _smooth_normal(nx, ny, nz, u, v, a, b, cc, vertex_normals)
+    gx, gy, gz = slope
+    along = gx * nx + gy * ny + gz * nz
+    bx, by, bz = nx - (gx - along * nx), ny - (gy - along * ny), nz - (gz - along * nz)
+    inv_b = 1.0 / math.sqrt(bx * bx + by * by + bz * bz)
+    nx, ny, nz = bx * inv_b, by * inv_b, bz * inv_b
     if smooth:  # surface properties, too, blend smoothly across the triangle
-        r0 = w * surface_at[a, side, 0] + u * surface_at[b, side, 0] + v * surface_at[c, side, 0]
-        r1 = w * surface_at[a, side, 1] + u * surface_at[b, side, 1] + v * surface_at[c, side, 1]
-        r2 = w * surface_at[a, side, 2] + u * surface_at[b, side, 2] + v * surface_at[c, side, 2]
-        r3 = w * surface_at[a, side, 3] + u * surface_at[b, side, 3] + v * surface_at[c, side, 3]
-        r4 = w * surface_at[a, side, 4] + u * surface_at[b, side, 4] + v * surface_at[c, side, 4]
-        r5 = w * surface_at[a, side, 5] + u * surface_at[b, side, 5] + v * surface_at[c, side, 5]
+        r0 = w * surface_at[a, side, 0] + u * surface_at[b, side, 0] + v * surface_at[cc, side, 0]
+        r1 = w * surface_at[a, side, 1] + u * surface_at[b, side, 1] + v * surface_at[cc, side, 1]
+        r2 = w * surface_at[a, side, 2] + u * surface_at[b, side, 2] + v * surface_at[cc, side, 2]
+        r3 = w * surface_at[a, side, 3] + u * surface_at[b, side, 3] + v * surface_at[cc, side, 3]
+        r4 = w * surface_at[a, side, 4] + u * surface_at[b, side, 4] + v * surface_at[cc, side, 4]
+        r5 = w * surface_at[a, side, 5] + u * surface_at[b, side, 5] + v * surface_at[cc, side, 5]
     else:
         r0, r1, r2 = surface[tri, side, 0], surface[tri, side, 1], surface[tri, side, 2]
         r3, r4, r5 = surface[tri, side, 3], surface[tri, side, 4], surface[tri, side, 5]
-    e0 = e1 = e2 = 0.0
+    inv_view = 1.0 / math.sqrt(dx * dx + dy * dy + dz * dz)
+    vx, vy, vz = -dx * inv_view, -dy * inv_view, -dz * inv_view  # toward the camera
+    peak = gloss * (SHININESS + 8.0) / 8.0
+    e0 = e1 = e2 = s0 = s1 = s2 = 0.0
     for k in range(lamp_pos.shape[0]):
         wx = lamp_pos[k, 0] - hx
         wy = lamp_pos[k, 1] - hy
@@ -426,40 +479,50 @@ def _surface_light(
         cos_in = (nx * wx + ny * wy + nz * wz) * inv_d
         if cos_in <= 0.0:
             continue  # the lamp is behind this face
-        cos_axis = -(wx * lamp_axis[k, 0] + wy * lamp_axis[k, 1] + wz * lamp_axis[k, 2])
-        spot = min(max((cos_axis * inv_d - cos_outer[k]) * cone_scale[k], 0.0), 1.0)
+        cos_axis = -(wx * lamp_axis[k, 0] + wy * lamp_axis[k, 1] + wz * lamp_axis[k, 2]) * inv_d
+        spot = _curve(profile, k, cos_axis)
         if spot <= 0.0:
             continue
-        e = lamp_power[k] * spot * spot * (3.0 - 2.0 * spot) * cos_in / d2
+        e = spot * cos_in / d2
         delta = d2 * inv_d - r
         x0, x1, x2 = c0 * delta, c1 * delta, c2 * delta
-        e0 += e * (1.0 - x0 + 0.5 * x0 * x0)
-        e1 += e * (1.0 - x1 + 0.5 * x1 * x1)
-        e2 += e * (1.0 - x2 + 0.5 * x2 * x2)
+        f0 = e * lamp_power[k, 0] * (1.0 - x0 + 0.5 * x0 * x0)
+        f1 = e * lamp_power[k, 1] * (1.0 - x1 + 0.5 * x1 * x1)
+        f2 = e * lamp_power[k, 2] * (1.0 - x2 + 0.5 * x2 * x2)
+        e0, e1, e2 = e0 + f0, e1 + f1, e2 + f2
+        if peak > 0.0:  # the half-way vector between the lamp and the camera
+            qx, qy, qz = wx * inv_d + vx, wy * inv_d + vy, wz * inv_d + vz
+            q2 = qx * qx + qy * qy + qz * qz
+            cos_h = (nx * qx + ny * qy + nz * qz) / math.sqrt(max(q2, 1e-12))
+            glint = peak * _curve(_GLINT, 0, cos_h)
+            s0, s1, s2 = s0 + glint * f0, s1 + glint * f1, s2 + glint * f2
     t0, t1, t2 = math.exp(-c0 * r), math.exp(-c1 * r), math.exp(-c2 * r)
     return (
-        r0 * (e0 * t0 + r3) * t0,
-        r1 * (e1 * t1 + r4) * t1,
-        r2 * (e2 * t2 + r5) * t2,
+        (r0 * (e0 * t0 + r3) + s0 * t0) * t0,
+        (r1 * (e1 * t1 + r4) + s1 * t1) * t1,
+        (r2 * (e2 * t2 + r5) + s2 * t2) * t2,
         r1 * e1 * t1 * t1,
     )
 
 
 @numba.njit(inline="always")
-def _rock(i, depth, origin, dx, dy, dz, length, cast, scene, lamps, c0, c1, c2):  # noqa: ANN001, ANN202
-    """`_surface_light` of the rock hit by pixel i, times the rock grain at the hit."""
+def _rock(i, depth, origin, dx, dy, dz, length, cast, scene, lamps, c):  # noqa: ANN001, ANN202
+    """`_surface_light` of the rock hit by pixel i, times the rock grain at the hit; the
+    grain also makes pale rock glossier (calcite crystals, polished flowstone)."""
     _, triangle, normals, uvs = cast
-    faces, vertex_normals, surface, surface_at, grain_field = scene
-    lamp_pos, lamp_axis, lamp_power, cos_outer, cone_scale = lamps
+    faces, vertex_normals, surface, surface_at, grain_field, specular = scene
     hx = origin[0] + depth * dx
     hy = origin[1] + depth * dy
     hz = origin[2] + depth * dz
+    value, gu, gv, gw = _texture_slope(grain_field, hx, hy, hz)
+    relief = GRAIN_STEP * value
     k0, k1, k2, lamp_return = _surface_light(
-        i, triangle[i], depth * length, hx, hy, hz, dx, dy, dz,
-        normals[i, 0], normals[i, 1], normals[i, 2], uvs, faces, vertex_normals, surface,
-        surface_at, lamp_pos, lamp_axis, lamp_power, cos_outer, cone_scale, c0, c1, c2,
+        i, triangle[i], depth * length, (hx, hy, hz), (dx, dy, dz),
+        (normals[i, 0], normals[i, 1], normals[i, 2]), (BUMP_M * gu, BUMP_M * gv, BUMP_M * gw),
+        uvs, faces, vertex_normals, surface, surface_at, lamps,
+        specular * max(1.0 + 3.0 * relief, 0.0), c,
     )  # fmt: skip
-    grain = 1.0 + GRAIN_STEP * _texture(grain_field, hx, hy, hz)
+    grain = 1.0 + relief
     return grain * k0, grain * k1, grain * k2, lamp_return
 
 
@@ -515,24 +578,17 @@ def _own_light(i, row, col, cast, rays, scene, lamps, water):  # noqa: ANN001, A
         lamp_return = 0.0
     else:
         o0, o1, o2, lamp_return = _rock(
-            i, depth, origin, dx, dy, dz, length, cast, scene, lamps, c0, c1, c2
+            i, depth, origin, dx, dy, dz, length, cast, scene, lamps, (c0, c1, c2)
         )
     return v0 + o0, v1 + o1, v2 + o2, lamp_return
-
-
-@numba.njit(inline="always")
-def _cone_scaled(lamps):  # noqa: ANN001, ANN202
-    """(position, axis, power, cos_inner, cos_outer) to what `_surface_light` reads:
-    (position, axis, power, cos_outer, 1 / (cos_inner - cos_outer))."""
-    return lamps[0], lamps[1], lamps[2], lamps[4], 1.0 / (lamps[3] - lamps[4])
 
 
 @numba.njit(parallel=True, fastmath=_FAST, cache=True)
 def shade_grid(
     cast: tuple,  # (t, triangle, normals, uvs) as in shade_frame
     rays: tuple,  # (directions, ray_length, origin) as in shade_frame
-    scene: tuple,  # (faces, vertex_normals, surface, surface_at, grain_field)
-    lamps: tuple,  # (position, axis, power, cos_inner, cos_outer) world frame
+    scene: tuple,  # (faces, vertex_normals, surface, surface_at, grain_field, specular)
+    lamps: tuple,  # (position, axis, power (k, 3), beam profile) world frame
     water: tuple,  # (attenuation, backscatter, block, far, sky, bounds)
     specks: np.ndarray,  # (n, 3) float32 marine snow, see splat_particles
     speck_blocks: np.ndarray,  # (ceil(H / SHARE), ceil(W / SHARE)) uint8
@@ -553,7 +609,6 @@ def shade_grid(
     """
     t, triangle, normals, _ = cast
     ray_length = rays[1]
-    lamps = _cone_scaled(lamps)
     height = t.shape[0] // width
     sum0 = sum1 = sum2 = 0.0
     for a in numba.prange(grid.shape[0]):
@@ -630,16 +685,22 @@ def _finish(i, l0, l1, l2, lamp_return, hit, col, t, frame_key, depth_range, row
 
 
 @numba.njit(inline="always")
-def _develop_row(row, width, row_light, ray_length, specks, speck_blocks, camera, radiance, rgb):  # fmt: skip  # noqa: ANN001, E501
-    """Marine snow and the camera over one row's light: white balance, lens vignetting,
-    sensor noise, exposure, tone curve.
+def _develop_row(row, width, row_light, ray_length, specks, speck_blocks, camera, radiance, signal):  # fmt: skip  # noqa: ANN001, E501
+    """Marine snow and the sensor over one row's light: lens vignetting, sensor noise, the
+    gain, the black clamp and white balance, in the order of a camera's raw pipeline, into
+    ``signal`` for `develop_image`.
 
     Noise is added to the sensor signal before the exposure gain, so a dark frame that the
-    auto exposure brightens shows its noise, as a real camera's does.
+    auto exposure brightens shows its noise, as a real camera's does. The black clamp
+    (the sensor's black level, subtracted from the raw signal and the rest stretched back
+    to full scale) comes before the white balance, so that what reads black stays black
+    however much a channel's gain lifts it.
     """
-    gains, gain, vignetting, noise, frame_key, lut = camera
-    read2 = (0.0005 * noise) ** 2
-    shot = 0.001 * noise / 3.0
+    gains, gain, vignetting, noise, frame_key, black = camera
+    read2 = (READ_NOISE * noise) ** 2
+    shot = SHOT_NOISE * noise / 3.0
+    stretch = gain / (1.0 - black)
+    floor = black / gain
     start = row * width
     for b in range(speck_blocks.shape[1]):
         if speck_blocks[row // SHARE, b]:
@@ -653,7 +714,7 @@ def _develop_row(row, width, row_light, ray_length, specks, speck_blocks, camera
         i = start + col
         l0, l1, l2 = row_light[col, 0], row_light[col, 1], row_light[col, 2]
         lens = _lens(ray_length[i], vignetting)
-        v0, v1, v2 = l0 * gains[0] * lens, l1 * gains[1] * lens, l2 * gains[2] * lens
+        v0, v1, v2 = l0 * lens, l1 * lens, l2 * lens
         if noise > 0.0:
             # Read noise plus shot noise of the pixel's mean level; three deviates from
             # one 64-bit hash.
@@ -662,30 +723,110 @@ def _develop_row(row, width, row_light, ray_length, specks, speck_blocks, camera
             v0 += sigma * _uniform(h, 0)
             v1 += sigma * _uniform(h, 21)
             v2 += sigma * _uniform(h, 42)
-        rgb[i, 0] = _tone(lut, v0 * gain)
-        rgb[i, 1] = _tone(lut, v1 * gain)
-        rgb[i, 2] = _tone(lut, v2 * gain)
+        signal[i, 0] = gains[0] * stretch * max(v0 - floor, 0.0)
+        signal[i, 1] = gains[1] * stretch * max(v1 - floor, 0.0)
+        signal[i, 2] = gains[2] * stretch * max(v2 - floor, 0.0)
+
+
+# The sensor's noise at noise = 1, in units of full scale before the gain. An ROV camera
+# (a 1/2.9-inch 1080p sensor: wells of about 10,000 electrons, read noise of about 5)
+# streams 1920x1080, which a 640x480 frame samples down: each of its pixels gathers
+# about five of the sensor's, 50,000 electrons of well and 11 of read noise. Shot noise
+# is Poisson: the variance per unit of signal is one electron's share of that well.
+READ_NOISE = 11.0 / 50_000.0
+SHOT_NOISE = 1.0 / 50_000.0
+DENOISE_SIGMAS = 2.5  # neighbours within this many noise deviations of a pixel are alike
+LUMA_R, LUMA_G, LUMA_B = 0.299, 0.587, 0.114  # Rec. 601 luma, as JPEG and H.264 code it
+
+
+@numba.njit(parallel=True, fastmath=_FAST, cache=True)
+def develop_image(
+    signal: np.ndarray,  # (n, 3) float32: the sensor's signal, from shade_frame
+    width: int,
+    camera: tuple,  # (gains, gain, vignetting, noise, frame_key, black level), as shade_frame's
+    denoise: float,  # 0-1: how much of the filtered luma replaces the pixel's own
+    lut: np.ndarray,  # the tone curve, see optics.tone_lut
+    rgb: np.ndarray,  # (n, 3) uint8 out
+    luma: np.ndarray,  # (2, n) float32 work buffer: luma, then the filter's shift of it
+) -> None:
+    """The camera's processing after the sensor: a noise filter, then the tone curve and
+    8-bit sRGB (the lookup table).
+
+    The filter is Lee's sigma filter (1983), the edge-keeping smoothing of camera
+    pipelines, on luma (Rec. 601's Y, the luma of JPEG and H.264): each pixel's luma
+    becomes the mean of its 3x3 neighbours' that lie within `DENOISE_SIGMAS` of the noise
+    expected at its level, so flat rock loses its grain of noise while edges and texture
+    stronger than the noise stay; the pixel's three channels move by the same amount.
+    The expected noise counts the white balance, which lifts the noise of the channels
+    it lifts. Colour noise is left to the compression's half-resolution colour, as
+    cameras leave it to their chroma filter. Three short passes: fused into one loop
+    they measured twice as slow.
+    """
+    n = signal.shape[0]
+    gains, gain, _, noise, _, black = camera
+    if not (denoise > 0.0 and noise > 0.0):
+        for i in numba.prange(n):
+            rgb[i, 0] = _tone(lut, signal[i, 0])
+            rgb[i, 1] = _tone(lut, signal[i, 1])
+            rgb[i, 2] = _tone(lut, signal[i, 2])
+        return
+    own, shift = luma[0], luma[1]
+    for i in numba.prange(n):
+        own[i] = LUMA_R * signal[i, 0] + LUMA_G * signal[i, 1] + LUMA_B * signal[i, 2]
+    # The luma of a pixel whose raw level is v has the variance s^2 k^2 (read^2 + shot v),
+    # s the gain over the black clamp's stretch, k^2 = sum of (luma weight x white
+    # balance)^2, and v about Y / (s m), m = sum of luma weight x white balance; the
+    # difference of two pixels has twice that. Squared reach in float32 throughout, which
+    # the loop vectorises.
+    stretch = gain / (1.0 - black)
+    k2 = (LUMA_R * gains[0]) ** 2 + (LUMA_G * gains[1]) ** 2 + (LUMA_B * gains[2]) ** 2
+    m = LUMA_R * gains[0] + LUMA_G * gains[1] + LUMA_B * gains[2]
+    spread = 2.0 * DENOISE_SIGMAS**2 * k2
+    read2 = np.float32(spread * (stretch * READ_NOISE * noise) ** 2)
+    shot = np.float32(spread * stretch * SHOT_NOISE * noise / max(m, 1e-6))
+    strength = np.float32(denoise)
+    zero, one = np.float32(0.0), np.float32(1.0)
+    height = n // width
+    for row in numba.prange(height):
+        up, mid, down = max(row - 1, 0) * width, row * width, min(row + 1, height - 1) * width
+        for col in range(width):
+            left, right = max(col - 1, 0), min(col + 1, width - 1)
+            y = own[mid + col]
+            reach2 = read2 + shot * max(y, zero)
+            total = count = zero
+            for v in (own[up + left], own[up + col], own[up + right],
+                      own[mid + left], y, own[mid + right],
+                      own[down + left], own[down + col], own[down + right]):  # fmt: skip
+                near = one if (v - y) * (v - y) <= reach2 else zero
+                total += near * v
+                count += near
+            shift[mid + col] = strength * (total / count - y)
+    for i in numba.prange(n):
+        rgb[i, 0] = _tone(lut, signal[i, 0] + shift[i])
+        rgb[i, 1] = _tone(lut, signal[i, 1] + shift[i])
+        rgb[i, 2] = _tone(lut, signal[i, 2] + shift[i])
 
 
 @numba.njit(parallel=True, fastmath=_FAST, cache=True)
 def shade_frame(
     cast: tuple,  # (t, triangle, normals, uvs): the forward cast, see below
     rays: tuple,  # (directions, ray_length, origin), see below
-    scene: tuple,  # (faces, vertex_normals, surface, surface_at, grain_field)
-    lamps: tuple,  # (position, axis, power, cos_inner, cos_outer) world frame
+    scene: tuple,  # (faces, vertex_normals, surface, surface_at, grain_field, specular)
+    lamps: tuple,  # (position, axis, power (k, 3), beam profile) world frame
     water: tuple,  # (attenuation, backscatter, block, far, sky, bounds)
     grid: np.ndarray,  # from shade_grid
     grid_triangle: np.ndarray,  # from shade_grid
     specks: np.ndarray,  # (n, 3) float32 marine snow; zeroed here as it is read
     speck_blocks: np.ndarray,  # (ceil(H / SHARE), ceil(W / SHARE)) uint8
-    camera: tuple,  # (gains, gain, vignetting, noise, frame_key, tone-curve lut)
+    camera: tuple,  # (gains, gain, vignetting, noise, frame_key, black level)
     depth_range: tuple,  # (d_min, d_max, depth_dropout, depth_noise)
     width: int,
     radiance: np.ndarray,  # (n, 3) float32 out: radiance at the lens; (0, 3): not wanted
-    rgb: np.ndarray,  # (n, 3) uint8 out: the developed colour image
+    signal: np.ndarray,  # (n, 3) float32 out: the sensor's signal, for develop_image
     depth_png: np.ndarray,  # (n,) uint8 out
 ) -> None:
-    """Shade every pixel, develop it through the camera and normalise its depth.
+    """Shade every pixel, take it through the sensor (`develop_image` finishes the
+    image) and normalise its depth.
 
     The forward cast: t (n,) float32 planar depth, inf where no hit, degraded in place;
     triangle (n,) uint32 hit triangle, 0xFFFFFFFF where no hit; normals (n, 3) float32
@@ -699,13 +840,12 @@ def shade_frame(
     such creases), and 1 / depth, which is linear across the image of a plane, within 2%
     of the interpolation. The other pixels (silhouettes, sharp edges, open water) are
     shaded on their own, in a second loop per row that keeps the first one lean; a third
-    adds the marine snow and develops the row's light, still in L1, through the camera.
+    adds the marine snow and takes the row's light, still in L1, through the sensor.
     Depth, marine snow and noise are always per pixel.
     """
     t, triangle, normals, _ = cast
     ray_length = rays[1]
     frame_key = camera[4]
-    own_lamps = _cone_scaled(lamps)
     height = t.shape[0] // width
     for row in numba.prange(height):
         a = row // SHARE
@@ -756,12 +896,14 @@ def shade_frame(
         for k in range(count):
             col = pending[k]
             i = row * width + col
-            l0, l1, l2, lamp_return = _own_light(i, row, col, cast, rays, scene, own_lamps, water)
+            l0, l1, l2, lamp_return = _own_light(i, row, col, cast, rays, scene, lamps, water)
             _finish(
                 i, l0, l1, l2, lamp_return, triangle[i] != _NO_HIT, col, t, frame_key,
                 depth_range, row_light, depth_png,
             )  # fmt: skip
-        _develop_row(row, width, row_light, ray_length, specks, speck_blocks, camera, radiance, rgb)
+        _develop_row(
+            row, width, row_light, ray_length, specks, speck_blocks, camera, radiance, signal
+        )
 
 
 @numba.njit(parallel=True, fastmath=_FAST, cache=True)

@@ -36,6 +36,7 @@ from cavenav.sensors import optics as optics_model
 from cavenav.sensors.camera import CameraIntrinsics
 from cavenav.sensors.kernels import (
     GRAIN_STEP,
+    beam_profile,
     bounce_light,
     corner_sums,
     gather_sky,
@@ -77,24 +78,54 @@ _FACES: weakref.WeakKeyDictionary[CaveMesh, tuple[np.ndarray, np.ndarray]] = (
 _FACES_LOCK = threading.Lock()
 
 
-def rock_albedo(mesh: CaveMesh, seed: int = 0, colour=(0.40, 0.37, 0.33)) -> np.ndarray:
-    """(n_vertices, 3) float32 rock reflectance from seeded 3-D noise at each vertex.
+# The limestone palette (reflectance, R G B), relative to `Optics.rock_colour`'s default:
+# pale cream limestone, grey limestone, brown (iron-stained) rock, and the black-brown
+# manganese and iron oxide coatings that cover patches of flooded cave walls.
+DEFAULT_ROCK = (0.40, 0.37, 0.33)
+ROCK_PALETTE = (
+    (0.62, 0.57, 0.47),  # cream
+    (0.44, 0.43, 0.41),  # grey
+    (0.40, 0.30, 0.21),  # brown
+)
+COATING = (0.07, 0.06, 0.05)
 
-    Random phases of a few sinusoids per octave give a smooth, band-limited field that is
-    cheap to evaluate once per vertex; mottling from metres down to a few decimetres.
-    """
-    rng = np.random.default_rng(seed)
-    p = mesh.vertices.astype(np.float32)
+
+def _noise_field(p: np.ndarray, rng: np.random.Generator, octaves) -> np.ndarray:  # noqa: ANN001
+    """(n,) smooth band-limited noise at points p (n, 3): random plane waves per octave,
+    ``octaves`` (wavelength m, weight) pairs; about unit variance."""
     field = np.zeros(len(p), np.float32)
-    for wavelength, weight in ((3.0, 0.45), (1.1, 0.3), (0.45, 0.25)):
+    for wavelength, weight in octaves:
         for _ in range(3):
             k = rng.normal(size=3).astype(np.float32)
             k *= 2 * np.pi / wavelength / np.linalg.norm(k)
-            field += weight * np.sin(p @ k + rng.uniform(0, 2 * np.pi)) / 1.7
-    # Bands of darker and lighter strata, as in bedded limestone.
+            field += weight * np.sin(p @ k + rng.uniform(0, 2 * np.pi)) / 1.2
+    return field
+
+
+def rock_albedo(mesh: CaveMesh, seed: int = 0, colour=DEFAULT_ROCK) -> np.ndarray:
+    """(n_vertices, 3) float32 rock reflectance from seeded 3-D noise at each vertex.
+
+    Two noise fields choose the rock's colour from `ROCK_PALETTE` (cream where one is
+    high, brown where it is low, grey between; the other mixes them over metres), a
+    third lays dark mineral coatings in sharp-edged patches over about a seventh of the
+    walls, and bands of strata run through it all, as in bedded limestone. ``colour``
+    scales the palette (its default, `DEFAULT_ROCK`, is the palette's own mean tone).
+    Random plane waves are cheap to evaluate once per vertex: mottling from metres down
+    to a few decimetres.
+    """
+    rng = np.random.default_rng(seed)
+    p = mesh.vertices.astype(np.float32)
+    tone = _noise_field(p, rng, ((4.0, 0.6), (1.5, 0.3), (0.5, 0.2)))
+    palette = np.asarray(ROCK_PALETTE, np.float32)
+    cream = np.clip(tone, 0.0, 1.0)[:, None]
+    brown = np.clip(-tone, 0.0, 1.0)[:, None]
+    rock = palette[1] + cream * (palette[0] - palette[1]) + brown * (palette[2] - palette[1])
+    coating = _noise_field(p, rng, ((2.5, 0.7), (0.8, 0.35), (0.3, 0.15)))
+    cover = np.clip((coating - 0.9) * 4.0, 0.0, 1.0)[:, None]  # about a seventh, sharp edges
+    rock += cover * (np.asarray(COATING, np.float32) - rock)
     strata = 0.08 * np.sin(p[:, 2] * 2 * np.pi / rng.uniform(0.6, 1.4) + rng.uniform(0, 6.3))
-    grey = 1.0 + 0.55 * field + strata
-    return np.clip(grey[:, None] * np.asarray(colour, np.float32), 0.03, 0.9).astype(np.float32)
+    rock *= (1.0 + strata)[:, None] * (np.asarray(colour, np.float32) / np.asarray(DEFAULT_ROCK))
+    return np.clip(rock, 0.02, 0.9).astype(np.float32)
 
 
 def rock_grain(seed: int = 0, size: int = 64, strength: float = 0.5) -> np.ndarray:
@@ -393,25 +424,28 @@ def _surface_table(caster: RayCaster, optics: Optics, seed: int, n_rays: int) ->
 
 @dataclass(frozen=True)
 class LampArrays:
-    """The lamps as arrays for the kernels, in the camera frame."""
+    """The lamps as arrays for the kernels, in the camera frame (see `optics.Lamp`)."""
 
     position: np.ndarray  # (k, 3) float32
     axis: np.ndarray  # (k, 3) float32 unit
-    power: np.ndarray  # (k,) float32
-    cos_inner: np.ndarray  # (k,) float32
-    cos_outer: np.ndarray  # (k,) float32
+    power: np.ndarray  # (k, 3) float32: radiance of a white wall 1 m ahead, per channel
+    profile: np.ndarray  # (k, CURVE_STEPS + 1) float32: each beam, `kernels.beam_profile`
+
+    def __iter__(self):  # noqa: ANN204
+        """The fields in the order the kernels take them."""
+        return iter((self.position, self.axis, self.power, self.profile))
 
 
 def lamp_arrays(optics: Optics) -> LampArrays:
-    lamps = optics.lamps
+    lamps = optics.lamps or ()
     axis = np.array([lamp.axis for lamp in lamps], np.float64).reshape(-1, 3)
     axis /= np.maximum(np.linalg.norm(axis, axis=1, keepdims=True), 1e-12)
+    profile = [beam_profile(*lamp.exponents, lamp.hot_spot) for lamp in lamps]
     return LampArrays(
         position=np.array([lamp.position for lamp in lamps], np.float32).reshape(-1, 3),
         axis=axis.astype(np.float32),
-        power=np.array([optics.light_power * lamp.share for lamp in lamps], np.float32),
-        cos_inner=np.cos(np.radians([lamp.inner_deg for lamp in lamps])).astype(np.float32),
-        cos_outer=np.cos(np.radians([lamp.outer_deg for lamp in lamps])).astype(np.float32),
+        power=optics.lamp_power.reshape(-1, 3),
+        profile=np.array(profile, np.float32).reshape(-1, kernels.CURVE_STEPS + 1),
     )
 
 
@@ -450,11 +484,7 @@ def backscatter_table(
     out = np.zeros((len(dirs), bins + 1, 3), np.float32)
     integrate_backscatter(
         dirs,
-        lamps.position,
-        lamps.axis,
-        lamps.power,
-        lamps.cos_inner,
-        lamps.cos_outer,
+        *lamps,
         np.asarray(water.scattering, np.float32),
         water.attenuation,
         water.phase_g,

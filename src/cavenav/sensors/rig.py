@@ -17,11 +17,19 @@ from typing import Any, Literal
 
 import numba
 import numpy as np
+import simplejpeg
 
 from cavenav.errors import ConfigError
 from cavenav.sensors.camera import CameraIntrinsics, camera_to_world, look_frame, pixel_size
 from cavenav.sensors.depth import DEPTH_RANGE_M
-from cavenav.sensors.kernels import SHARE, fill_rays, shade_frame, shade_grid, splat_particles
+from cavenav.sensors.kernels import (
+    SHARE,
+    develop_image,
+    fill_rays,
+    shade_frame,
+    shade_grid,
+    splat_particles,
+)
 from cavenav.sensors.lighting import (
     at_vertices,
     backscatter_table,
@@ -204,6 +212,22 @@ class Frame:
     particles: int
 
 
+def compress(rgb: np.ndarray, quality: int) -> np.ndarray:
+    """(H, W, 3) uint8 ``rgb`` as it comes out of a video camera's lossy encoder: JPEG at
+    ``quality`` with 4:2:0 chroma, the intra-frame coding H.264 also does (blocks of DCT
+    coefficients, quantised, colour at half resolution); ``quality`` 0 leaves it as is.
+
+    libjpeg-turbo (through simplejpeg) takes about 1.4 ms for 640x480 both ways, half of
+    Pillow's time, and gives the same bits every time.
+    """
+    if quality <= 0:
+        return rgb
+    coded = simplejpeg.encode_jpeg(
+        np.ascontiguousarray(rgb), quality=int(quality), colorspace="RGB", colorsubsampling="420"
+    )
+    return simplejpeg.decode_jpeg(coded, colorspace="RGB")
+
+
 def camera_response(mean: np.ndarray, optics: Optics) -> tuple[np.ndarray, float]:
     """White-balance gains (3,) and exposure gain for a frame whose mean colour is ``mean``.
 
@@ -306,12 +330,14 @@ class SensorRig:
         self._lamps = lamp_arrays(optics)
         self._attenuation = optics.medium.attenuation
         self._bounds = caster.mesh.bounds.astype(np.float32)
-        self._lut = tone_lut(1.0)
+        self._lut = tone_lut(1.0, 0.0, optics.tone)  # the black clamp is the sensor's
         # Work buffers of the shading passes, reused every frame (see kernels.shade_frame).
         blocks = (-(-cfg.camera.height // SHARE), -(-cfg.camera.width // SHARE))
         self._grid = np.empty((blocks[0] + 1, blocks[1] + 1, 8), np.float32)
         self._grid_triangle = np.empty((blocks[0] + 1, blocks[1] + 1), np.uint32)
         self._specks = np.zeros((len(self._pixel_dirs), 3), np.float32)
+        self._signal = np.empty((len(self._pixel_dirs), 3), np.float32)
+        self._luma = np.empty((2, len(self._pixel_dirs)), np.float32)
         self._speck_blocks = np.zeros(blocks, np.uint8)
         self._threads = None if len(self._pixel_dirs) >= _PARALLEL_PIXELS else 1
 
@@ -358,21 +384,17 @@ class SensorRig:
         raw = self.caster.cast_raw_rays(rays)
         readings = self._readings(raw["t_hit"][n:])
         depth = raw["t_hit"][:n]
-        lamps = self._lamps
-        lamp_pos = (origin + lamps.position @ rot.T).astype(np.float32)
-        lamp_axis = (lamps.axis @ rot.T).astype(np.float32)
-        lamp_tuple = (lamp_pos, lamp_axis, lamps.power, lamps.cos_inner, lamps.cos_outer)
+        lamp_tuple = self._lamps_at(origin, rot)
         # Before shading: the specks need the true surfaces behind them, which a
         # degraded depth image no longer has.
         particles = self._splat_specks(origin, rot, lamp_tuple, depth)
-        cast = (
-            depth,
-            raw["primitive_ids"][:n],
-            raw["primitive_normals"][:n],
-            raw["primitive_uvs"][:n],
-        )
+        hit = (raw["primitive_ids"], raw["primitive_normals"], raw["primitive_uvs"])
+        cast = (depth, *(part[:n] for part in hit))
         ray_tuple = (rays[:n, 3:], self._ray_length, origin)
-        scene = (self._faces, self._vertex_normals, self._surface, self._surface_at, self._grain)
+        scene = (
+            self._faces, self._vertex_normals, self._surface, self._surface_at, self._grain,
+            float(optics.specular),
+        )  # fmt: skip
         table = self._backscatter
         water = (self._attenuation, table.values, table.block, table.far, optics.sky, self._bounds)
         mean = shade_grid(
@@ -381,27 +403,37 @@ class SensorRig:
         )  # fmt: skip
         gains, gain = camera_response(np.asarray(mean), optics)
         key = _frame_key(cfg.seed if noise_seed is None else noise_seed, pose)
-        develop = (gains, gain, optics.vignetting, optics.noise, key, self._lut)
+        sensor = (gains, gain, optics.vignetting, optics.noise, key, optics.black_level)
         depth_range = (cfg.depth_min_m, cfg.depth_max_m, optics.depth_dropout, optics.depth_noise_m)
         light = np.empty((n if radiance else 0, 3), np.float32)
         rgb = np.empty((n, 3), np.uint8)
         depth_png = np.empty(n, np.uint8)
         shade_frame(
             cast, ray_tuple, scene, lamp_tuple, water, self._grid, self._grid_triangle,
-            self._specks, self._speck_blocks, develop, depth_range, camera.width, light, rgb,
-            depth_png,
+            self._specks, self._speck_blocks, sensor, depth_range, camera.width, light,
+            self._signal, depth_png,
         )  # fmt: skip
+        signal, work = self._signal, self._luma
+        develop_image(signal, camera.width, sensor, optics.denoise, self._lut, rgb, work)
         if particles:
             self._speck_blocks[:] = 0  # shade_frame has zeroed the specks it read
         shape = (camera.height, camera.width)
         frame = Frame(
             depth.reshape(shape),
             depth_png.reshape(shape),
-            rgb.reshape(*shape, 3),
+            compress(rgb.reshape(*shape, 3), optics.compression),
             light.reshape(*shape, 3) if radiance else None,
             particles,
         )
         return frame, readings
+
+    def _lamps_at(self, origin: np.ndarray, rot: np.ndarray) -> tuple:
+        """The lamps in the world frame of a camera at ``origin`` turned by ``rot``, as the
+        kernels take them: (position, axis, power, profile)."""
+        lamps = self._lamps
+        position = (origin + lamps.position @ rot.T).astype(np.float32)
+        axis = (lamps.axis @ rot.T).astype(np.float32)
+        return position, axis, lamps.power, lamps.profile
 
     def _splat_specks(
         self, origin: np.ndarray, rot: np.ndarray, lamp_tuple: tuple, depth: np.ndarray
@@ -411,7 +443,7 @@ class SensorRig:
             self._specks[:] = 0.0
             self._speck_blocks[:] = 0
         optics, camera = self.config.optics, self.config.camera
-        if not (optics.particles > 0 and optics.light_power > 0):
+        if not (optics.particles > 0 and optics.lit):
             return 0
         return splat_particles(
             origin, rot, *lamp_tuple, self._attenuation, optics.particles, self.config.seed,
