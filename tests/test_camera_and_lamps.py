@@ -20,6 +20,7 @@ from cavenav.errors import ConfigError
 from cavenav.sensors import kernels
 from cavenav.sensors import rig as rig_module
 from cavenav.sensors.image_stats import noise_sigma
+from cavenav.sensors.lighting import rock_grain
 from cavenav.sensors.optics import (
     FULL_SCALE_NITS,
     Lamp,
@@ -125,6 +126,25 @@ def test_wet_rock_adds_a_highlight_in_the_lamps_colour_where_they_face_it():
     assert glint[2] / glint[1] > (matte[2] / rock[2]) / (matte[1] / rock[1]) * 0.9
 
 
+def test_the_rocks_small_relief_has_a_continuous_slope_that_is_its_heights_gradient():
+    grain = rock_grain(seed=3)
+    step = kernels.GRAIN_VOXEL_M
+    rng = np.random.default_rng(0)
+    for x, y, z in rng.uniform(0.0, 4.0, size=(20, 3)):
+        value, *slope = kernels._texture_slope(grain, x, y, z)
+        h = 1e-4
+        numeric = [
+            (kernels._texture_slope(grain, *(np.array([x, y, z]) + h * e))[0] - value) / h
+            for e in np.eye(3)
+        ]
+        np.testing.assert_allclose(slope, numeric, atol=0.02 * 127 / step)
+    # Either side of a texel's face the slope agrees: no facets.
+    face = 7 * step
+    before = kernels._texture_slope(grain, face - 1e-6, 0.31, 0.77)[1:]
+    after = kernels._texture_slope(grain, face + 1e-6, 0.31, 0.77)[1:]
+    np.testing.assert_allclose(before, after, atol=0.01 * 127 / step)
+
+
 # ------------------------------------------------------------------ the camera
 
 
@@ -166,18 +186,31 @@ def test_rock_beyond_the_lamps_reach_goes_black_when_the_camera_exposes_for_the_
     assert np.median(frame.rgb[near].max(axis=1)) > 100
 
 
-def test_the_black_clamp_comes_before_the_white_balance_so_black_stays_black(
+def test_below_the_black_level_a_pixel_is_black_whatever_the_white_balance_lifts(
     monkeypatch: pytest.MonkeyPatch,
 ):
     # White balance can lift the red channel several times over (the water took the
-    # red); a clamp after it would paint the unlit passage maroon.
+    # red); a clamp on each channel would leave the unlit passage's veil maroon.
     def red_lifted(mean: np.ndarray, optics: Optics) -> tuple[np.ndarray, float]:
-        return np.array([6.0, 1.0, 1.0], np.float32), 8.0
+        return np.array([6.0, 1.0, 1.0], np.float32), 2.0
 
     monkeypatch.setattr(rig_module, "camera_response", red_lifted)
     frame = render(wall_ahead(25.0), replace(CAMERA, noise=1.0))
-    assert np.median(frame.rgb[..., 0]) < 16
-    assert np.median(frame.rgb[..., 2]) > 16  # the veil's blue is above the clamp
+    raw_red = 6.0 * 2.0 * np.median(frame.radiance[..., 0])
+    assert raw_red > CAMERA.black_level  # a clamp of the red channel alone would keep it
+    assert np.median(frame.rgb.max(axis=2)) == 0
+
+
+def test_the_black_clamp_darkens_without_changing_hue():
+    def developed(black: float) -> np.ndarray:
+        optics = replace(CAMERA, black_level=black, exposure=0.3, white_balance=0.0)
+        rgb = render(wall_ahead(3.0), optics).rgb[200:280, 280:360].astype(float) / 255.0
+        linear = np.where(rgb <= 0.04045, rgb / 12.92, ((rgb + 0.055) / 1.055) ** 2.4)
+        return linear.reshape(-1, 3).mean(axis=0)
+
+    plain, clamped = developed(0.0), developed(0.1)
+    assert clamped[1] < plain[1]
+    np.testing.assert_allclose(clamped / clamped[1], plain / plain[1], rtol=0.03)
 
 
 def test_facing_only_the_far_wall_the_gain_stops_at_its_ceiling_and_shows_the_veil():

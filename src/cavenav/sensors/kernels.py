@@ -183,48 +183,25 @@ _INV_GRAIN = 1.0 / GRAIN_VOXEL_M
 
 
 @numba.njit(inline="always")
-def _lerp(a, b, f: float) -> float:  # noqa: ANN001
-    """a + f (b - a), in floating point whatever the type of a and b."""
-    low = float(a)
-    return low + f * (float(b) - low)
+def _texture_slope(field: np.ndarray, x: float, y: float, z: float):  # noqa: ANN202
+    """A tileable (g, g, g) int8 texture (g a power of two) at world (x, y, z), in the
+    texture's units, and its gradient in texture units per metre.
 
-
-@numba.njit(inline="always")
-def _texture(field: np.ndarray, x: float, y: float, z: float) -> float:
-    """Trilinear sample of a tileable (g, g, g) int8 texture (g a power of two) at world
-    (x, y, z), in the texture's units.
-
-    Coordinates are shifted positive so that truncation is floor, and wrapped with a bit
-    mask: no floor calls, no modulo branches in the hottest loop. One byte a texel keeps
-    a 64^3 texture (256 KB) in the L2 cache: a quarter of float32's cache misses.
+    Interpolated between the eight texels around with smoothstep weights s(t) = t^2 (3 -
+    2t) rather than linear ones, so that the gradient, which tilts the shading normal,
+    is continuous: a trilinear one jumps at every texel's face and shades each texel as
+    a flat facet. Coordinates are shifted positive so that truncation is floor, and
+    wrapped with a bit mask: no floor calls, no modulo branches in the hottest loop. One
+    byte a texel keeps a 64^3 texture (256 KB) in the L2 cache.
     """
     mask = field.shape[0] - 1
     u = x * _INV_GRAIN + 65536.0
     v = y * _INV_GRAIN + 65536.0
     w = z * _INV_GRAIN + 65536.0
     iu, iv, iw = int(u), int(v), int(w)
-    au, av, aw = u - iu, v - iv, w - iw
-    i0, j0, k0 = iu & mask, iv & mask, iw & mask
-    i1, j1, k1 = (iu + 1) & mask, (iv + 1) & mask, (iw + 1) & mask
-    c00 = _lerp(field[i0, j0, k0], field[i0, j0, k1], aw)
-    c01 = _lerp(field[i0, j1, k0], field[i0, j1, k1], aw)
-    c10 = _lerp(field[i1, j0, k0], field[i1, j0, k1], aw)
-    c11 = _lerp(field[i1, j1, k0], field[i1, j1, k1], aw)
-    c0 = c00 + av * (c01 - c00)
-    c1 = c10 + av * (c11 - c10)
-    return c0 + au * (c1 - c0)
-
-
-@numba.njit(inline="always")
-def _texture_slope(field: np.ndarray, x: float, y: float, z: float):  # noqa: ANN202
-    """`_texture` at world (x, y, z) and its gradient in texture units per metre: the
-    trilinear interpolant's own derivatives, from the same eight texels."""
-    mask = field.shape[0] - 1
-    u = x * _INV_GRAIN + 65536.0
-    v = y * _INV_GRAIN + 65536.0
-    w = z * _INV_GRAIN + 65536.0
-    iu, iv, iw = int(u), int(v), int(w)
-    au, av, aw = u - iu, v - iv, w - iw
+    fu, fv, fw = u - iu, v - iv, w - iw
+    au, av, aw = fu * fu * (3.0 - 2.0 * fu), fv * fv * (3.0 - 2.0 * fv), fw * fw * (3.0 - 2.0 * fw)
+    du_, dv_, dw_ = 6.0 * fu * (1.0 - fu), 6.0 * fv * (1.0 - fv), 6.0 * fw * (1.0 - fw)
     i0, j0, k0 = iu & mask, iv & mask, iw & mask
     i1, j1, k1 = (iu + 1) & mask, (iv + 1) & mask, (iw + 1) & mask
     f000, f001 = float(field[i0, j0, k0]), float(field[i0, j0, k1])
@@ -235,11 +212,11 @@ def _texture_slope(field: np.ndarray, x: float, y: float, z: float):  # noqa: AN
     c10, c11 = f100 + aw * (f101 - f100), f110 + aw * (f111 - f110)
     c0, c1 = c00 + av * (c01 - c00), c10 + av * (c11 - c10)
     value = c0 + au * (c1 - c0)
-    du = c1 - c0
-    dv = (1.0 - au) * (c01 - c00) + au * (c11 - c10)
+    du = du_ * (c1 - c0)
+    dv = dv_ * ((1.0 - au) * (c01 - c00) + au * (c11 - c10))
     d00, d01 = f001 - f000, f011 - f010
     d10, d11 = f101 - f100, f111 - f110
-    dw = (1.0 - au) * (d00 + av * (d01 - d00)) + au * (d10 + av * (d11 - d10))
+    dw = dw_ * ((1.0 - au) * (d00 + av * (d01 - d00)) + au * (d10 + av * (d11 - d10)))
     return value, du * _INV_GRAIN, dv * _INV_GRAIN, dw * _INV_GRAIN
 
 
@@ -687,20 +664,16 @@ def _finish(i, l0, l1, l2, lamp_return, hit, col, t, frame_key, depth_range, row
 @numba.njit(inline="always")
 def _develop_row(row, width, row_light, ray_length, specks, speck_blocks, camera, radiance, signal):  # fmt: skip  # noqa: ANN001, E501
     """Marine snow and the sensor over one row's light: lens vignetting, sensor noise, the
-    gain, the black clamp and white balance, in the order of a camera's raw pipeline, into
-    ``signal`` for `develop_image`.
+    raw signal's floor at zero, white balance and the gain, in the order of a camera's raw
+    pipeline, into ``signal`` for `develop_image`.
 
     Noise is added to the sensor signal before the exposure gain, so a dark frame that the
-    auto exposure brightens shows its noise, as a real camera's does. The black clamp
-    (the sensor's black level, subtracted from the raw signal and the rest stretched back
-    to full scale) comes before the white balance, so that what reads black stays black
-    however much a channel's gain lifts it.
+    auto exposure brightens shows its noise, as a real camera's does; the white balance
+    then lifts the noise of the channels it lifts.
     """
-    gains, gain, vignetting, noise, frame_key, black = camera
+    gains, gain, vignetting, noise, frame_key, _ = camera
     read2 = (READ_NOISE * noise) ** 2
     shot = SHOT_NOISE * noise / 3.0
-    stretch = gain / (1.0 - black)
-    floor = black / gain
     start = row * width
     for b in range(speck_blocks.shape[1]):
         if speck_blocks[row // SHARE, b]:
@@ -723,9 +696,9 @@ def _develop_row(row, width, row_light, ray_length, specks, speck_blocks, camera
             v0 += sigma * _uniform(h, 0)
             v1 += sigma * _uniform(h, 21)
             v2 += sigma * _uniform(h, 42)
-        signal[i, 0] = gains[0] * stretch * max(v0 - floor, 0.0)
-        signal[i, 1] = gains[1] * stretch * max(v1 - floor, 0.0)
-        signal[i, 2] = gains[2] * stretch * max(v2 - floor, 0.0)
+        signal[i, 0] = gains[0] * gain * max(v0, 0.0)
+        signal[i, 1] = gains[1] * gain * max(v1, 0.0)
+        signal[i, 2] = gains[2] * gain * max(v2, 0.0)
 
 
 # The sensor's noise at noise = 1, in units of full scale before the gain. An ROV camera
@@ -749,8 +722,8 @@ def develop_image(
     rgb: np.ndarray,  # (n, 3) uint8 out
     luma: np.ndarray,  # (2, n) float32 work buffer: luma, then the filter's shift of it
 ) -> None:
-    """The camera's processing after the sensor: a noise filter, then the tone curve and
-    8-bit sRGB (the lookup table).
+    """The camera's processing after the sensor: a noise filter, the black clamp, then
+    the tone curve and 8-bit sRGB (the lookup table).
 
     The filter is Lee's sigma filter (1983), the edge-keeping smoothing of camera
     pipelines, on luma (Rec. 601's Y, the luma of JPEG and H.264): each pixel's luma
@@ -759,34 +732,49 @@ def develop_image(
     stronger than the noise stay; the pixel's three channels move by the same amount.
     The expected noise counts the white balance, which lifts the noise of the channels
     it lifts. Colour noise is left to the compression's half-resolution colour, as
-    cameras leave it to their chroma filter. Three short passes: fused into one loop
-    they measured twice as slow.
+    cameras leave it to their chroma filter.
+
+    The black clamp works on luma too: a pixel whose luma is at or below the black level
+    reads black, the rest are scaled down alike in every channel, so the clamp darkens
+    without shifting hues (a per-channel clamp would take the red out of all but the
+    nearest rock, since the water takes it first).
     """
     n = signal.shape[0]
     gains, gain, _, noise, _, black = camera
-    if not (denoise > 0.0 and noise > 0.0):
-        for i in numba.prange(n):
-            rgb[i, 0] = _tone(lut, signal[i, 0])
-            rgb[i, 1] = _tone(lut, signal[i, 1])
-            rgb[i, 2] = _tone(lut, signal[i, 2])
-        return
     own, shift = luma[0], luma[1]
     for i in numba.prange(n):
         own[i] = LUMA_R * signal[i, 0] + LUMA_G * signal[i, 1] + LUMA_B * signal[i, 2]
-    # The luma of a pixel whose raw level is v has the variance s^2 k^2 (read^2 + shot v),
-    # s the gain over the black clamp's stretch, k^2 = sum of (luma weight x white
-    # balance)^2, and v about Y / (s m), m = sum of luma weight x white balance; the
-    # difference of two pixels has twice that. Squared reach in float32 throughout, which
-    # the loop vectorises.
-    stretch = gain / (1.0 - black)
-    k2 = (LUMA_R * gains[0]) ** 2 + (LUMA_G * gains[1]) ** 2 + (LUMA_B * gains[2]) ** 2
-    m = LUMA_R * gains[0] + LUMA_G * gains[1] + LUMA_B * gains[2]
+        shift[i] = 0.0
+    if denoise > 0.0 and noise > 0.0:
+        _sigma_filter(own, width, (gains[0], gains[1], gains[2]), gain, noise, denoise, shift)
+    floor, stretch = np.float32(black), np.float32(1.0 / (1.0 - black))
+    for i in numba.prange(n):
+        y = own[i] + shift[i]
+        scale = stretch * max(y - floor, 0.0) / y if y > 0.0 else 0.0
+        rgb[i, 0] = _tone(lut, (signal[i, 0] + shift[i]) * scale)
+        rgb[i, 1] = _tone(lut, (signal[i, 1] + shift[i]) * scale)
+        rgb[i, 2] = _tone(lut, (signal[i, 2] + shift[i]) * scale)
+
+
+@numba.njit(inline="always")
+def _sigma_filter(own, width, gains, gain, noise, denoise, shift) -> None:  # noqa: ANN001
+    """`develop_image`'s filter: the shift of each pixel's luma toward the mean of its 3x3
+    neighbours (edges clamped) that lie within `DENOISE_SIGMAS` of its noise.
+
+    The luma of a pixel whose raw level is v has the variance g^2 k^2 (read^2 + shot v),
+    g the gain, k^2 = sum of (luma weight x white balance)^2, and v about Y / (g m), m =
+    sum of luma weight x white balance; the difference of two pixels has twice that.
+    Squared reach in float32 throughout, which the loop vectorises.
+    """
+    g0, g1, g2 = gains
+    k2 = (LUMA_R * g0) ** 2 + (LUMA_G * g1) ** 2 + (LUMA_B * g2) ** 2
+    m = LUMA_R * g0 + LUMA_G * g1 + LUMA_B * g2
     spread = 2.0 * DENOISE_SIGMAS**2 * k2
-    read2 = np.float32(spread * (stretch * READ_NOISE * noise) ** 2)
-    shot = np.float32(spread * stretch * SHOT_NOISE * noise / max(m, 1e-6))
+    read2 = np.float32(spread * (gain * READ_NOISE * noise) ** 2)
+    shot = np.float32(spread * gain * SHOT_NOISE * noise / max(m, 1e-6))
     strength = np.float32(denoise)
     zero, one = np.float32(0.0), np.float32(1.0)
-    height = n // width
+    height = own.shape[0] // width
     for row in numba.prange(height):
         up, mid, down = max(row - 1, 0) * width, row * width, min(row + 1, height - 1) * width
         for col in range(width):
@@ -801,10 +789,6 @@ def develop_image(
                 total += near * v
                 count += near
             shift[mid + col] = strength * (total / count - y)
-    for i in numba.prange(n):
-        rgb[i, 0] = _tone(lut, signal[i, 0] + shift[i])
-        rgb[i, 1] = _tone(lut, signal[i, 1] + shift[i])
-        rgb[i, 2] = _tone(lut, signal[i, 2] + shift[i])
 
 
 @numba.njit(parallel=True, fastmath=_FAST, cache=True)

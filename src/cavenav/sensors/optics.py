@@ -231,9 +231,11 @@ class Optics:
             shutter, 1/1500 s: a wall at arm's length is not bound to clip. The most is
             the gain ceiling (24 dB), which lets the unlit cave go black: a camera cannot
             brighten what its sensor does not see above its noise.
-        black_level: the camera's black clamp, as a fraction of full scale subtracted
-            after the gain: the sensor's noise floor (5 read-noise deviations at the gain
-            ceiling) and the faintest light read black.
+        black_level: the camera's black clamp, as a fraction of full scale taken off the
+            luma after the gain and white balance, every channel scaled alike so that
+            hues stay: the noise floor (the read noise at the gain ceiling is a tenth of
+            it) and the faintest light read black, as a video camera's black level and
+            the toe of its curve make them.
         tone: "camera" (default): a video camera's curve, linear up to a knee, then a
             short shoulder, and clipped white above 1.2 times full scale; "soft": a
             Reinhard curve that never clips (cavenav's images before scenario set 2).
