@@ -69,7 +69,7 @@ def test_a_lamps_flux_is_its_on_axis_intensity_times_its_solid_angle():
 def test_lamp_power_follows_the_lumens_and_light_power_overrides_the_total():
     two = Optics()
     green = two.lamp_power[:, 1]
-    lamp = two.lamps[0]
+    lamp = two.fitted_lamps[0]
     # Two Lumen lights: 1,500 lm each over the profile's solid angle, a white wall's
     # radiance I0 / pi at 1 m, in units of the camera's full scale.
     expected = 1500.0 / lamp.solid_angle_sr / math.pi / FULL_SCALE_NITS
@@ -82,7 +82,7 @@ def test_lamp_power_follows_the_lumens_and_light_power_overrides_the_total():
 
 def test_four_lamps_light_a_wall_ahead_about_twice_as_much_as_two():
     two = render(wall_ahead(3.0), LINEAR).radiance[CENTRE]
-    four = render(wall_ahead(3.0), replace(LINEAR, lamp_count=4, lamps=None)).radiance[CENTRE]
+    four = render(wall_ahead(3.0), replace(LINEAR, lamp_count=4)).radiance[CENTRE]
     np.testing.assert_allclose(four / two, 2.0, rtol=0.1)
 
 
@@ -92,6 +92,9 @@ def test_a_vehicle_carries_one_to_four_lamps():
         bluerov2_lamps(5)
     with pytest.raises(ConfigError, match="'lamp_count'"):
         optics_from_table({"lamp_count": 5})
+    with pytest.raises(ConfigError, match="1 to 4"):
+        Optics(lamp_count=0)
+    assert len(replace(Optics(), lamp_count=3).fitted_lamps) == 3  # refitted, not kept
 
 
 def test_a_narrower_beam_of_the_same_lumens_lights_the_centre_more_and_the_edges_less():
@@ -258,6 +261,6 @@ def test_every_camera_stage_is_a_setting_of_the_optics_table():
     assert (optics.black_level, optics.tone, optics.denoise, optics.compression) == (
         0.0, "soft", 0.5, 0,
     )  # fmt: skip
-    assert len(optics.lamps) == 4 and optics.lamps[0].beam_deg == 120
+    assert len(optics.fitted_lamps) == 4 and optics.fitted_lamps[0].beam_deg == 120
     with pytest.raises(ConfigError, match="'tone'"):
         optics_from_table({"tone": "filmic"})

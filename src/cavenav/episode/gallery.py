@@ -106,7 +106,7 @@ def write_contact_sheet(
         )
         depth_ax.set_title(f"depth (0-{sensors.depth_max_m:g} m)", fontsize=8, loc="left")
     optics = sensors.optics
-    lamps = f"{len(optics.lamps or ())} × {optics.lamp_lumens:g} lm"
+    lamps = f"{len(optics.fitted_lamps)} × {optics.lamp_lumens:g} lm"
     if optics.light_power is not None:
         lamps = f"lamps {optics.light_power:g}"
     fig.suptitle(

@@ -437,7 +437,7 @@ class LampArrays:
 
 
 def lamp_arrays(optics: Optics) -> LampArrays:
-    lamps = optics.lamps or ()
+    lamps = optics.fitted_lamps
     axis = np.array([lamp.axis for lamp in lamps], np.float64).reshape(-1, 3)
     axis /= np.maximum(np.linalg.norm(axis, axis=1, keepdims=True), 1e-12)
     profile = [beam_profile(*lamp.exponents, lamp.hot_spot) for lamp in lamps]

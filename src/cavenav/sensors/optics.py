@@ -288,8 +288,16 @@ class Optics:
             raise ConfigError(
                 f"unknown water type '{self.water}'; choose one of {', '.join(WATER_TYPES)}"
             )
-        if self.lamps is None:
-            object.__setattr__(self, "lamps", bluerov2_lamps(self.lamp_count, self.lamp_beam_deg))
+        bluerov2_lamps(self.lamp_count, self.lamp_beam_deg)  # refuse a count no vehicle has
+
+    @property
+    def fitted_lamps(self) -> tuple[Lamp, ...]:
+        """The lamps that shine: `lamps` when given, else the vehicle's own
+        (`bluerov2_lamps` of `lamp_count` and `lamp_beam_deg`), so that
+        ``replace(optics, lamp_count=4)`` fits four."""
+        if self.lamps is not None:
+            return self.lamps
+        return bluerov2_lamps(self.lamp_count, self.lamp_beam_deg)
 
     @property
     def water_name(self) -> str:
@@ -315,7 +323,7 @@ class Optics:
         `FULL_SCALE_NITS`; tinted by `lamp_colour` with green kept, since lumens weigh
         mostly green. `light_power`, when set, rescales the total.
         """
-        lamps = self.lamps or ()
+        lamps = self.fitted_lamps
         flux = self.lamp_lumens * len(lamps)
         green = np.array(
             [flux * lamp.share / lamp.solid_angle_sr / math.pi / FULL_SCALE_NITS for lamp in lamps]
@@ -327,7 +335,7 @@ class Optics:
     @property
     def lit(self) -> bool:
         """Whether the lamps shine at all."""
-        return bool(self.lamps) and float(self.lamp_power.sum()) > 0.0
+        return bool(self.fitted_lamps) and float(self.lamp_power.sum()) > 0.0
 
 
 class _OpticsTable(BaseModel):
@@ -389,8 +397,6 @@ def optics_from_table(
     base = base or Optics()
     if "gain_max" in changes:
         changes["gain_range"] = (base.gain_range[0], changes.pop("gain_max"))
-    if {"lamp_count", "lamp_beam_deg"} & set(changes):  # the vehicle's lamps, refitted
-        changes["lamps"] = None
     return replace(base, **changes)
 
 
