@@ -443,7 +443,7 @@ class SensorRig:
             self._specks[:] = 0.0
             self._speck_blocks[:] = 0
         optics, camera = self.config.optics, self.config.camera
-        if not (optics.particles > 0 and optics.lit):
+        if not (optics.particles > 0 and self._lamps.power.any()):
             return 0
         return splat_particles(
             origin, rot, *lamp_tuple, self._attenuation, optics.particles, self.config.seed,
