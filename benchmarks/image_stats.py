@@ -24,9 +24,10 @@ The reach is taken from the lamp, water and camera model in the code, per frame:
     The camera multiplies by the frame's white balance w_c and exposure gain g
     (`rig.camera_response`, from the frame's metered mean, recomputed here from the
     frame's linear radiance at the shading grid's pixels, with the lens's vignetting),
-    clamps black on luma (`Optics.black_level`, see `developed`) and applies its curve,
-    linear below the knee, then sRGB. The reach is the largest r at which the brightest
-    channel still reaches the near-black level: max_c sRGB(developed(g w L(r))_c) >= 16/255.
+    clamps black on luma (`Optics.black_level`, see `optics.black_clamp`) and applies its
+    curve, linear below the knee, then sRGB. The reach is the largest r at which the
+    brightest channel still reaches the near-black level: max_c sRGB(black_clamp(g w L(r))_c)
+    >= 16/255.
     Beyond it, lamp light alone cannot lift even the best-placed, palest rock out of
     near black; closer, rock the lamps face squarely is brighter than that.
 
@@ -59,9 +60,9 @@ import numpy as np
 
 from cavenav.episode.gallery import passage_poses
 from cavenav.sensors.image_stats import NEAR_BLACK, FrameStats, downscale, frame_stats
-from cavenav.sensors.kernels import LUMA_B, LUMA_G, LUMA_R, SHARE
+from cavenav.sensors.kernels import SHARE
 from cavenav.sensors.lighting import DEFAULT_ROCK, ROCK_PALETTE
-from cavenav.sensors.optics import WATER_TYPES, Optics
+from cavenav.sensors.optics import WATER_TYPES, Optics, black_clamp
 from cavenav.sensors.rig import Frame, SensorConfig, SensorRig, camera_response
 from cavenav.types import Pose
 from cavenav.world.raycast import RayCaster
@@ -115,14 +116,6 @@ def _tone_inverse(level: float, optics: Optics) -> float:
     return mapped / (1.0 - mapped) if optics.tone == "soft" else mapped
 
 
-def developed(signal: np.ndarray, black: float) -> np.ndarray:
-    """(..., 3) the camera's black clamp on white-balanced signal (`kernels.develop_image`):
-    on luma Y, every channel scaled by max(Y - b, 0) / ((1 - b) Y)."""
-    y = signal @ np.array([LUMA_R, LUMA_G, LUMA_B])
-    scale = np.maximum(y - black, 0.0) / ((1.0 - black) * np.maximum(y, 1e-30))
-    return signal * scale[..., None]
-
-
 def palest_rock(optics: Optics) -> np.ndarray:
     """(3,) the palest rock of the palette (`lighting.ROCK_PALETTE`) in its palest stratum
     (+8%), scaled as `lighting.rock_albedo` scales it by `Optics.rock_colour`."""
@@ -146,8 +139,8 @@ def metered_mean(frame: Frame, config: SensorConfig) -> np.ndarray:
 
 def lamp_reach(optics: Optics, gains: np.ndarray, gain: float, level: float = NEAR_BLACK) -> float:
     """Metres beyond which lamp light cannot lift rock to ``level`` (see the module's
-    docstring): the largest r with max_c developed(g w_c rho_c P_c exp(-2 c_c r) / r^2)
-    >= T^-1(level) (see `developed`, `_tone_inverse`)."""
+    docstring): the largest r with max_c black_clamp(g w_c rho_c P_c exp(-2 c_c r) / r^2)
+    >= T^-1(level) (see `optics.black_clamp`, `_tone_inverse`)."""
     power = optics.lamp_power.astype(np.float64).sum(axis=0)  # (3,) on the lamps' axes
     albedo = np.maximum(palest_rock(optics), optics.sediment_colour)
     attenuation = optics.medium.attenuation.astype(np.float64)
@@ -156,7 +149,7 @@ def lamp_reach(optics: Optics, gains: np.ndarray, gain: float, level: float = NE
 
     def bright(r: float) -> bool:
         signal = scale * np.exp(-2.0 * attenuation * r) / (r * r)
-        return bool(developed(signal, optics.black_level).max() >= need)
+        return bool(black_clamp(signal, optics.black_level).max() >= need)
 
     lo, hi = 0.01, 1000.0
     if not bright(lo):

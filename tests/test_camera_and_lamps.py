@@ -23,8 +23,10 @@ from cavenav.sensors.image_stats import noise_sigma
 from cavenav.sensors.lighting import rock_grain
 from cavenav.sensors.optics import (
     FULL_SCALE_NITS,
+    LUMA,
     Lamp,
     Optics,
+    black_clamp,
     bluerov2_lamps,
     camera_curve,
     lamp_colour,
@@ -151,9 +153,10 @@ def test_the_rocks_small_relief_has_a_continuous_slope_that_is_its_heights_gradi
 # ------------------------------------------------------------------ the camera
 
 
-def test_the_camera_curve_clamps_black_is_linear_to_the_knee_and_clips_white():
+def test_the_camera_clamps_black_then_its_curve_is_linear_to_the_knee_and_clips_white():
     signal = np.array([0.0, 0.03, 0.04, 0.5, 0.8, 1.1, 1.2, 5.0])
-    out = camera_curve(signal, black_level=0.04)
+    grey = np.repeat(signal[:, None], 3, axis=1)  # luma equals the signal
+    out = camera_curve(black_clamp(grey, 0.04)[:, 1])
     assert out[0] == out[1] == out[2] == 0.0  # at or below the clamp: black
     assert out[3] == pytest.approx((0.5 - 0.04) / 0.96)  # linear below the knee
     assert out[-2] == out[-1] == 1.0  # clipped
@@ -202,6 +205,14 @@ def test_below_the_black_level_a_pixel_is_black_whatever_the_white_balance_lifts
     raw_red = 6.0 * 2.0 * np.median(frame.radiance[..., 0])
     assert raw_red > CAMERA.black_level  # a clamp of the red channel alone would keep it
     assert np.median(frame.rgb.max(axis=2)) == 0
+
+
+def test_the_black_clamp_scales_every_channel_by_what_it_takes_from_luma():
+    red = np.array([[0.30, 0.05, 0.02]])  # reddish: its luma is 0.121
+    luma = red @ np.asarray(LUMA)
+    clamped = black_clamp(red, 0.04)
+    np.testing.assert_allclose(clamped, red * (luma - 0.04) / (0.96 * luma))
+    assert black_clamp(np.array([[0.10, 0.01, 0.01]]), 0.04).max() == 0.0  # luma 0.037
 
 
 def test_the_black_clamp_darkens_without_changing_hue():

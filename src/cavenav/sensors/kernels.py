@@ -2,7 +2,7 @@
 
 The sensor step must cost little more than its ray cast (target: 1.5x). In numpy each
 formula is a separate pass over 307,200 pixels with its temporaries; here a frame takes
-three parallel passes. `shade_grid` shades every fourth pixel of every fourth row in full
+three parallel kernels. `shade_grid` shades every fourth pixel of every fourth row in full
 and meters the frame for the camera; `shade_frame` then reads each hit once, takes the
 smooth part of its light from the grid (or shades it in full at edges), takes it through
 the sensor (noise, gain) and writes the depth PNG; `develop_image` filters the sensor's
@@ -31,7 +31,7 @@ from llvmlite import ir  # noqa: E402
 from numba.core import types  # noqa: E402
 from numba.extending import intrinsic  # noqa: E402
 
-from cavenav.sensors.optics import TONE_FLOOR, TONE_SHIFT  # noqa: E402
+from cavenav.sensors.optics import LUMA, TONE_FLOOR, TONE_SHIFT  # noqa: E402
 
 # OpenMP, else numba's own work queue; never TBB, whose old system builds only warn.
 numba.config.THREADING_LAYER_PRIORITY = ["omp", "workqueue", "tbb"]  # type: ignore[attr-defined]
@@ -719,7 +719,7 @@ def _develop_row(row, width, row_light, ray_length, specks, speck_blocks, camera
 READ_NOISE = 11.0 / 50_000.0
 SHOT_NOISE = 1.0 / 50_000.0
 DENOISE_SIGMAS = 2.5  # neighbours within this many noise deviations of a pixel are alike
-LUMA_R, LUMA_G, LUMA_B = 0.299, 0.587, 0.114  # Rec. 601 luma, as JPEG and H.264 code it
+LUMA_R, LUMA_G, LUMA_B = LUMA
 
 
 @numba.njit(parallel=True, fastmath=_FAST, cache=True)
@@ -744,26 +744,27 @@ def develop_image(
     it lifts. Colour noise is left to the compression's half-resolution colour, as
     cameras leave it to their chroma filter.
 
-    The black clamp works on luma too: a pixel whose luma is at or below the black level
-    reads black, the rest are scaled down alike in every channel, so the clamp darkens
-    without shifting hues (a per-channel clamp would take the red out of all but the
-    nearest rock, since the water takes it first).
+    The black clamp works on luma too (`optics.black_clamp`): a pixel whose luma is at or
+    below the black level reads black, the rest are scaled down alike in every channel,
+    so the clamp darkens without shifting hues (a per-channel clamp would take the red out
+    of all but the nearest rock, since the water takes it first).
     """
     n = signal.shape[0]
     gains, gain, _, noise, _, black = camera
     own, shift = luma[0], luma[1]
     for i in numba.prange(n):
         own[i] = LUMA_R * signal[i, 0] + LUMA_G * signal[i, 1] + LUMA_B * signal[i, 2]
-        shift[i] = 0.0
-    if denoise > 0.0 and noise > 0.0:
+    filtering = denoise > 0.0 and noise > 0.0
+    if filtering:
         _sigma_filter(own, width, (gains[0], gains[1], gains[2]), gain, noise, denoise, shift)
     floor, stretch = np.float32(black), np.float32(1.0 / (1.0 - black))
     for i in numba.prange(n):
-        y = own[i] + shift[i]
+        moved = shift[i] if filtering else 0.0
+        y = own[i] + moved
         scale = stretch * max(y - floor, 0.0) / y if y > 0.0 else 0.0
-        rgb[i, 0] = _tone(lut, (signal[i, 0] + shift[i]) * scale)
-        rgb[i, 1] = _tone(lut, (signal[i, 1] + shift[i]) * scale)
-        rgb[i, 2] = _tone(lut, (signal[i, 2] + shift[i]) * scale)
+        rgb[i, 0] = _tone(lut, (signal[i, 0] + moved) * scale)
+        rgb[i, 1] = _tone(lut, (signal[i, 1] + moved) * scale)
+        rgb[i, 2] = _tone(lut, (signal[i, 2] + moved) * scale)
 
 
 @numba.njit(inline="always")

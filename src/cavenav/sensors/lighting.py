@@ -105,10 +105,10 @@ def _noise_field(p: np.ndarray, rng: np.random.Generator, octaves) -> np.ndarray
 def rock_albedo(mesh: CaveMesh, seed: int = 0, colour=DEFAULT_ROCK) -> np.ndarray:
     """(n_vertices, 3) float32 rock reflectance from seeded 3-D noise at each vertex.
 
-    Two noise fields choose the rock's colour from `ROCK_PALETTE` (cream where one is
-    high, brown where it is low, grey between; the other mixes them over metres), a
-    third lays dark mineral coatings in sharp-edged patches over about a seventh of the
-    walls, and bands of strata run through it all, as in bedded limestone. ``colour``
+    One noise field chooses the rock's colour from `ROCK_PALETTE` (cream where it is
+    high, brown where it is low, grey between), a second lays dark mineral coatings in
+    sharp-edged patches over about a tenth of the walls, and bands of strata run through
+    it all, as in bedded limestone. ``colour``
     scales the palette (its default, `DEFAULT_ROCK`, is the palette's own mean tone).
     Random plane waves are cheap to evaluate once per vertex: mottling from metres down
     to a few decimetres.
@@ -121,7 +121,7 @@ def rock_albedo(mesh: CaveMesh, seed: int = 0, colour=DEFAULT_ROCK) -> np.ndarra
     brown = np.clip(-tone, 0.0, 1.0)[:, None]
     rock = palette[1] + cream * (palette[0] - palette[1]) + brown * (palette[2] - palette[1])
     coating = _noise_field(p, rng, ((2.5, 0.7), (0.8, 0.35), (0.3, 0.15)))
-    cover = np.clip((coating - 0.9) * 4.0, 0.0, 1.0)[:, None]  # about a seventh, sharp edges
+    cover = np.clip((coating - 0.9) * 4.0, 0.0, 1.0)[:, None]  # about a tenth, sharp edges
     rock += cover * (np.asarray(COATING, np.float32) - rock)
     strata = 0.08 * np.sin(p[:, 2] * 2 * np.pi / rng.uniform(0.6, 1.4) + rng.uniform(0, 6.3))
     rock *= (1.0 + strata)[:, None] * (np.asarray(colour, np.float32) / np.asarray(DEFAULT_ROCK))

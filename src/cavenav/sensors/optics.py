@@ -44,12 +44,14 @@ __all__ = [
     "BLUEROV2_LAMPS",
     "FULL_SCALE_NITS",
     "LAMP_MOUNTS",
+    "LUMA",
     "TONE_FLOOR",
     "TONE_SHIFT",
     "WATER_TYPES",
     "Lamp",
     "Optics",
     "Water",
+    "black_clamp",
     "bluerov2_lamps",
     "camera_curve",
     "lamp_colour",
@@ -411,15 +413,30 @@ KNEE = 0.8  # the camera curve is linear up to here, as a video camera's is ...
 WHITE_CLIP = 1.2  # ... then bends into white, reached (and clipped) here
 
 
-def camera_curve(signal: np.ndarray, black_level: float = 0.0, tone: str = "camera") -> np.ndarray:
-    """Linear signal after the gain (1 = full scale) to display-linear values in [0, 1].
+LUMA = (0.299, 0.587, 0.114)  # Rec. 601 luma weights (R, G, B), as JPEG and H.264 code it
 
-    The black clamp first: the level ``black_level`` and below read 0, the rest is
-    stretched back to full scale. Then "camera": linear to `KNEE`, a parabolic shoulder
-    whose slope starts at 1 and reaches 0 at `WHITE_CLIP`, white beyond (clipped
-    highlights); or "soft": Reinhard's x / (1 + x), which never clips.
+
+def black_clamp(signal: np.ndarray, black_level: float) -> np.ndarray:
+    """(..., 3) white-balanced linear ``signal`` after the camera's black clamp, which
+    works on luma Y (`LUMA`): every channel is scaled by max(Y - b, 0) / ((1 - b) Y), so
+    a pixel whose luma is at or below ``black_level`` reads black and the rest darken
+    alike in every channel, keeping their hue. `kernels.develop_image` applies the same
+    clamp per pixel.
     """
-    x = np.maximum(signal - black_level, 0.0) / (1.0 - black_level)
+    y = np.asarray(signal, np.float64) @ np.asarray(LUMA)
+    scale = np.maximum(y - black_level, 0.0) / ((1.0 - black_level) * np.maximum(y, 1e-30))
+    return signal * scale[..., None]
+
+
+def camera_curve(signal: np.ndarray, tone: str = "camera") -> np.ndarray:
+    """Linear signal after the gain and black clamp (1 = full scale) to display-linear
+    values in [0, 1].
+
+    "camera": linear to `KNEE`, a parabolic shoulder whose slope starts at 1 and reaches
+    0 at `WHITE_CLIP`, white beyond (clipped highlights); or "soft": Reinhard's
+    x / (1 + x), which never clips.
+    """
+    x = np.maximum(signal, 0.0)
     if tone == "soft":
         return x / (1.0 + x)
     width = WHITE_CLIP - KNEE
@@ -429,7 +446,7 @@ def camera_curve(signal: np.ndarray, black_level: float = 0.0, tone: str = "came
 
 
 @lru_cache(maxsize=8)
-def tone_lut(exposure: float = 1.0, black_level: float = 0.0, tone: str = "soft") -> np.ndarray:
+def tone_lut(exposure: float = 1.0, tone: str = "camera") -> np.ndarray:
     """(24576,) uint8 map from linear signal in [2^-16, 256) to 8-bit sRGB: ``exposure``
     times the signal through `camera_curve`, then the sRGB transfer function.
 
@@ -441,6 +458,6 @@ def tone_lut(exposure: float = 1.0, black_level: float = 0.0, tone: str = "soft"
     middle = (index << TONE_SHIFT) | (1 << (TONE_SHIFT - 1))  # each step's central float
     radiance = middle.astype(np.int32).view(np.float32).astype(np.float64)
     radiance[0] = 0.0  # the first step also holds everything darker
-    mapped = camera_curve(exposure * radiance, black_level, tone)
+    mapped = camera_curve(exposure * radiance, tone)
     srgb = np.where(mapped <= 0.0031308, 12.92 * mapped, 1.055 * mapped ** (1 / 2.4) - 0.055)
     return (np.clip(srgb, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)

@@ -330,7 +330,7 @@ class SensorRig:
         self._lamps = lamp_arrays(optics)
         self._attenuation = optics.medium.attenuation
         self._bounds = caster.mesh.bounds.astype(np.float32)
-        self._lut = tone_lut(1.0, 0.0, optics.tone)  # black: develop_image clamps luma
+        self._lut = tone_lut(1.0, optics.tone)
         # Work buffers of the shading passes, reused every frame (see kernels.shade_frame).
         blocks = (-(-cfg.camera.height // SHARE), -(-cfg.camera.width // SHARE))
         self._grid = np.empty((blocks[0] + 1, blocks[1] + 1, 8), np.float32)
