@@ -3,7 +3,7 @@
 For each water preset, renders S1-S5 (seed 0, default optics but the water) from the
 pose two fifths of the way along the geometric pilot's path (`passage_poses`, as
 `cavenav render` picks its views), and writes one strip per water: five frames of
-320x240 side by side, captioned with the family. Run it on two versions of the code to
+320x240 side by side, S1 to S5 from left to right. Run it on two versions of the code to
 compare them:
 
     python benchmarks/gallery.py --out docs/gallery --label after
@@ -24,20 +24,19 @@ from cavenav.episode.gallery import passage_poses
 from cavenav.sensors.image_stats import downscale
 from cavenav.sensors.optics import WATER_TYPES, Optics
 from cavenav.sensors.rig import SensorConfig, SensorRig
+from cavenav.types import Pose
 from cavenav.world.raycast import RayCaster
 from cavenav.world.scenarios import load_scenario
 
 FAMILIES = ("S1", "S2", "S3", "S4", "S5")
 
 
-def strip(water: str, poses: dict) -> np.ndarray:
+def strip(water: str, views: list[tuple[RayCaster, Pose]]) -> np.ndarray:
     """(240, 5 * 320 + 4 * 4, 3) uint8: one frame per family, 4-pixel black gaps."""
     frames = []
-    for name in FAMILIES:
-        scenario = load_scenario(name, seed=0)
-        config = SensorConfig(optics=Optics(water=water))
-        rig = SensorRig(RayCaster(scenario.mesh), config)
-        frames.append(np.round(downscale(rig.observe(poses[name]).rgb)).astype(np.uint8))
+    for caster, pose in views:
+        rig = SensorRig(caster, SensorConfig(optics=Optics(water=water)))
+        frames.append(np.round(downscale(rig.observe(pose).rgb)).astype(np.uint8))
     gap = np.zeros((frames[0].shape[0], 4, 3), np.uint8)
     parts = [part for frame in frames for part in (frame, gap)][:-1]
     return np.concatenate(parts, axis=1)
@@ -49,13 +48,14 @@ def main() -> None:
     parser.add_argument("--label", default="after", help="file name prefix, e.g. before")
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
-    poses = {}
+    views = []
     for name in FAMILIES:
-        views = passage_poses(load_scenario(name, seed=0), count=6)
-        poses[name] = views[min(2, len(views) - 1)][0]
+        scenario = load_scenario(name, seed=0)
+        along = passage_poses(scenario, count=6)
+        views.append((RayCaster(scenario.mesh), along[min(2, len(along) - 1)][0]))
     for water in WATER_TYPES:
         path = args.out / f"{args.label}-{water}.jpg"
-        iio.imwrite(path, strip(water, poses), quality=88)
+        iio.imwrite(path, strip(water, views), quality=88)
         print(path)
 
 
