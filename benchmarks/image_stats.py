@@ -17,10 +17,12 @@ The reach is taken from the lamp, water and camera model in the code, per frame:
     back per channel (`kernels._surface_light`; the lamps sit within 0.25 m of the
     camera, so their path is taken as r):
 
-        L_c(r) = rho_c * P_c * exp(-2 c_c r) / r^2,   P_c = the lamps' summed power
+        L_c(r) = rho_c * P_c * exp(-2 k_c r) / r^2,   P_c = the lamps' summed power
                                                         (`Optics.lamp_power`)
 
-    with c = a + b the water's attenuation (`Water.attenuation`) on the way out and back.
+    with k the water's attenuation on the way out and back, less the light it scatters
+    forward, which still arrives about the spot and about its image (`Water.
+    kept_attenuation`: the straight light exp(-c r) plus forward scatter's halo).
     The camera multiplies by the frame's white balance w_c and exposure gain g
     (`rig.camera_response`, from the frame's metered mean, recomputed here from the
     frame's linear radiance at the shading grid's pixels, with the lens's vignetting),
@@ -139,11 +141,11 @@ def metered_mean(frame: Frame, config: SensorConfig) -> np.ndarray:
 
 def lamp_reach(optics: Optics, gains: np.ndarray, gain: float, level: float = NEAR_BLACK) -> float:
     """Metres beyond which lamp light cannot lift rock to ``level`` (see the module's
-    docstring): the largest r with max_c black_clamp(g w_c rho_c P_c exp(-2 c_c r) / r^2)
+    docstring): the largest r with max_c black_clamp(g w_c rho_c P_c exp(-2 k_c r) / r^2)
     >= T^-1(level) (see `optics.black_clamp`, `_tone_inverse`)."""
     power = optics.lamp_power.astype(np.float64).sum(axis=0)  # (3,) on the lamps' axes
     albedo = np.maximum(palest_rock(optics), optics.sediment_colour)
-    attenuation = optics.medium.attenuation.astype(np.float64)
+    attenuation = optics.medium.kept_attenuation.astype(np.float64)
     scale = gain * gains.astype(np.float64) * albedo * power
     need = _tone_inverse(level, optics)
 

@@ -127,7 +127,7 @@ def test_wet_rock_adds_a_highlight_in_the_lamps_colour_where_they_face_it():
     # whose colour differs from the warm grey rock's.
     glint = wet - matte
     rock = np.asarray(Optics().rock_colour)
-    assert not np.allclose(glint / glint[1], matte / matte[1] , rtol=0.05)
+    assert not np.allclose(glint / glint[1], matte / matte[1], rtol=0.05)
     assert glint[2] / glint[1] > (matte[2] / rock[2]) / (matte[1] / rock[1]) * 0.9
 
 

@@ -15,9 +15,25 @@ import trimesh
 
 from cavenav.errors import ConfigError
 from cavenav.sensors.camera import CameraIntrinsics
+from cavenav.sensors.kernels import spread_halo
 from cavenav.sensors.lighting import backscatter_table, face_normals, rock_albedo, surface_table
-from cavenav.sensors.optics import WATER_TYPES, Lamp, Optics, optics_from_table
-from cavenav.sensors.rig import Frame, SensorConfig, SensorRig, camera_response
+from cavenav.sensors.optics import (
+    FORWARD_CONE_DEG,
+    HALO_SIGMA_DEG,
+    WATER_TYPES,
+    Lamp,
+    Optics,
+    Water,
+    optics_from_table,
+)
+from cavenav.sensors.rig import (
+    HALO_CELL,
+    Frame,
+    SensorConfig,
+    SensorRig,
+    camera_response,
+    halo_weights,
+)
 from cavenav.types import Pose
 from cavenav.world.mesh import CaveMesh, make_mesh
 from cavenav.world.raycast import RayCaster
@@ -88,7 +104,10 @@ def centre_radiance(distance: float, optics: Optics = BARE) -> np.ndarray:
 def test_a_wall_twice_as_far_is_darker_in_every_channel():
     near, far = centre_radiance(2.0), centre_radiance(4.0)
     assert np.all(far < near)
-    assert np.all(far < near / 4)  # inverse square alone gives 1/4; the water takes more
+    # Inverse square and the lamps' geometry alone, in water that takes nothing:
+    lossless = replace(BARE, water=Water((0.0, 0.0, 0.0), (0.0, 0.0, 0.0)))
+    geometric = centre_radiance(4.0, lossless) / centre_radiance(2.0, lossless)
+    assert np.all(far / near < geometric)  # the water takes more
 
 
 def test_attenuation_grows_with_distance_and_is_strongest_in_red():
@@ -98,6 +117,32 @@ def test_attenuation_grows_with_distance_and_is_strongest_in_red():
     assert np.all(np.diff(red_over_green) < 0)  # rock turns blue-green with distance
     loss = radiance[-1] / radiance[0]  # what each channel keeps from 1.5 m to 6 m
     assert loss[0] < loss[1] and loss[0] < loss[2]
+
+
+def test_forward_scatter_keeps_four_fifths_of_the_light_the_water_scatters():
+    turbid = WATER_TYPES["turbid"]
+    assert turbid.forward_fraction == pytest.approx(0.80, abs=0.01)  # g = 0.92, 20 degrees
+    assert np.all(np.asarray(turbid.absorption) < turbid.kept_attenuation)
+    assert np.all(turbid.kept_attenuation < turbid.attenuation)
+    isotropic = Water(turbid.absorption, turbid.scattering, phase_g=0.0)
+    cone = (1.0 - np.cos(np.radians(FORWARD_CONE_DEG))) / 2.0  # its share of the sphere
+    assert isotropic.forward_fraction == pytest.approx(cone)
+
+
+def test_forward_scatter_spreads_light_into_a_halo_of_its_angle_and_keeps_it():
+    camera = CameraIntrinsics()
+    grid = np.zeros((121, 161, 3), np.float32)  # a 640x480 frame's shading grid's points
+    grid[60, 80] = 1.0
+    field, shading = grid.copy(), np.zeros((121, 161, 8), np.float32)
+    spread_halo(field, HALO_CELL, halo_weights(camera.focal_px), shading)
+    assert np.array_equal(shading[:, :, 4:7], field)  # the grid's light carries it
+    assert field[:, :, 1].sum() == pytest.approx(1.0, rel=0.02)  # none is lost
+    rows = np.arange(field.shape[0]) * 4.0  # the grid's points are 4 pixels apart
+    weight = field[:, :, 1].sum(axis=1)
+    centre = np.average(rows, weights=weight)
+    spread = np.sqrt(np.average((rows - centre) ** 2, weights=weight))
+    sigma_px = np.radians(HALO_SIGMA_DEG) * camera.focal_px
+    assert spread == pytest.approx(sigma_px, rel=0.15)
 
 
 @pytest.mark.parametrize("water", list(WATER_TYPES))
@@ -251,6 +296,7 @@ def test_floors_carry_sediment_and_crevices_are_darker():
     floor = (centres[:, 2] < -2.3) & (np.abs(centres[:, 1]) < 8.0)
     albedo = table[floor, water_side(tube)[floor], :3].mean(axis=0)
     assert albedo[0] > albedo[2] * 1.4  # silt is yellow-brown
+
     def darkening(mesh: CaveMesh) -> float:
         """The table's albedo of the walls (not floors) over the rock's own colour."""
         table = surface_table(RayCaster(mesh), Optics())
@@ -441,9 +487,9 @@ def test_depth_is_exact_unless_degradation_is_asked_for():
 
 def test_depth_drops_out_where_too_little_lamp_light_returns():
     dim = Optics(water="turbid", depth_dropout=0.002, noise=0.0, particles=0.0, daylight=0.0)
-    assert np.isinf(render(wall_ahead(9.0), dim).depth_m[CENTRE])
+    assert np.isinf(render(wall_ahead(12.0), dim).depth_m[CENTRE])
     assert render(wall_ahead(2.0), dim).depth_m[CENTRE] == pytest.approx(2.0, abs=1e-3)
-    assert render(wall_ahead(9.0), dim).depth_png[CENTRE] == 255  # no return reads as far
+    assert render(wall_ahead(12.0), dim).depth_png[CENTRE] == 255  # no return reads as far
 
 
 def test_depth_noise_grows_with_distance():

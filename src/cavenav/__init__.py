@@ -25,8 +25,10 @@ __version__ = "0.1.0"
 # sweep.json, results.csv and report carries it: results of different sets do not
 # compare. Set 1: the caves and images up to November 2026. Set 2 (issue 25): lamps
 # rated in lumens with a hot spot, wet rock's specular highlights, a camera with a gain
-# ceiling, black clamp, clipping, noise filter and JPEG compression.
-SCENARIO_SET = "2"
+# ceiling, black clamp, clipping, noise filter and JPEG compression. Set 3 (issue 25):
+# the caves take the shapes of real ones (scallops, silt floors, keyholes, flat roofs,
+# ledges, notches, angular breakdown, speleothems; generator version 2).
+SCENARIO_SET = "3"
 
 __all__ = ["SCENARIO_SET", "__version__"]
 

@@ -35,6 +35,7 @@ from cavenav.types import DEFAULT_RULES, Action, Observation, Pose, Rules, Vehic
 from cavenav.world.collision import clearance, swept_collision
 from cavenav.world.raycast import RayCaster
 from cavenav.world.scenarios import SCENARIOS, Scenario, load_scenario, validate_start
+from cavenav.world.silt import SiltCloud
 
 __all__ = [
     "ACTION_CHARSET",
@@ -374,6 +375,7 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
         self._progress = self.scenario.progress(self.pose.position)
         self._steps = 0
         self._ended = self._left_by_entrance = False
+        self._silt = SiltCloud() if self._silts_out() else None
         started = time.perf_counter()
         self.observation = self._world.rig.observe(self.pose, 0, self._noise_seed)
         self._timings = Timings(sense_ms=1e3 * (time.perf_counter() - started))
@@ -406,8 +408,11 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
         self._progress = progress
         self._steps += 1
         self._ended = hit or exited or self._left_by_entrance
+        if self._silt is not None:
+            floor = float(self.caster.first_hit(self.pose.position, np.array([0.0, 0.0, -1.0])))
+            self._silt = self._silt.stirred(self.pose, command, floor)
         sensed = time.perf_counter()
-        observation = self._world.rig.observe(self.pose, self._steps, self._noise_seed)
+        observation = self._world.rig.observe(self.pose, self._steps, self._noise_seed, self._silt)
         self.observation = replace(observation, previous_action=command)
         self._timings = Timings(
             physics_ms=1e3 * (sensed - started), sense_ms=1e3 * (time.perf_counter() - sensed)
@@ -425,6 +430,12 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
         return self.observation.rgb.copy()
 
     # ------------------------------------------------------------------ helpers
+    def _silts_out(self) -> bool:
+        """Whether thrust near the floor raises silt: the optics' setting, else the cave's
+        own choice (the crawl's silt floor silts out)."""
+        chosen = self.sensors.optics.silt_out
+        return bool(self.scenario.optics.get("silt_out", False)) if chosen is None else chosen
+
     def command(self, action: object) -> tuple[Action, str | None]:
         """The action ``action`` asks for and, when it is not admissible, why (then hold):
         `read_action` in this environment's action space and format."""
@@ -465,4 +476,5 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
             "observation": self.observation,
             "vehicle_pose": self.pose,
             "timings": self._timings,
+            "silt_g": None if self._silt is None else round(self._silt.mass_g, 1),
         }

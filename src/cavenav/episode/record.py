@@ -129,6 +129,8 @@ class EpisodeLog:
                 drift_m=round(info["drift_m"], 4),
                 drift_deg=round(info["drift_deg"], 3),
             )
+        if info.get("silt_g") is not None:  # silt-out is on: grams hanging in the water
+            record["silt_g"] = info["silt_g"]
         if info.get("shield"):
             record["shield"] = info["shield"]
         if info["invalid_action"]:

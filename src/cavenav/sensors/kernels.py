@@ -45,10 +45,12 @@ __all__ = [
     "gather_sky",
     "hemisphere_rays",
     "integrate_backscatter",
+    "integrate_silt",
     "mix",
     "shade_frame",
     "shade_grid",
     "splat_particles",
+    "spread_halo",
 ]
 
 _NO_HIT = np.uint32(0xFFFFFFFF)
@@ -230,6 +232,28 @@ def _leave(o: float, e: float, lo: float, hi: float) -> float:
     return np.inf
 
 
+@numba.njit(inline="always")
+def _scattered_toward(px, py, pz, path, vx, vy, vz, lamps, hg, g, attenuation, here) -> None:  # noqa: ANN001
+    """Set ``here`` (3) to the lamps' light that a unit scattering coefficient at (px, py,
+    pz) (camera frame, ``path`` metres from the lens) sends toward the lens along (vx,
+    vy, vz): each lamp's beam there, by the Henyey-Greenstein phase (asymmetry g, ``hg``
+    its factor), attenuated on its way out and back."""
+    lamp_pos, lamp_axis, lamp_power, profile = lamps
+    here[:] = 0.0
+    for k in range(lamp_pos.shape[0]):
+        wx, wy, wz = px - lamp_pos[k, 0], py - lamp_pos[k, 1], pz - lamp_pos[k, 2]
+        d = max(math.sqrt(wx * wx + wy * wy + wz * wz), 1e-3)
+        spot = _spot(wx, wy, wz, d, lamp_axis, profile, k)
+        if spot <= 0.0:
+            continue
+        cos_theta = (wx * vx + wy * vy + wz * vz) / d  # light's path vs the view
+        phase = hg / (1.0 + g * g - 2.0 * g * cos_theta) ** 1.5
+        # The lamps' power is the radiance of a white wall at 1 m: intensity / pi.
+        intensity = math.pi * spot * phase / (d * d)
+        for c in range(3):
+            here[c] += lamp_power[k, c] * intensity * math.exp(-attenuation[c] * (d + path))
+
+
 @numba.njit(parallel=True, fastmath=_FAST, cache=True)
 def integrate_backscatter(
     dirs: np.ndarray,  # (n, 3) float32 camera-frame directions with unit z
@@ -258,26 +282,10 @@ def integrate_backscatter(
         s_prev = 0.0
         for m in range(steps + 1):
             s = far * (m / steps) ** 2
-            here[:] = 0.0
-            for k in range(lamp_pos.shape[0]):
-                wx = s * ux - lamp_pos[k, 0]
-                wy = s * uy - lamp_pos[k, 1]
-                wz = s * uz - lamp_pos[k, 2]
-                d = max(math.sqrt(wx * wx + wy * wy + wz * wz), 1e-3)
-                spot = _spot(wx, wy, wz, d, lamp_axis, profile, k)
-                if spot <= 0.0:
-                    continue
-                cos_theta = (wx * vx + wy * vy + wz * vz) / d  # light's path vs the view
-                phase = hg / (1.0 + g * g - 2.0 * g * cos_theta) ** 1.5
-                # The lamps' power is the radiance of a white wall at 1 m: intensity / pi.
-                intensity = math.pi * spot * phase / (d * d)
-                for c in range(3):
-                    here[c] += (
-                        scattering[c]
-                        * lamp_power[k, c]
-                        * intensity
-                        * math.exp(-attenuation[c] * (d + s * length))
-                    )
+            lamps = (lamp_pos, lamp_axis, lamp_power, profile)
+            _scattered_toward(s * ux, s * uy, s * uz, s * length, vx, vy, vz, lamps, hg, g, attenuation, here)  # fmt: skip  # noqa: E501
+            for c in range(3):
+                here[c] *= scattering[c]
             if m > 0:
                 for c in range(3):
                     acc[c] += 0.5 * (prev[c] + here[c]) * (s - s_prev) * length
@@ -285,6 +293,98 @@ def integrate_backscatter(
                 for c in range(3):
                     out[i, m // substeps, c] = acc[c]
             prev[:] = here
+            s_prev = s
+
+
+@numba.njit(parallel=True, fastmath=_FAST, cache=True)
+def integrate_silt(
+    dirs: np.ndarray,  # (n, 3) float32 camera-frame directions with unit z
+    lamp_pos: np.ndarray,  # (k, 3) float32 camera frame
+    lamp_axis: np.ndarray,  # (k, 3) float32 unit
+    lamp_power: np.ndarray,  # (k, 3) per colour channel
+    profile: np.ndarray,  # (k, CURVE_STEPS + 1) the beams, see beam_profile
+    puffs: np.ndarray,  # (m, 5) float32 camera frame: x, y, z, sigma, grams
+    scattering: np.ndarray,  # (3,) m^2/g
+    extinction: np.ndarray,  # (3,) m^2/g, scattering plus absorption
+    attenuation: np.ndarray,  # (3,) 1/m, the water's own (kept: Water.kept_attenuation)
+    g: float,  # Henyey-Greenstein asymmetry of the silt
+    far: float,  # planar depth of the last bin
+    bins: int,
+    substeps: int,
+    veil: np.ndarray,  # (n, bins + 1, 3) float32 out: cumulative radiance, as the water's
+    transmission: np.ndarray,  # (n, bins + 1, 3) float32 out: of light to depth and back
+) -> None:
+    """The lamps' light that silt puffs scatter back toward the camera, and how much of
+    the rock's light they let through, at the backscatter table's depths.
+
+    Silt of concentration C (g/m^3, the sum of the puffs' Gaussians) scatters b* C and
+    takes e* C out of a beam per metre. Lamp light reaches a point at depth s through the
+    silt before it (the lamps sit beside the lens, so their path is taken as the view's),
+    scatters toward the lens, and comes back through it: the integrand is the water's
+    backscatter integrand with b* C for the water's b, times exp(-2 tau(s)), tau the silt's
+    optical depth to s. The rock at depth s is seen through exp(-2 tau(s)). A puff more
+    than 4 sigma from a ray is left out of that ray; past the last puff it meets, a ray's
+    figures stay as they are.
+    """
+    steps = bins * substeps
+    hg = (1.0 - g * g) * _INV_4PI
+    norm = 1.0 / (2.0 * math.pi) ** 1.5
+    for i in numba.prange(dirs.shape[0]):
+        ux, uy, uz = dirs[i, 0], dirs[i, 1], dirs[i, 2]
+        length = math.sqrt(ux * ux + uy * uy + uz * uz)
+        vx, vy, vz = -ux / length, -uy / length, -uz / length  # toward the camera
+        near = np.empty(puffs.shape[0], np.int64)
+        count = 0
+        last = 0.0  # planar depth past which no puff this ray meets lies
+        for m in range(puffs.shape[0]):
+            cx, cy, cz, sigma = puffs[m, 0], puffs[m, 1], puffs[m, 2], puffs[m, 3]
+            along = (cx * ux + cy * uy + cz * uz) / (length * length)  # planar depth
+            ox, oy, oz = cx - along * ux, cy - along * uy, cz - along * uz
+            if ox * ox + oy * oy + oz * oz < 16.0 * sigma * sigma and along > -4.0 * sigma:
+                near[count] = m
+                count += 1
+                last = max(last, along + 4.0 * sigma / length)
+        tau = np.zeros(3)
+        acc = np.zeros(3)
+        prev = np.zeros(3)
+        here = np.zeros(3)
+        prev_c = 0.0
+        s_prev = 0.0
+        for m in range(steps + 1):
+            s = far * (m / steps) ** 2
+            if count == 0 or s_prev > last:
+                if m % substeps == 0:
+                    for c in range(3):
+                        veil[i, m // substeps, c] = acc[c]
+                        transmission[i, m // substeps, c] = math.exp(-2.0 * tau[c])
+                continue
+            px, py, pz = s * ux, s * uy, s * uz
+            conc = 0.0
+            for q in range(count):
+                p = near[q]
+                sigma = puffs[p, 3]
+                dx, dy, dz = px - puffs[p, 0], py - puffs[p, 1], pz - puffs[p, 2]
+                r2 = (dx * dx + dy * dy + dz * dz) / (sigma * sigma)
+                if r2 < 16.0:
+                    conc += puffs[p, 4] * norm / (sigma * sigma * sigma) * math.exp(-0.5 * r2)
+            if m > 0:
+                for c in range(3):
+                    tau[c] += 0.5 * (prev_c + conc) * extinction[c] * (s - s_prev) * length
+            here[:] = 0.0
+            if conc > 0.0:
+                lamps = (lamp_pos, lamp_axis, lamp_power, profile)
+                _scattered_toward(px, py, pz, s * length, vx, vy, vz, lamps, hg, g, attenuation, here)  # fmt: skip  # noqa: E501
+                for c in range(3):
+                    here[c] *= scattering[c] * conc * math.exp(-2.0 * tau[c])
+            if m > 0:
+                for c in range(3):
+                    acc[c] += 0.5 * (prev[c] + here[c]) * (s - s_prev) * length
+            if m % substeps == 0:
+                for c in range(3):
+                    veil[i, m // substeps, c] = acc[c]
+                    transmission[i, m // substeps, c] = math.exp(-2.0 * tau[c])
+            prev[:] = here
+            prev_c = conc
             s_prev = s
 
 
@@ -402,13 +502,20 @@ FINE_BUMP_M = 0.004 / 127.0
 
 
 @numba.njit(inline="always")
-def _surface_light(i, tri, r, hit, d, n, slope, uvs, faces, vertex_normals, surface, surface_at, lamps, gloss, c):  # fmt: skip  # noqa: ANN001, ANN202, E501
-    """Light leaving rock hit by pixel i toward the camera, before the grain texture:
-    (R, G, B, green lamp light returned). r is the path length to the hit point ``hit``
-    (3 floats), ``d`` the ray's direction (3 floats), ``n`` the hit triangle's normal,
-    ``slope`` the gradient of the rock's small relief (3 floats, metres per metre; its
-    part along the surface tilts the shading normal), ``gloss`` the rock's specular
-    reflectance there, ``c`` the water's attenuation (3).
+def _surface_light(i, tri, r, hit, d, n, slope, uvs, faces, vertex_normals, surface, surface_at, lamps, gloss, c, k):  # fmt: skip  # noqa: ANN001, ANN202, E501
+    """Light from rock hit by pixel i reaching the camera, before the grain texture:
+    (R, G, B straight, R, G, B scattered forward, green lamp light returned). r is the
+    path length to the hit point ``hit`` (3 floats), ``d`` the ray's direction (3
+    floats), ``n`` the hit triangle's normal, ``slope`` the gradient of the rock's small
+    relief (3 floats, metres per metre; its part along the surface tilts the shading
+    normal), ``gloss`` the rock's specular reflectance there, ``c`` the water's beam
+    attenuation and ``k`` what is left of it when light scattered by a few degrees is
+    counted as kept (`optics.Water.kept_attenuation`), each (3).
+
+    The lamps' light reaches the rock through k: what the water scatters forward still
+    lands about the spot. On the way back, exp(-c r) of the rock's light comes straight
+    and exp(-k r) - exp(-c r) comes scattered forward, which `shade_grid` collects and
+    the rig spreads into a halo (forward scatter's blur).
 
     Diffuse light takes the rock's colour; the wet surface's specular reflection
     (normalised Blinn-Phong, `SHININESS`) keeps the lamps' colour, and at arm's length
@@ -421,6 +528,7 @@ def _surface_light(i, tri, r, hit, d, n, slope, uvs, faces, vertex_normals, surf
     dx, dy, dz = d
     nx, ny, nz = n
     c0, c1, c2 = c
+    k0, k1, k2 = k
     lamp_pos, lamp_axis, lamp_power, profile = lamps
     side = 0
     if nx * dx + ny * dy + nz * dz > 0.0:  # the camera sees the triangle's back
@@ -466,7 +574,7 @@ def _surface_light(i, tri, r, hit, d, n, slope, uvs, faces, vertex_normals, surf
             continue
         e = spot * cos_in / d2
         delta = d2 * inv_d - r
-        x0, x1, x2 = c0 * delta, c1 * delta, c2 * delta
+        x0, x1, x2 = k0 * delta, k1 * delta, k2 * delta
         f0 = e * lamp_power[k, 0] * (1.0 - x0 + 0.5 * x0 * x0)
         f1 = e * lamp_power[k, 1] * (1.0 - x1 + 0.5 * x1 * x1)
         f2 = e * lamp_power[k, 2] * (1.0 - x2 + 0.5 * x2 * x2)
@@ -478,16 +586,19 @@ def _surface_light(i, tri, r, hit, d, n, slope, uvs, faces, vertex_normals, surf
             glint = peak * _curve(_GLINT, 0, cos_h)
             s0, s1, s2 = s0 + glint * f0, s1 + glint * f1, s2 + glint * f2
     t0, t1, t2 = math.exp(-c0 * r), math.exp(-c1 * r), math.exp(-c2 * r)
+    u0, u1, u2 = math.exp(-k0 * r), math.exp(-k1 * r), math.exp(-k2 * r)
+    out0 = r0 * (e0 * u0 + r3) + s0 * u0  # leaving the rock toward the camera
+    out1 = r1 * (e1 * u1 + r4) + s1 * u1
+    out2 = r2 * (e2 * u2 + r5) + s2 * u2
     return (
-        (r0 * (e0 * t0 + r3) + s0 * t0) * t0,
-        (r1 * (e1 * t1 + r4) + s1 * t1) * t1,
-        (r2 * (e2 * t2 + r5) + s2 * t2) * t2,
-        r1 * e1 * t1 * t1,
-    )
+        out0 * t0, out1 * t1, out2 * t2,
+        out0 * (u0 - t0), out1 * (u1 - t1), out2 * (u2 - t2),
+        r1 * e1 * u1 * t1,
+    )  # fmt: skip
 
 
 @numba.njit(inline="always")
-def _rock(i, depth, origin, dx, dy, dz, length, cast, scene, lamps, c):  # noqa: ANN001, ANN202
+def _rock(i, depth, origin, dx, dy, dz, length, cast, scene, lamps, c, k):  # noqa: ANN001, ANN202
     """`_surface_light` of the rock hit by pixel i, times the rock grain at the hit; the
     grain also makes pale rock glossier (calcite crystals, polished flowstone)."""
     _, triangle, normals, uvs = cast
@@ -504,13 +615,13 @@ def _rock(i, depth, origin, dx, dy, dz, length, cast, scene, lamps, c):  # noqa:
     tilt = FINE_BUMP_M * FINE_SCALE
     slope = (BUMP_M * gu + tilt * fu, BUMP_M * gv + tilt * fv, BUMP_M * gw + tilt * fw)
     relief = GRAIN_STEP * (value + 0.3 * fine)
-    k0, k1, k2, lamp_return = _surface_light(
+    l0, l1, l2, h0, h1, h2, lamp_return = _surface_light(
         i, triangle[i], depth * length, (hx, hy, hz), (dx, dy, dz),
         (normals[i, 0], normals[i, 1], normals[i, 2]), slope, uvs, faces, vertex_normals,
-        surface, surface_at, lamps, specular * max(1.0 + 3.0 * relief, 0.0), c,
+        surface, surface_at, lamps, specular * max(1.0 + 3.0 * relief, 0.0), c, k,
     )  # fmt: skip
     grain = 1.0 + relief
-    return grain * k0, grain * k1, grain * k2, lamp_return
+    return grain * l0, grain * l1, grain * l2, grain * h0, grain * h1, grain * h2, lamp_return
 
 
 @numba.njit(inline="always")
@@ -547,27 +658,40 @@ def _tone(lut: np.ndarray, value: float) -> np.uint8:
 
 @numba.njit(inline="always")
 def _own_light(i, row, col, cast, rays, scene, lamps, water):  # noqa: ANN001, ANN202
-    """Radiance reaching the lens along pixel i's ray, before marine snow:
-    (R, G, B, green lamp light returned by the rock, 0 for open water)."""
+    """Radiance reaching the lens along pixel i's ray, before marine snow: (R, G, B
+    straight, with the veil; R, G, B scattered forward, for the halo; green lamp light
+    returned by the rock, 0 for open water)."""
     t, triangle, _, _ = cast
     directions, ray_length, origin = rays
-    attenuation, backscatter, block, far, sky, bounds = water
+    attenuation, kept, backscatter, block, far, sky, bounds, silt_veil, silt_light = water
     c0, c1, c2 = attenuation[0], attenuation[1], attenuation[2]
+    k0, k1, k2 = kept[0], kept[1], kept[2]
     depth = t[i]
     length = ray_length[i]
     dx, dy, dz = directions[i, 0], directions[i, 1], directions[i, 2]
     v0, v1, v2 = _veil(backscatter, row // block, col // block, depth, far)
     if triangle[i] == _NO_HIT:
+        ex, ey, ez = dx / length, dy / length, dz / length
         o0, o1, o2 = _open_water(
-            origin[0], origin[1], origin[2], dx / length, dy / length, dz / length,
-            sky, bounds, c0, c1, c2,
-        )  # fmt: skip
+            origin[0], origin[1], origin[2], ex, ey, ez, sky, bounds, c0, c1, c2
+        )
+        a0, a1, a2 = _open_water(
+            origin[0], origin[1], origin[2], ex, ey, ez, sky, bounds, k0, k1, k2
+        )
+        h0, h1, h2 = a0 - o0, a1 - o1, a2 - o2
         lamp_return = 0.0
     else:
-        o0, o1, o2, lamp_return = _rock(
-            i, depth, origin, dx, dy, dz, length, cast, scene, lamps, (c0, c1, c2)
+        o0, o1, o2, h0, h1, h2, lamp_return = _rock(
+            i, depth, origin, dx, dy, dz, length, cast, scene, lamps, (c0, c1, c2), (k0, k1, k2)
         )
-    return v0 + o0, v1 + o1, v2 + o2, lamp_return
+    if silt_veil.shape[0] > 1:  # silt hangs in the water: a table as large as the veil's
+        s0, s1, s2 = _veil(silt_veil, row // block, col // block, depth, far)
+        t0, t1, t2 = _veil(silt_light, row // block, col // block, depth, far)
+        return (
+            v0 + s0 + t0 * o0, v1 + s1 + t1 * o1, v2 + s2 + t2 * o2,
+            t0 * h0, t1 * h1, t2 * h2, t1 * lamp_return,
+        )  # fmt: skip
+    return v0 + o0, v1 + o1, v2 + o2, h0, h1, h2, lamp_return
 
 
 @numba.njit(parallel=True, fastmath=_FAST, cache=True)
@@ -576,23 +700,25 @@ def shade_grid(
     rays: tuple,  # (directions, ray_length, origin) as in shade_frame
     scene: tuple,  # (faces, vertex_normals, surface, surface_at, grain_field, specular)
     lamps: tuple,  # (position, axis, power (k, 3), beam profile) world frame
-    water: tuple,  # (attenuation, backscatter, block, far, sky, bounds)
+    water: tuple,  # see shade_frame
     specks: np.ndarray,  # (n, 3) float32 marine snow, see splat_particles
     speck_blocks: np.ndarray,  # (ceil(H / SHARE), ceil(W / SHARE)) uint8
     vignetting: float,
     width: int,
     grid: np.ndarray,  # (H', W', 8) float32 out, H' = ceil(H / SHARE) + 1, likewise W'
     grid_triangle: np.ndarray,  # (H', W') uint32 out: the triangle hit at each point
+    halo: np.ndarray,  # (H', W', 3) float32 out: light scattered forward, per grid point
 ) -> tuple[float, float, float]:
     """Shade the pixels of every SHARE-th row and column (and the last ones) into ``grid``;
     returns the frame's mean colour at the sensor over them.
 
     Per grid point: 1 / depth (-1 where the ray escapes), the hit triangle's normal, the
-    radiance reaching the lens (RGB: rock with its grain, and the veil in front of it)
-    and the green lamp light the rock returns. `shade_frame` interpolates between these
-    wherever a pixel lies on the same smooth surface as the four around it. The mean is
-    what the camera meters for its auto white balance and exposure before the frame is
-    developed.
+    radiance reaching the lens straight (RGB: rock with its grain, and the veil in front
+    of it) and the green lamp light the rock returns; and in ``halo`` the light scattered
+    forward on its way, which the rig blurs (`spread_halo`) for `shade_frame` to add.
+    `shade_frame` interpolates between these wherever a pixel lies on the same smooth
+    surface as the four around it. The mean, halo included, is what the camera meters
+    for its auto white balance and exposure before the frame is developed.
     """
     t, triangle, normals, _ = cast
     ray_length = rays[1]
@@ -603,7 +729,10 @@ def shade_grid(
         for b in range(grid.shape[1]):
             col = min(b * SHARE, width - 1)
             i = row * width + col
-            l0, l1, l2, lamp_return = _own_light(i, row, col, cast, rays, scene, lamps, water)
+            l0, l1, l2, h0, h1, h2, lamp_return = _own_light(
+                i, row, col, cast, rays, scene, lamps, water
+            )
+            halo[a, b, 0], halo[a, b, 1], halo[a, b, 2] = h0, h1, h2
             grid_triangle[a, b] = triangle[i]
             if triangle[i] == _NO_HIT:
                 grid[a, b, 0] = -1.0
@@ -617,9 +746,9 @@ def shade_grid(
             if speck_blocks[row // SHARE, col // SHARE]:
                 l0, l1, l2 = l0 + specks[i, 0], l1 + specks[i, 1], l2 + specks[i, 2]
             lens = _lens(ray_length[i], vignetting)
-            sum0 += l0 * lens
-            sum1 += l1 * lens
-            sum2 += l2 * lens
+            sum0 += (l0 + h0) * lens
+            sum1 += (l1 + h1) * lens
+            sum2 += (l2 + h2) * lens
     count = grid.shape[0] * grid.shape[1]
     return sum0 / count, sum1 / count, sum2 / count
 
@@ -669,6 +798,78 @@ def _finish(i, l0, l1, l2, lamp_return, hit, col, t, frame_key, depth_range, row
     level = (min(depth, d_max) - d_min) * (255.0 / (d_max - d_min))
     depth_png[i] = np.uint8(min(max(level, 0.0), 255.0) + 0.5)
     row_light[col, 0], row_light[col, 1], row_light[col, 2] = l0, l1, l2
+
+
+@numba.njit(fastmath=_FAST, cache=True)
+def spread_halo(
+    halo: np.ndarray,  # (H', W', 3) float32: forward-scattered light at the grid's points
+    cell: int,  # grid points a side of the cells the blur works on
+    weights: np.ndarray,  # (2 r + 1,) the blur's 1-D Gaussian over cells
+    grid: np.ndarray,  # (H', W', 8) float32: shade_grid's, its light (4-6) updated here
+) -> None:
+    """Blur forward scatter's light into its halo and write it back to ``halo``, and add
+    it to the light of ``grid``'s points, so that pixels interpolated from the grid
+    carry it (`shade_frame` adds it to the others itself).
+
+    The light is averaged over cells of ``cell`` x ``cell`` points (the blur is some 45
+    pixels wide at 640x480: detail finer than a cell does not survive it), blurred by
+    ``weights`` along both axes (edges repeated), and interpolated back to the points
+    bilinearly, cell centres at cell (j + 1/2) - 1/2.
+    """
+    rows, columns = halo.shape[0], halo.shape[1]
+    tall, wide = -(-rows // cell), -(-columns // cell)
+    coarse = np.zeros((tall, wide, 3))
+    for a in range(tall * cell):
+        for b in range(wide * cell):
+            src_a, src_b = min(a, rows - 1), min(b, columns - 1)
+            for c in range(3):
+                coarse[a // cell, b // cell, c] += halo[src_a, src_b, c]
+    coarse /= cell * cell
+    radius = weights.shape[0] // 2
+    for axis in range(2):
+        blurred = np.zeros_like(coarse)
+        for j in range(tall):
+            for k in range(wide):
+                for t in range(-radius, radius + 1):
+                    if axis == 0:
+                        jj, kk = min(max(j + t, 0), tall - 1), k
+                    else:
+                        jj, kk = j, min(max(k + t, 0), wide - 1)
+                    for c in range(3):
+                        blurred[j, k, c] += weights[t + radius] * coarse[jj, kk, c]
+        coarse = blurred
+    centre = (cell - 1) / 2.0
+    for a in range(rows):
+        y = min(max((a - centre) / cell, 0.0), tall - 1.0)
+        y0 = int(y)
+        y1, fy = min(y0 + 1, tall - 1), y - y0
+        for b in range(columns):
+            x = min(max((b - centre) / cell, 0.0), wide - 1.0)
+            x0 = int(x)
+            x1, fx = min(x0 + 1, wide - 1), x - x0
+            for c in range(3):
+                top = coarse[y0, x0, c] + fx * (coarse[y0, x1, c] - coarse[y0, x0, c])
+                bottom = coarse[y1, x0, c] + fx * (coarse[y1, x1, c] - coarse[y1, x0, c])
+                value = top + fy * (bottom - top)
+                halo[a, b, c] = value
+                grid[a, b, 4 + c] += value
+
+
+@numba.njit(inline="always")
+def _halo_at(halo, row, col):  # noqa: ANN001, ANN202
+    """Forward scatter's blurred light at pixel (row, col), interpolated bilinearly from
+    its value at the shading grid's points (every SHARE-th pixel, and the last ones)."""
+    rows, columns = halo.shape[0], halo.shape[1]
+    y, x = min(row / SHARE, rows - 1.0), min(col / SHARE, columns - 1.0)
+    y0, x0 = int(y), int(x)
+    y1, x1 = min(y0 + 1, rows - 1), min(x0 + 1, columns - 1)
+    fy, fx = y - y0, x - x0
+    out = np.empty(3)
+    for c in range(3):
+        top = halo[y0, x0, c] + fx * (halo[y0, x1, c] - halo[y0, x0, c])
+        bottom = halo[y1, x0, c] + fx * (halo[y1, x1, c] - halo[y1, x0, c])
+        out[c] = top + fy * (bottom - top)
+    return out[0], out[1], out[2]
 
 
 @numba.njit(inline="always")
@@ -808,9 +1009,10 @@ def shade_frame(
     rays: tuple,  # (directions, ray_length, origin), see below
     scene: tuple,  # (faces, vertex_normals, surface, surface_at, grain_field, specular)
     lamps: tuple,  # (position, axis, power (k, 3), beam profile) world frame
-    water: tuple,  # (attenuation, backscatter, block, far, sky, bounds)
+    water: tuple,  # attenuation, kept, backscatter, block, far, sky, bounds, silt tables
     grid: np.ndarray,  # from shade_grid
     grid_triangle: np.ndarray,  # from shade_grid
+    halo: np.ndarray,  # (H', W', 3) float32: forward scatter's blurred light, see below
     specks: np.ndarray,  # (n, 3) float32 marine snow; zeroed here as it is read
     speck_blocks: np.ndarray,  # (ceil(H / SHARE), ceil(W / SHARE)) uint8
     camera: tuple,  # (gains, gain, vignetting, noise, frame_key, black level)
@@ -828,6 +1030,13 @@ def shade_frame(
     triangle normals; uvs (n, 2) float32 barycentric coordinates of each hit. Rays:
     directions (n, 3) float32 world, unit optical component; ray_length (n,) their
     lengths (1 / cos off-axis); origin (3,) the camera.
+
+    Water: its beam attenuation c and kept attenuation k (3,) each, the backscatter table
+    (h, w, bins + 1, 3), its block in pixels and far depth, open water's brightness, the
+    cave's bounds, and the silt's veil and light tables (`integrate_silt`; (1, 1, 2, 3)
+    zeros for clear water). ``halo`` holds the light scattered forward, blurred, at the
+    grid's points (`spread_halo`, which has added it to the grid's light already, so
+    pixels interpolated from the grid carry it); the others add it, interpolated.
 
     The radiance of rock and veil is interpolated from `shade_grid`'s four points around
     a pixel where they and the pixel see one smooth surface: rock at all four, normals
@@ -891,10 +1100,13 @@ def shade_frame(
         for k in range(count):
             col = pending[k]
             i = row * width + col
-            l0, l1, l2, lamp_return = _own_light(i, row, col, cast, rays, scene, lamps, water)
+            l0, l1, l2, _, _, _, lamp_return = _own_light(
+                i, row, col, cast, rays, scene, lamps, water
+            )
+            h0, h1, h2 = _halo_at(halo, row, col)
             _finish(
-                i, l0, l1, l2, lamp_return, triangle[i] != _NO_HIT, col, t, frame_key,
-                depth_range, row_light, depth_png,
+                i, l0 + h0, l1 + h1, l2 + h2, lamp_return, triangle[i] != _NO_HIT, col, t,
+                frame_key, depth_range, row_light, depth_png,
             )  # fmt: skip
         _develop_row(
             row, width, row_light, ray_length, specks, speck_blocks, camera, radiance, signal

@@ -84,6 +84,35 @@ class Water:
         """(3,) float32 beam attenuation c = a + b."""
         return (np.asarray(self.absorption) + np.asarray(self.scattering)).astype(np.float32)
 
+    @property
+    def forward_fraction(self) -> float:
+        """The share of scattered light deflected by less than `FORWARD_CONE_DEG`: for
+        the Henyey-Greenstein function, 1 - (1 - g^2) / (2 g) ((1 + g^2 - 2 g mu)^-1/2
+        - (1 + g)^-1) at mu = cos(cone); 0.80 at g = 0.92."""
+        g, mu = self.phase_g, math.cos(math.radians(FORWARD_CONE_DEG))
+        if g <= 0.0:
+            return (1.0 - mu) / 2.0  # isotropic: the cone's share of the sphere
+        beyond = (1 - g * g) / (2 * g) * ((1 + g * g - 2 * g * mu) ** -0.5 - 1 / (1 + g))
+        return 1.0 - beyond
+
+    @property
+    def kept_attenuation(self) -> np.ndarray:
+        """(3,) float32 attenuation of light when what is scattered forward counts as
+        still arriving: c - b x `forward_fraction` (light that reaches a wall about the
+        lamps' spot, or the camera about the image of what sent it: blurred, not lost)."""
+        kept = self.attenuation - np.asarray(self.scattering) * self.forward_fraction
+        return kept.astype(np.float32)
+
+
+# Forward scatter: natural waters deflect most of the light they scatter by a few degrees
+# (the Henyey-Greenstein function of g = 0.92 sends 80% within 20 degrees). That light is
+# not lost: it lands about the lamps' spot, and reaches the camera about the image of the
+# rock that sent it, as a halo. The halo's blur is a Gaussian of HALO_SIGMA_DEG: light
+# deflected by theta somewhere along the path seems to come from about theta / 2 off,
+# and the spread of deflections within the cone is about 8 degrees.
+FORWARD_CONE_DEG = 20.0
+HALO_SIGMA_DEG = 4.0
+
 
 # Broad-band camera channels (R ~ 600-650 nm, G ~ 520-570 nm, B ~ 450-490 nm), after
 # pure-water absorption (Pope and Fry 1997) plus typical particle and organic loads.
@@ -222,6 +251,9 @@ class Optics:
             water between the exit and the camera; 0 makes a cave with no daylight.
         daylight_colour: its hue (sunlight filtered by the water column above).
         particles: marine snow, particles per cubic metre (0: none).
+        silt_out: whether the vehicle's thrust near the floor raises silt that hangs in
+            the water and clouds the camera (`cavenav.world.silt`); None (default): the
+            cave's choice, on in the crawl family and off elsewhere.
         noise: sensor noise, 1 = a typical ROV camera in low light, 0 = none.
         vignetting: darkening of the image corners by the lens (0-1).
         exposure: None (default) for auto-exposure: the gain brings the frame's mean
@@ -269,6 +301,7 @@ class Optics:
     daylight: float = 1.0
     daylight_colour: RGB = (0.10, 0.55, 0.60)
     particles: float = 4.0
+    silt_out: bool | None = None
     noise: float = 1.0
     vignetting: float = 0.35
     exposure: float | None = None
@@ -348,6 +381,7 @@ class _OpticsTable(BaseModel):
     light_power: float | None = Field(None, ge=0)
     daylight: float | None = Field(None, ge=0)
     particles: float | None = Field(None, ge=0, le=200)
+    silt_out: bool | None = None
     noise: float | None = Field(None, ge=0, le=20)
     vignetting: float | None = Field(None, ge=0, le=1)
     exposure: float | Literal["auto"] | None = None

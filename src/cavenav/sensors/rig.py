@@ -26,9 +26,11 @@ from cavenav.sensors.kernels import (
     SHARE,
     develop_image,
     fill_rays,
+    integrate_silt,
     shade_frame,
     shade_grid,
     splat_particles,
+    spread_halo,
 )
 from cavenav.sensors.lighting import (
     at_vertices,
@@ -36,13 +38,21 @@ from cavenav.sensors.lighting import (
     lamp_arrays,
     rock_grain,
     surface_table,
+    veil_directions,
     vertex_normals,
 )
-from cavenav.sensors.optics import Optics, optics_from_table, tone_lut
+from cavenav.sensors.optics import HALO_SIGMA_DEG, Optics, optics_from_table, tone_lut
 from cavenav.types import Observation, Pose
+from cavenav.world.procedural import cpu_independent
 from cavenav.world.raycast import RayCaster
+from cavenav.world.silt import (
+    EXTINCTION_M2_PER_G,
+    SCATTERING_M2_PER_G,
+    SILT_PHASE_G,
+    SiltCloud,
+)
 
-__all__ = ["SENSOR_KEYS", "Frame", "SensorConfig", "SensorRig"]
+__all__ = ["SENSOR_KEYS", "Frame", "SensorConfig", "SensorRig", "halo_weights"]
 
 _UP = np.array([0.0, 0.0, 1.0])
 PARTICLE_REACH_M = 5.0
@@ -190,6 +200,19 @@ class SensorConfig:
         )
 
 
+# The halo is blurred on cells of HALO_CELL x HALO_CELL grid points (16 pixels a side).
+HALO_CELL = 4
+
+
+def halo_weights(focal_px: float) -> np.ndarray:
+    """The Gaussian of `HALO_SIGMA_DEG` over the halo's cells, as 1-D weights (3 sigma
+    each side), computed with the C library's exp: the same on every CPU."""
+    sigma = max(math.radians(HALO_SIGMA_DEG) * focal_px / (HALO_CELL * SHARE), 1e-3)
+    radius = max(1, math.ceil(3.0 * sigma))
+    weights = cpu_independent(math.exp, -0.5 * (np.arange(-radius, radius + 1) / sigma) ** 2)
+    return weights / weights.sum()
+
+
 @dataclass(frozen=True)
 class Frame:
     """One forward frame: what the cameras deliver, plus the light that made it.
@@ -327,14 +350,19 @@ class SensorRig:
         self._surface_at = at_vertices(mesh, self._surface)
         veil_block = max(1, cfg.camera.width // _VEIL_COLUMNS)
         self._backscatter = backscatter_table(cfg.camera, optics, block=veil_block)
+        self._veil_directions = veil_directions(cfg.camera, veil_block)
+        self._no_silt = np.zeros((1, 1, 2, 3), np.float32)  # the kernels' "no silt"
         self._lamps = lamp_arrays(optics)
         self._attenuation = optics.medium.attenuation
+        self._kept = optics.medium.kept_attenuation
         self._bounds = caster.mesh.bounds.astype(np.float32)
         self._lut = tone_lut(1.0, optics.tone)
         # Work buffers of the shading passes, reused every frame (see kernels.shade_frame).
         blocks = (-(-cfg.camera.height // SHARE), -(-cfg.camera.width // SHARE))
-        self._grid = np.empty((blocks[0] + 1, blocks[1] + 1, 8), np.float32)
+        self._grid = np.zeros((blocks[0] + 1, blocks[1] + 1, 8), np.float32)
         self._grid_triangle = np.empty((blocks[0] + 1, blocks[1] + 1), np.uint32)
+        self._halo = np.empty((blocks[0] + 1, blocks[1] + 1, 3), np.float32)
+        self._halo_weights = halo_weights(cfg.camera.focal_px)
         self._specks = np.zeros((len(self._pixel_dirs), 3), np.float32)
         self._signal = np.empty((len(self._pixel_dirs), 3), np.float32)
         self._luma = np.empty((2, len(self._pixel_dirs)), np.float32)
@@ -344,10 +372,11 @@ class SensorRig:
     def camera_position(self, pose: Pose) -> np.ndarray:
         return pose.position + self.config.camera_offset_m * pose.forward
 
-    def render(self, pose: Pose, *, radiance: bool = False) -> Frame:
+    def render(self, pose: Pose, *, radiance: bool = False, silt: SiltCloud | None = None) -> Frame:
         """Cast the forward frame at ``pose`` and form its depth and colour images, and
-        the linear radiance they were developed from if ``radiance``."""
-        return self._render(pose, radiance)[0]
+        the linear radiance they were developed from if ``radiance``; ``silt`` hangs in
+        the water (none: clear)."""
+        return self._render(pose, radiance, silt=silt)[0]
 
     def _sounder_rays(self, pose: Pose, out: np.ndarray) -> None:
         """Write the up- and then the down-looking sounder's rays into ``out`` (2k, 6)."""
@@ -362,14 +391,18 @@ class SensorRig:
         return float(min(up, limit)), float(min(down, limit))
 
     def _render(
-        self, pose: Pose, radiance: bool, noise_seed: int | None = None
+        self,
+        pose: Pose,
+        radiance: bool,
+        noise_seed: int | None = None,
+        silt: SiltCloud | None = None,
     ) -> tuple[Frame, tuple[float, float]]:
         """The forward frame and the sounders' (d_top, d_bottom), from one cast."""
         with _numba_threads(self._threads):
-            return self._render_on(pose, radiance, noise_seed)
+            return self._render_on(pose, radiance, noise_seed, silt)
 
     def _render_on(
-        self, pose: Pose, radiance: bool, noise_seed: int | None
+        self, pose: Pose, radiance: bool, noise_seed: int | None, silt: SiltCloud | None
     ) -> tuple[Frame, tuple[float, float]]:
         cfg = self.config
         optics = cfg.optics
@@ -377,8 +410,7 @@ class SensorRig:
         rot = camera_to_world(pose).astype(np.float32)
         origin = self.camera_position(pose).astype(np.float32)
         # Write origins and directions straight into the ray buffer Open3D reads.
-        n = len(self._pixel_dirs)
-        rays = self._rays
+        n, rays = len(self._pixel_dirs), self._rays
         fill_rays(self._pixel_dirs, rot, origin, rays)
         self._sounder_rays(pose, rays[n:])  # 0.5% more rays, one call fewer
         raw = self.caster.cast_raw_rays(rays)
@@ -396,22 +428,25 @@ class SensorRig:
             float(optics.specular),
         )  # fmt: skip
         table = self._backscatter
-        water = (self._attenuation, table.values, table.block, table.far, optics.sky, self._bounds)
+        water = (
+            self._attenuation, self._kept, table.values, table.block, table.far, optics.sky,
+            self._bounds, *self._silt_tables(silt, origin, rot),
+        )  # fmt: skip
         mean = shade_grid(
             cast, ray_tuple, scene, lamp_tuple, water, self._specks, self._speck_blocks,
-            optics.vignetting, camera.width, self._grid, self._grid_triangle,
+            optics.vignetting, camera.width, self._grid, self._grid_triangle, self._halo,
         )  # fmt: skip
+        spread_halo(self._halo, HALO_CELL, self._halo_weights, self._grid)
         gains, gain = camera_response(np.asarray(mean), optics)
         key = _frame_key(cfg.seed if noise_seed is None else noise_seed, pose)
         sensor = (gains, gain, optics.vignetting, optics.noise, key, optics.black_level)
         depth_range = (cfg.depth_min_m, cfg.depth_max_m, optics.depth_dropout, optics.depth_noise_m)
         light = np.empty((n if radiance else 0, 3), np.float32)
-        rgb = np.empty((n, 3), np.uint8)
-        depth_png = np.empty(n, np.uint8)
+        rgb, depth_png = np.empty((n, 3), np.uint8), np.empty(n, np.uint8)
         shade_frame(
             cast, ray_tuple, scene, lamp_tuple, water, self._grid, self._grid_triangle,
-            self._specks, self._speck_blocks, sensor, depth_range, camera.width, light,
-            self._signal, depth_png,
+            self._halo, self._specks, self._speck_blocks,
+            sensor, depth_range, camera.width, light, self._signal, depth_png,
         )  # fmt: skip
         signal, work = self._signal, self._luma
         develop_image(signal, camera.width, sensor, optics.denoise, self._lut, rgb, work)
@@ -426,6 +461,25 @@ class SensorRig:
             particles,
         )
         return frame, readings
+
+    def _silt_tables(
+        self, silt: SiltCloud | None, origin: np.ndarray, rot: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The veil the silt scatters and the light it lets through, as tables shaped like
+        the water's backscatter (`kernels.integrate_silt`); tiny zeros for clear water."""
+        if silt is None or not silt.puffs:
+            return self._no_silt, self._no_silt
+        puffs = silt.array()
+        puffs[:, :3] = (puffs[:, :3] - origin) @ rot  # world to camera frame
+        table, lamps = self._backscatter, self._lamps
+        shape = (len(self._veil_directions), table.bins + 1, 3)
+        veil, transmission = np.empty(shape, np.float32), np.empty(shape, np.float32)
+        integrate_silt(
+            self._veil_directions, lamps.position, lamps.axis, lamps.power, lamps.profile,
+            puffs, np.asarray(SCATTERING_M2_PER_G), np.asarray(EXTINCTION_M2_PER_G),
+            self._kept, SILT_PHASE_G, table.far, table.bins, 2, veil, transmission,
+        )  # fmt: skip
+        return veil.reshape(table.values.shape), transmission.reshape(table.values.shape)
 
     def _lamps_at(self, origin: np.ndarray, rot: np.ndarray) -> tuple:
         """The lamps in the world frame of a camera at ``origin`` turned by ``rot``, as the
@@ -462,15 +516,22 @@ class SensorRig:
         self._sounder_rays(pose, rays)
         return self._readings(self.caster.cast_raw_rays(rays)["t_hit"])
 
-    def observe(self, pose: Pose, step: int = 0, noise_seed: int | None = None) -> Observation:
+    def observe(
+        self,
+        pose: Pose,
+        step: int = 0,
+        noise_seed: int | None = None,
+        silt: SiltCloud | None = None,
+    ) -> Observation:
         """Render everything a pilot sees at ``pose``, from one ray cast.
 
         Args:
             noise_seed: seeds this observation's sensor noise (an episode's own draw);
                 None uses the configuration's seed.
+            silt: the silt hanging in the water (`cavenav.world.silt`); None: clear.
         """
         cfg = self.config
-        frame, (d_top, d_bottom) = self._render(pose, radiance=False, noise_seed=noise_seed)
+        frame, (d_top, d_bottom) = self._render(pose, False, noise_seed, silt)
         return Observation(
             rgb=frame.rgb,
             depth_m=frame.depth_m,

@@ -13,15 +13,15 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 from cavenav.errors import ScenarioError
 from cavenav.types import Pose
+from cavenav.world.morphology import Boulder, Section, Speleothem, extent
 from cavenav.world.procedural import (
-    Boulder,
     Branch,
     PassageSpec,
     cpu_independent,
@@ -93,18 +93,191 @@ def _scaled(radii: tuple[float, float, float], scale: float) -> tuple[float, flo
     return radii[0] * scale, radii[1] * scale, radii[2] * scale
 
 
+def _window(u: np.ndarray, start: float, end: float) -> np.ndarray:
+    """1 between stations ``start`` and ``end``, 0 outside, eased over about 2 m."""
+    box = ((u >= start) & (u <= end)).astype(float)
+    return gaussian_smooth(box, 2.0 / (u[1] - u[0]))
+
+
+# ------------------------------------------------------------------ morphologies
+#
+# What turns a family's tube into a cave (`cavenav.world.morphology`): each helper draws
+# one feature from ``shapes``, a child of the family's generator (`Generator.spawn`), so
+# that the shapes draw the same numbers whatever the knobs drew before them and a knob
+# changes only what it governs. Widths and heights are metres; stations are metres along
+# the passage.
+
+# Scallops 0.6-0.9 m across (and an eighth as deep): the size slow flows of a few cm/s
+# dissolve into the walls of large phreatic conduits (Curl 1974).
+SCALLOPS_M = (0.6, 0.9)
+
+
+def _stretch(
+    shapes: np.random.Generator, start: float, end: float, length: tuple[float, float]
+) -> np.ndarray:
+    """(2,) a stretch of ``length`` metres (drawn) lying between stations ``start`` and ``end``."""
+    metres = shapes.uniform(*length)
+    first = shapes.uniform(start, max(start, end - metres))
+    return np.array([first, first + metres])
+
+
+def _ceiling_channel(
+    shapes: np.random.Generator, s: np.ndarray, section: Section, start: float, end: float
+) -> Section:
+    """A half-tube 0.9-1.3 m across dissolved into the ceiling, meandering up to 0.8 m
+    either side of the axis, between stations ``start`` and ``end``."""
+    window = _window(s, start, end)
+    return replace(
+        section,
+        ceiling_channel=section.ceiling_channel + shapes.uniform(0.45, 0.65) * window,
+        channel_offset=section.channel_offset + 0.8 * _smooth_noise(s, 10.0, shapes) * window,
+    )
+
+
+def _notch(
+    shapes: np.random.Generator, s: np.ndarray, section: Section, start: float, end: float
+) -> Section:
+    """A notch 0.6-1.0 m deep undercutting one wall for 5-10 m, at about the axis's height
+    or below (where a still water table once stood)."""
+    return _on_a_wall(
+        shapes, s, section, (start, end), "notch", (5.0, 10.0), (-0.5, 0.1), (0.6, 1.0)
+    )
+
+
+def _ledge(
+    shapes: np.random.Generator, s: np.ndarray, section: Section, start: float, end: float
+) -> Section:
+    """A shelf of rock jutting 0.5-0.8 m from one wall for 5-9 m, its top 30-60 % of the
+    half-height above the axis: what lies on it is hidden from below."""
+    return _on_a_wall(shapes, s, section, (start, end), "ledge", (5.0, 9.0), (0.3, 0.6), (0.5, 0.8))
+
+
+def _on_a_wall(
+    shapes: np.random.Generator,
+    s: np.ndarray,
+    section: Section,
+    between: tuple[float, float],
+    feature: str,
+    length: tuple[float, float],
+    height: tuple[float, float],
+    size: tuple[float, float],
+) -> Section:
+    """``section`` with a ``feature`` (a `Section` field with a ``_height`` companion) on
+    one wall, drawn in this order: a stretch of ``length`` metres ``between`` two
+    stations, a side, a height (fraction of the half-height) and a size (metres)."""
+    window = _window(s, *_stretch(shapes, *between, length))
+    side = 1.0 if shapes.random() < 0.5 else -1.0
+    level = shapes.uniform(*height)
+    heights = getattr(section, f"{feature}_height")
+    return replace(
+        section,
+        **{
+            feature: getattr(section, feature) + side * shapes.uniform(*size) * window,
+            f"{feature}_height": np.where(window > 0.01, level, heights),
+        },
+    )
+
+
+def _keyhole(
+    shapes: np.random.Generator, s: np.ndarray, section: Section, start: float, end: float
+) -> Section:
+    """A canyon 1.6-2.2 m wide cut 1.2-2.0 m below the tube's floor for 10-16 m: a keyhole."""
+    window = _window(s, *_stretch(shapes, start, end, (10.0, 16.0)))
+    return replace(
+        section,
+        canyon_width=section.canyon_width + shapes.uniform(0.8, 1.1) * window,
+        canyon_depth=section.canyon_depth + shapes.uniform(1.2, 2.0) * window,
+    )
+
+
+def _speleothems(
+    shapes: np.random.Generator,
+    s: np.ndarray,
+    points: np.ndarray,
+    half_w: np.ndarray,
+    half_h: np.ndarray,
+    section: Section,
+    stations: Sequence[float],
+    kinds: Sequence[str],
+) -> list[Speleothem]:
+    """One speleothem at each station, of each kind: a ``stalactite`` 0.5-1.2 m long
+    hanging anywhere over the middle 60 % of the width, a ``stalagmite`` 0.4-1.0 m tall,
+    or a ``column`` 0.7-1.0 m thick (waisted where its halves met) standing near a wall.
+    Stalactites and stalagmites stop 0.8 m short of the axis's height, so that they
+    stand in the way of a change of depth, not of level flight along the axis. Their far
+    ends reach a metre into the rock, beyond the wall's noise."""
+    out = []
+    for at, kind in zip(stations, kinds, strict=True):
+        i = int(np.searchsorted(s, at))
+        forward, left = _heading_left(points[min(i + 1, len(s) - 1)] - points[max(i - 1, 0)])
+        reach = shapes.uniform(0.65, 0.75) if kind == "column" else shapes.uniform(-0.6, 0.6)
+        across = reach * half_w[i] * (1.0 if kind != "column" or shapes.random() < 0.5 else -1.0)
+        x, y = points[i, :2] + across * left[:2]
+        height = float(extent(half_h[i], across / half_w[i], section.squareness[i]))
+        ceiling, floor = points[i, 2] + height, points[i, 2] - height + section.sediment[i]
+        room = height - 0.8  # from the roof (or the floor) to 0.8 m off the axis's height
+        if kind == "stalactite":
+            length = min(shapes.uniform(0.5, 1.2), room)
+            out.append(
+                Speleothem(x, y, ceiling - length, ceiling + 1.0, 0.03, shapes.uniform(0.25, 0.4))
+            )
+        elif kind == "stalagmite":
+            tall = min(shapes.uniform(0.4, 1.0), room - section.sediment[i])
+            out.append(Speleothem(x, y, floor - 1.0, floor + tall, shapes.uniform(0.3, 0.45), 0.05))
+        else:
+            waist, foot = shapes.uniform(0.3, 0.4), shapes.uniform(0.45, 0.6)
+            middle = (ceiling + floor) / 2 + shapes.uniform(-0.3, 0.3)
+            # The halves overlap by 0.2 m: two cones that only touched would leave a
+            # seam of water one voxel thick where their fields are both zero.
+            out.append(Speleothem(x, y, floor - 1.0, middle + 0.2, foot, waist))
+            out.append(Speleothem(x, y, middle - 0.2, ceiling + 1.0, waist, foot))
+    return out
+
+
+def _breakdown(
+    shapes: np.random.Generator,
+    s: np.ndarray,
+    points: np.ndarray,
+    half_w: np.ndarray,
+    half_h: np.ndarray,
+    stations: Sequence[float],
+    below: float,
+) -> list[Boulder]:
+    """Angular blocks 0.8-2.0 m across fallen on a chamber's floor, one near each station,
+    each wholly ``below`` metres under the axis or lower: a pile that fills the chamber's
+    extra depth and leaves the passage's own height free."""
+    out = []
+    for at in stations:
+        i = int(np.searchsorted(s, at + shapes.uniform(-1.0, 1.0)))
+        _, left = _heading_left(points[min(i + 1, len(s) - 1)] - points[max(i - 1, 0)])
+        r = shapes.uniform(0.4, 1.0)
+        across = shapes.uniform(-0.7, 0.7) * half_w[i]
+        floor = -half_h[i] * math.sqrt(max(1.0 - (across / half_w[i]) ** 2, 0.0))
+        lift = min(floor + 0.4 * r, -below - 1.0 * r)
+        centre = points[i] + across * left + np.array([0.0, 0.0, lift])
+        radii = (
+            r * shapes.uniform(0.8, 1.3),
+            r * shapes.uniform(0.8, 1.3),
+            r * shapes.uniform(0.5, 0.8),
+        )
+        out.append(Boulder(_vec3(centre), radii, angular=int(shapes.integers(2**31))))
+    return out
+
+
 @dataclass(frozen=True)
 class Layout:
     """A generated passage before meshing: spec plus where the vehicle starts.
 
     ``step_budget`` is `Scenario.step_budget`: None for S1-S5, which the SPEC's 150
-    steps fit.
+    steps fit. ``optics`` is `Scenario.optics`: the family's own defaults, as a scenario
+    file's [optics] table (the crawl's silt floor silts out).
     """
 
     spec: PassageSpec
     start: Pose
     description: str
     step_budget: int | None = None
+    optics: Mapping[str, object] = field(default_factory=dict)
 
     @property
     def exit_plane(self) -> tuple[tuple[float, float, float], tuple[float, float, float], float]:
@@ -129,9 +302,14 @@ def _layout_from_profiles(
     roughness: float,
     boulders: tuple[Boulder, ...] = (),
     branches: tuple[Branch, ...] = (),
+    section: Section | None = None,
+    breakdown: tuple[Boulder, ...] = (),
+    speleothems: tuple[Speleothem, ...] = (),
+    scallops: float = 0.0,
     start_offset: tuple[float, float, float] = (0.0, 0.0, 0.0),
     steps_per_m: float | None = None,
     description: str = "",
+    optics: Mapping[str, object] | None = None,
 ) -> Layout:
     """The layout of a passage sampled at stations ``s`` (0 at the start, ``length`` at
     the exit); ``steps_per_m`` gives a step budget for that many steps per metre of
@@ -149,12 +327,16 @@ def _layout_from_profiles(
         roughness=roughness,
         seed=seed,
         branches=branches,
+        section=section,
+        breakdown=breakdown,
+        speleothems=speleothems,
+        scallops=scallops,
     )
     budget = None
     if steps_per_m is not None:
         passage = np.linalg.norm(np.diff(points[start_index : exit_index + 1], axis=0), axis=1)
         budget = 10 * math.ceil(steps_per_m * float(passage.sum()) / 10)
-    return Layout(spec, start, description, budget)
+    return Layout(spec, start, description, budget, dict(optics or {}))
 
 
 def s1(rng: np.random.Generator, seed: int, knobs: Mapping[str, float]) -> Layout:
@@ -168,6 +350,11 @@ def s1(rng: np.random.Generator, seed: int, knobs: Mapping[str, float]) -> Layou
     necks = [c + rng.uniform(-2, 2) for c in (15.0, 29.0, 42.0)]
     half_w = 3.5 - _dips(s, necks, _dip_depth(3.5, knobs["constriction_m"]))
     half_h = 3.0 - _dips(s, necks[1:2], 1.0)
+    # A phreatic tube: scalloped, a half-tube in the ceiling, a notch in a wall, silt.
+    shapes = rng.spawn(1)[0]
+    section = replace(Section.plain(len(s)), sediment=np.full(len(s), 0.4))
+    section = _ceiling_channel(shapes, s, section, *_stretch(shapes, 4.0, length - 6, (20.0, 35.0)))
+    section = _notch(shapes, s, section, 4.0, length - 6)
     return _layout_from_profiles(
         s,
         points,
@@ -176,7 +363,9 @@ def s1(rng: np.random.Generator, seed: int, knobs: Mapping[str, float]) -> Layou
         length,
         seed,
         roughness=knobs["roughness_m"],
-        description="narrow passage with three constrictions to about "
+        section=section,
+        scallops=shapes.uniform(*SCALLOPS_M),
+        description="narrow phreatic passage with three constrictions to about "
         f"{knobs['constriction_m']:.1f} m",
     )
 
@@ -196,6 +385,10 @@ def s2(rng: np.random.Generator, seed: int, knobs: Mapping[str, float]) -> Layou
     necks = [period * (k / 2 + 0.5) + rng.uniform(-1.5, 1.5) for k in (0, 1)]
     half_w = 3.2 - _dips(s, necks, _dip_depth(3.2, knobs["constriction_m"]))
     half_h = 2.9 - _dips(s, necks, 0.8)
+    # Keyhole sections (a canyon cut below the tube) on a stretch of each half.
+    shapes = rng.spawn(1)[0]
+    section = _keyhole(shapes, s, Section.plain(len(s)), 3.0, length / 2)
+    section = _keyhole(shapes, s, section, length / 2, length - 6)
     return _layout_from_profiles(
         s,
         points,
@@ -204,6 +397,8 @@ def s2(rng: np.random.Generator, seed: int, knobs: Mapping[str, float]) -> Layou
         length,
         seed,
         roughness=knobs["roughness_m"],
+        section=section,
+        scallops=shapes.uniform(*SCALLOPS_M),
         description=f"narrow passage with vertical undulations of about "
         f"{knobs['undulation_m']:g} m and two constrictions",
     )
@@ -221,21 +416,29 @@ def s3(rng: np.random.Generator, seed: int, knobs: Mapping[str, float]) -> Layou
     # Stations from 14.5 m on, 29 m / count apart: the default two at 14.5 m and 29 m, and
     # the last of eight by 41 m, clear of the exit at 45 m. Each draws its place in turn.
     spacing = 29.0 / max(count, 1)
+    shapes, stones = rng.spawn(2)  # the blocks' shapes apart: their count is a knob
     boulders = []
     for k in range(count):
         station = 14.5 + k * spacing
         if k % 2 == 0:  # frontal: at the start height, in line with the start near the wall
             jitter = min(1.5, spacing / 4)
             y = -rng.uniform(station - jitter, station + jitter)
-            boulder = Boulder((-wall_side * 0.9, y, 0.0), _scaled((1.7, 1.5, 1.7), scale))
+            centre, radii = (-wall_side * 0.9, y, 0.0), _scaled((1.7, 1.5, 1.7), scale)
         else:  # lateral: jutting from the other wall
             jitter = min(2.0, spacing / 4)
             y = -rng.uniform(station - jitter, station + jitter)
-            boulder = Boulder((wall_side * 3.6, y, -0.3), _scaled((2.3, 1.8, 1.9), scale))
-        boulders.append(boulder)
-    kinds = {0: "no obstacle", 1: "a frontal obstacle", 2: "a frontal and a lateral obstacle"}
-    obstacles = kinds.get(count, f"{count} obstacles, alternately frontal and lateral")
+            centre, radii = (wall_side * 3.6, y, -0.3), _scaled((2.3, 1.8, 1.9), scale)
+        boulders.append(Boulder(centre, radii, angular=int(stones.integers(2**31))))
+    kinds = {
+        0: "no obstacle",
+        1: "a frontal block of breakdown",
+        2: "a frontal and a lateral block of breakdown",
+    }
+    obstacles = kinds.get(count, f"{count} blocks of breakdown, alternately frontal and lateral")
     start = "start near the wall at the frontal obstacle's height" if count else "start near a wall"
+    # Breakdown blocks on a silted floor, and a ledge over the far part of the passage.
+    section = replace(Section.plain(len(s)), sediment=np.full(len(s), 0.5))
+    section = _ledge(shapes, s, section, 30.0, length - 4)
     return _layout_from_profiles(
         s,
         points,
@@ -245,6 +448,8 @@ def s3(rng: np.random.Generator, seed: int, knobs: Mapping[str, float]) -> Layou
         seed,
         roughness=knobs["roughness_m"],
         boulders=tuple(boulders),
+        section=section,
+        scallops=shapes.uniform(*SCALLOPS_M),
         start_offset=(-wall_side * 2.0, 0.0, 0.0),
         description=f"straight passage with {obstacles}; {start}",
     )
@@ -274,6 +479,20 @@ def s4(rng: np.random.Generator, seed: int, knobs: Mapping[str, float]) -> Layou
     length = first + leg
     half_w = 2.9 + 0.3 * _smooth_noise(s, 10.0, rng)
     half_h = 2.7 + 0.2 * _smooth_noise(s, 10.0, rng)
+    # A tall first leg with flat walls turns into a wide one under a flat roof, with
+    # stalactites over the turn and a silted floor. Walls, roof and silt stay as far from
+    # the axis as the tube's were, beyond the SPEC's 2 m standoff, so that the turn stays
+    # the task (a passage lower than that is a crawl, where the geometric pilot creeps).
+    shapes = rng.spawn(1)[0]
+    second = _window(s, first + 3.0, length + 4.0)
+    silt = 0.3
+    half_w = half_w + 0.6 * second
+    half_h = half_h + 0.6 * (1.0 - second) + silt
+    section = replace(
+        Section.plain(len(s)), squareness=np.full(len(s), 0.6), sediment=np.full(len(s), silt)
+    )
+    turn = first + shapes.uniform(-6.0, -2.0) + np.arange(5) * shapes.uniform(1.5, 2.5)
+    speleothems = _speleothems(shapes, s, points, half_w, half_h, section, turn, ["stalactite"] * 5)
     return _layout_from_profiles(
         s,
         points,
@@ -282,6 +501,9 @@ def s4(rng: np.random.Generator, seed: int, knobs: Mapping[str, float]) -> Layou
         length,
         seed,
         roughness=knobs["roughness_m"],
+        section=section,
+        speleothems=tuple(speleothems),
+        scallops=shapes.uniform(*SCALLOPS_M),
         description=f"sharp {bend:g}-degree bend to the {'left' if side > 0 else 'right'}",
     )
 
@@ -294,9 +516,11 @@ def _rocks(
     half_w: np.ndarray,
     half_h: np.ndarray,
     scale: float,
+    shapes: np.random.Generator,
 ) -> list[Boulder]:
     """S5's rocks, one within 2 m of each station: every third on the floor, the others
-    against a wall, 0.8-1.25 m across times ``scale``."""
+    against a wall, angular blocks 0.8-1.25 m across times ``scale`` (their shapes
+    drawn from ``shapes``)."""
     tangent = np.gradient(points, axis=0)
     boulders = []
     for k, at in enumerate(stations):
@@ -311,7 +535,8 @@ def _rocks(
             side = 1.0 if rng.random() < 0.5 else -1.0
             centre = points[i] + side * left * (half_w[i] - 0.2 * r)
             centre = centre + np.array([0.0, 0.0, rng.uniform(-0.8, 0.8)])
-        boulders.append(Boulder(_vec3(centre), _scaled((r, r * 1.1, r * 0.9), scale)))
+        radii = _scaled((r, r * 1.1, r * 0.9), scale)
+        boulders.append(Boulder(_vec3(centre), radii, angular=int(shapes.integers(2**31))))
     return boulders
 
 
@@ -326,7 +551,25 @@ def s5(rng: np.random.Generator, seed: int, knobs: Mapping[str, float]) -> Layou
     half_h = 2.8 + 0.3 * _smooth_noise(s, 9.0, rng)
     count, scale = int(knobs["obstacles"]), knobs["obstacle_scale"]
     stations = np.linspace(9.0, length - 9.0, count)
-    boulders = _rocks(rng, s, stations, points, half_w, half_h, scale)
+    shapes, stones = rng.spawn(2)  # the rocks' shapes apart: their count is a knob
+    boulders = _rocks(rng, s, stations, points, half_w, half_h, scale, stones)
+    # A chamber where the roof collapsed: 1.5 m wider and 1.2 m higher on each side, its
+    # floor heaped with breakdown to about the passage's own; speleothems beyond it.
+    chamber = _stretch(shapes, 14.0, length - 14.0, (10.0, 14.0))
+    grown = _window(s, *chamber)
+    below = half_h.copy()
+    half_w, half_h = half_w + 1.5 * grown, half_h + 1.2 * grown
+    section = replace(Section.plain(len(s)), squareness=0.5 * grown)
+    pile = np.linspace(chamber[0] + 1.0, chamber[1] - 1.0, 8)
+    breakdown = _breakdown(shapes, s, points, half_w, half_h, pile, below=float(below.min()))
+    others = [
+        at for at in np.arange(6.0, length - 6.0, 4.0) if not chamber[0] - 2 < at < chamber[1] + 2
+    ]
+    picks = shapes.choice(len(others), size=4, replace=False)
+    kinds = ["stalactite", "stalactite", "stalagmite", "column"]
+    speleothems = _speleothems(
+        shapes, s, points, half_w, half_h, section, [others[k] for k in sorted(picks)], kinds
+    )
     return _layout_from_profiles(
         s,
         points,
@@ -336,9 +579,13 @@ def s5(rng: np.random.Generator, seed: int, knobs: Mapping[str, float]) -> Layou
         seed,
         roughness=knobs["roughness_m"],
         boulders=tuple(boulders),
-        description="irregular winding passage with rocks spread along it"
+        section=section,
+        breakdown=tuple(breakdown),
+        speleothems=tuple(speleothems),
+        scallops=shapes.uniform(*SCALLOPS_M),
+        description="irregular winding passage with blocks spread along it and a collapse chamber"
         if count
-        else "irregular winding passage",
+        else "irregular winding passage with a collapse chamber",
     )
 
 
@@ -367,6 +614,15 @@ def crawl(rng: np.random.Generator, seed: int, knobs: Mapping[str, float]) -> La
     pinches = [round(4 * (length * k / 4 + rng.uniform(-3, 3))) / 4 for k in (1, 2, 3)]
     half_w = 0.5 * (width - _dips(s, pinches, 1.0, sigma=1.2) * (width - narrowest))
     half_h = 0.5 * np.clip(1.8 + 0.3 * _smooth_noise(s, 10.0, rng), 1.5, 2.2)
+    # A bedding-plane crawl: flat roof and floor, a silt floor 0.3 m deep. The tube is
+    # made 0.15 m higher on each side, so the silt leaves the height above and keeps
+    # the free height: the floor comes 0.15 m nearer the axis.
+    shapes = rng.spawn(1)[0]
+    silt = 0.3
+    half_h = half_h + silt / 2
+    section = replace(
+        Section.plain(len(s)), squareness=np.full(len(s), 0.7), sediment=np.full(len(s), silt)
+    )
     return _layout_from_profiles(
         s,
         points,
@@ -375,9 +631,12 @@ def crawl(rng: np.random.Generator, seed: int, knobs: Mapping[str, float]) -> La
         length,
         seed,
         roughness=knobs["roughness_m"],
+        section=section,
+        scallops=shapes.uniform(0.4, 0.6),
         steps_per_m=7.0,
-        description=f"crawlway: a {length:.0f} m winding passage 1.7-2.5 m across and "
-        f"1.5-2.2 m high, pinched to {narrowest:.1f} m across in three places",
+        optics={"silt_out": True},  # a crawl over silt is where divers silt out
+        description=f"crawlway: a {length:.0f} m winding bedding plane 1.7-2.5 m across and "
+        f"1.5-2.2 m high over silt, pinched to {narrowest:.1f} m across in three places",
     )
 
 
@@ -524,9 +783,11 @@ def maze(rng: np.random.Generator, seed: int, knobs: Mapping[str, float]) -> Lay
         branches.append(branch)
         placed.append((own, np.full(len(own), hw)))
         side = -side
-    description = (
-        f"a {length:.0f} m passage with {count} blind side branches, every other one as "
-        "wide as the way on or wider; one exit"
+    # A ceiling half-tube and a notch, on stretches blind to the junctions: no clue.
+    shapes = rng.spawn(1)[0]
+    channel = _stretch(shapes, 2.0, length - 4.0, (15.0, 30.0))
+    section = _notch(
+        shapes, s, _ceiling_channel(shapes, s, Section.plain(len(s)), *channel), 4.0, length - 6.0
     )
     return _layout_from_profiles(
         s,
@@ -537,15 +798,12 @@ def maze(rng: np.random.Generator, seed: int, knobs: Mapping[str, float]) -> Lay
         seed,
         roughness=roughness,
         branches=tuple(branches),
+        section=section,
+        scallops=shapes.uniform(*SCALLOPS_M),
         steps_per_m=4.0,
-        description=description,
+        description=f"a {length:.0f} m phreatic passage with {count} blind side branches, "
+        "every other one as wide as the way on or wider; one exit",
     )
-
-
-def _window(u: np.ndarray, start: float, end: float) -> np.ndarray:
-    """1 between stations ``start`` and ``end``, 0 outside, eased over about 2 m."""
-    box = ((u >= start) & (u <= end)).astype(float)
-    return gaussian_smooth(box, 2.0 / (u[1] - u[0]))
 
 
 # The long cave's plan (metres along the passage): leg A runs along -y with constrictions
@@ -603,7 +861,21 @@ def long(rng: np.random.Generator, seed: int, knobs: Mapping[str, float]) -> Lay
     frontal = Boulder((-wall * 0.9, -rng.uniform(76, 80), 0.0), _scaled((1.7, 1.5, 1.7), scale))
     lateral = Boulder((wall * 3.6, -rng.uniform(86, 90), -0.3), _scaled((2.3, 1.8, 1.9), scale))
     stations = np.linspace(_LEG_B + 9, _LONG - 9, 8)
-    rocks = _rocks(rng, u, stations, points, half_w, half_h, scale)
+    shapes = rng.spawn(1)[0]
+    frontal, lateral = (replace(b, angular=int(shapes.integers(2**31))) for b in (frontal, lateral))
+    rocks = _rocks(rng, u, stations, points, half_w, half_h, scale, shapes)
+    # Each stretch shaped as its family's: a half-tube and a notch in the first, keyholes
+    # in the second, a silted floor under the boulders and stalactites in leg B.
+    section = _ceiling_channel(
+        shapes, u, Section.plain(len(u)), *_stretch(shapes, 2.0, 33.0, (15.0, 25.0))
+    )
+    section = _notch(shapes, u, section, 2.0, 33.0)
+    section = _keyhole(shapes, u, section, 37.0, 68.0)
+    section = replace(section, sediment=0.5 * _window(u, 72.0, _LEG_A))
+    hanging = shapes.uniform(_LEG_B + 10, _LONG - 10, 6)
+    speleothems = _speleothems(
+        shapes, u, points, half_w, half_h, section, sorted(hanging), ["stalactite"] * 6
+    )
     return _layout_from_profiles(
         u,
         points,
@@ -613,6 +885,9 @@ def long(rng: np.random.Generator, seed: int, knobs: Mapping[str, float]) -> Lay
         seed,
         roughness=knobs["roughness_m"],
         boulders=(frontal, lateral, *rocks),
+        section=section,
+        speleothems=tuple(speleothems),
+        scallops=shapes.uniform(*SCALLOPS_M),
         steps_per_m=3.0,
         description=f"a {_LONG:.0f} m cave chaining the five: constrictions to about "
         f"{narrowest:.1f} m, a rise and fall of about {undulation:g} m, a frontal and a "

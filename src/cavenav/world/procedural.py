@@ -38,6 +38,7 @@ from scipy.spatial import cKDTree
 from cavenav.errors import CavenavWarning, MeshError
 from cavenav.files import write_then_rename
 from cavenav.world.mesh import CaveMesh, make_mesh
+from cavenav.world.morphology import Boulder, Section, Speleothem, carve_scallops
 
 __all__ = [
     "GENERATOR_VERSION",
@@ -51,21 +52,13 @@ __all__ = [
 ]
 
 # Bump whenever the generator's output changes, so cached meshes are rebuilt.
-GENERATOR_VERSION = 1
+GENERATOR_VERSION = 2
 
 # Voxels handled at once (about 2 M: a few tens of MB of temporaries), and the side of
 # the blocks the tubes are evaluated in (8 voxels, 1.6 m at 0.2 m: fine enough to skip
 # most of the rock around a winding passage, coarse enough to be cheap to sort out).
 _SLAB_VOXELS = 1 << 21
 _BLOCK = 8
-
-
-@dataclass(frozen=True)
-class Boulder:
-    """An ellipsoid of rock: centre (3,) and semi-axes (3,) in metres."""
-
-    centre: tuple[float, float, float]
-    radii: tuple[float, float, float]
 
 
 @dataclass(frozen=True, eq=False)
@@ -100,6 +93,13 @@ class PassageSpec:
         voxel: grid spacing in metres; 0.2 resolves rock detail and stays fast.
         branches: side passages; none may reach past the exit plane, where the grid is
             cut, or it would open a second way out.
+        section: how the main passage's section departs from an ellipse at each
+            centre-line point (`Section`); None keeps it elliptical.
+        breakdown: blocks fallen from a collapsed roof, lying on the floor: rock like the
+            boulders, but part of the cave's floor rather than obstacles in its way.
+        speleothems: stalactites, stalagmites and columns, rock like the boulders.
+        scallops: how wide the scallops dissolved into every wall are, metres (their
+            depth is an eighth of that); 0 leaves the walls unscalloped.
     """
 
     centreline: np.ndarray
@@ -111,19 +111,22 @@ class PassageSpec:
     seed: int = 0
     voxel: float = 0.2
     branches: tuple[Branch, ...] = field(default_factory=tuple)
+    section: Section | None = None
+    breakdown: tuple[Boulder, ...] = field(default_factory=tuple)
+    speleothems: tuple[Speleothem, ...] = field(default_factory=tuple)
+    scallops: float = 0.0
 
     def digest(self) -> str:
-        """A short hash of every input, for the mesh cache.
-
-        A passage without branches hashes as it did before branches existed, so its
-        cached mesh stays valid.
-        """
+        """A short hash of every input and of `GENERATOR_VERSION`, for the mesh cache."""
         h = hashlib.sha256()
         for arr in (self.centreline, self.half_width, self.half_height):
             h.update(np.ascontiguousarray(arr, np.float64).tobytes())
         for branch in self.branches:
             h.update(f"branch of {len(branch.centreline)}".encode())
             for arr in (branch.centreline, branch.half_width, branch.half_height):
+                h.update(np.ascontiguousarray(arr, np.float64).tobytes())
+        if self.section is not None:
+            for arr in self.section.arrays():
                 h.update(np.ascontiguousarray(arr, np.float64).tobytes())
         h.update(
             repr(
@@ -133,6 +136,9 @@ class PassageSpec:
                     self.roughness,
                     self.seed,
                     self.voxel,
+                    self.breakdown,
+                    self.speleothems,
+                    self.scallops,
                     GENERATOR_VERSION,
                 )
             ).encode()
@@ -209,42 +215,72 @@ class _Tube:
     half_width: np.ndarray  # (n,)
     half_height: np.ndarray  # (n,)
     tree: cKDTree
+    along: np.ndarray  # (n,) arc length of each sample
+    section: Section | None = None
 
     @classmethod
-    def of(cls, centreline: np.ndarray, half_width: np.ndarray, half_height: np.ndarray) -> _Tube:
+    def of(
+        cls,
+        centreline: np.ndarray,
+        half_width: np.ndarray,
+        half_height: np.ndarray,
+        section: Section | None = None,
+    ) -> _Tube:
         pts = np.asarray(centreline, np.float64)
         tangent, normal, up = _frames(pts)
         half_w = np.asarray(half_width, np.float64)
         half_h = np.asarray(half_height, np.float64)
-        return cls(pts, tangent, normal, up, half_w, half_h, cKDTree(pts))
+        along = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))])
+        return cls(pts, tangent, normal, up, half_w, half_h, cKDTree(pts), along, section)
 
     @property
     def size(self) -> float:
-        """The largest half-size of any section, metres."""
-        return float(max(self.half_width.max(), self.half_height.max()))
+        """The largest half-size of any section, reaches of its features included, metres."""
+        size = max(self.half_width.max(), self.half_height.max())
+        if self.section is not None:
+            s = self.section
+            size = max(
+                size,
+                float((self.half_height + s.canyon_depth).max()),
+                float((self.half_height + s.ceiling_channel).max()),
+                float((self.half_width + np.abs(s.notch)).max()),
+            )
+        return float(size)
 
-    def field(self, grid: np.ndarray, reach: float) -> np.ndarray:
+    def field(self, grid: np.ndarray, reach: float) -> tuple[np.ndarray, np.ndarray | None]:
         """phi of this tube at ``grid`` (m, 3): the least over the 4 nearest samples of
-        the radial distance outside their sections, ``reach`` where none is within reach.
+        the radial distance outside their sections, ``reach`` where none is within reach;
+        and the sediment's field there, from the nearest sample (None without a `Section`).
 
         Returns:
-            (m,) float32.
+            ((m,) float32, (m,) float32 positive under the sediment's top, or None).
         """
         phi = np.full(len(grid), reach, np.float32)
+        sediment = None if self.section is None else np.full(len(grid), -np.inf, np.float32)
         dist, idx = self.tree.query(grid, k=4, distance_upper_bound=reach)
         for j in range(idx.shape[1]):
             near = np.isfinite(dist[:, j])
             i = idx[near, j]
             o = grid[near] - self.points[i]
-            r = np.sqrt(
-                (np.einsum("ij,ij->i", o, self.normal[i]) / self.half_width[i]) ** 2
-                + (np.einsum("ij,ij->i", o, self.up[i]) / self.half_height[i]) ** 2
-                + (np.einsum("ij,ij->i", o, self.tangent[i]) / self.half_width[i]) ** 2
-            )
-            length = np.linalg.norm(o, axis=1)
-            value = (length - length / np.maximum(r, 1e-6)).astype(np.float32)
-            phi[near] = np.minimum(phi[near], value)
-        return phi
+            a = np.einsum("ij,ij->i", o, self.normal[i])
+            b = np.einsum("ij,ij->i", o, self.up[i])
+            c = np.einsum("ij,ij->i", o, self.tangent[i])
+            if self.section is None:
+                r = np.sqrt(
+                    (a / self.half_width[i]) ** 2
+                    + (b / self.half_height[i]) ** 2
+                    + (c / self.half_width[i]) ** 2
+                )
+                length = np.linalg.norm(o, axis=1)
+                value = length - length / np.maximum(r, 1e-6)
+            else:
+                value, floor = self.section.field(
+                    i, a, b, c, self.half_width[i], self.half_height[i], self.along[i] + c
+                )
+                if j == 0:
+                    sediment[near] = floor
+            phi[near] = np.minimum(phi[near], value.astype(np.float32))
+        return phi, sediment
 
 
 def _fractal_noise(shape: tuple[int, ...], voxel: float, rng: np.random.Generator) -> np.ndarray:
@@ -351,7 +387,7 @@ def _generate(spec: PassageSpec, name: str) -> CaveMesh:
     from skimage.measure import marching_cubes
 
     voxel = spec.voxel
-    tubes = [_Tube.of(spec.centreline, spec.half_width, spec.half_height)]
+    tubes = [_Tube.of(spec.centreline, spec.half_width, spec.half_height, spec.section)]
     tubes += [_Tube.of(b.centreline, b.half_width, b.half_height) for b in spec.branches]
     reach = max(tube.size for tube in tubes) + 1.0 + spec.roughness
 
@@ -373,33 +409,54 @@ def _generate(spec: PassageSpec, name: str) -> CaveMesh:
     # Rock (``reach``) wherever no tube reaches: the value a voxel with no centre-line
     # sample within reach always had, so skipping those voxels changes no mesh.
     phi = np.full(shape, reach, np.float32)
+    sediment = None if spec.section is None else np.full(shape, -np.inf, np.float32)
     for idx in _blocks_near(every_point, lo, voxel, shape, reach):
         grid = np.stack([axes[k][idx[:, k]] for k in range(3)], axis=1)
-        value = tubes[0].field(grid, reach)
+        value, floor = tubes[0].field(grid, reach)
         for tube in tubes[1:]:
-            value = np.minimum(value, tube.field(grid, reach))
+            value = np.minimum(value, tube.field(grid, reach)[0])
         phi[idx[:, 0], idx[:, 1], idx[:, 2]] = value
+        if floor is not None:
+            sediment[idx[:, 0], idx[:, 1], idx[:, 2]] = floor
 
     rng = np.random.default_rng(spec.seed)
     noise = _fractal_noise(shape, voxel, rng)
     noise *= spec.roughness  # in place: no third grid-sized array
     phi += noise
     del noise
+    carve_scallops(phi, lo, voxel, spec.scallops, spec.scallops / 8, rng)
+    if sediment is not None:  # laid over the rough rock: flat where it fills, rock pokes through
+        np.maximum(phi, sediment, out=phi)
+        del sediment
 
-    for boulder in spec.boulders:
-        c, r = np.asarray(boulder.centre), np.asarray(boulder.radii)
-        b_lo = np.maximum(((c - r - 1.0 - lo) / voxel).astype(int), 0)
-        b_hi = np.minimum(((c + r + 1.0 - lo) / voxel).astype(int) + 1, shape)
-        sl = tuple(slice(b_lo[k], b_hi[k]) for k in range(3))
-        sub = np.stack(np.meshgrid(*[axes[k][sl[k]] for k in range(3)], indexing="ij"), -1)
-        rel = (sub - c) / r
-        rb = np.linalg.norm(rel, axis=-1)
-        inside = (rb - 1.0) * float(r.min())  # negative inside the boulder
-        phi[sl] = np.maximum(phi[sl], -inside)
-
+    _add_rocks(phi, spec, lo, axes)
     verts, faces, _, _ = marching_cubes(phi, level=0.0, spacing=(voxel,) * 3)
     verts = verts + lo
     return make_mesh(verts, _largest_components(faces, len(verts)), name)
+
+
+def _add_rocks(phi: np.ndarray, spec: PassageSpec, lo: np.ndarray, axes: list[np.ndarray]) -> None:
+    """Make rock (in place) of the boulders, breakdown and speleothems of ``spec``, each
+    evaluated only in the part of the grid (corner ``lo``, coordinates ``axes``) within
+    its reach."""
+
+    def rock(
+        centre: np.ndarray, reach_m: float, outside: Callable[[np.ndarray], np.ndarray]
+    ) -> None:
+        b_lo = np.maximum(((centre - reach_m - 1.0 - lo) / spec.voxel).astype(int), 0)
+        b_hi = np.minimum(((centre + reach_m + 1.0 - lo) / spec.voxel).astype(int) + 1, phi.shape)
+        if np.any(b_hi <= b_lo):
+            return
+        sl = tuple(slice(b_lo[k], b_hi[k]) for k in range(3))
+        sub = np.stack(np.meshgrid(*[axes[k][sl[k]] for k in range(3)], indexing="ij"), -1)
+        inside = -outside(sub.reshape(-1, 3)).reshape(sub.shape[:3])
+        phi[sl] = np.maximum(phi[sl], inside)
+
+    for boulder in (*spec.boulders, *spec.breakdown):
+        rock(np.asarray(boulder.centre), boulder.reach, boulder.field)
+    for cone in spec.speleothems:
+        middle = np.array([cone.x, cone.y, (cone.bottom + cone.top) / 2])
+        rock(middle, max(cone.reach, (cone.top - cone.bottom) / 2), cone.field)
 
 
 def _blocks_near(

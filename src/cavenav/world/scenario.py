@@ -101,7 +101,7 @@ class Scenario:
     exits: tuple[ExitPortal, ...]
     description: str = ""
     seed: int | None = None
-    optics: Mapping[str, Any] = field(default_factory=dict)  # the file's [optics] table
+    optics: Mapping[str, Any] = field(default_factory=dict)  # a file's [optics], a family's own
     centreline: np.ndarray | None = None
     difficulty: Difficulty | None = None
     sensors: Mapping[str, Any] = field(default_factory=dict)  # the file's [sensors] table
@@ -562,6 +562,7 @@ def procedural_scenario(name: str, seed: int = 0, difficulty: Difficulty | None 
         centreline=centreline,
         difficulty=difficulty,
         step_budget=layout.step_budget,
+        optics=layout.optics,
     )
 
 
