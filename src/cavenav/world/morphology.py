@@ -6,12 +6,12 @@ real flooded caves depart from it in a few recurring ways, each a term here:
 - `Section`, per centre-line sample, reshapes the section itself: a flat roof and floor
   (``squareness``: bedding planes and canyons), a slot below the tube (``canyon_*``: a
   keyhole), a half-tube dissolved into the ceiling, a notch undercutting one wall, a shelf
-  of rock jutting from one wall (a ledge: what lies under it cannot be seen from the
-  passage's axis), and a sediment fill with ripples that flattens the floor.
+  of rock jutting from one wall (a ledge: what lies on it cannot be seen from the axis
+  below it), and a sediment fill with ripples that flattens the floor.
 - `carve_scallops`: the dish-shaped hollows that turbulent flow dissolves into limestone
   walls, as the cells of a jittered lattice (a Worley pattern) cut into the rock.
-- `Boulder`: an ellipsoid of rock, or an angular block of breakdown (a box turned at
-  random with its corners sheared off by random planes).
+- `Boulder`: an ellipsoid of rock, or an angular block of breakdown (a box at any
+  heading, tilted a little, its corners sheared off by random planes).
 - `Speleothem`: a stalactite, stalagmite or a column's half, a vertical truncated cone.
 
 Everything is built from +, -, *, /, sqrt, min and max, which IEEE rounds the same on

@@ -6,8 +6,11 @@ every sample. The field is negative in water and positive in rock:
     phi(p) = min over nearby samples i of  |o| - |o| / r(o),
              o = p - c_i,   r(o) = sqrt((o.n_i / a_i)^2 + (o.u_i / b_i)^2 + (o.t_i / a_i)^2)
 
-(the radial distance from the sample to its elliptical section), plus fractal noise that
-roughens the walls, minus boulders (ellipsoids of rock). Side branches are tubes of their
+(the radial distance from the sample to its elliptical section). The main passage's
+sections take the shapes of real caves where a `Section` says so (flat roofs, keyholes,
+ceiling half-tubes, notches, ledges: `cavenav.world.morphology`); then fractal noise
+roughens the walls, scallops are cut into them, silt is laid over the floor, and
+boulders, breakdown and speleothems are made rock. Side branches are tubes of their
 own and the field is the least of all tubes', so junctions merge by themselves and every
 tube ends in a rounded, closed end. Marching cubes at the zero level gives watertight walls
 with obstacles merged for free. The grid is cut just past the exit, so the passage runs
@@ -16,7 +19,8 @@ that portal as they would through a real exit.
 
 Memory stays bounded for long caves: the tubes are evaluated block by block, only in the
 blocks within reach of a centre-line (the rest of the grid is rock), and the noise a slab
-at a time; what remains are two float32 arrays of the grid (field and noise).
+at a time; what remains are two or three float32 arrays of the grid (field and noise,
+and the sediment's field where there is silt).
 """
 
 from __future__ import annotations

@@ -18,9 +18,10 @@ Each step (taken to last `STEP_SECONDS`):
    drifts with its decaying wash, and sinks at fine silt's settling speed. Puffs too thin
    to see are dropped, and past `MAX_PUFFS` the two oldest merge.
 
-The constants are assumptions, chosen to reproduce what divers report (a few seconds of
-stirring close to the floor leave under a metre of visibility for a minute or more):
-they are not measured, and each is a module constant to change.
+The stirring constants are assumptions, set by eye to give what divers report (a few
+moves close to a silt floor, and the way back is a wall of silt): no measurement of an
+ROV's wash was at hand. Each is a module constant to change. The optics of silt are
+published figures (below).
 """
 
 from __future__ import annotations
