@@ -2,12 +2,13 @@
 
 The sensor step must cost little more than its ray cast (target: 1.5x). In numpy each
 formula is a separate pass over 307,200 pixels with its temporaries; here a frame takes
-three parallel kernels. `shade_grid` shades every fourth pixel of every fourth row in full
-and meters the frame for the camera; `shade_frame` then reads each hit once, takes the
-smooth part of its light from the grid (or shades it in full at edges), takes it through
-the sensor (noise, gain) and writes the depth PNG; `develop_image` filters the sensor's
-noise and writes the colour through the camera's curve. The model is described in
-`cavenav.sensors.optics`.
+three parallel kernels and a small serial one. `shade_grid` shades every fourth pixel of
+every fourth row in full and meters the frame for the camera; `spread_halo` blurs the
+light the water scatters forward there into its halo; `shade_frame` then reads each hit
+once, takes the smooth part of its light from the grid (or shades it in full at edges),
+takes it through the sensor (noise, gain) and writes the depth PNG; `develop_image`
+filters the sensor's noise and writes the colour through the camera's curve. The model
+is described in `cavenav.sensors.optics`.
 
 Random numbers come from a counter-based hash (splitmix64) of a key and an index, so
 every pixel and particle draws its own numbers in any thread order: bit-identical images
