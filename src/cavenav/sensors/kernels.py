@@ -273,6 +273,7 @@ def integrate_backscatter(
     """Radiance the water scatters back toward the camera from the lamps' beams."""
     steps = bins * substeps
     hg = (1.0 - g * g) * _INV_4PI
+    lamps = (lamp_pos, lamp_axis, lamp_power, profile)
     for i in numba.prange(dirs.shape[0]):
         ux, uy, uz = dirs[i, 0], dirs[i, 1], dirs[i, 2]
         length = math.sqrt(ux * ux + uy * uy + uz * uz)
@@ -283,7 +284,6 @@ def integrate_backscatter(
         s_prev = 0.0
         for m in range(steps + 1):
             s = far * (m / steps) ** 2
-            lamps = (lamp_pos, lamp_axis, lamp_power, profile)
             _scattered_toward(s * ux, s * uy, s * uz, s * length, vx, vy, vz, lamps, hg, g, attenuation, here)  # fmt: skip  # noqa: E501
             for c in range(3):
                 here[c] *= scattering[c]
@@ -330,6 +330,7 @@ def integrate_silt(
     steps = bins * substeps
     hg = (1.0 - g * g) * _INV_4PI
     norm = 1.0 / (2.0 * math.pi) ** 1.5
+    lamps = (lamp_pos, lamp_axis, lamp_power, profile)
     for i in numba.prange(dirs.shape[0]):
         ux, uy, uz = dirs[i, 0], dirs[i, 1], dirs[i, 2]
         length = math.sqrt(ux * ux + uy * uy + uz * uz)
@@ -373,7 +374,6 @@ def integrate_silt(
                     tau[c] += 0.5 * (prev_c + conc) * extinction[c] * (s - s_prev) * length
             here[:] = 0.0
             if conc > 0.0:
-                lamps = (lamp_pos, lamp_axis, lamp_power, profile)
                 _scattered_toward(px, py, pz, s * length, vx, vy, vz, lamps, hg, g, attenuation, here)  # fmt: skip  # noqa: E501
                 for c in range(3):
                     here[c] *= scattering[c] * conc * math.exp(-2.0 * tau[c])
@@ -503,15 +503,15 @@ FINE_BUMP_M = 0.004 / 127.0
 
 
 @numba.njit(inline="always")
-def _surface_light(i, tri, r, hit, d, n, slope, uvs, faces, vertex_normals, surface, surface_at, lamps, gloss, c, k):  # fmt: skip  # noqa: ANN001, ANN202, E501
+def _surface_light(i, tri, r, hit, d, n, slope, uvs, faces, vertex_normals, surface, surface_at, lamps, gloss, c, kept):  # fmt: skip  # noqa: ANN001, ANN202, E501
     """Light from rock hit by pixel i reaching the camera, before the grain texture:
     (R, G, B straight, R, G, B scattered forward, green lamp light returned). r is the
     path length to the hit point ``hit`` (3 floats), ``d`` the ray's direction (3
     floats), ``n`` the hit triangle's normal, ``slope`` the gradient of the rock's small
     relief (3 floats, metres per metre; its part along the surface tilts the shading
     normal), ``gloss`` the rock's specular reflectance there, ``c`` the water's beam
-    attenuation and ``k`` what is left of it when light scattered by a few degrees is
-    counted as kept (`optics.Water.kept_attenuation`), each (3).
+    attenuation and ``kept`` what is left of it (k) when light scattered by a few degrees
+    is counted as kept (`optics.Water.kept_attenuation`), each (3).
 
     The lamps' light reaches the rock through k: what the water scatters forward still
     lands about the spot. On the way back, exp(-c r) of the rock's light comes straight
@@ -529,7 +529,7 @@ def _surface_light(i, tri, r, hit, d, n, slope, uvs, faces, vertex_normals, surf
     dx, dy, dz = d
     nx, ny, nz = n
     c0, c1, c2 = c
-    k0, k1, k2 = k
+    k0, k1, k2 = kept
     lamp_pos, lamp_axis, lamp_power, profile = lamps
     side = 0
     if nx * dx + ny * dy + nz * dz > 0.0:  # the camera sees the triangle's back
@@ -590,11 +590,11 @@ def _surface_light(i, tri, r, hit, d, n, slope, uvs, faces, vertex_normals, surf
     # exp(-k r) = exp(-c r) exp((c - k) r), and c - k (scattering kept forward) is about
     # the same in every channel: one exponential, and a second-order series for the
     # others' small difference x (error x^3 / 6: below 1e-4 within 10 m in any water).
-    kept = math.exp((c1 - k1) * r)
+    regained = math.exp((c1 - k1) * r)
     x0, x2 = (c0 - k0 - c1 + k1) * r, (c2 - k2 - c1 + k1) * r
-    u0 = t0 * kept * (1.0 + x0 + 0.5 * x0 * x0)
-    u1 = t1 * kept
-    u2 = t2 * kept * (1.0 + x2 + 0.5 * x2 * x2)
+    u0 = t0 * regained * (1.0 + x0 + 0.5 * x0 * x0)
+    u1 = t1 * regained
+    u2 = t2 * regained * (1.0 + x2 + 0.5 * x2 * x2)
     out0 = r0 * (e0 * u0 + r3) + s0 * u0  # leaving the rock toward the camera
     out1 = r1 * (e1 * u1 + r4) + s1 * u1
     out2 = r2 * (e2 * u2 + r5) + s2 * u2
@@ -606,7 +606,7 @@ def _surface_light(i, tri, r, hit, d, n, slope, uvs, faces, vertex_normals, surf
 
 
 @numba.njit(inline="always")
-def _rock(i, depth, origin, dx, dy, dz, length, cast, scene, lamps, c, k):  # noqa: ANN001, ANN202
+def _rock(i, depth, origin, dx, dy, dz, length, cast, scene, lamps, c, kept):  # noqa: ANN001, ANN202
     """`_surface_light` of the rock hit by pixel i, times the rock grain at the hit; the
     grain also makes pale rock glossier (calcite crystals, polished flowstone)."""
     _, triangle, normals, uvs = cast
@@ -626,7 +626,7 @@ def _rock(i, depth, origin, dx, dy, dz, length, cast, scene, lamps, c, k):  # no
     l0, l1, l2, h0, h1, h2, lamp_return = _surface_light(
         i, triangle[i], depth * length, (hx, hy, hz), (dx, dy, dz),
         (normals[i, 0], normals[i, 1], normals[i, 2]), slope, uvs, faces, vertex_normals,
-        surface, surface_at, lamps, specular * max(1.0 + 3.0 * relief, 0.0), c, k,
+        surface, surface_at, lamps, specular * max(1.0 + 3.0 * relief, 0.0), c, kept,
     )  # fmt: skip
     grain = 1.0 + relief
     return grain * l0, grain * l1, grain * l2, grain * h0, grain * h1, grain * h2, lamp_return
@@ -856,9 +856,7 @@ def spread_halo(
             x0 = int(x)
             x1, fx = min(x0 + 1, wide - 1), x - x0
             for c in range(3):
-                top = coarse[y0, x0, c] + fx * (coarse[y0, x1, c] - coarse[y0, x0, c])
-                bottom = coarse[y1, x0, c] + fx * (coarse[y1, x1, c] - coarse[y1, x0, c])
-                value = top + fy * (bottom - top)
+                value = _bilinear(coarse, y0, y1, fy, x0, x1, fx, c)
                 halo[a, b, c] = value
                 grid[a, b, 4 + c] += value
 
@@ -872,12 +870,20 @@ def _halo_at(halo, row, col):  # noqa: ANN001, ANN202
     y0, x0 = int(y), int(x)
     y1, x1 = min(y0 + 1, rows - 1), min(x0 + 1, columns - 1)
     fy, fx = y - y0, x - x0
-    out = np.empty(3)
-    for c in range(3):
-        top = halo[y0, x0, c] + fx * (halo[y0, x1, c] - halo[y0, x0, c])
-        bottom = halo[y1, x0, c] + fx * (halo[y1, x1, c] - halo[y1, x0, c])
-        out[c] = top + fy * (bottom - top)
-    return out[0], out[1], out[2]
+    return (
+        _bilinear(halo, y0, y1, fy, x0, x1, fx, 0),
+        _bilinear(halo, y0, y1, fy, x0, x1, fx, 1),
+        _bilinear(halo, y0, y1, fy, x0, x1, fx, 2),
+    )
+
+
+@numba.njit(inline="always")
+def _bilinear(field, y0, y1, fy, x0, x1, fx, c) -> float:  # noqa: ANN001
+    """Channel c of (h, w, 3) ``field`` between rows y0, y1 and columns x0, x1, at the
+    fractions fy, fx of the way from the first to the second."""
+    top = field[y0, x0, c] + fx * (field[y0, x1, c] - field[y0, x0, c])
+    bottom = field[y1, x0, c] + fx * (field[y1, x1, c] - field[y1, x0, c])
+    return top + fy * (bottom - top)
 
 
 @numba.njit(inline="always")
