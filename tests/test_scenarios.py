@@ -237,7 +237,7 @@ REFERENCE_DIGESTS = {
     "S2": "47379c7c455a9679",
     "S3": "1b558098f234c83a",
     "S4": "1b5f9a4d5699a370",
-    "S5": "4602155436d72b13",
+    "S5": "31f519dc81231939",
 }
 
 # A value of each knob, in range and away from the default, for each family that has it.

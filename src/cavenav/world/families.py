@@ -240,20 +240,22 @@ def _breakdown(
     points: np.ndarray,
     half_w: np.ndarray,
     half_h: np.ndarray,
+    section: Section,
     stations: Sequence[float],
     below: float,
 ) -> list[Boulder]:
-    """Angular blocks 0.8-2.0 m across fallen on a chamber's floor, one near each station,
-    each wholly ``below`` metres under the axis or lower: a pile that fills the chamber's
-    extra depth and leaves the passage's own height free."""
+    """Angular blocks 0.8-2.0 m across fallen on a chamber's floor (``section``'s, flatter
+    than an ellipse's), one near each station, each wholly ``below`` metres under the axis
+    or lower: a pile that fills the chamber's extra depth and leaves the passage's own
+    height free."""
     out = []
     for at in stations:
         i = int(np.searchsorted(s, at + shapes.uniform(-1.0, 1.0)))
         _, left = _heading_left(points[min(i + 1, len(s) - 1)] - points[max(i - 1, 0)])
         r = shapes.uniform(0.4, 1.0)
         across = shapes.uniform(-0.7, 0.7) * half_w[i]
-        floor = -half_h[i] * math.sqrt(max(1.0 - (across / half_w[i]) ** 2, 0.0))
-        lift = min(floor + 0.4 * r, -below - 1.0 * r)
+        floor = -float(extent(half_h[i], across / half_w[i], section.squareness[i]))
+        lift = min(floor + 0.1 * r, -below - 1.0 * r)  # sunk into the floor, rough as it is
         centre = points[i] + across * left + np.array([0.0, 0.0, lift])
         radii = (
             r * shapes.uniform(0.8, 1.3),
@@ -561,7 +563,7 @@ def s5(rng: np.random.Generator, seed: int, knobs: Mapping[str, float]) -> Layou
     half_w, half_h = half_w + 1.5 * grown, half_h + 1.2 * grown
     section = replace(Section.plain(len(s)), squareness=0.5 * grown)
     pile = np.linspace(chamber[0] + 1.0, chamber[1] - 1.0, 8)
-    breakdown = _breakdown(shapes, s, points, half_w, half_h, pile, below=float(below.min()))
+    breakdown = _breakdown(shapes, s, points, half_w, half_h, section, pile, float(below.min()))
     others = [
         at for at in np.arange(6.0, length - 6.0, 4.0) if not chamber[0] - 2 < at < chamber[1] + 2
     ]
