@@ -22,7 +22,7 @@ import numpy as np
 
 from cavenav.episode.gallery import passage_poses
 from cavenav.sensors.image_stats import downscale
-from cavenav.sensors.optics import WATER_TYPES, Optics
+from cavenav.sensors.optics import CAVE_WATERS, Optics
 from cavenav.sensors.rig import SensorConfig, SensorRig
 from cavenav.types import Pose
 from cavenav.world.raycast import RayCaster
@@ -53,7 +53,7 @@ def main() -> None:
         scenario = load_scenario(name, seed=0)
         along = passage_poses(scenario, count=6)
         views.append((RayCaster(scenario.mesh), along[min(2, len(along) - 1)][0]))
-    for water in WATER_TYPES:
+    for water in CAVE_WATERS:
         path = args.out / f"{args.label}-{water}.jpg"
         iio.imwrite(path, strip(water, views), quality=88)
         print(path)

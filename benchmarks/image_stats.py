@@ -46,7 +46,10 @@ per unit depth); a 320x240 pixel counts as beyond (within) when all four of its 
 pixels are; mixed pixels and open water (rays that leave the cave: no rock to light) are
 left out.
 
-Run: python benchmarks/image_stats.py [--poses N]   (about 1-2 minutes; the first run
+Last, on one pose per scenario: Jerlov's water types (`optics.jerlov_water`), with the
+lamps' reach in each, and turbid water's contrast as the lamps' beams narrow.
+
+Run: python benchmarks/image_stats.py [--poses N]   (about 3 minutes; the first run
      per water also builds the lighting tables, then cached with the caves)
 """
 
@@ -64,7 +67,7 @@ from cavenav.episode.gallery import passage_poses
 from cavenav.sensors.image_stats import NEAR_BLACK, FrameStats, downscale, frame_stats
 from cavenav.sensors.kernels import SHARE
 from cavenav.sensors.lighting import DEFAULT_ROCK, ROCK_PALETTE
-from cavenav.sensors.optics import WATER_TYPES, Optics, black_clamp
+from cavenav.sensors.optics import CAVE_WATERS, JERLOV_KD, WATER_TYPES, Optics, black_clamp
 from cavenav.sensors.rig import Frame, SensorConfig, SensorRig, camera_response
 from cavenav.types import Pose
 from cavenav.world.raycast import RayCaster
@@ -201,9 +204,9 @@ def scenario_frames(name: str, water: str, poses: list[Pose]) -> list[Frame]:
 
 def measure(poses: dict[str, list[Pose]]) -> tuple[dict[str, list[FrameStats]], Check, list[float]]:
     """Statistics of every frame per water; the physical check and reaches in clear water."""
-    stats: dict[str, list[FrameStats]] = {water: [] for water in WATER_TYPES}
+    stats: dict[str, list[FrameStats]] = {water: [] for water in CAVE_WATERS}
     check, reaches = Check(), []
-    for water in WATER_TYPES:
+    for water in CAVE_WATERS:
         config = SensorConfig(optics=Optics(water=water))
         for name, where in poses.items():
             for frame in scenario_frames(name, water, where):
@@ -215,6 +218,42 @@ def measure(poses: dict[str, list[Pose]]) -> tuple[dict[str, list[FrameStats]], 
                     reaches.append(reach)
                     check.add(frame, small, reach, config)
     return stats, check, reaches
+
+
+def survey(poses: dict[str, list[Pose]], optics: Optics) -> tuple[list[FrameStats], list[float]]:
+    """Statistics of every frame with ``optics``, and the lamps' reach in each frame."""
+    config = SensorConfig(optics=optics)
+    stats, reaches = [], []
+    for name, where in poses.items():
+        rig = SensorRig(RayCaster(load_scenario(name, seed=0).mesh), config)
+        for pose in where:
+            frame = rig.render(pose, radiance=True)
+            stats.append(frame_stats(downscale(frame.rgb)))
+            gains, gain = camera_response(metered_mean(frame, config), optics)
+            reaches.append(lamp_reach(optics, gains, gain))
+    return stats, reaches
+
+
+def print_waters_and_beams(poses: dict[str, list[Pose]]) -> None:
+    """Jerlov's water types, and turbid water under narrower lamps, on fewer frames."""
+    count = sum(len(p) for p in poses.values())
+    print(f"\nJerlov's water types (Jerlov 1976; `optics.jerlov_water`), {count} frames each")
+    columns = ("mean_value", "near_black", "structure", "contrast")
+    head = " ".join(f"{LABELS[k]:>22}" for k in columns)
+    print(f"{'water':<11} {'c (R, G, B) 1/m':>19} {'reach m':>8} {head}")
+    for name in JERLOV_KD:
+        water = f"jerlov-{name}"
+        frames, reaches = survey(poses, Optics(water=water))
+        c = ", ".join(f"{v:.2f}" for v in WATER_TYPES[water].attenuation)
+        cells = " ".join(
+            f"{_fmt(k, statistics.fmean(getattr(f, k) for f in frames)):>22}" for k in columns
+        )
+        print(f"{water:<11} {c:>19} {statistics.median(reaches):>8.1f} {cells}")
+    print("\nturbid water: the veil's contrast as the lamps' beams narrow (visible beams)")
+    for beam in (90.0, 60.0, 30.0):
+        frames, _ = survey(poses, Optics(water="turbid", lamp_beam_deg=beam))
+        contrast = statistics.fmean(f.contrast for f in frames)
+        print(f"beam {beam:>3.0f} degrees: RMS contrast of luma {contrast:.3f}")
 
 
 def _fmt(key: str, value: float | None) -> str:
@@ -289,6 +328,9 @@ def main() -> None:
             f"median {statistics.median(seen):.3f}; above the issue's {DARK_ENOUGH}: "
             f"{sum(fraction > DARK_ENOUGH for fraction in seen)}"
         )
+    print_waters_and_beams(
+        {name: where[len(where) // 2 : len(where) // 2 + 1] for name, where in poses.items()}
+    )
     print(f"({time.perf_counter() - start:.0f} s)")
 
 

@@ -18,12 +18,15 @@ from cavenav.sensors.camera import CameraIntrinsics
 from cavenav.sensors.kernels import spread_halo
 from cavenav.sensors.lighting import backscatter_table, face_normals, rock_albedo, surface_table
 from cavenav.sensors.optics import (
+    CAVE_WATERS,
     FORWARD_CONE_DEG,
     HALO_SIGMA_DEG,
+    JERLOV_KD,
     WATER_TYPES,
     Lamp,
     Optics,
     Water,
+    jerlov_water,
     optics_from_table,
 )
 from cavenav.sensors.rig import (
@@ -145,10 +148,52 @@ def test_forward_scatter_spreads_light_into_a_halo_of_its_angle_and_keeps_it():
     assert spread == pytest.approx(sigma_px, rel=0.15)
 
 
-@pytest.mark.parametrize("water", list(WATER_TYPES))
-def test_every_water_type_loses_red_first(water: str):
-    c = WATER_TYPES[water].attenuation
-    assert c[0] > c[1] and c[0] > c[2]
+@pytest.mark.parametrize("water", [*CAVE_WATERS, "jerlov-I", "jerlov-III", "jerlov-1C"])
+def test_clear_and_ocean_waters_lose_red_first(water: str):
+    k = WATER_TYPES[water].kept_attenuation
+    assert k[0] > k[1] and k[0] > k[2]
+
+
+@pytest.mark.parametrize("water", ["jerlov-3C", "jerlov-5C", "jerlov-7C", "jerlov-9C"])
+def test_coastal_waters_lose_blue_before_green(water: str):
+    k = WATER_TYPES[water].kept_attenuation  # dissolved organic matter absorbs the blue
+    assert k[2] > k[1]
+
+
+@pytest.mark.parametrize("name", list(JERLOV_KD))
+def test_a_jerlov_water_loses_daylight_as_jerlov_measured(name: str):
+    water = jerlov_water(name)  # Kd = a + b_b: molecules scatter half back, particles 1.83%
+    molecules = np.array([0.0029 * (500 / nm) ** 4.32 for nm in (625.0, 537.5, 462.5)])
+    particles = np.asarray(water.scattering) - molecules
+    kd = np.asarray(water.absorption) + 0.5 * molecules + 0.0183 * particles
+    table = np.array(JERLOV_KD[name])  # 450, 475, ..., 650 nm
+    bands = [table[6:9].mean(), table[3:5].mean(), table[0:2].mean()]  # R, G, B
+    assert kd == pytest.approx(bands, abs=2e-4)
+    assert np.all(particles >= -1e-4)
+    assert np.all(np.asarray(water.absorption) > 0)
+
+
+def test_jerlov_waters_grow_murkier_and_their_load_scatters_more_as_it_grows():
+    waters = [jerlov_water(name) for name in JERLOV_KD]
+    green = np.array([w.attenuation[1] for w in waters])
+    assert np.all(np.diff(green) > 0)
+    albedo = np.array([w.scattering[1] / w.attenuation[1] for w in waters])
+    assert albedo[0] < 0.05  # the clearest: pure seawater, which mostly absorbs
+    assert albedo[-1] == pytest.approx(0.83, abs=0.03)  # Petzold's turbid harbour: 0.83
+    assert waters[0].phase_g == 0.0  # molecules scatter evenly
+    assert waters[-1].phase_g == pytest.approx(0.924, abs=0.002)  # particles, forward
+    with pytest.raises(ConfigError, match="Jerlov water type 'XI'"):
+        jerlov_water("XI")
+
+
+def test_the_muddiest_water_renders_far_rock_black_and_the_veil_without_gaps():
+    # Its kept attenuation regains e^(0.8 b r) of the lost light: past 30 m that overflowed
+    # float32 and made NaN, which the camera developed as black holes in the veil.
+    hall = box((200.0, 200.0, 200.0), (0.0, -0.2 - 60.0 + 100.0, 0.0))  # rock 60 m ahead
+    frame = render(hall, replace(BARE, water="jerlov-9C"))
+    assert np.all(np.isfinite(frame.radiance))
+    veil = frame.radiance[..., 1]
+    assert veil.min() > 0.5 * np.median(veil)
 
 
 # ------------------------------------------------------------------ backscatter

@@ -23,6 +23,7 @@ import typer
 from cavenav.episode.settings import EpisodeSettings
 from cavenav.pilots.factory import VLMOptions
 from cavenav.sensors.depth import EXR_COMPRESSIONS
+from cavenav.sensors.optics import WATER_TYPES
 
 __all__ = [
     "SETTINGS",
@@ -59,13 +60,8 @@ class Backend(StrEnum):
     transformers = "transformers"
 
 
-class WaterType(StrEnum):
-    """Water presets (see `cavenav.sensors.optics.WATER_TYPES`)."""
-
-    clear = "clear"
-    ocean = "ocean"
-    coastal = "coastal"
-    turbid = "turbid"
+# Water presets, named as `cavenav.sensors.optics.WATER_TYPES` names them.
+WaterType = StrEnum("WaterType", {name: name for name in WATER_TYPES})
 
 
 def finite(value: float | None) -> float | None:

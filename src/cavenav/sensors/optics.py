@@ -42,7 +42,9 @@ from cavenav.errors import ConfigError
 
 __all__ = [
     "BLUEROV2_LAMPS",
+    "CAVE_WATERS",
     "FULL_SCALE_NITS",
+    "JERLOV_KD",
     "LAMP_MOUNTS",
     "LUMA",
     "TONE_FLOOR",
@@ -54,6 +56,7 @@ __all__ = [
     "black_clamp",
     "bluerov2_lamps",
     "camera_curve",
+    "jerlov_water",
     "lamp_colour",
     "optics_from_table",
     "tone_lut",
@@ -114,8 +117,102 @@ FORWARD_CONE_DEG = 20.0
 HALO_SIGMA_DEG = 4.0
 
 
+# Jerlov's optical water types: the diffuse attenuation Kd of downwelling daylight, 1/m,
+# from 450 to 650 nm in steps of 25 nm (Jerlov 1976, Marine Optics, 2nd ed., Table XXVII,
+# p. 135). Ocean types I (clearest) to III; coastal types 1 to 9 (greener, then browner).
+JERLOV_NM = (450, 475, 500, 525, 550, 575, 600, 625, 650)
+JERLOV_KD: dict[str, tuple[float, ...]] = {
+    "I": (0.019, 0.018, 0.027, 0.043, 0.063, 0.089, 0.235, 0.305, 0.36),
+    "IA": (0.026, 0.025, 0.032, 0.048, 0.067, 0.094, 0.24, 0.31, 0.37),
+    "IB": (0.036, 0.033, 0.042, 0.054, 0.072, 0.099, 0.245, 0.315, 0.375),
+    "II": (0.068, 0.062, 0.07, 0.076, 0.089, 0.115, 0.26, 0.335, 0.4),
+    "III": (0.135, 0.116, 0.115, 0.116, 0.12, 0.148, 0.295, 0.375, 0.445),
+    "1C": (0.25, 0.17, 0.14, 0.13, 0.12, 0.15, 0.3, 0.37, 0.45),
+    "3C": (0.39, 0.29, 0.22, 0.2, 0.19, 0.21, 0.33, 0.4, 0.46),
+    "5C": (0.56, 0.43, 0.36, 0.31, 0.3, 0.33, 0.4, 0.48, 0.54),
+    "7C": (0.89, 0.71, 0.58, 0.49, 0.46, 0.46, 0.48, 0.54, 0.63),
+    "9C": (1.6, 1.23, 0.99, 0.78, 0.63, 0.58, 0.6, 0.65, 0.76),
+}
+# The camera's broad bands (R, G, B) in nanometres, as `lamp_colour` integrates them.
+CAMERA_BANDS_NM = ((600, 650), (520, 570), (450, 490))
+# Petzold's (1972) three measured waters at 530 nm, absorption and scattering in 1/m
+# (Mobley 1994, Light and Water, Table 3.10): clear ocean, coastal ocean, turbid harbour.
+PETZOLD_530NM = ((0.114, 0.037), (0.179, 0.220), (0.366, 1.824))
+PARTICLE_BACKSCATTER = 0.0183  # share scattered backward: Petzold's average particles
+PARTICLE_G = 0.924  # their mean cosine (the Henyey-Greenstein g that matches it)
+
+
+def _band_mean(values: tuple[float, ...], band: tuple[int, int]) -> tuple[float, float]:
+    """(mean value, mean wavelength) of Jerlov's entries within ``band`` (nm)."""
+    inside = [(v, nm) for v, nm in zip(values, JERLOV_NM, strict=True) if band[0] <= nm <= band[1]]
+    return sum(v for v, _ in inside) / len(inside), sum(nm for _, nm in inside) / len(inside)
+
+
+def _seawater_scattering(nm: float) -> float:
+    """Scattering by pure seawater's molecules, 1/m (Morel 1974): half of it backward."""
+    return 0.0029 * (500.0 / nm) ** 4.32
+
+
+def _load_albedo(excess: float) -> float:
+    """The share of the load's attenuation (what the water carries beyond the clearest
+    water's: particles and dissolved matter) that is scattering rather than absorption,
+    at 530 nm, for a load whose a + b_b is ``excess`` (1/m): as in Petzold's waters of
+    that load, interpolated in the logarithm of the load, held beyond the clearest and
+    the most turbid. Dissolved matter only absorbs and dominates light loads; silt
+    scatters and dominates heavy ones."""
+    clearest = _band_mean(JERLOV_KD["I"], (525, 550))[0]  # a + b_b of Jerlov's type I
+    loads, albedos = [], []
+    for a, b in PETZOLD_530NM:
+        particles = b - _seawater_scattering(530.0)
+        load = a + PARTICLE_BACKSCATTER * particles - clearest
+        loads.append(math.log(load))
+        albedos.append(particles / (particles + a - clearest))
+    return float(np.interp(math.log(max(excess, 1e-9)), loads, albedos))
+
+
+def jerlov_water(name: str) -> Water:
+    """The absorption and scattering, per camera band, of Jerlov's water type ``name``
+    (a key of `JERLOV_KD`).
+
+    Jerlov measured Kd, not the a and b an image needs. Near the surface, under a high
+    sun, Kd = a + b_b to within about 10% (the light is nearly collimated, and only what
+    is scattered backward is lost to it), which is why his clearest type matches pure
+    water's absorption (Pope and Fry 1997). So, per band: the clearest type's Kd is
+    pure seawater's a + b_b; the rest of a type's Kd is its load. The load's scattering
+    comes from its albedo in Petzold's measured waters (`_load_albedo`, in green) and
+    falls as 1 / wavelength (Gordon and Morel 1983); its absorption is what remains of
+    Kd. The phase function's g is the scatterers' mean: 0 for the molecules,
+    `PARTICLE_G` for the load.
+    """
+    if name not in JERLOV_KD:
+        raise ConfigError(
+            f"unknown Jerlov water type '{name}'; choose one of {', '.join(JERLOV_KD)}"
+        )
+    kd = JERLOV_KD[name]
+    green, green_nm = _band_mean(kd, CAMERA_BANDS_NM[1])
+    excess = max(green - _band_mean(JERLOV_KD["I"], CAMERA_BANDS_NM[1])[0], 0.0)
+    ratio = _load_albedo(excess) / (1.0 - _load_albedo(excess))  # load's b / a
+    load_green = ratio * excess / (1.0 + PARTICLE_BACKSCATTER * ratio)
+    absorption, scattering, load = [], [], []
+    for band in CAMERA_BANDS_NM:
+        k, nm = _band_mean(kd, band)
+        molecules, particles = _seawater_scattering(nm), load_green * green_nm / nm
+        absorption.append(round(k - 0.5 * molecules - PARTICLE_BACKSCATTER * particles, 4))
+        scattering.append(round(molecules + particles, 4))
+        load.append(particles)
+    red, green_, blue = absorption
+    return Water(
+        absorption=(red, green_, blue),
+        scattering=(scattering[0], scattering[1], scattering[2]),
+        phase_g=round(PARTICLE_G * load[1] / scattering[1], 3),
+    )
+
+
 # Broad-band camera channels (R ~ 600-650 nm, G ~ 520-570 nm, B ~ 450-490 nm), after
-# pure-water absorption (Pope and Fry 1997) plus typical particle and organic loads.
+# pure-water absorption (Pope and Fry 1997) plus typical particle and organic loads;
+# then Jerlov's types, as `jerlov_water` derives them ("jerlov-II", "jerlov-3C", ...).
+# Against them, by their green a + b_b: clear lies between types IA and IB, ocean near
+# IB, coastal near II and turbid near 1C (its silt scatters four times as much).
 WATER_TYPES: dict[str, Water] = {
     # Spring-fed karst (cenotes, Florida springs): visibility of tens of metres.
     "clear": Water(absorption=(0.29, 0.060, 0.020), scattering=(0.010, 0.012, 0.015)),
@@ -125,7 +222,8 @@ WATER_TYPES: dict[str, Water] = {
     "coastal": Water(absorption=(0.34, 0.085, 0.11), scattering=(0.065, 0.07, 0.075)),
     # Silty water after rain or a careless fin kick: rock beyond 3 m is lost in the veil.
     "turbid": Water(absorption=(0.40, 0.14, 0.22), scattering=(0.19, 0.20, 0.21)),
-}
+} | {f"jerlov-{name}": jerlov_water(name) for name in JERLOV_KD}
+CAVE_WATERS = ("clear", "ocean", "coastal", "turbid")  # the presets made for caves
 
 
 @dataclass(frozen=True)
