@@ -13,6 +13,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+import simplejpeg
 import trimesh
 from scipy import integrate
 
@@ -260,6 +261,19 @@ def test_compression_is_a_real_jpeg_round_trip_close_to_its_input():
     assert not np.array_equal(coded, smooth)
     assert np.abs(coded.astype(int) - smooth).mean() < 4.0
     np.testing.assert_array_equal(compress(smooth, 85), coded)  # the same bits every time
+
+
+@pytest.mark.parametrize("height", [480, 240, 121, 84, 30])
+def test_compression_in_two_halves_gives_the_bits_of_one_round_trip(height: int):
+    rng = np.random.default_rng(height)
+    blocks = rng.integers(0, 256, (height // 4 + 1, 40, 3)).repeat(4, 0).repeat(4, 1)
+    image = np.clip(blocks[:height] + rng.normal(0, 8, (height, 160, 3)), 0, 255)
+    image = image.astype(np.uint8)  # sharp colour edges on every row of 4: the seam's test
+    whole = simplejpeg.decode_jpeg(
+        simplejpeg.encode_jpeg(image, quality=85, colorspace="RGB", colorsubsampling="420"),
+        colorspace="RGB",
+    )
+    np.testing.assert_array_equal(compress(image, 85), whole)
 
 
 def test_every_camera_stage_is_a_setting_of_the_optics_table():

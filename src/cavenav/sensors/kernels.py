@@ -723,7 +723,8 @@ def shade_grid(
     """Shade the pixels of every SHARE-th row and column (and the last ones) into ``grid``;
     returns the frame's mean colour at the sensor over them.
 
-    Per grid point: 1 / depth (-1 where the ray escapes), the hit triangle's normal, the
+    Per grid point: 1 / depth (-1 where the ray escapes), the normal the rock is shaded
+    with (the vertex normals smoothed across the triangle, `_smooth_normal`), the
     radiance reaching the lens straight (RGB: rock with its grain, and the veil in front
     of it) and the green lamp light the rock returns; and in ``halo`` the light scattered
     forward on its way, which the rig blurs (`spread_halo`) for `shade_frame` to add.
@@ -731,7 +732,8 @@ def shade_grid(
     surface as the four around it. The mean, halo included, is what the camera meters
     for its auto white balance and exposure before the frame is developed.
     """
-    t, triangle, normals, _ = cast
+    t, triangle, normals, uvs = cast
+    faces, vertex_normals = scene[0], scene[1]
     ray_length = rays[1]
     height = t.shape[0] // width
     sum0 = sum1 = sum2 = 0.0
@@ -749,9 +751,12 @@ def shade_grid(
                 grid[a, b, 0] = -1.0
             else:
                 grid[a, b, 0] = 1.0 / t[i]
-                grid[a, b, 1] = normals[i, 0]
-                grid[a, b, 2] = normals[i, 1]
-                grid[a, b, 3] = normals[i, 2]
+                tri = triangle[i]
+                _, nx, ny, nz = _smooth_normal(
+                    normals[i, 0], normals[i, 1], normals[i, 2], uvs[i, 0], uvs[i, 1],
+                    faces[tri, 0], faces[tri, 1], faces[tri, 2], vertex_normals,
+                )  # fmt: skip
+                grid[a, b, 1], grid[a, b, 2], grid[a, b, 3] = nx, ny, nz
                 grid[a, b, 4], grid[a, b, 5], grid[a, b, 6] = l0, l1, l2
                 grid[a, b, 7] = lamp_return
             if speck_blocks[row // SHARE, col // SHARE]:
@@ -1056,10 +1061,11 @@ def shade_frame(
     pixels interpolated from the grid carry it); the others add it, interpolated.
 
     The radiance of rock and veil is interpolated from `shade_grid`'s four points around
-    a pixel where they and the pixel see one smooth surface: rock at all four, normals
-    within 25 degrees (`SAME_FACING`; smooth shading makes the light continuous across
-    such creases), and 1 / depth, which is linear across the image of a plane, within 2%
-    of the interpolation. The other pixels (silhouettes, sharp edges, open water) are
+    a pixel where they and the pixel see one smooth surface: rock at all four, their
+    shading normals within 25 degrees (`SAME_FACING`; smooth shading makes the light
+    continuous across such creases, and the jagged facets of a marching-cubes wall
+    differ by more), and 1 / depth, which is linear across the image of a plane, within
+    2% of the interpolation. The other pixels (silhouettes, sharp edges, open water) are
     shaded on their own, in a second loop per row that keeps the first one lean; a third
     adds the marine snow and takes the row's light, still in L1, through the sensor.
     Depth, marine snow and noise are always per pixel.

@@ -9,8 +9,10 @@ from __future__ import annotations
 
 import hashlib
 import math
+import os
 import struct
 from collections.abc import Iterator, Mapping
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from typing import Any, Literal
@@ -241,10 +243,36 @@ def compress(rgb: np.ndarray, quality: int) -> np.ndarray:
     coefficients, quantised, colour at half resolution); ``quality`` 0 leaves it as is.
 
     libjpeg-turbo (through simplejpeg) takes about 1.4 ms for 640x480 both ways, half of
-    Pillow's time, and gives the same bits every time.
+    Pillow's time, and gives the same bits every time. The two halves of a frame are coded
+    at once, on two cores (0.85 ms), with the same bits as the whole: JPEG codes blocks
+    of 16 rows on their own, and the decoder's smooth upsampling of colour reaches one
+    row of colour (two of pixels) across a block's edge, so each half is coded with one
+    block of the other, then dropped.
     """
     if quality <= 0:
         return rgb
+    height = rgb.shape[0]
+    seam = height // 2 // _JPEG_BLOCK * _JPEG_BLOCK
+    if seam < 2 * _JPEG_BLOCK:
+        return _jpeg_round_trip(rgb, quality)
+    below = _jpeg_helper().submit(_jpeg_round_trip, rgb[seam - _JPEG_BLOCK :], quality)
+    above = _jpeg_round_trip(rgb[: seam + _JPEG_BLOCK], quality)
+    return np.concatenate([above[:seam], below.result()[_JPEG_BLOCK:]])
+
+
+_JPEG_BLOCK = 16  # rows of a 4:2:0 JPEG's blocks (MCUs)
+_jpeg_pool: tuple[int, ThreadPoolExecutor] | None = None
+
+
+def _jpeg_helper() -> ThreadPoolExecutor:
+    """This process's one helper thread for `compress` (a forked worker makes its own)."""
+    global _jpeg_pool
+    if _jpeg_pool is None or _jpeg_pool[0] != os.getpid():
+        _jpeg_pool = (os.getpid(), ThreadPoolExecutor(1, thread_name_prefix="cavenav-jpeg"))
+    return _jpeg_pool[1]
+
+
+def _jpeg_round_trip(rgb: np.ndarray, quality: int) -> np.ndarray:
     coded = simplejpeg.encode_jpeg(
         np.ascontiguousarray(rgb), quality=int(quality), colorspace="RGB", colorsubsampling="420"
     )
