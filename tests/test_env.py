@@ -44,7 +44,8 @@ def test_gymnasium_make_needs_nothing_but_import_cavenav() -> None:
     assert env.spec is not None and env.spec.max_episode_steps == 150
     obs, info = env.reset(seed=0)
     assert obs["rgb"].shape == (480, 640, 3) and obs["depth"].dtype == np.uint8
-    assert obs["depth_m"].max() <= 20.0 and obs["d_top"].shape == ()
+    assert obs["depth"].shape == obs["depth_m"].shape == (480, 640, 1)  # a channel axis
+    assert obs["depth_m"].max() <= 20.0 and obs["d_top"].shape == obs["d_bottom"].shape == (1,)
     assert info["scenario"] == "S4" and info["collision"] is False
 
 
@@ -121,7 +122,7 @@ def test_info_carries_what_a_pilot_sees_where_the_vehicle_is_and_how_long_it_too
     assert seen.previous_action is None and info["timings"].physics_ms is None
     obs, _, _, _, info = env.step("forward 1 m, turn left 10 deg")
     seen, pose = info["observation"], info["vehicle_pose"]
-    assert seen.step == 1 and np.array_equal(seen.depth_png, obs["depth"])
+    assert seen.step == 1 and np.array_equal(seen.depth_png, obs["depth"][..., 0])
     assert seen.previous_action == Action(forward=1.0, yaw_deg=10.0)  # the action executed
     assert pose == apply(env.scenario.start, Action(forward=1.0, yaw_deg=10.0))  # unrounded
     assert pose.to_dict() == info["pose"]
@@ -330,7 +331,7 @@ def test_the_resolution_keyword_sizes_the_observations_and_check_env_passes_at_8
     )
     space = env.observation_space
     assert space["rgb"].shape == (84, 84, 3)
-    assert space["depth"].shape == space["depth_m"].shape == (84, 84)
+    assert space["depth"].shape == space["depth_m"].shape == (84, 84, 1)
     check_env(env.unwrapped)
     obs, _ = env.reset(seed=0)
     frame = env.render()
@@ -340,10 +341,10 @@ def test_the_resolution_keyword_sizes_the_observations_and_check_env_passes_at_8
 
 def test_sensors_set_the_resolution_too_and_the_resolution_keyword_wins() -> None:
     sensors = SensorConfig(sounder="beam").with_resolution(160, 120)
-    assert CaveNavEnv("S1", sensors=sensors).observation_space["depth"].shape == (120, 160)
+    assert CaveNavEnv("S1", sensors=sensors).observation_space["depth"].shape == (120, 160, 1)
     both = CaveNavEnv("S1", sensors=sensors, resolution=(84, 84))
-    assert both.observation_space["depth"].shape == (84, 84) and both.sensors.sounder == "beam"
-    assert CaveNavEnv("S1").observation_space["depth"].shape == (480, 640)  # the paper's
+    assert both.observation_space["depth"].shape == (84, 84, 1) and both.sensors.sounder == "beam"
+    assert CaveNavEnv("S1").observation_space["depth"].shape == (480, 640, 1)  # the paper's
 
 
 @pytest.mark.parametrize("resolution", [(84, 0), (84.0, 84), "84x84"])
@@ -357,7 +358,7 @@ def test_a_vector_of_two_84x84_environments_steps_with_action_vectors() -> None:
         [lambda: CaveNavEnv("S1", resolution=(84, 84), action_format="vector") for _ in range(2)]
     )
     obs, _ = envs.reset(seed=[1, 2])
-    assert obs["rgb"].shape == (2, 84, 84, 3) and obs["depth_m"].shape == (2, 84, 84)
+    assert obs["rgb"].shape == (2, 84, 84, 3) and obs["depth_m"].shape == (2, 84, 84, 1)
     obs, reward, *_ = envs.step(np.array([[1.0, 0, 0, 0], [0, 0, 0, 15.0]], np.float32))
     assert reward[0] == pytest.approx(1.0, abs=0.05) and reward[1] == pytest.approx(0.0, abs=1e-6)
     envs.close()

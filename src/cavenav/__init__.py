@@ -1,7 +1,9 @@
 """cavenav: VLM-steered navigation of an underwater vehicle through unseen caves.
 
-Importing the package registers the Gymnasium environment ``cavenav/CaveNav-v0``
-(`cavenav.env.CaveNavEnv`, 150 steps) so ``gymnasium.make`` finds it with no other set-up.
+Importing the package registers the Gymnasium environments ``cavenav/CaveNav-v0``
+(`cavenav.env.CaveNavEnv`, 150 steps) and ``cavenav/CaveNav-vector-v0`` (the same for
+learners: `cavenav.env.learner_env`) so ``gymnasium.make`` finds them with no other
+set-up.
 """
 
 import os
@@ -38,5 +40,13 @@ if "cavenav/CaveNav-v0" not in gymnasium.registry:
     gymnasium.register(
         id="cavenav/CaveNav-v0",
         entry_point="cavenav.env:CaveNavEnv",
+        max_episode_steps=150,
+    )
+if "cavenav/CaveNav-vector-v0" not in gymnasium.registry:
+    # For learners: vector actions (a policy never meets the text space by accident),
+    # 84 x 84 images and a reward that also asks for standoff and pays for the exit.
+    gymnasium.register(
+        id="cavenav/CaveNav-vector-v0",
+        entry_point="cavenav.env:learner_env",
         max_episode_steps=150,
     )

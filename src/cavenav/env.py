@@ -9,6 +9,9 @@ Every driver steps the vehicle through `CaveNavEnv`: the episode loop behind
     env = gymnasium.make("cavenav/CaveNav-v0", scenario="S3")
     obs, info = env.reset(seed=0)
     obs, reward, terminated, truncated, info = env.step("forward 0.5 m, turn left 15 deg")
+
+Learners take ``cavenav/CaveNav-vector-v0``: actions as four numbers, 84 x 84 images
+and `LEARNER_REWARD`, ready for Stable-Baselines3's ``MultiInputPolicy``.
 """
 
 from __future__ import annotations
@@ -39,9 +42,13 @@ from cavenav.world.silt import SiltCloud
 
 __all__ = [
     "ACTION_CHARSET",
+    "LEARNER_REWARD",
+    "ActionText",
     "TRAINING_SEEDS",
     "CaveNavEnv",
+    "Reward",
     "Timings",
+    "learner_env",
     "read_action",
     "snap_action",
 ]
@@ -145,25 +152,67 @@ def _drift(motion: Motion, pose: Pose, action: Action, reached: Pose) -> Drift |
 
 
 def _observation_space(sensors: SensorConfig) -> spaces.Dict:
-    """The ``Dict`` of images and sounder ranges that ``sensors`` produce."""
+    """The ``Dict`` of images and sounder ranges that ``sensors`` produce, shaped as
+    learning libraries expect: every image with a channel axis last, so that a uint8 one
+    is an image to them (Stable-Baselines3 gives it a CNN), and each range a vector."""
     camera, d_max = sensors.camera, float(sensors.depth_max_m)
     sounder = float(sensors.sounder_max_range_m)
     image = (camera.height, camera.width)
     return spaces.Dict(
         {
             "rgb": spaces.Box(0, 255, (*image, 3), np.uint8),
-            "depth": spaces.Box(0, 255, image, np.uint8),
-            "depth_m": spaces.Box(0.0, d_max, image, np.float32),
-            "d_top": spaces.Box(0.0, sounder, (), np.float32),
-            "d_bottom": spaces.Box(0.0, sounder, (), np.float32),
+            "depth": spaces.Box(0, 255, (*image, 1), np.uint8),
+            "depth_m": spaces.Box(0.0, d_max, (*image, 1), np.float32),
+            "d_top": spaces.Box(0.0, sounder, (1,), np.float32),
+            "d_bottom": spaces.Box(0.0, sounder, (1,), np.float32),
         }
     )
+
+
+@dataclass(frozen=True)
+class Reward:
+    """What a step earns, term by term (``info["reward_terms"]``; the reward is their sum).
+
+    Attributes:
+        progress: per metre made good toward the exit (along the passage's centre line
+            where the cave has one); a step moves at most 2 m, so this term is within
+            +-2 a step at the default. Turning in place earns nothing; backing up costs
+            what it loses.
+        collision: subtracted once, on the step that touches a surface (which ends the
+            episode).
+        standoff: per step, per metre by which the clearance (the distance from the
+            vehicle's centre to the nearest surface) falls short of the standoff
+            (`Rules.standoff_m`, 2 m): at 0.5, a step 1 m from a wall costs 0.5. In a
+            passage narrower than twice the standoff it cannot be avoided, only made
+            smaller by keeping to the middle.
+        exit: added on the step that passes an exit portal.
+    """
+
+    progress: float = 1.0
+    collision: float = 10.0
+    standoff: float = 0.0
+    exit: float = 0.0
+
+
+# For learners: keep off the walls, and finishing is worth a collision's cost.
+LEARNER_REWARD = Reward(standoff=0.5, exit=10.0)
+
+
+class ActionText(spaces.Text):
+    """Action strings over `ACTION_CHARSET`. Learning libraries refuse a text space, and
+    say so with its repr: that names the space learners want instead."""
+
+    def __repr__(self) -> str:
+        return (
+            f"{super().__repr__()} (action strings; a learner wants four numbers: "
+            "gymnasium.make('cavenav/CaveNav-vector-v0'), or action_format='vector')"
+        )
 
 
 def _action_space(action_format: str, space: ActionSpace) -> spaces.Space:
     """Action strings over `ACTION_CHARSET`, or a ``Box`` of the largest magnitudes."""
     if action_format == "text":
-        return spaces.Text(300, charset=ACTION_CHARSET)
+        return ActionText(300, charset=ACTION_CHARSET)
     high = np.array(
         [max(space.forward_m), max(space.lateral_m), space.vertical_range_m[1], max(space.yaw_deg)],
         np.float32,
@@ -204,10 +253,13 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
 
     Observation (a ``Dict``; H x W is 480 x 640 unless ``resolution`` or ``sensors``
     says otherwise): ``rgb`` (H, W, 3) uint8 forward colour image; ``depth``
-    (H, W) uint8 normalised depth, dark near, as a VLM sees it; ``depth_m`` (H, W)
+    (H, W, 1) uint8 normalised depth, dark near, as a VLM sees it; ``depth_m`` (H, W, 1)
     float32 planar depth in metres, D_max where nothing is nearer; ``d_top`` and
-    ``d_bottom`` float32 arrays of shape () from the echo sounders, bounded by their
-    range. The same observation, typed as a pilot receives it, is ``info["observation"]``.
+    ``d_bottom`` float32 arrays of shape (1,) from the echo sounders, bounded by their
+    range. (Until November 2026 the depths were (H, W) and the ranges of shape (): the
+    channel axis and the vectors are what learning libraries expect of images and
+    measurements.) The same observation, typed as a pilot receives it, with depth
+    images (H, W) and ranges as floats, is ``info["observation"]``.
 
     Action: an action string of the grammar in `cavenav.actions` (``spaces.Text`` over
     `ACTION_CHARSET`), or with ``action_format="vector"`` a ``Box`` of (df, dr, dz, dpsi
@@ -223,17 +275,21 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
     own ``step_budget``: pass ``max_episode_steps`` for the longer families) and
     `cavenav.wrappers.StuckLimit` where you add it.
 
-    Reward: metres made good toward the exit during the step, measured along the
-    passage's centre line where the cave has one (procedural caves) and otherwise as the
-    decrease of the distance to the nearest exit plane; minus ``collision_penalty`` on a
-    collision. Turning in place earns nothing; backing up costs what it loses.
+    Reward: the sum of `Reward`'s terms, each in ``info["reward_terms"]``. By default,
+    metres made good toward the exit during the step, measured along the passage's
+    centre line where the cave has one (procedural caves) and otherwise as the decrease
+    of the distance to the nearest exit plane; minus 10 on a collision. Turning in place
+    earns nothing; backing up costs what it loses. `LEARNER_REWARD` (the default of
+    ``cavenav/CaveNav-vector-v0``) adds a cost for flying inside the standoff and a bonus
+    at the exit.
 
     Info: ``pose`` (x, y, z, yaw_deg), ``clearance_m`` (exact distance to the nearest
     surface), ``collision``, ``exit``, ``entrance`` (left through the entrance),
     ``action`` (the action executed, canonical), ``invalid_action`` (the reason, or
     None), ``progress_m`` (made good since the start), ``collision_pose``,
-    ``scenario``/``cave_seed`` and ``termination`` ("exit", "collision",
-    "exited_entrance" or None while the episode goes on). For drivers, typed:
+    ``scenario``/``cave_seed``, ``termination`` ("exit", "collision",
+    "exited_entrance" or None while the episode goes on) and, after a step,
+    ``reward_terms`` (`Reward`'s terms, which sum to the reward). For drivers, typed:
     ``observation`` (the `Observation` a pilot receives; its ``previous_action`` is the
     action executed), ``vehicle_pose`` (the `Pose`, unrounded) and ``timings``
     (`Timings`, equal whatever they hold, so that ``info`` stays deterministic). A
@@ -259,7 +315,8 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
         rules: Rules = DEFAULT_RULES,
         space: ActionSpace = DEFAULT_SPACE,
         action_format: Literal["text", "vector"] = "text",
-        collision_penalty: float = 10.0,
+        collision_penalty: float | None = None,
+        reward: Reward | None = None,
         render_mode: str | None = None,
         motion: Motion | None = None,
     ):
@@ -278,7 +335,11 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
             rules: the strategy's distances (for the shield and the metrics of drivers).
             space: admissible magnitudes.
             action_format: "text" (action strings) or "vector" (four numbers).
-            collision_penalty: subtracted from the reward on a collision.
+            collision_penalty: subtracted from the reward on a collision (over
+                ``reward.collision``; kept from before `Reward`).
+            reward: the terms of the reward (default `Reward()`: progress and the
+                collision penalty, the reward of the paper's method; the vector id's
+                default is `LEARNER_REWARD`).
             render_mode: None or "rgb_array" (the forward colour image).
             motion: who carries out the actions: the kinematics of SPEC section 5 (the
                 default), or a vehicle (`cavenav.vehicle.mavlink.ArduSubMotion`), whose
@@ -295,7 +356,9 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
             self.sensors = self.sensors.with_resolution(*pixel_size(resolution, "resolution"))
         self.body = body or VehicleBody()
         self.rules, self.space, self.action_format = rules, space, action_format
-        self.collision_penalty = collision_penalty
+        self.reward = reward or Reward()
+        if collision_penalty is not None:
+            self.reward = replace(self.reward, collision=collision_penalty)
         self.motion: Motion = motion or Kinematic()
         self._default_scenario, self._default_cave_seed = scenario, cave_seed
         self._world: _World | None = None
@@ -404,7 +467,7 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
             not hit and not exited and self.scenario.left_through_entrance(self.pose.position)
         )
         progress = self.scenario.progress(self.pose.position)
-        reward = progress - self._progress - (self.collision_penalty if hit else 0.0)
+        terms = self._reward_terms(progress - self._progress, hit, exited)
         self._progress = progress
         self._steps += 1
         self._ended = hit or exited or self._left_by_entrance
@@ -418,10 +481,11 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
             physics_ms=1e3 * (sensed - started), sense_ms=1e3 * (time.perf_counter() - sensed)
         )
         info = self._info(command, invalid, collision_pose)
+        info["reward_terms"] = terms
         drift = _drift(self.motion, start, command, moved)
         if drift is not None:
             info.update(drift.to_info())
-        return self._observation_dict(), float(reward), self._ended, False, info
+        return self._observation_dict(), float(sum(terms.values())), self._ended, False, info
 
     def render(self) -> np.ndarray | None:
         """The forward colour image (H, W, 3) uint8 with ``render_mode="rgb_array"``."""
@@ -436,6 +500,21 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
         chosen = self.sensors.optics.silt_out
         return bool(self.scenario.optics.get("silt_out", False)) if chosen is None else chosen
 
+    @property
+    def collision_penalty(self) -> float:
+        """What a collision costs (``reward.collision``)."""
+        return self.reward.collision
+
+    def _reward_terms(self, made_good: float, hit: bool, exited: bool) -> dict[str, float]:
+        """Each term of this step's reward (`Reward`), in the order they are summed."""
+        short = max(self.rules.standoff_m - self._clearance, 0.0)
+        return {
+            "progress": self.reward.progress * made_good,
+            "collision": -self.reward.collision if hit else 0.0,
+            "standoff": -self.reward.standoff * short,
+            "exit": self.reward.exit if exited else 0.0,
+        }
+
     def command(self, action: object) -> tuple[Action, str | None]:
         """The action ``action`` asks for and, when it is not admissible, why (then hold):
         `read_action` in this environment's action space and format."""
@@ -447,10 +526,10 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
         limit = np.float32(cfg.sounder_max_range_m)
         return {
             "rgb": obs.rgb,
-            "depth": obs.depth_png,
-            "depth_m": np.minimum(obs.depth_m, np.float32(cfg.depth_max_m)),
-            "d_top": np.array(min(obs.d_top, limit), np.float32),
-            "d_bottom": np.array(min(obs.d_bottom, limit), np.float32),
+            "depth": obs.depth_png[..., None],
+            "depth_m": np.minimum(obs.depth_m, np.float32(cfg.depth_max_m))[..., None],
+            "d_top": np.array([min(obs.d_top, limit)], np.float32),
+            "d_bottom": np.array([min(obs.d_bottom, limit)], np.float32),
         }
 
     def _info(
@@ -478,3 +557,18 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
             "timings": self._timings,
             "silt_g": None if self._silt is None else round(self._silt.mass_g, 1),
         }
+
+
+def learner_env(
+    scenario: str | Path | Scenario = "S1",
+    *,
+    resolution: tuple[int, int] | None = (84, 84),
+    action_format: Literal["text", "vector"] = "vector",
+    reward: Reward | None = LEARNER_REWARD,
+    **options: Any,
+) -> CaveNavEnv:
+    """`CaveNavEnv` as ``cavenav/CaveNav-vector-v0`` makes it: vector actions, 84 x 84
+    images and `LEARNER_REWARD`, each overridable as in `CaveNavEnv`."""
+    return CaveNavEnv(
+        scenario, resolution=resolution, action_format=action_format, reward=reward, **options
+    )
