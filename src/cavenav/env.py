@@ -335,11 +335,8 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
             rules: the strategy's distances (for the shield and the metrics of drivers).
             space: admissible magnitudes.
             action_format: "text" (action strings) or "vector" (four numbers).
-            collision_penalty: subtracted from the reward on a collision (over
-                ``reward.collision``; kept from before `Reward`).
-            reward: the terms of the reward (default `Reward()`: progress and the
-                collision penalty, the reward of the paper's method; the vector id's
-                default is `LEARNER_REWARD`).
+            collision_penalty: sets ``reward.collision`` (the keyword before `Reward`).
+            reward: its terms (default: progress and collisions, the method's reward).
             render_mode: None or "rgb_array" (the forward colour image).
             motion: who carries out the actions: the kinematics of SPEC section 5 (the
                 default), or a vehicle (`cavenav.vehicle.mavlink.ArduSubMotion`), whose
@@ -350,15 +347,13 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
             raise ConfigError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
         if action_format not in ("text", "vector"):
             raise ConfigError(f"action_format must be 'text' or 'vector', got {action_format!r}")
-        self.render_mode = render_mode
+        self.render_mode, self.body = render_mode, body or VehicleBody()
         self.sensors = sensors or SensorConfig()
         if resolution is not None:
             self.sensors = self.sensors.with_resolution(*pixel_size(resolution, "resolution"))
-        self.body = body or VehicleBody()
         self.rules, self.space, self.action_format = rules, space, action_format
-        self.reward = reward or Reward()
-        if collision_penalty is not None:
-            self.reward = replace(self.reward, collision=collision_penalty)
+        penalty = {} if collision_penalty is None else {"collision": collision_penalty}
+        self.reward = replace(reward or Reward(), **penalty)
         self.motion: Motion = motion or Kinematic()
         self._default_scenario, self._default_cave_seed = scenario, cave_seed
         self._world: _World | None = None
@@ -366,9 +361,7 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
         self.action_space = _action_space(action_format, space)
         self.pose: Pose | None = None
         self.observation: Observation | None = None
-        self._timings = Timings(0.0)
-        self._clearance = math.inf
-        self._progress = 0.0
+        self._timings, self._clearance, self._progress = Timings(0.0), math.inf, 0.0
         self._steps = self._noise_seed = 0
         self._ended = self._left_by_entrance = False
 
