@@ -59,6 +59,7 @@ import argparse
 import math
 import statistics
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass, field, fields
 
 import numpy as np
@@ -196,42 +197,38 @@ class Check:
             self.frames_beyond.append(float(black.mean()))
 
 
-def scenario_frames(name: str, water: str, poses: list[Pose]) -> list[Frame]:
-    scenario = load_scenario(name, seed=0)
-    rig = SensorRig(RayCaster(scenario.mesh), SensorConfig(optics=Optics(water=water)))
-    return [rig.render(pose, radiance=True) for pose in poses]
+def sensed(
+    poses: dict[str, list[Pose]], optics: Optics
+) -> Iterator[tuple[Frame, np.ndarray, float]]:
+    """Every frame at ``poses`` with ``optics``: the frame, its 320x240 copy, and the
+    lamps' reach at its exposure."""
+    config = SensorConfig(optics=optics)
+    for name, where in poses.items():
+        rig = SensorRig(RayCaster(load_scenario(name, seed=0).mesh), config)
+        for pose in where:
+            frame = rig.render(pose, radiance=True)
+            gains, gain = camera_response(metered_mean(frame, config), optics)
+            yield frame, downscale(frame.rgb), lamp_reach(optics, gains, gain)
 
 
 def measure(poses: dict[str, list[Pose]]) -> tuple[dict[str, list[FrameStats]], Check, list[float]]:
     """Statistics of every frame per water; the physical check and reaches in clear water."""
     stats: dict[str, list[FrameStats]] = {water: [] for water in CAVE_WATERS}
     check, reaches = Check(), []
+    clear = SensorConfig(optics=Optics(water="clear"))
     for water in CAVE_WATERS:
-        config = SensorConfig(optics=Optics(water=water))
-        for name, where in poses.items():
-            for frame in scenario_frames(name, water, where):
-                small = downscale(frame.rgb)
-                stats[water].append(frame_stats(small))
-                if water == "clear":
-                    gains, gain = camera_response(metered_mean(frame, config), config.optics)
-                    reach = lamp_reach(config.optics, gains, gain)
-                    reaches.append(reach)
-                    check.add(frame, small, reach, config)
+        for frame, small, reach in sensed(poses, Optics(water=water)):
+            stats[water].append(frame_stats(small))
+            if water == "clear":
+                reaches.append(reach)
+                check.add(frame, small, reach, clear)
     return stats, check, reaches
 
 
 def survey(poses: dict[str, list[Pose]], optics: Optics) -> tuple[list[FrameStats], list[float]]:
     """Statistics of every frame with ``optics``, and the lamps' reach in each frame."""
-    config = SensorConfig(optics=optics)
-    stats, reaches = [], []
-    for name, where in poses.items():
-        rig = SensorRig(RayCaster(load_scenario(name, seed=0).mesh), config)
-        for pose in where:
-            frame = rig.render(pose, radiance=True)
-            stats.append(frame_stats(downscale(frame.rgb)))
-            gains, gain = camera_response(metered_mean(frame, config), optics)
-            reaches.append(lamp_reach(optics, gains, gain))
-    return stats, reaches
+    frames = list(sensed(poses, optics))
+    return [frame_stats(small) for _, small, _ in frames], [reach for _, _, reach in frames]
 
 
 def print_waters_and_beams(poses: dict[str, list[Pose]]) -> None:

@@ -160,7 +160,7 @@ def _load_albedo(excess: float) -> float:
     that load, interpolated in the logarithm of the load, held beyond the clearest and
     the most turbid. Dissolved matter only absorbs and dominates light loads; silt
     scatters and dominates heavy ones."""
-    clearest = _band_mean(JERLOV_KD["I"], (525, 550))[0]  # a + b_b of Jerlov's type I
+    clearest = _band_mean(JERLOV_KD["I"], CAMERA_BANDS_NM[1])[0]  # type I's green a + b_b
     loads, albedos = [], []
     for a, b in PETZOLD_530NM:
         particles = b - _seawater_scattering(530.0)
@@ -191,20 +191,20 @@ def jerlov_water(name: str) -> Water:
     kd = JERLOV_KD[name]
     green, green_nm = _band_mean(kd, CAMERA_BANDS_NM[1])
     excess = max(green - _band_mean(JERLOV_KD["I"], CAMERA_BANDS_NM[1])[0], 0.0)
-    ratio = _load_albedo(excess) / (1.0 - _load_albedo(excess))  # load's b / a
+    albedo = _load_albedo(excess)
+    ratio = albedo / (1.0 - albedo)  # the load's b / a
     load_green = ratio * excess / (1.0 + PARTICLE_BACKSCATTER * ratio)
-    absorption, scattering, load = [], [], []
+    a, b, load = [], [], []
     for band in CAMERA_BANDS_NM:
         k, nm = _band_mean(kd, band)
         molecules, particles = _seawater_scattering(nm), load_green * green_nm / nm
-        absorption.append(round(k - 0.5 * molecules - PARTICLE_BACKSCATTER * particles, 4))
-        scattering.append(round(molecules + particles, 4))
+        a.append(round(k - 0.5 * molecules - PARTICLE_BACKSCATTER * particles, 4))
+        b.append(round(molecules + particles, 4))
         load.append(particles)
-    red, green_, blue = absorption
     return Water(
-        absorption=(red, green_, blue),
-        scattering=(scattering[0], scattering[1], scattering[2]),
-        phase_g=round(PARTICLE_G * load[1] / scattering[1], 3),
+        absorption=(a[0], a[1], a[2]),
+        scattering=(b[0], b[1], b[2]),
+        phase_g=round(PARTICLE_G * load[1] / b[1], 3),
     )
 
 
