@@ -287,3 +287,23 @@ def test_fly_takes_the_sensor_optics_resolution_and_difficulty_flags(
     assert cave.difficulty.to_dict() == {"constriction_m": 3.0}
     refused = cavenav("fly", "--sim", "S1", "--yes", "--resolution", "160", "--out", str(tmp_path))
     assert refused.returncode == 2 and "--resolution: '160' is not a resolution" in refused.stderr
+
+
+def test_a_table_printed_to_a_pipe_keeps_every_cell_whole():
+    """Rich fits a table to 80 columns where it cannot ask a terminal ("51%-1…"): a
+    table sent to a file or a pipe must stay whole."""
+    import os
+    import subprocess
+    import sys
+
+    draw = (
+        "from rich.table import Table; from cavenav.cli_output import _print_table; "
+        "t = Table(); [t.add_column(f'column {i}') for i in range(12)]; "
+        "t.add_row(*['51%-100%'] * 12); _print_table(t)"
+    )
+    environment = {k: v for k, v in os.environ.items() if k != "COLUMNS"}
+    shown = subprocess.run(
+        [sys.executable, "-c", draw], capture_output=True, text=True, env=environment, check=True
+    ).stdout
+    assert shown.count("51%-100%") == 12 and "…" not in shown
+    assert max(len(line) for line in shown.splitlines()) > 80

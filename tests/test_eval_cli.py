@@ -6,6 +6,7 @@ import csv
 import fcntl
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -17,7 +18,7 @@ from typing import Any
 import pytest
 from scipy.stats import binomtest
 
-from .conftest import cavenav, flying, full_disk, takes_ctrl_c, write_room
+from .conftest import cavenav, flying, full_disk, takes_ctrl_c, wide, write_room
 from .test_cli import table_rows
 
 
@@ -242,3 +243,151 @@ def test_a_sweep_into_a_full_disk_stops_in_one_line_and_finishes_nothing_unwritt
             if summary["status"] == "finished":
                 assert all((run / name).is_file() for name in summary["plots"].values())
         assert len(runs) < 4  # it stopped: no episode flew into the full disk after it
+
+
+@pytest.mark.slow
+def test_compare_puts_three_pilots_side_by_side_on_one_page(tmp_path: Path) -> None:
+    room = str(write_room(tmp_path / "caves"))
+    common = ["--scenarios", room, "--seeds", "0-1", "--workers", "1", "--frames", "none",
+              "--steps", "40"]  # fmt: skip
+    flown = {
+        "geometric": cavenav("eval", *common, "--out", str(tmp_path / "geometric")),
+        "random": cavenav("eval", *common, "--pilot", "random", "--out", str(tmp_path / "random")),
+        "shielded": cavenav(
+            "eval",
+            *common,
+            "--pilot",
+            "random",
+            "--shield",
+            "--no-report",
+            "--out",
+            str(tmp_path / "shielded"),
+        ),  # fmt: skip
+    }
+    assert all(done.returncode == 0 for done in flown.values()), [d.stderr for d in flown.values()]
+    page = tmp_path / "page"
+    done = cavenav("compare", *(str(tmp_path / name) for name in flown), "--out", str(page))
+    assert done.returncode == 0, done.stderr
+    result = json.loads((page / "compare.json").read_text())
+    labels = ["geometric", "random (random)", "random (shielded)"]  # one pilot, told apart
+    assert [s["label"] for s in result["sweeps"]] == labels
+    assert [s["path"] for s in result["sweeps"]] == [str(tmp_path / name) for name in flown]
+    assert result["leaderboard"][0]["pilot"] == "geometric"
+    assert len(result["pairs"]) == 3 and result["pairs"][0]["overall"]["pairs"] == 2
+    assert "| geometric | 2/2 | 100% (" in (page / "leaderboard.md").read_text()
+    assert r"\begin{tabular}" in (page / "leaderboard.tex").read_text()
+    html = (page / "index.html").read_text()
+    assert "geometric gets through more often" not in html  # 2 caves prove nothing: p = 0.5
+    assert "no clear difference in success" in html
+    links = re.findall(r'href="([^"]+)"', html)
+    episode_links = [link for link in links if "seed000" in link]
+    assert episode_links and all((page / link).exists() for link in episode_links)
+    assert any(link.startswith("../geometric/report/episodes/") for link in episode_links)
+    assert any(link.startswith("../shielded/episodes/") for link in episode_links)  # no report
+    assert "leaderboard" in done.stdout and "| geometric | 2/2 |" in done.stdout
+    unknown = cavenav("compare", *(str(tmp_path / n) for n in flown), "--price", "gpt-x=1,2")
+    assert unknown.returncode == 2 and "--price for gpt-x: no sweep flew it" in unknown.stderr
+    priced = cavenav("report", str(tmp_path / "geometric"), "--price", "1,2")
+    assert priced.returncode == 0, priced.stderr
+    index = (tmp_path / "geometric" / "report" / "index.html").read_text()
+    assert "USD 1 / 2 per million tokens in / out" in index
+
+
+@pytest.mark.parametrize(
+    ("command", "message"),
+    [
+        (["compare", "a", "b", "--price", "0.5,4"], "--price takes MODEL=IN,OUT"),
+        (["compare", "a", "b", "--price", "gpt=0.5"], "--price must be 'input,output'"),
+        (["report", "a", "--price", "cheap"], "--price must be 'input,output'"),
+    ],
+)
+def test_a_malformed_price_is_one_line_before_any_sweep_is_read(
+    command: list[str], message: str, tmp_path: Path
+) -> None:
+    done = cavenav(*command, cwd=tmp_path)
+    assert done.returncode == 2 and message in done.stderr
+    assert len(done.stderr.strip().splitlines()) == 1
+
+
+@pytest.mark.slow
+def test_video_failures_gives_every_failed_episode_a_video_on_its_page(tmp_path: Path) -> None:
+    room = str(write_room(tmp_path / "caves"))
+    common = ["eval", "--scenarios", room, "--seeds", "0-1", "--workers", "1", "--steps", "20"]
+    refused = cavenav(*common, "--video", "all", "--frames", "none", "--out", str(tmp_path / "x"))
+    assert refused.returncode == 2 and "--video needs the frames" in refused.stderr
+    assert not (tmp_path / "x").exists()
+    flown = {
+        pilot: cavenav(
+            *common,
+            "--pilot",
+            pilot,
+            "--frames",
+            "png",
+            "--video",
+            "failures",
+            "--out",
+            str(tmp_path / pilot),
+        )  # fmt: skip
+        for pilot in ("geometric", "random")
+    }
+    assert all(done.returncode == 0 for done in flown.values()), flown["random"].stderr
+    for pilot in flown:
+        rows = list(csv.DictReader((tmp_path / pilot / "results.csv").open()))
+        for row in rows:
+            video = tmp_path / pilot / row["run_dir"] / "episode.mp4"
+            assert video.is_file() == (row["outcome"] != "success"), (pilot, row["outcome"])
+            page = (tmp_path / pilot / "report" / "episodes" / f"{row['episode']}.html").read_text()
+            assert ("<video" in page) == video.is_file()
+    outcomes = [
+        r["outcome"] for p in flown for r in csv.DictReader((tmp_path / p / "results.csv").open())
+    ]
+    assert "success" in outcomes and any(o != "success" for o in outcomes)  # both cases met
+    assert json.loads((tmp_path / "random" / "sweep.json").read_text())["video"] == "failures"
+
+
+def wandb_history(run_file: Path) -> list[dict[str, Any]]:
+    """The rows ``run.log`` wrote to an offline W&B run file: LevelDB's log format (32 KiB
+    blocks of records, each a 7-byte header and a piece of a protobuf `Record`) after the
+    file's 7-byte ":W&B" header."""
+    from wandb.proto import wandb_internal_pb2 as pb
+
+    raw, pos, pending, history = run_file.read_bytes(), 7, b"", []
+    while pos + 7 <= len(raw):
+        if 32768 - pos % 32768 < 7:  # a block's tail too short for a header: padding
+            pos += 32768 - pos % 32768
+            continue
+        length, kind = int.from_bytes(raw[pos + 4 : pos + 6], "little"), raw[pos + 6]
+        pending += raw[pos + 7 : pos + 7 + length]
+        pos += 7 + length
+        if kind in (1, 4):  # a whole record, or the last piece of one
+            record = pb.Record()
+            record.ParseFromString(pending)
+            pending = b""
+            if record.WhichOneof("record_type") == "history":
+                items = record.history.item  # a nested value is one item per leaf
+                history.append(
+                    {i.key or "/".join(i.nested_key): json.loads(i.value_json) for i in items}
+                )
+    return history
+
+
+@pytest.mark.slow
+def test_wandb_logs_each_episode_the_results_and_the_videos_offline(tmp_path: Path) -> None:
+    pytest.importorskip("wandb")
+    room = str(write_room(tmp_path / "caves"))
+    out = tmp_path / "sweep"
+    environment = {k: v for k, v in wide().items() if not k.startswith("WANDB")}
+    done = cavenav(
+        "eval", "--scenarios", room, "--seeds", "0-1", "--workers", "1", "--steps", "20",
+        "--frames", "png", "--video", "all", "--wandb", "--out", str(out), env=environment,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    (run_file,) = out.glob("wandb/offline-run-*/run-*.wandb")  # offline: nothing was sent
+    history = wandb_history(run_file)
+    episodes = [h for h in history if "episode/id" in h]
+    assert [h["episode/id"] for h in episodes] == ["room-seed0000", "room-seed0001"]
+    assert all(h["episode/outcome"] == "success" and h["episode/spl"] > 0.9 for h in episodes)
+    assert all(h["episode/video/_type"] == "video-file" for h in episodes)
+    (table,) = run_file.parent.glob("files/media/table/results_*.table.json")
+    assert len(json.loads(table.read_text())["data"]) == 2
+    assert len(list(run_file.parent.glob("files/media/videos/**/*.mp4"))) == 2

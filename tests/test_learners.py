@@ -137,5 +137,5 @@ def test_the_training_example_trains_saves_and_plots_within_its_budget(tmp_path:
     (log,) = tmp_path.glob("monitor-*.monitor.csv")
     header = log.read_text().splitlines()[1]
     assert header == "r,l,t,exit,collision"
-    flown = json.loads((tmp_path / "evaluation.json").read_text())
+    flown = json.loads((tmp_path / "evaluation.json").read_text())["ppo_cavenav"]
     assert flown["caves"] == 1 and 0.0 <= flown["exit_share"] <= 1.0

@@ -234,12 +234,15 @@ def test_an_episode_page_shows_the_reasoning_and_why_a_reply_was_rejected(
         assert " ".join(exchange["reply"].split()) in page.text
     # one folded block for the system prompt, then one per request
     assert sum(1 for tag, _ in page.tags if tag == "details") == 1 + len(exchanges)
+    assert "open all reasoning" in page.text  # one control opens every request's reply
+    assert page.html.count('<details class="reasoning">') == len(exchanges)
 
 
 def test_model_text_is_escaped_never_run(runs: dict[str, Path]) -> None:
     page = Page(write_report(runs["vlm"]))
     assert INJECTED in page.text  # shown to the reader as the model wrote it
-    assert not any(tag in ("script", "b") for tag, _ in page.tags)  # never markup
+    assert not any(tag == "b" for tag, _ in page.tags)  # never markup
+    assert [tag for tag, _ in page.tags].count("script") == 1  # the page's own control only
 
 
 def test_a_run_without_frames_shows_the_images_the_model_was_sent(

@@ -8,19 +8,29 @@ import json
 import os
 import signal
 import threading
+from collections import Counter, deque
 from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 
 import pytest
-from scipy.stats import binomtest
+from scipy.stats import binomtest, wilcoxon
 
 from cavenav import SCENARIO_SET
 from cavenav.episode.records import TERMINATIONS
 from cavenav.episode.settings import EpisodeSettings
 from cavenav.errors import CavenavError, ConfigError, RecordingError
-from cavenav.evaluation.executors import InProcess, LocalPool
-from cavenav.evaluation.results import aggregate, compare, episode_row, outcome
+from cavenav.evaluation.comparison import Compared, comparison, latex_table, markdown_table
+from cavenav.evaluation.executors import InProcess, LocalPool, deal
+from cavenav.evaluation.results import (
+    aggregate,
+    compare,
+    episode_row,
+    outcome,
+    paired_difference_ci,
+    priced,
+    wilson,
+)
 from cavenav.evaluation.sweep import (
     MAX_EPISODES,
     EpisodeJob,
@@ -250,15 +260,24 @@ def test_a_failing_episode_is_recorded_and_the_sweep_goes_on(room: str, tmp_path
 def test_worker_processes_give_the_same_episodes_as_one_process(room: str, tmp_path: Path) -> None:
     config = sweep(room, seeds=(0, 1, 2, 3), pilot=PilotSpec("random"))
     alone = run_sweep(config, tmp_path / "alone", InProcess())
-    pooled = run_sweep(config, tmp_path / "pool", LocalPool(workers=2, concurrency=2))
+    pooled = run_sweep(config, tmp_path / "pool", LocalPool(workers=2, concurrency=4))
     keys = ("episode", "outcome", "steps", "path_length_m", "min_clearance_m")
     assert [[r[k] for k in keys] for r in pooled] == [[r[k] for k in keys] for r in alone]
-    pids = set()
-    for run in (tmp_path / "pool" / "episodes").iterdir():
-        pids.add(json.loads((run / "summary.json").read_text())["pid"])
-    # Flown in the pool's processes, at most two; which worker took which episode (even
-    # whether both took one) is the scheduler's choice.
-    assert 1 <= len(pids) <= 2 and os.getpid() not in pids
+    pids = [
+        json.loads((run / "summary.json").read_text())["pid"]
+        for run in (tmp_path / "pool" / "episodes").iterdir()
+    ]
+    # Four episodes, two workers with room for four each: two each, in the pool's processes.
+    assert sorted(Counter(pids).values()) == [2, 2] and os.getpid() not in pids
+
+
+def test_jobs_are_dealt_to_the_least_loaded_worker_until_every_slot_is_taken() -> None:
+    jobs = deque(EpisodeJob("S1", k) for k in range(5))
+    dealt = deal(jobs, {"a": 0, "b": 1, "c": 0}, most=2)
+    assert [worker for worker, _ in dealt] == ["a", "c", "a", "b", "c"]
+    assert [job.seed for _, job in dealt] == [0, 1, 2, 3, 4] and not jobs
+    more = deque(EpisodeJob("S1", k) for k in range(5, 8))
+    assert [w for w, _ in deal(more, {"a": 2, "b": 1}, most=2)] == ["b"] and len(more) == 2
 
 
 def test_the_failure_taxonomy_reads_the_last_steps() -> None:
@@ -309,6 +328,8 @@ def test_comparison_pairs_caves_and_tests_the_discordant_ones() -> None:
         "cave": "S1 seed 3",
         "a": "episodes/S1-seed0003",
         "b": "episodes/S1-seed0003",
+        "outcome_a": "success",
+        "outcome_b": "collision",
     }
     assert result["per_scenario"]["S2"]["mcnemar_p"] == 1.0
 
@@ -623,3 +644,80 @@ def test_ctrl_c_goes_on_even_when_the_tables_cannot_be_read_back(room: str, tmp_
 
     with pytest.raises(KeyboardInterrupt):
         run_sweep(sweep(room), out, Interrupted())
+
+
+def test_newcombes_paired_interval_matches_the_published_example() -> None:
+    """Fagerland, Lydersen and Laake (2017), chapter 8 (Cavo et al. 2012): 59 caves both
+    got through, 6 only A, 16 only B, 80 neither: -0.0621 (95% CI -0.1186 to -0.0046)."""
+    assert paired_difference_ci(59, 6, 16, 80) == (-0.1186, -0.0046)
+    low, high = paired_difference_ci(16, 80, 6, 59)  # the association is now negative
+    assert low < (96 - 22) / 161 < high
+    assert paired_difference_ci(5, 0, 0, 5)[0] < 0 < paired_difference_ci(5, 0, 0, 5)[1]
+    assert paired_difference_ci(0, 0, 0, 0) is None
+
+
+def test_a_pair_tests_clearance_steps_tokens_and_cost_over_the_caves_both_recorded() -> None:
+    a = [{**row("S1", k, "success"), "steps": 20 + k, "min_clearance_m": 1.0} for k in range(8)]
+    b = [{**row("S1", k, "collision"), "steps": 10 + 2 * k, "min_clearance_m": 1.0}
+         for k in range(8)]  # fmt: skip
+    for r in a:
+        r.update(prompt_tokens=100, completion_tokens=50, cost_usd=0.01)
+    tests = compare(a, b)["overall"]["paired_tests"]
+    expected = wilcoxon([20 + k for k in range(8)], [10 + 2 * k for k in range(8)]).pvalue
+    assert tests["steps"] == {"pairs": 8, "median_difference": 6.5, "p": pytest.approx(expected)}
+    assert tests["min_clearance_m"] == {"pairs": 8, "median_difference": 0.0, "p": 1.0}
+    assert tests["tokens"] is None and tests["cost_usd"] is None  # B is not a model
+
+
+def test_a_comparison_ranks_every_sweep_and_pairs_each_with_each() -> None:
+    def sweep(label: str, wins: int, scenario: str = "S1") -> Compared:
+        rows = [{**row(scenario, k, "success" if k < wins else "collision"), "pilot": label}
+                for k in range(10)]  # fmt: skip
+        return Compared(Path(label), label, {"pilot": {"name": label}}, rows)
+
+    result = comparison([sweep("random", 1), sweep("vlm:x_1", 9), sweep("geometric", 6)])
+    assert [s["pilot"] for s in result["leaderboard"]] == ["vlm:x_1", "geometric", "random"]
+    assert [(p["a"], p["b"]) for p in result["pairs"]] == [
+        ("random", "vlm:x_1"), ("random", "geometric"), ("vlm:x_1", "geometric")
+    ]  # fmt: skip
+    assert [s["label"] for s in result["sweeps"]] == ["random", "vlm:x_1", "geometric"]
+    assert list(result["per_family"]) == ["S1"]
+    low, high = wilson(9, 10)
+    markdown = markdown_table(result).splitlines()
+    assert markdown[2].startswith(f"| vlm:x_1 | 9/10 | 90% ({low:.0%}-{high:.0%}) | 1 |")
+    assert len(markdown) == 2 + 3
+    assert r"vlm:x\_1 & 9/10 & 90\% (" in latex_table(result)
+
+
+def test_spl_averages_every_completed_episode_a_failure_scoring_nothing() -> None:
+    rows = [
+        {**row("S1", 0, "success"), "spl": 0.9},
+        {**row("S1", 1, "success"), "spl": 0.7},
+        {**row("S1", 2, "collision"), "spl": 0.0},
+        {**row("S1", 3, "error"), "spl": None},  # crashed: no record of it, still a failure
+        row("S1", 4, "incomplete"),
+    ]
+    assert aggregate(rows)[0]["spl"] == pytest.approx((0.9 + 0.7) / 4)
+    rows[1]["spl"] = None  # a success flown before SPL was recorded: no honest mean
+    assert aggregate(rows)[0]["spl"] is None
+
+
+def test_recorded_tokens_are_priced_after_the_fact() -> None:
+    model = {**row("S1", 0, "success"), "prompt_tokens": 2_000_000, "completion_tokens": 100_000}
+    geometric = {**row("S1", 1, "success"), "prompt_tokens": None, "cost_usd": None}
+    priced_rows = priced([model, geometric], (0.5, 4.0))
+    assert priced_rows[0]["cost_usd"] == pytest.approx(2 * 0.5 + 0.1 * 4.0)
+    assert priced_rows[1]["cost_usd"] is None and "cost_usd" not in model  # a copy
+
+
+def test_a_group_says_what_one_success_costs_and_its_path_efficiency_over_every_episode():
+    spent = {"prompt_tokens": 900, "completion_tokens": 100, "cost_usd": 0.02}
+    rows = [
+        {**row("S1", 0, "success"), **spent, "path_efficiency": 0.9},
+        {**row("S1", 1, "collision"), **spent, "path_efficiency": 0.3},
+    ]
+    group = aggregate(rows)[0]
+    assert group["tokens_per_success"] == 2000 and group["cost_per_success_usd"] == 0.04
+    assert group["path_efficiency"] == 0.9 and group["path_efficiency_all"] == 0.6
+    no_model = aggregate([row("S1", 0, "success")])[0]
+    assert no_model["tokens_per_success"] is None and no_model["cost_per_success_usd"] is None

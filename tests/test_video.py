@@ -15,7 +15,14 @@ import numpy as np
 import pytest
 
 from cavenav.episode.loop import EpisodeConfig, run_episode
-from cavenav.episode.video import CAPTION_HEIGHT, PANEL_HEIGHT, _rebuild_scenario, write_video
+from cavenav.episode.video import (
+    CAPTION_HEIGHT,
+    PANEL_HEIGHT,
+    REASON_LINES,
+    REASON_TOP,
+    _rebuild_scenario,
+    write_video,
+)
 from cavenav.errors import (
     CavenavError,
     CavenavWarning,
@@ -178,7 +185,8 @@ def test_a_missing_or_cut_short_frame_is_a_grey_panel_with_a_warning_naming_the_
     _, _, frames = read_video(video)
     assert len(frames) == STEPS  # the video is still made, a frame for every step
     grey = np.array([60, 60, 60])
-    below_label = slice(40, PANEL_HEIGHT)  # under the panel's label
+    # under the panel's label and the justification over the top of the colour panel
+    below_label = slice(REASON_TOP + 17 * REASON_LINES + 8, PANEL_HEIGHT)
     for k, panel in ((1, slice(0, CAMERA[0])), (3, slice(CAMERA[0], 2 * CAMERA[0]))):
         assert np.abs(frames[k][below_label, panel].astype(int) - grey).max() <= 6  # H.264
     assert np.abs(frames[2][below_label, : 2 * CAMERA[0]].astype(int) - grey).max() > 30

@@ -6,6 +6,7 @@ import json
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -19,9 +20,10 @@ from cavenav.pilots.backends import CachedBackend, OpenAIBackend, OpenAIConfig
 from cavenav.pilots.prompt import PromptConfig
 from cavenav.pilots.replay import ReplayPilot
 from cavenav.pilots.vlm import VLMPilot
+from cavenav.types import Usage
 from cavenav.world.scenarios import load_scenario
 
-from .conftest import wide
+from .conftest import synthetic_observation, wide
 from .test_cli import printed_summary
 from .vlm_server import FakeVLM
 
@@ -312,3 +314,32 @@ def test_ask_answers_one_photograph(server: FakeVLM, tmp_path: Path) -> None:
     assert action.up == pytest.approx(1.0)  # 3 m above, 1 m below: rise 1 m to the middle
     (twist_line,) = [x for x in done.stdout.splitlines() if x.startswith("twist:")]
     assert twist_line.split(None, 1)[1] == str(to_twist(action))
+
+
+def test_model_time_is_the_servers_not_the_time_a_request_waited_here(
+    server: FakeVLM, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """With many episodes in flight a request waits in this process (building it, a free
+    core) before the server sees it: the model's time leaves that out, the latency not."""
+    import openai._base_client as base
+
+    build = base.SyncAPIClient._build_request
+
+    def crowded(self, *args, **kwargs):  # noqa: ANN001, ANN002, ANN003, ANN202
+        time.sleep(0.4)  # as a request waits behind others here
+        return build(self, *args, **kwargs)
+
+    monkeypatch.setattr(base.SyncAPIClient, "_build_request", crowded)
+    server.persistent_fault, server.slow_s = "slow", 0.3  # the server takes 0.3 s
+    decision = pilot_for(server, timeout_s=5.0).decide(synthetic_observation(8.0))
+    assert decision.usage is not None and decision.usage.latency_s >= 0.7
+    assert 0.3 <= decision.usage.model_s < 0.55
+    assert decision.exchanges[0]["model_s"] == pytest.approx(decision.usage.model_s, abs=1e-4)
+
+
+def test_a_steps_model_times_are_summed_and_an_episodes_given_as_percentiles() -> None:
+    steps = [Usage(model_s=t) for t in (0.1, 0.2, 0.3, 0.4)] + [Usage(cached=True, model_s=None)]
+    total = Usage.total(steps)
+    assert total["model_p50_s"] == pytest.approx(0.25)
+    assert total["model_p95_s"] == pytest.approx(0.385)
+    assert Usage.total([Usage(cached=True)])["model_p50_s"] is None

@@ -16,10 +16,20 @@ import re
 import reprlib
 from dataclasses import dataclass
 
+import numpy as np
+
 from cavenav.errors import ActionError
 from cavenav.types import Action
 
-__all__ = ["ActionSpace", "DEFAULT_SPACE", "format_action", "parse_action", "to_twist"]
+__all__ = [
+    "ActionSpace",
+    "DEFAULT_SPACE",
+    "action_bounds",
+    "format_action",
+    "parse_action",
+    "snap_action",
+    "to_twist",
+]
 
 _EPS = 1e-9
 
@@ -344,3 +354,75 @@ def _motion(clause: str, words: set[str], magnitude: float) -> tuple[str, float]
             )
         return "right", _sign(clause, right, left, "lateral") * magnitude
     raise ActionError(f"'{clause}' names no motion (forward, strafe, ascend, turn, hold)")
+
+
+def action_bounds(space: ActionSpace = DEFAULT_SPACE) -> np.ndarray:
+    """The largest move of each component of an action vector (df, dr, dz, dpsi in
+    degrees), float32: a vector action space is the box from minus these to these."""
+    return np.array(
+        [max(space.forward_m), max(space.lateral_m), space.vertical_range_m[1], max(space.yaw_deg)],
+        np.float32,
+    )
+
+
+def snap_action(vector: object, space: ActionSpace = DEFAULT_SPACE) -> Action:
+    """The admissible action nearest ``vector`` = (df, dr, dz, dpsi in degrees).
+
+    df, dr and dpsi go to the nearest signed value of their sets. dz is continuous but
+    not near zero: a magnitude below half the smallest vertical move (0.05 m by default)
+    becomes 0, any other is clipped to the vertical range (0.1-2.0 m) and rounded to
+    the centimetre.
+
+    Raises:
+        ActionError: ``vector`` is not 4 finite real numbers of shape (4,), whatever it is
+            instead (text, a dict, another shape, NaN, ...).
+    """
+    v = _four_numbers(vector)
+
+    def nearest(value: float, magnitudes: tuple[float, ...]) -> float:
+        # Clipped first: beyond 1e17 the distances to every candidate round to one float.
+        value = min(max(value, -max(magnitudes)), max(magnitudes))
+        signed = [s * m for m in magnitudes for s in (1.0, -1.0)]
+        return float(min(signed, key=lambda c: (abs(c - value), abs(c)))) + 0.0
+
+    lo, hi = space.vertical_range_m
+    dz = 0.0 if abs(v[2]) < lo / 2 else math.copysign(round(min(max(abs(v[2]), lo), hi), 2), v[2])
+    return Action(
+        forward=nearest(v[0], space.forward_m),
+        right=nearest(v[1], space.lateral_m),
+        up=dz,
+        yaw_deg=nearest(v[3], space.yaw_deg),
+    )
+
+
+# What an array holds when it holds no real numbers, by numpy's dtype kind.
+_NOT_NUMBERS = {"U": "text", "S": "bytes", "c": "complex numbers", "O": "objects", "M": "dates"}
+
+
+def _four_numbers(vector: object) -> np.ndarray:
+    """``vector`` as a (4,) float64 array of finite numbers, or an ActionError saying what
+    it is instead: a policy's output can be anything, and the step must say why it held."""
+
+    def refused(what: str = "") -> ActionError:  # printed only to refuse: a step is cheap
+        shown = reprlib.repr(vector)
+        return ActionError(
+            f"an action vector is 4 finite numbers (df, dr, dz, dpsi), got {what}{shown}"
+        )
+
+    try:
+        array = np.asarray(vector)
+    except (TypeError, ValueError):  # ragged nesting, an __array__ that refuses
+        raise refused() from None
+    if array.shape != (4,):
+        raise refused(f"shape {array.shape}: ")
+    if array.dtype == object and all(isinstance(x, numbers.Real) for x in array):
+        try:  # Python numbers of mixed types; an int beyond float's range overflows
+            array = array.astype(np.float64)
+        except OverflowError:
+            raise refused() from None
+    if array.dtype.kind not in "biuf":  # booleans, integers or floats
+        raise refused(f"{_NOT_NUMBERS.get(array.dtype.kind, str(array.dtype))}: ")
+    v = array.astype(np.float64)
+    if not np.isfinite(v).all():
+        raise refused()
+    return v

@@ -34,10 +34,16 @@ from rich.table import Table
 
 from cavenav.cli_flights import fly_episode, fly_sweep, fly_vehicle
 from cavenav.cli_options import SETTINGS, VLM, ExrCompression, finite, takes
-from cavenav.cli_output import console, errors, print_comparison, print_groups
-from cavenav.episode.settings import FRAME_MODES, EpisodeSettings
+from cavenav.cli_output import (
+    console,
+    errors,
+    print_comparison,
+    print_groups,
+    print_leaderboard,
+)
+from cavenav.episode.settings import FRAME_MODES, VIDEO_MODES, EpisodeSettings
 from cavenav.errors import CavenavError
-from cavenav.pilots.factory import VLMOptions
+from cavenav.pilots.factory import PilotSpec, VLMOptions
 from cavenav.redaction import redact
 
 app = typer.Typer(
@@ -50,10 +56,16 @@ app = typer.Typer(
 ScenarioArg = Annotated[
     str, typer.Argument(help="a family (S1..S5, crawl, maze, long) or a scenario .toml file")
 ]
-PilotOpt = Annotated[str, typer.Option(help="pilot to fly: geometric, vlm, replay, random")]
+PilotOpt = Annotated[str, typer.Option(help="pilot to fly: geometric, vlm, replay, random, policy")]
 RunsOut = Annotated[Path, typer.Option(help="folder that receives the run folder")]
 FramesOpt = Annotated[bool, typer.Option(help="save RGB, depth PNG and EXR of every step")]
 FromOpt = Annotated[Path | None, typer.Option("--from", help="run folder to replay")]
+PolicyOpt = Annotated[
+    Path | None,
+    typer.Option(
+        help="model file the policy pilot flies (Stable-Baselines3 .zip; --resolution follows it)"
+    ),
+]
 # Placeholder defaults: `takes` puts each group's flags in their place and passes the
 # value built from them (`cavenav.cli_options`), so a command never sees these.
 FILLED_BY_TAKES, VLM_FILLED_BY_TAKES = EpisodeSettings(), VLMOptions()
@@ -80,21 +92,24 @@ def run(
         bool, typer.Option(help="safety shield between pilot and vehicle (cavenav.shield)")
     ] = False,
     from_: FromOpt = None,
+    policy: PolicyOpt = None,
     settings: EpisodeSettings = FILLED_BY_TAKES,
     vlm: VLMOptions = VLM_FILLED_BY_TAKES,
 ) -> None:
     """Fly one episode and write its run folder (summary, steps, frames, plots)."""
     from cavenav.episode.run_folder import new_run_dir, prepare_root
-    from cavenav.pilots.factory import PilotSpec
 
-    spec = PilotSpec(pilot, vlm, recording=str(from_) if from_ else None)
+    spec = _pilot_spec(pilot, vlm, from_, policy)
     if pilot == "replay":
         seed = _recorded_seed(scenario, str(from_), seed)
     flyer = spec.build(seed=seed)  # a refused pilot or recording leaves no folder behind
-    prepare_root(out)  # a folder that cannot be written is refused before the cave is built
     settings = replace(
-        settings, save_frames=frames, exr_compression=exr_compression.value, shield=shield
+        _camera_for(spec, settings),
+        save_frames=frames,
+        exr_compression=exr_compression.value,
+        shield=shield,
     )
+    prepare_root(out)  # a folder that cannot be written is refused before the cave is built
     with console.status(f"building {scenario} (seed {seed})"):
         cave = settings.load(scenario, seed)
     config = settings.episode_config(cave)
@@ -104,6 +119,31 @@ def run(
     )
     run_dir = new_run_dir(out, cave.name, pilot, cave.seed)
     fly_episode(cave, flyer, config, run_dir)
+
+
+def _pilot_spec(pilot: str, vlm: VLMOptions, from_: Path | None, policy: Path | None) -> PilotSpec:
+    return PilotSpec(
+        pilot,
+        vlm,
+        recording=str(from_) if from_ else None,
+        policy=str(policy.absolute()) if policy else None,  # as workers elsewhere find it
+    )
+
+
+def _camera_for(spec: PilotSpec, settings: EpisodeSettings) -> EpisodeSettings:
+    """``settings`` with the camera size a pilot trained at one size needs (a policy):
+    set when --resolution was not given, refused when it names another size."""
+    size = spec.image_size()
+    if size is None or settings.resolution == size:
+        return settings
+    if settings.resolution is not None:
+        given, wanted = (f"{w}x{h}" for w, h in (settings.resolution, size))
+        raise CavenavError(
+            f"--resolution {given}: the policy {spec.policy} was trained on {wanted} images; "
+            f"leave --resolution out or give {wanted}"
+        )
+    console.print(f"[yellow]note:[/] the camera is {size[0]}x{size[1]}, as the policy saw it")
+    return replace(settings, resolution=size)
 
 
 def _recorded_seed(scenario: str, recording: str, seed: int) -> int:
@@ -164,7 +204,6 @@ def ask(
     --bottom is sent as "unknown".
     """
     from cavenav.actions import to_twist
-    from cavenav.pilots.factory import PilotSpec
     from cavenav.pilots.photo import load_photo
 
     # The images first: a bad one is refused before the endpoint is contacted.
@@ -183,6 +222,14 @@ def ask(
 
 # What a sweep keeps of each step's images (`cavenav.episode.settings.FRAME_MODES`).
 FramesMode = StrEnum("FramesMode", {name: name for name in FRAME_MODES})
+# Which episodes of a sweep get a video (`cavenav.episode.settings.VIDEO_MODES`).
+VideoMode = StrEnum("VideoMode", {name: name for name in VIDEO_MODES})
+VideoOpt = Annotated[
+    VideoMode, typer.Option(help="episode.mp4 for none, failures or all episodes, as each ends")
+]
+WandbOpt = Annotated[
+    bool, typer.Option(help="log episodes, results and videos to Weights & Biases (offline)")
+]
 
 
 @app.command("eval")
@@ -195,7 +242,10 @@ def eval_(
     seeds: Annotated[
         str, typer.Option(help="caves of each family: 0-19, or 0,3,1000-1019 (test split 1000+)")
     ] = "0-19",
-    pilot: Annotated[str, typer.Option(help="pilot to fly: geometric, vlm, random")] = "geometric",
+    pilot: Annotated[
+        str, typer.Option(help="pilot to fly: geometric, vlm, random, policy")
+    ] = "geometric",
+    policy: PolicyOpt = None,
     out: Annotated[
         Path, typer.Option(help="sweep folder; re-run the same command to resume it")
     ] = Path("runs/sweep"),
@@ -214,24 +264,36 @@ def eval_(
     ] = FramesMode["all"],
     shield: Annotated[bool, typer.Option(help="safety shield between pilot and vehicle")] = False,
     report: Annotated[bool, typer.Option(help="write the HTML report at the end")] = True,
+    video: VideoOpt = VideoMode["none"],
+    wandb: WandbOpt = False,
     settings: EpisodeSettings = FILLED_BY_TAKES,
     vlm: VLMOptions = VLM_FILLED_BY_TAKES,
 ) -> None:
     """Fly a pilot over scenarios x seeds; results.csv, aggregate.json and an HTML report."""
     from cavenav.episode.run_folder import prepare_root
     from cavenav.evaluation.sweep import SweepConfig, check_grid, parse_seeds
-    from cavenav.pilots.factory import PilotSpec
 
     if pilot == "replay":
-        raise CavenavError("a sweep flies geometric, vlm or random pilots, not replay")
-    spec = PilotSpec(pilot, vlm)
-    settings = replace(settings, shield=shield).with_frames(frames.value)
-    config = SweepConfig(_scenario_list(scenarios), parse_seeds(seeds), spec, settings)
+        raise CavenavError("a sweep flies geometric, vlm, random or policy pilots, not replay")
+    spec = _pilot_spec(pilot, vlm, None, policy)
+    settings = replace(_camera_for(spec, settings), shield=shield).with_frames(frames.value)
+    config = SweepConfig(
+        _scenario_list(scenarios), parse_seeds(seeds), spec, settings, video=video.value
+    )
     check_grid(config)  # every scenario and knob, in milliseconds, before anything is written
     if pilot == "vlm":
         spec.build()  # a missing key or an unreachable server fails now, not in a worker
+    log = _wandb_log(out, config) if wandb else None  # wandb missing: refused here
     prepare_root(out)  # only now: a refused grid or pilot leaves no folder behind
-    rows = fly_sweep(config, out, _executor(workers, concurrency, ray_address))
+    executor = _executor(workers, concurrency, ray_address)
+    rows = fly_sweep(config, out, executor, log.episode if log else None)
+    _sweep_flown(out, rows, report, log)
+
+
+def _sweep_flown(out: Path, rows: list[dict], report: bool, log: Any) -> None:  # noqa: ANN401
+    """The tables, the paths, the report and the W&B run's last entries of a sweep."""
+    if log:
+        log.finish(rows)
     print_groups(rows)
     console.print(f"sweep folder: [bold]{out}[/]", soft_wrap=True)
     console.print(f"results:      {out / 'results.csv'}", soft_wrap=True)
@@ -239,6 +301,12 @@ def eval_(
         from cavenav.evaluation.report import write_report
 
         console.print(f"report:       {write_report(out, rows)}", soft_wrap=True)
+
+
+def _wandb_log(out: Path, config: Any) -> Any:  # noqa: ANN401
+    from cavenav.evaluation.export import WandbLog
+
+    return WandbLog(out, config.to_dict())
 
 
 def _scenario_list(text: str) -> tuple[str, ...]:
@@ -259,49 +327,84 @@ def _executor(workers: int | None, concurrency: int, ray_address: str | None) ->
 
 @app.command()
 def compare(
-    sweep_a: Annotated[Path, typer.Argument(help="sweep folder A")],
-    sweep_b: Annotated[Path, typer.Argument(help="sweep folder B, over the same caves")],
+    sweeps: Annotated[
+        list[Path], typer.Argument(help="two sweep folders or more, over the same caves")
+    ],
+    out: Annotated[
+        Path | None,
+        typer.Option(help="write the comparison page here: index.html, compare.json, tables"),
+    ] = None,
     json_out: Annotated[
         Path | None, typer.Option("--json", help="also write the comparison to this file")
     ] = None,
+    price: Annotated[
+        list[str] | None,
+        typer.Option(
+            metavar="MODEL=IN,OUT",
+            help="price MODEL's recorded tokens: USD per million in, out (repeatable)",
+        ),
+    ] = None,
 ) -> None:
-    """Pair two sweeps by cave: success rates, exact McNemar test, caves only one got through."""
+    """Pilots side by side, paired by cave: success with its interval, McNemar, Wilcoxon.
+
+    With two sweeps it prints the paired table and the caves only one got through; with
+    more, a leaderboard and every pair. --out DIR writes the page (DIR/index.html), the
+    JSON behind it (DIR/compare.json) and the leaderboard as Markdown and LaTeX.
+    """
     from cavenav.episode.run_folder import write_json
     from cavenav.errors import ConfigError, RecordingError
-    from cavenav.evaluation.results import compare as compare_rows
-    from cavenav.evaluation.sweep import read_rows, read_sweep
+    from cavenav.evaluation import comparison
 
     if json_out is not None and json_out.is_dir():
         raise ConfigError(f"--json {json_out} is a folder: name the file to write")
-    (config_a, _), (config_b, _) = read_sweep(sweep_a), read_sweep(sweep_b)
-    knobs_a, knobs_b = dict(config_a.settings.difficulty), dict(config_b.settings.difficulty)
-    if knobs_a != knobs_b:
-        raise CavenavError(
-            f"the sweeps flew different caves: difficulty {knobs_a} in {sweep_a}, "
-            f"{knobs_b} in {sweep_b}"
-        )
-    result = compare_rows(read_rows(sweep_a, write=False), read_rows(sweep_b, write=False))
-    label_a, label_b = config_a.pilot.label, config_b.pilot.label
-    title = f"A = {label_a} ({sweep_a})   B = {label_b} ({sweep_b})"
-    print_comparison(result, title, (sweep_a, sweep_b))
+    read = comparison.load_sweeps(sweeps, _model_prices(price or []))
+    result = comparison.comparison(read)
+    if len(read) == 2:
+        a, b = read
+        title = f"A = {a.label} ({a.path})   B = {b.label} ({b.path})"
+        print_comparison(result["pairs"][0], title, (a.path, b.path))
+    else:
+        print_leaderboard(result)
     if json_out:
-        try:
-            write_json(json_out, result)
+        try:  # two sweeps: the pair's tests, as before; more: the whole comparison
+            write_json(json_out, result["pairs"][0] if len(read) == 2 else result)
         except OSError as exc:
             raise RecordingError.cannot_write(
                 f"the comparison to {json_out}", exc, " (the table above is complete)"
             ) from None
         console.print(f"comparison: {json_out}", soft_wrap=True)
+    if out:
+        comparison.write(read, result, out)
+        for table in (comparison.markdown_table(result), comparison.latex_table(result)):
+            console.print(table, markup=False, highlight=False, soft_wrap=True)
+        console.print(f"comparison page: [bold]{out / 'index.html'}[/]", soft_wrap=True)
+
+
+def _model_prices(given: list[str]) -> dict[str, tuple[float, float]]:
+    """``--price MODEL=IN,OUT`` options as {model: (in, out)}."""
+    prices = {}
+    for text in given:
+        model, _, pair = text.rpartition("=")
+        price = VLMOptions(price=pair).prices() if model else None
+        if price is None:
+            raise CavenavError(f"--price takes MODEL=IN,OUT (USD per million tokens), got '{text}'")
+        prices[model] = price
+    return prices
 
 
 @app.command()
 def report(
     folder: Annotated[Path, typer.Argument(help="a sweep folder or a run folder")],
+    price: Annotated[
+        str | None,
+        typer.Option(help="IN,OUT: USD per million tokens, to price the recorded tokens"),
+    ] = None,
 ) -> None:
     """Write the static HTML report of a sweep (or of one run folder)."""
     from cavenav.evaluation.report import write_report
 
-    console.print(f"report: [bold]{write_report(folder)}[/]", soft_wrap=True)
+    prices = VLMOptions(price=price).prices()
+    console.print(f"report: [bold]{write_report(folder, prices=prices)}[/]", soft_wrap=True)
 
 
 @app.command()
@@ -378,6 +481,7 @@ def fly(
         bool, typer.Option(help="safety shield between pilot and vehicle (on by default here)")
     ] = True,
     from_: FromOpt = None,
+    policy: PolicyOpt = None,
     settings: EpisodeSettings = FILLED_BY_TAKES,
     vlm: VLMOptions = VLM_FILLED_BY_TAKES,
 ) -> None:
@@ -392,12 +496,11 @@ def fly(
         errors.print(REAL_VEHICLE_INPUTS, highlight=False)
         raise typer.Exit(2)
     from cavenav.episode.run_folder import new_run_dir, prepare_root
-    from cavenav.pilots.factory import PilotSpec
 
-    spec = PilotSpec(pilot, vlm, recording=str(from_) if from_ else None)
-    prepare_root(out)
+    spec = _pilot_spec(pilot, vlm, from_, policy)
     flyer = spec.build(seed=seed)
-    settings = replace(settings, save_frames=frames, shield=shield)
+    settings = replace(_camera_for(spec, settings), save_frames=frames, shield=shield)
+    prepare_root(out)
     with console.status(f"building {sim} (seed {seed})"):
         cave = settings.load(sim, seed)
     episode = settings.episode_config(cave)

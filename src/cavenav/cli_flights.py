@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import contextlib
 import signal
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -103,8 +103,14 @@ def _remove_if_empty(folder: Path) -> None:
         folder.rmdir()
 
 
-def fly_sweep(config: Any, out: Path, executor: Any) -> list[dict]:  # noqa: ANN401
-    """`run_sweep` with a progress bar; Ctrl-C or SIGTERM stop it with the tables written."""
+def fly_sweep(
+    config: Any,  # noqa: ANN401
+    out: Path,
+    executor: Any,  # noqa: ANN401
+    on_row: Callable[[dict], None] | None = None,
+) -> list[dict]:
+    """`run_sweep` with a progress bar; Ctrl-C or SIGTERM stop it with the tables written.
+    ``on_row`` sees each episode's results row as it ends (`cavenav eval --wandb`)."""
     from cavenav.errors import RecordingError
     from cavenav.evaluation.sweep import run_sweep
 
@@ -122,6 +128,8 @@ def fly_sweep(config: Any, out: Path, executor: Any) -> list[dict]:  # noqa: ANN
             counts["success"] += row.get("outcome") == "success"
             status = f"{counts['success']}/{counts['done']} succeeded  last: {row['episode']} "
             progress.update(task, advance=1, status=status + str(row.get("outcome")))
+            if on_row is not None:
+                on_row(row)
 
         terminated: list[int] = []
         try:

@@ -5,21 +5,41 @@ the records as written.
 
 from __future__ import annotations
 
+import os
 from collections.abc import Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from rich.console import Console
 from rich.markup import escape
+from rich.measure import Measurement
 from rich.table import Table
 
 if TYPE_CHECKING:
     from cavenav.episode.records import EpisodeSummary
 
-__all__ = ["console", "errors", "print_comparison", "print_groups", "print_summary"]
+__all__ = [
+    "console",
+    "errors",
+    "print_comparison",
+    "print_groups",
+    "print_leaderboard",
+    "print_summary",
+]
 
 console = Console()
 errors = Console(stderr=True, soft_wrap=True)
+
+
+def _print_table(table: Table) -> None:
+    """On a terminal (or with COLUMNS set) a table fits the width; printed to a file or a
+    pipe it keeps every cell whole, where rich would cut it to 80 columns ("51%-1…")."""
+    if console.is_terminal or "COLUMNS" in os.environ:
+        console.print(table)
+        return
+    whole = Measurement.get(console, console.options.update_width(1000), table).maximum
+    Console(width=max(console.width, whole), file=console.file).print(table)
+
 
 # Caves of each side listed under a comparison; all of them go to --json FILE.
 SHOWN_CAVES = 12
@@ -39,7 +59,15 @@ def print_summary(summary: EpisodeSummary) -> None:
         # Escaped: a failure quoting a server or a reply ("[redacted]", "[/]") is text,
         # not rich markup, which would swallow it or fail on it.
         table.add_row(key, "-" if value is None else escape(str(value)))
-    console.print(table)
+    _print_table(table)
+
+
+def _spl(s: EpisodeSummary) -> str:
+    if s.spl is None:
+        return "-"
+    if s.shortest_path_m is None:  # a failure: 0, whatever the shortest path
+        return f"{s.spl:.3f}"
+    return f"{s.spl:.3f} (shortest path {_metres(s.shortest_path_m)})"
 
 
 def _summary_rows(s: EpisodeSummary) -> list[tuple[str, Any]]:
@@ -52,6 +80,7 @@ def _summary_rows(s: EpisodeSummary) -> list[tuple[str, Any]]:
         ("steps", s.steps),
         ("collisions", s.collisions),
         ("path length", f"{s.path_length_m:.1f} m"),
+        ("SPL", _spl(s)),
         ("min clearance", _metres(s.min_clearance_m)),
         ("mean clearance", _metres(s.mean_clearance_m)),
         ("steps below standoff", s.steps_below_standoff),
@@ -110,15 +139,15 @@ def print_groups(rows: list[dict]) -> None:
             "-" if g["path_efficiency"] is None else f"{g['path_efficiency']:.2f}",
             "-" if g["steps"] is None else f"{g['steps']:.0f}",
         )
-    console.print(table)
+    _print_table(table)
 
 
 def print_comparison(result: Mapping[str, Any], title: str, folders: tuple[Path, Path]) -> None:
     """Two sweeps paired by cave (`cavenav.evaluation.results.compare`): per scenario and
     overall, then the caves only one of them got through, under ``folders`` (A, B)."""
     table = Table(title=title)
-    for column in ("scenario", "pairs", "A success", "B success", "A - B", "only A", "only B",
-                   "McNemar exact p"):  # fmt: skip
+    for column in ("scenario", "pairs", "A success", "B success", "A - B (95% CI)", "only A",
+                   "only B", "McNemar exact p"):  # fmt: skip
         table.add_column(column)
     entries = [*result["per_scenario"].items(), ("all", result["overall"])]
     for name, r in entries:
@@ -129,12 +158,13 @@ def print_comparison(result: Mapping[str, Any], title: str, folders: tuple[Path,
             str(r["pairs"]),
             f"{r['success_rate_a']:.0%}",
             f"{r['success_rate_b']:.0%}",
-            f"{r['difference']:+.0%}",
+            f"{r['difference']:+.0%} ({r['difference_ci95'][0]:+.0%} to "
+            f"{r['difference_ci95'][1]:+.0%})",
             str(len(r["only_a"])),
             str(len(r["only_b"])),
             f"{r['mcnemar_p']:.4g}",
         )
-    console.print(table)
+    _print_table(table)
     if result["unpaired"]:
         console.print(f"{result['unpaired']} caves were completed in one sweep only (left out)")
     for side, folder in zip(("a", "b"), folders, strict=True):
@@ -147,3 +177,35 @@ def print_comparison(result: Mapping[str, Any], title: str, folders: tuple[Path,
                 console.print(
                     f"  ... {len(caves) - SHOWN_CAVES} more (all of them with --json FILE)"
                 )
+
+
+def print_leaderboard(result: Mapping[str, Any]) -> None:
+    """Several sweeps (`cavenav.evaluation.comparison`): the leaderboard, then every pair's
+    difference in success with its interval and McNemar's exact p."""
+    from cavenav.evaluation.comparison import board
+
+    table = Table(title="leaderboard (success with its 95% Wilson interval)")
+    headers, rows = board(result)
+    for column in headers:
+        table.add_column(column)
+    for row in rows:
+        table.add_row(*map(escape, row))
+    _print_table(table)
+    pairs = Table(title="pairs, over the caves both completed")
+    for column in ("A", "B", "caves", "A - B (95% CI)", "only A", "only B", "McNemar exact p"):
+        pairs.add_column(column)
+    for pair in result["pairs"]:
+        o = pair["overall"]
+        if not o["pairs"]:
+            continue
+        low, high = o["difference_ci95"]
+        pairs.add_row(
+            escape(pair["a"]),
+            escape(pair["b"]),
+            str(o["pairs"]),
+            f"{o['difference']:+.0%} ({low:+.0%} to {high:+.0%})",
+            str(len(o["only_a"])),
+            str(len(o["only_b"])),
+            f"{o['mcnemar_p']:.4g}",
+        )
+    _print_table(pairs)

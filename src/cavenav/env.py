@@ -17,8 +17,6 @@ and `LEARNER_REWARD`, ready for Stable-Baselines3's ``MultiInputPolicy``.
 from __future__ import annotations
 
 import math
-import numbers
-import reprlib
 import string
 import time
 from dataclasses import dataclass, field, replace
@@ -29,7 +27,14 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from cavenav.actions import DEFAULT_SPACE, ActionSpace, format_action, parse_action
+from cavenav.actions import (
+    DEFAULT_SPACE,
+    ActionSpace,
+    action_bounds,
+    format_action,
+    parse_action,
+    snap_action,
+)
 from cavenav.errors import ActionError, ConfigError
 from cavenav.kinematics import Drift, Kinematic, Motion
 from cavenav.sensors.camera import pixel_size
@@ -57,69 +62,6 @@ __all__ = [
 ACTION_CHARSET = string.ascii_letters + string.digits + " .,-+°"
 # Cave seeds drawn for training when no seed is fixed; seeds from here up are held out.
 TRAINING_SEEDS = 1000
-
-
-def snap_action(vector: object, space: ActionSpace = DEFAULT_SPACE) -> Action:
-    """The admissible action nearest ``vector`` = (df, dr, dz, dpsi in degrees).
-
-    df, dr and dpsi go to the nearest signed value of their sets. dz is continuous but
-    not near zero: a magnitude below half the smallest vertical move (0.05 m by default)
-    becomes 0, any other is clipped to the vertical range (0.1-2.0 m) and rounded to
-    the centimetre.
-
-    Raises:
-        ActionError: ``vector`` is not 4 finite real numbers of shape (4,), whatever it is
-            instead (text, a dict, another shape, NaN, ...).
-    """
-    v = _four_numbers(vector)
-
-    def nearest(value: float, magnitudes: tuple[float, ...]) -> float:
-        # Clipped first: beyond 1e17 the distances to every candidate round to one float.
-        value = min(max(value, -max(magnitudes)), max(magnitudes))
-        signed = [s * m for m in magnitudes for s in (1.0, -1.0)]
-        return float(min(signed, key=lambda c: (abs(c - value), abs(c)))) + 0.0
-
-    lo, hi = space.vertical_range_m
-    dz = 0.0 if abs(v[2]) < lo / 2 else math.copysign(round(min(max(abs(v[2]), lo), hi), 2), v[2])
-    return Action(
-        forward=nearest(v[0], space.forward_m),
-        right=nearest(v[1], space.lateral_m),
-        up=dz,
-        yaw_deg=nearest(v[3], space.yaw_deg),
-    )
-
-
-# What an array holds when it holds no real numbers, by numpy's dtype kind.
-_NOT_NUMBERS = {"U": "text", "S": "bytes", "c": "complex numbers", "O": "objects", "M": "dates"}
-
-
-def _four_numbers(vector: object) -> np.ndarray:
-    """``vector`` as a (4,) float64 array of finite numbers, or an ActionError saying what
-    it is instead: a policy's output can be anything, and the step must say why it held."""
-
-    def refused(what: str = "") -> ActionError:  # printed only to refuse: a step is cheap
-        shown = reprlib.repr(vector)
-        return ActionError(
-            f"an action vector is 4 finite numbers (df, dr, dz, dpsi), got {what}{shown}"
-        )
-
-    try:
-        array = np.asarray(vector)
-    except (TypeError, ValueError):  # ragged nesting, an __array__ that refuses
-        raise refused() from None
-    if array.shape != (4,):
-        raise refused(f"shape {array.shape}: ")
-    if array.dtype == object and all(isinstance(x, numbers.Real) for x in array):
-        try:  # Python numbers of mixed types; an int beyond float's range overflows
-            array = array.astype(np.float64)
-        except OverflowError:
-            raise refused() from None
-    if array.dtype.kind not in "biuf":  # booleans, integers or floats
-        raise refused(f"{_NOT_NUMBERS.get(array.dtype.kind, str(array.dtype))}: ")
-    v = array.astype(np.float64)
-    if not np.isfinite(v).all():
-        raise refused()
-    return v
 
 
 def read_action(
@@ -213,10 +155,7 @@ def _action_space(action_format: str, space: ActionSpace) -> spaces.Space:
     """Action strings over `ACTION_CHARSET`, or a ``Box`` of the largest magnitudes."""
     if action_format == "text":
         return ActionText(300, charset=ACTION_CHARSET)
-    high = np.array(
-        [max(space.forward_m), max(space.lateral_m), space.vertical_range_m[1], max(space.yaw_deg)],
-        np.float32,
-    )
+    high = action_bounds(space)
     return spaces.Box(-high, high, dtype=np.float32)
 
 

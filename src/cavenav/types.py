@@ -216,6 +216,9 @@ class Usage:
     Attributes:
         prompt_tokens, completion_tokens: token counts over every request of the step.
         latency_s: time spent waiting for the model, seconds.
+        model_s: the part of it the model server took, apart from the time the request
+            spent in this process (`cavenav.pilots.backends.Completion.model_s`); None
+            where a request of the step was not measured (cached, failed).
         requeries: replies rejected and asked again.
         transport_retries: requests repeated after transport faults.
         cached: every reply came from the reply cache.
@@ -229,6 +232,7 @@ class Usage:
     transport_retries: int = 0
     cached: bool = False
     cost_usd: float | None = None
+    model_s: float | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """The per-step record written to steps.jsonl under ``vlm``."""
@@ -236,6 +240,7 @@ class Usage:
             "prompt_tokens": self.prompt_tokens,
             "completion_tokens": self.completion_tokens,
             "latency_s": round(self.latency_s, 4),
+            "model_s": None if self.model_s is None else round(self.model_s, 4),
             "requeries": self.requeries,
             "transport_retries": self.transport_retries,
             "cached": self.cached,
@@ -257,7 +262,18 @@ class Usage:
             "transport_retries": sum(s.transport_retries for s in steps),
             "mean_latency_s": round(sum(s.latency_s for s in steps) / len(steps), 4),
             "cost_usd": round(sum(costs), 6) if costs else None,
+            **model_time_percentiles([s.model_s for s in steps if not s.cached]),
         }
+
+
+def model_time_percentiles(times: Iterable[float | None]) -> dict[str, float | None]:
+    """p50 and p95 of the model server's time per step (``model_p50_s``,
+    ``model_p95_s``), over the steps where it was measured; None where none was."""
+    known = [t for t in times if t is not None]
+    if not known:
+        return {"model_p50_s": None, "model_p95_s": None}
+    p50, p95 = np.percentile(known, [50, 95])
+    return {"model_p50_s": round(float(p50), 4), "model_p95_s": round(float(p95), 4)}
 
 
 @dataclass(frozen=True)

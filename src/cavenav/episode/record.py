@@ -11,6 +11,7 @@ from __future__ import annotations
 import os
 import platform
 import time
+import warnings
 from dataclasses import asdict
 from datetime import UTC, datetime
 from typing import Any
@@ -19,8 +20,9 @@ from cavenav import SCENARIO_SET, __version__
 from cavenav.actions import format_action, to_twist
 from cavenav.episode.metrics import path_length, summarise_clearance
 from cavenav.episode.records import TERMINATED, TERMINATIONS, TRUNCATED, EpisodeSummary, StepRecord
-from cavenav.errors import PilotFailure
+from cavenav.errors import CavenavWarning, PilotFailure
 from cavenav.types import Action, Decision, Observation, Pose, Rules, Usage
+from cavenav.world.geodesic import NoPath, shortest_path_of
 from cavenav.world.scenarios import Scenario
 
 __all__ = ["TERMINATIONS", "EpisodeLog"]
@@ -203,6 +205,7 @@ class EpisodeLog:
                 "path_length_m": round(path_length(self.poses), 4),
                 "progress_m": round(self.progress_m, 4),
                 "passage_length_m": round(self.scenario.passage_length_m, 4),
+                **self._spl(status),
                 **summarise_clearance(self.clearances, self.rules.standoff_m),
                 "final_pose": self.poses[-1].to_dict(),
                 "collision_pose": self.collision_pose,
@@ -220,6 +223,23 @@ class EpisodeLog:
                 **self._meta,
             }
         )
+
+    def _spl(self, status: str) -> dict[str, float | None]:
+        """SPL (Anderson et al. 2018) once the episode is over: for a success, the
+        shortest path (`cavenav.world.geodesic`, found at a cave's first success)
+        over the longer of it and the path flown; 0 for a finished failure; unknown where
+        no shortest path was found."""
+        if status != "finished":
+            return {}
+        if self.termination != "exit":
+            return {"spl": 0.0}
+        try:
+            shortest = shortest_path_of(self.scenario).length_m
+        except NoPath as exc:
+            warnings.warn(f"no SPL for this episode: {exc}", CavenavWarning, stacklevel=2)
+            return {}
+        flown = path_length(self.poses)
+        return {"shortest_path_m": shortest, "spl": round(shortest / max(flown, shortest), 4)}
 
 
 def _drift(steps: list[dict[str, Any]]) -> dict[str, float]:

@@ -119,6 +119,8 @@ class _Usage(_Record):
     transport_retries: int | None = None
     cost_usd: float | None = None
     mean_latency_s: float | None = None
+    model_p50_s: float | None = None  # the server's time per step, apart from the queue
+    model_p95_s: float | None = None
 
 
 class _Portal(_Record):
@@ -160,6 +162,8 @@ class EpisodeSummary(_Record):
     path_length_m: float | None = None
     progress_m: float | None = None
     passage_length_m: float | None = None
+    shortest_path_m: float | None = None  # through free space, start to exit (successes)
+    spl: float | None = None  # success x shortest / max(flown, shortest); 0 for a failure
     min_clearance_m: float | None = None
     mean_clearance_m: float | None = None
     steps_below_standoff: int | None = None

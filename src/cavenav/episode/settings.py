@@ -23,10 +23,12 @@ if TYPE_CHECKING:
     from cavenav.sensors.rig import SensorConfig
     from cavenav.world.scenarios import Scenario
 
-__all__ = ["FRAME_MODES", "SENSOR_FIELDS", "EpisodeSettings"]
+__all__ = ["FRAME_MODES", "SENSOR_FIELDS", "VIDEO_MODES", "EpisodeSettings"]
 
 # What a sweep keeps of each step's images, as sweep.json names it: (frames, EXR).
 FRAME_MODES = {"all": (True, True), "png": (True, False), "none": (False, False)}
+# Which episodes of a sweep get an episode.mp4 (`cavenav eval --video`).
+VIDEO_MODES = ("none", "failures", "all")
 # The pixel counts, named as a scenario file's [sensors] table names them: the keys of
 # `cavenav.sensors.rig.SENSOR_KEYS`, written again here because importing the rig loads
 # its kernels (0.4 s at every command's start); tests/test_settings.py holds them equal.

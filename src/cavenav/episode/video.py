@@ -1,7 +1,8 @@
 """Episode videos: what the vehicle saw beside where it was, one frame per step.
 
 Each frame puts the step's colour image, its depth PNG and a top-down map side by side,
-each panel 480 px high (`PANEL_HEIGHT`), above a caption line (step, action, clearance):
+each panel 480 px high (`PANEL_HEIGHT`), above a caption line (step, action, clearance),
+with the pilot's justification over the top of the colour image:
 for the default 640x480 camera a frame is 1760 x 512 px (640 + 640 + 480 wide,
 480 + 32 high). The map shows the cave's footprint when the scenario can be rebuilt from
 summary.json (S1-S5, by name, seed and difficulty), else the path alone, with the exits,
@@ -52,10 +53,12 @@ from cavenav.files import write_then_rename
 if TYPE_CHECKING:
     from cavenav.world.scenarios import ExitPortal
 
-__all__ = ["CAPTION_HEIGHT", "PANEL_HEIGHT", "write_video"]
+__all__ = ["CAPTION_HEIGHT", "PANEL_HEIGHT", "REASON_LINES", "REASON_TOP", "write_video"]
 
 PANEL_HEIGHT = 480  # px: the camera's default height, so its images are not resampled
 CAPTION_HEIGHT = 32  # px: one line of 17 px text; 480 + 32 = 512, a multiple of 16
+REASON_LINES = 4  # of the pilot's justification, over the top of the colour image
+REASON_TOP = 28  # px: under the panel's label
 _CMAP = "viridis"  # clearance colours, as in topdown.png (episode/plots.py)
 _CLEARANCE_MAX_M = 3.0  # top of the colour scale, as in topdown.png for calm episodes
 _MARGIN_M = 3.0  # map margin around the path and the exits
@@ -315,7 +318,29 @@ def _frames(
         frame.paste(_map_frame(canvas, pixels, colours, k, pose.yaw_deg, crash), (x, 0))
         colour = (255, 110, 110) if step.collision else (235, 235, 235)
         draw.text((10, PANEL_HEIGHT + 6), _caption(step, len(steps)), fill=colour, font=font)
+        if step.justification:
+            _overlay_reason(frame, step.justification, widths[0], small)
         yield np.asarray(frame)
+
+
+def _overlay_reason(frame: Image.Image, text: str, width: int, font: Any) -> None:  # noqa: ANN401
+    """The pilot's justification across the top of the colour panel, under its label (a
+    player's controls cover the foot), on a darkened band, wrapped to its width, at most
+    `REASON_LINES` lines (the last cut with an ellipsis)."""
+    lines: list[str] = []
+    for word in f"why: {' '.join(text.split())}".split(" "):
+        if lines and font.getlength(f"{lines[-1]} {word}") <= width - 16:
+            lines[-1] = f"{lines[-1]} {word}"
+        else:
+            lines.append(word)
+    if len(lines) > REASON_LINES:
+        lines = [*lines[: REASON_LINES - 1], lines[REASON_LINES - 1] + " …"]
+    top = REASON_TOP
+    band = frame.crop((0, top - 4, width, top + 17 * len(lines) + 4))
+    frame.paste(Image.blend(band, Image.new("RGB", band.size), 0.6), (0, top - 4))
+    draw = ImageDraw.Draw(frame)
+    for k, line in enumerate(lines):
+        draw.text((8, top + 17 * k), line, fill=(245, 245, 245), font=font)
 
 
 def _ffmpeg() -> str:

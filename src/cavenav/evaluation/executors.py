@@ -20,11 +20,11 @@ import signal
 import sys
 import threading
 from collections import deque
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from multiprocessing.connection import Connection, wait
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 from cavenav.errors import ConfigError, DependencyError, RecordingError
 from cavenav.evaluation.results import episode_row
@@ -36,9 +36,25 @@ from cavenav.evaluation.sweep import (
     record_error,
 )
 
-__all__ = ["InProcess", "LocalPool", "RayCluster"]
+__all__ = ["InProcess", "LocalPool", "RayCluster", "deal"]
 
 Done = Callable[[dict[str, Any]], None]
+Worker = TypeVar("Worker")
+
+
+def deal(waiting: deque[EpisodeJob], load: Mapping[Worker, int], most: int) -> list:
+    """Jobs from ``waiting`` for the free slots, each to the worker with the fewest in
+    flight (``load``), up to ``most`` each: a sweep smaller than workers x concurrency is
+    shared out evenly, not handed whole to the first worker. Returns (worker, job) pairs."""
+    counts, dealt = dict(load), []
+    while waiting:
+        free = [w for w, n in counts.items() if n < most]
+        if not free:
+            break
+        worker = min(free, key=counts.__getitem__)
+        dealt.append((worker, waiting.popleft()))
+        counts[worker] += 1
+    return dealt
 
 
 @dataclass(frozen=True)
@@ -213,15 +229,14 @@ class LocalPool:
                 there.close()
                 flying[here], processes[here] = {}, process
 
-        def feed(conn: Connection) -> None:
-            while waiting and len(flying[conn]) < self.concurrency:
-                job = waiting.popleft()
+        def feed() -> None:
+            load = {conn: len(held) for conn, held in flying.items()}
+            for conn, job in deal(waiting, load, self.concurrency):
                 conn.send(job)
                 flying[conn][job.episode] = job
 
         try:
-            for conn in flying:
-                feed(conn)
+            feed()
             while any(flying.values()):
                 for conn in wait([c for c in flying if flying[c]], timeout=1.0):
                     try:
@@ -233,7 +248,7 @@ class LocalPool:
                     if isinstance(row, RecordingError):
                         raise row
                     done(row)
-                    feed(conn)
+                    feed()
         except BaseException:  # Ctrl-C, a full disk: stop now; those in flight stay "running"
             for process in processes.values():
                 process.kill()  # SIGKILL: the workers ignore SIGTERM (`_pool_worker`)
@@ -307,16 +322,14 @@ class RayCluster:
             runtime_env={"env_vars": {"CAVENAV_THREADS": "1"}},  # one core per actor
         )(_RayWorker)
         actors = [actor.remote(config, str(folder)) for _ in range(min(workers, len(jobs)))]
-        waiting = list(jobs)
+        waiting = deque(jobs)
         flying: dict[Any, tuple[EpisodeJob, Any]] = {}
         load = dict.fromkeys(actors, 0)
 
         def launch() -> None:
-            for a in list(load):
-                while waiting and load[a] < self.concurrency:
-                    job = waiting.pop(0)
-                    flying[a.fly.remote(job)] = (job, a)
-                    load[a] += 1
+            for a, job in deal(waiting, load, self.concurrency):
+                flying[a.fly.remote(job)] = (job, a)
+                load[a] += 1
 
         launch()
         while flying:

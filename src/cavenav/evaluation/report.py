@@ -34,7 +34,7 @@ from cavenav.episode.records import (
 )
 from cavenav.episode.run_folder import write_atomic
 from cavenav.errors import CavenavError, DependencyError, RecordError, RecordingError
-from cavenav.evaluation.results import aggregate
+from cavenav.evaluation.results import aggregate, priced
 from cavenav.evaluation.results import outcome as episode_outcome
 from cavenav.evaluation.sweep import read_rows
 
@@ -250,14 +250,28 @@ _AGGREGATE_COLUMNS = (
     ),
     Column("mean clearance", _key("mean_clearance_m"), lambda v: _num(v, 2, " m")),
     Column("steps below standoff", _key("steps_below_standoff"), lambda v: _num(v, 1)),
-    Column("path efficiency", _key("path_efficiency")),
+    Column("SPL", _key("spl"), lambda v: _num(v, 3)),
+    Column(
+        "path efficiency (successes / all)",
+        _key("path_efficiency"),
+        row_text=lambda g: (
+            f"{_num(g.get('path_efficiency'))} / {_num(g.get('path_efficiency_all'))}"
+        ),
+    ),
     Column("steps", _key("steps"), lambda v: _num(v, 1)),
     Column("shield interventions", _key("shield_interventions"), lambda v: _num(v, 1)),
     Column("pilot time", _key("mean_pilot_ms"), lambda v: _num(v, 1, " ms")),
     Column("model latency", _key("mean_model_latency_s"), lambda v: _num(v, 2, " s")),
+    Column(
+        "model time p50 / p95",
+        _key("model_p50_s"),
+        row_text=lambda g: f"{_num(g.get('model_p50_s'))} / {_num(g.get('model_p95_s'), 2, ' s')}",
+    ),
     Column("prompt tokens", _key("prompt_tokens"), _int, zero_is_empty=True),
     Column("completion tokens", _key("completion_tokens"), _int, zero_is_empty=True),
     Column("cost", _key("cost_usd"), lambda v: f"${v:.4f}", zero_is_empty=True),
+    Column("tokens per success", _key("tokens_per_success"), _int),
+    Column("cost per success", _key("cost_per_success_usd"), lambda v: f"${v:.4f}"),
     Column("re-queries", _key("requeries"), _int, zero_is_empty=True),
 )
 
@@ -273,6 +287,7 @@ _EPISODE_COLUMNS = (
         _key("progress_m"),
         row_text=lambda r: f"{_num(r.get('progress_m'), 1)} / {_num(r.get('passage_length_m'), 1)}",
     ),
+    Column("SPL", _key("spl"), lambda v: _num(v, 3)),
     Column("path efficiency", _key("path_efficiency")),
     Column("min clearance (m)", _key("min_clearance_m")),
     Column("mean clearance (m)", _key("mean_clearance_m")),
@@ -289,6 +304,11 @@ _EPISODE_COLUMNS = (
     ),
     Column("cost", _key("cost_usd"), lambda v: f"${v:.4f}", zero_is_empty=True),
     Column("model latency (s)", _key("mean_model_latency_s")),
+    Column(
+        "model time p50 / p95 (s)",
+        _key("model_p50_s"),
+        row_text=lambda r: f"{_num(r.get('model_p50_s'))} / {_num(r.get('model_p95_s'))}",
+    ),
     Column("pilot (ms)", _key("mean_pilot_ms"), lambda v: _num(v, 1)),
     Column("wall (s)", _key("wall_time_s"), lambda v: _num(v, 1)),
     Column("error", _key("error"), str, numeric=False),
@@ -313,6 +333,7 @@ def _summary_facts(s: EpisodeSummary, outcome: str) -> list[tuple[str, str]]:
         ("path length", _num(s.path_length_m, 2, " m")),
         ("progress / passage", f"{_num(s.progress_m, 2)} / {_num(s.passage_length_m, 2)} m"),
         ("exit distance", _num(s.exit_distance_m, 2, " m")),
+        ("SPL / shortest path", f"{_num(s.spl, 3)} / {_num(s.shortest_path_m, 2, ' m')}"),
         ("shield", f"on, {s.shield_interventions or 0} interventions" if s.shield else "off"),
         ("invalid actions", str(s.invalid_actions or 0)),
         ("sense / pilot", f"{_num(s.mean_sense_ms, 1)} / {_num(s.mean_pilot_ms, 1)} ms a step"),
@@ -496,7 +517,7 @@ def _environment() -> Any:
     return env
 
 
-def _render(template: str, path: Path, **context: Any) -> Path:
+def render_page(template: str, path: Path, **context: Any) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     # Atomic: a reader refreshing the page never sees half of it.
     write_atomic(path, _environment().get_template(template).render(**context))
@@ -539,11 +560,13 @@ def _write_episode_page(
         attempts = run.exchanges.get(record.step, ())
         steps.append(StepView(record, pictures, note, attempts))
     outcome = outcome or episode_outcome(run.summary, run.steps)
-    return _render(
+    video = run.path / "episode.mp4"
+    return render_page(
         "episode.html.j2",
         page,
         title=_episode_title(run.summary),
         run_href=_href(run.path, page_dir),
+        video_href=_href(video, page_dir) if video.is_file() else None,
         summary=run.summary,
         outcome=outcome,
         facts=_summary_facts(run.summary, outcome),
@@ -609,7 +632,7 @@ def _seed_text(seeds: Sequence[str]) -> str:
     return ", ".join(seeds) or _EMPTY
 
 
-def _page_name(episode: str) -> str:
+def page_name(episode: str) -> str:
     """The file name of an episode's page: its id, made safe to stay inside report/."""
     return re.sub(r"[^A-Za-z0-9_.-]+", "_", episode).lstrip(".") + ".html"
 
@@ -624,10 +647,10 @@ def _episode_pages(
         else "no frames saved for this step"
     )
     ids = [str(row.get("episode")) for row in sweep.rows]
-    pages = [f"episodes/{quote(_page_name(i))}" for i in ids]
+    pages = [f"episodes/{quote(page_name(i))}" for i in ids]
     for k, row in enumerate(sweep.rows):
         run_dir = sweep.path / str(row.get("run_dir") or f"episodes/{ids[k]}")
-        page = report / "episodes" / _page_name(ids[k])
+        page = report / "episodes" / page_name(ids[k])
         outcome = str(row.get("outcome") or "incomplete")
         neighbours = Neighbours(
             index="../index.html",
@@ -649,7 +672,7 @@ def _episode_pages(
             damaged = (run_dir / "summary.json").is_file()
             label = "damaged record" if damaged else "no run folder"
             note = "Its record does not read back." if damaged else "It left no run folder."
-            _render(
+            render_page(
                 "missing.html.j2",
                 page,
                 title=ids[k],
@@ -663,8 +686,12 @@ def _episode_pages(
         yield EpisodeLink(ids[k], outcome, pages[k], cells[k], thumb, reason)
 
 
-def _write_sweep_report(folder: Path, rows: Sequence[Mapping[str, Any]] | None) -> Path:
+def _write_sweep_report(
+    folder: Path, rows: Sequence[Mapping[str, Any]] | None, prices: tuple[float, float] | None
+) -> Path:
     """report/index.html and report/episodes/<id>.html for a sweep folder; returns the index."""
+    if prices is not None:  # results.csv keeps what was recorded; the page, these prices
+        rows = priced(read_rows(folder) if rows is None else rows, prices)
     sweep = read_sweep_record(folder, rows)
     report = folder / "report"
     headers, cells = _table(_EPISODE_COLUMNS, sweep.rows)
@@ -672,11 +699,22 @@ def _write_sweep_report(folder: Path, rows: Sequence[Mapping[str, Any]] | None) 
     groups = list(sweep.groups)
     group_headers, group_rows = _table(_AGGREGATE_COLUMNS, groups)
     outcomes = Counter(link.outcome for link in episodes)
-    return _render(
+    return render_page(
         "index.html.j2",
         report / "index.html",
         title=f"sweep {folder.name}",
-        facts=_sweep_facts(sweep.config),
+        facts=_sweep_facts(sweep.config)
+        + (
+            [
+                (
+                    "prices",
+                    f"USD {prices[0]:g} / {prices[1]:g} per million tokens in / out, "
+                    "applied to the recorded tokens (--price)",
+                )
+            ]
+            if prices
+            else []
+        ),
         groups=list(zip(groups, group_rows, strict=True)),
         group_headers=group_headers,
         episode_headers=headers,
@@ -685,14 +723,19 @@ def _write_sweep_report(folder: Path, rows: Sequence[Mapping[str, Any]] | None) 
     )
 
 
-def write_report(folder: Path, rows: Sequence[Mapping[str, Any]] | None = None) -> Path:
+def write_report(
+    folder: Path,
+    rows: Sequence[Mapping[str, Any]] | None = None,
+    prices: tuple[float, float] | None = None,
+) -> Path:
     """Write the HTML report of a sweep folder or of one run folder; returns its main page.
 
     A sweep folder (holding sweep.json) gets ``report/index.html`` and one page per
     episode under ``report/episodes/``, with results.csv and aggregate.json refreshed
     from the run folders unless the sweep hands over the ``rows`` it just read; a run
     folder (holding summary.json) gets ``report.html``. Rewriting is safe at any time,
-    also while the sweep runs.
+    also while the sweep runs. ``prices`` (USD per million tokens in, out) price a
+    sweep's recorded tokens on its pages (`priced`); results.csv keeps what was recorded.
 
     Raises:
         CavenavError: ``folder`` is neither a sweep folder nor a run folder.
@@ -704,7 +747,7 @@ def write_report(folder: Path, rows: Sequence[Mapping[str, Any]] | None = None) 
     folder = Path(folder)
     try:
         if (folder / "sweep.json").is_file():
-            return _write_sweep_report(folder, rows)
+            return _write_sweep_report(folder, rows, prices)
         if (folder / "summary.json").is_file():
             return _write_episode_page(read_run(folder), folder / "report.html")
     except OSError as exc:

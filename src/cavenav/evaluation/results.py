@@ -36,7 +36,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scipy.stats import binomtest
+from scipy.stats import binomtest, wilcoxon
 
 from cavenav.episode.records import (
     OUTCOMES,
@@ -50,6 +50,7 @@ from cavenav.episode.records import (
 from cavenav.episode.run_folder import write_atomic, write_json
 from cavenav.errors import CavenavWarning, RecordError
 from cavenav.headway import Headway
+from cavenav.types import model_time_percentiles
 
 __all__ = [
     "COLUMNS",
@@ -58,7 +59,10 @@ __all__ = [
     "aggregate",
     "compare",
     "episode_row",
+    "group",
     "outcome",
+    "paired_difference_ci",
+    "priced",
     "read_episode",
     "server_failed",
     "wilson",
@@ -92,6 +96,8 @@ COLUMNS = (
     "passage_length_m",
     "path_length_m",
     "path_efficiency",
+    "shortest_path_m",
+    "spl",
     "min_clearance_m",
     "mean_clearance_m",
     "steps_below_standoff",
@@ -103,6 +109,8 @@ COLUMNS = (
     "completion_tokens",
     "cost_usd",
     "mean_model_latency_s",
+    "model_p50_s",
+    "model_p95_s",
     "mean_pilot_ms",
     "mean_sense_ms",
     "wall_time_s",
@@ -199,6 +207,10 @@ def episode_row(run_dir: Path, root: Path | None = None) -> dict[str, Any]:
         **_summary_columns(summary),
         "outcome": outcome(summary, steps),
         **_usage_columns(summary),
+        # each model step's server time, for a group's percentiles (not a results.csv column)
+        "model_step_s": [
+            step.vlm.get("model_s") for step in steps if step.vlm and not step.vlm.get("cached")
+        ],
         "error": summary.error or (summary.failure if server_failed(summary) else None),
         "run_dir": relative,
     }
@@ -224,6 +236,8 @@ def _summary_columns(s: EpisodeSummary) -> dict[str, Any]:
         "passage_length_m": s.passage_length_m,
         "path_length_m": s.path_length_m,
         "path_efficiency": efficiency,
+        "shortest_path_m": s.shortest_path_m,
+        "spl": s.spl,
         "min_clearance_m": s.min_clearance_m,
         "mean_clearance_m": s.mean_clearance_m,
         "steps_below_standoff": s.steps_below_standoff,
@@ -245,7 +259,25 @@ def _usage_columns(s: EpisodeSummary) -> dict[str, Any]:
         "completion_tokens": usage and usage.completion_tokens,
         "cost_usd": usage and usage.cost_usd,
         "mean_model_latency_s": usage and usage.mean_latency_s,
+        "model_p50_s": usage and usage.model_p50_s,
+        "model_p95_s": usage and usage.model_p95_s,
     }
+
+
+def priced(rows: Sequence[Mapping[str, Any]], prices: tuple[float, float]) -> list[dict]:
+    """``rows`` with ``cost_usd`` worked out from their recorded tokens at ``prices`` (USD
+    per million prompt and completion tokens), for a sweep flown without ``--price`` or
+    at another price; a row that recorded no tokens keeps its cost."""
+    price_in, price_out = prices
+    out = []
+    for row in rows:
+        tokens = row.get("prompt_tokens"), row.get("completion_tokens")
+        if any(t in (None, "") for t in tokens):
+            out.append(dict(row))
+            continue
+        cost = (float(tokens[0]) * price_in + float(tokens[1]) * price_out) / 1e6
+        out.append({**row, "cost_usd": round(cost, 6)})
+    return out
 
 
 def wilson(successes: int, trials: int, confidence: float = 0.95) -> tuple[float, float] | None:
@@ -267,7 +299,17 @@ def _total(values: Iterable[Any]) -> float | None:
     return round(sum(numbers), 6) if numbers else None
 
 
-def _group(scenario: str, pilot: str, rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+def _spl(done: Sequence[Mapping[str, Any]]) -> float | None:
+    """SPL over completed episodes, a failure (an error too) scoring 0; unknown (None)
+    where a success has none recorded (flown before SPL was, or no shortest path found),
+    as a mean without it would be biased."""
+    known = [0.0 if r["outcome"] != "success" else r.get("spl") for r in done]
+    if not known or any(v in (None, "") for v in known):
+        return None
+    return _mean(known)
+
+
+def group(scenario: str, pilot: str, rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     """The aggregate of one (scenario, pilot) cell over its completed episodes.
 
     Rates and their intervals count every completed episode (errors included: a pilot
@@ -300,14 +342,33 @@ def _group(scenario: str, pilot: str, rows: Sequence[Mapping[str, Any]]) -> dict
         "path_efficiency": _mean(
             r.get("path_efficiency") for r in done if r["outcome"] == "success"
         ),
+        "path_efficiency_all": _mean(r.get("path_efficiency") for r in done),
+        "spl": _spl(done),
         "steps": _mean(r.get("steps") for r in done),
         "shield_interventions": _mean(r.get("shield_interventions") for r in done),
         "mean_pilot_ms": _mean(r.get("mean_pilot_ms") for r in done),
         "mean_model_latency_s": _mean(r.get("mean_model_latency_s") for r in done),
+        **model_time_percentiles(t for r in done for t in r.get("model_step_s") or []),
         "prompt_tokens": _total(r.get("prompt_tokens") for r in done),
         "completion_tokens": _total(r.get("completion_tokens") for r in done),
         "cost_usd": _total(r.get("cost_usd") for r in done),
         "requeries": _total(r.get("requeries") for r in done),
+        **_per_success(done, successes),
+    }
+
+
+def _per_success(done: Sequence[Mapping[str, Any]], successes: int) -> dict[str, float | None]:
+    """Tokens and cost per success: what one way out costs (None without a success, or
+    for a pilot without a model)."""
+    tokens = _total(
+        float(r.get("prompt_tokens") or 0) + float(r.get("completion_tokens") or 0)
+        for r in done
+        if r.get("prompt_tokens") not in (None, "")
+    )
+    cost = _total(r.get("cost_usd") for r in done)
+    return {
+        "tokens_per_success": round(tokens / successes, 1) if tokens and successes else None,
+        "cost_per_success_usd": round(cost / successes, 6) if cost and successes else None,
     }
 
 
@@ -315,15 +376,16 @@ def aggregate(rows: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
     """One group per (scenario, pilot) in order of appearance, then "all" per pilot.
 
     ``path_efficiency`` is averaged over successful episodes only (metres of centre line
-    per metre flown); clearances, steps and costs over every completed episode.
+    per metre flown), ``path_efficiency_all`` over every completed one; clearances,
+    steps and costs over every completed episode.
     """
     cells: dict[tuple[str, str], list[Mapping[str, Any]]] = {}
     for row in rows:
         cells.setdefault((str(row.get("scenario")), str(row.get("pilot"))), []).append(row)
-    groups = [_group(scenario, pilot, members) for (scenario, pilot), members in cells.items()]
+    groups = [group(scenario, pilot, members) for (scenario, pilot), members in cells.items()]
     for pilot in dict.fromkeys(pilot for _, pilot in cells):
         everything = [r for (_, p), members in cells.items() if p == pilot for r in members]
-        groups.append(_group("all", pilot, everything))
+        groups.append(group("all", pilot, everything))
     return groups
 
 
@@ -338,56 +400,162 @@ def write_results(folder: Path, rows: Sequence[Mapping[str, Any]], meta: Mapping
     write_json(folder / "aggregate.json", {"sweep": meta, "groups": aggregate(rows)})
 
 
+def _wilson_bounds(successes: int, trials: int, z: float) -> tuple[float, float]:
+    """The Wilson score interval, unrounded (Newcombe's interval is built from two)."""
+    p = successes / trials
+    centre = (p + z * z / (2 * trials)) / (1 + z * z / trials)
+    half = (
+        z * math.sqrt(p * (1 - p) / trials + z * z / (4 * trials * trials)) / (1 + z * z / trials)
+    )
+    return centre - half, centre + half
+
+
+def paired_difference_ci(
+    both: int, only_a: int, only_b: int, neither: int, confidence: float = 0.95
+) -> tuple[float, float] | None:
+    """Newcombe's interval (1998, method 10) for the difference of two paired success
+    rates, A - B: each rate's Wilson interval, combined with the correlation of the pairs.
+
+    The correlation's numerator is corrected for continuity when it is positive (so in
+    Altman et al., Statistics with Confidence, and Fagerland et al. 2017, whose example
+    59/6/16/80 gives -0.1186 to -0.0046). None for no pairs.
+    """
+    n = both + only_a + only_b + neither
+    if n == 0:
+        return None
+    from scipy.stats import norm
+
+    z = float(norm.ppf(0.5 + confidence / 2))
+    rate_a, rate_b = (both + only_a) / n, (both + only_b) / n
+    low_a, high_a = _wilson_bounds(both + only_a, n, z)
+    low_b, high_b = _wilson_bounds(both + only_b, n, z)
+    margins = (both + only_a) * (only_b + neither) * (both + only_b) * (only_a + neither)
+    association = both * neither - only_a * only_b
+    if association > n / 2:
+        association -= n / 2
+    elif association >= 0:
+        association = 0
+    phi = association / math.sqrt(margins) if margins else 0.0
+    difference = rate_a - rate_b
+    below = (rate_a - low_a) ** 2 - 2 * phi * (rate_a - low_a) * (high_b - rate_b)
+    above = (high_a - rate_a) ** 2 - 2 * phi * (high_a - rate_a) * (rate_b - low_b)
+    below += (high_b - rate_b) ** 2
+    above += (rate_b - low_b) ** 2
+    return (
+        round(max(difference - math.sqrt(max(below, 0.0)), -1.0), 4),
+        round(min(difference + math.sqrt(max(above, 0.0)), 1.0), 4),
+    )
+
+
+# What the paired tests compare besides success, each over the caves both sweeps flew.
+PAIRED_MEASURES = ("min_clearance_m", "steps", "tokens", "cost_usd")
+
+
+def _measure(row: Mapping[str, Any], name: str) -> float | None:
+    if name == "tokens":
+        counts = [row.get("prompt_tokens"), row.get("completion_tokens")]
+        counts = [float(c) for c in counts if c not in (None, "")]
+        return sum(counts) if counts else None
+    value = row.get(name)
+    return None if value in (None, "") else float(value)
+
+
+def _signed_rank(pairs: Sequence[tuple[float, float]]) -> dict[str, Any] | None:
+    """Wilcoxon's signed-rank test of paired values (scipy: exact for up to 50 pairs
+    without ties or zeros, else the normal approximation; zero differences dropped),
+    with the median difference A - B. None where no cave gave both values."""
+    if not pairs:
+        return None
+    differences = [a - b for a, b in pairs]
+    if not any(differences):
+        p = 1.0  # every pair equal: nothing to tell them apart
+    else:
+        p = float(wilcoxon([a for a, _ in pairs], [b for _, b in pairs]).pvalue)
+    return {
+        "pairs": len(pairs),
+        "median_difference": round(float(np.median(differences)), 4),
+        "p": p,
+    }
+
+
+Cave = tuple[str, int]  # (scenario, seed): what pairs two sweeps' episodes
+
+
+def _completed(rows: Sequence[Mapping[str, Any]]) -> dict[Cave, Mapping[str, Any]]:
+    return {
+        (str(r["scenario"]), int(r["seed"])): r
+        for r in rows
+        if r["outcome"] != "incomplete" and r.get("seed") not in (None, "")
+    }
+
+
+def _won(row: Mapping[str, Any]) -> bool:
+    return row["outcome"] == "success"
+
+
+def _paired_test(
+    keys: Sequence[Cave], a: Mapping[Cave, Mapping[str, Any]], b: Mapping[Cave, Mapping[str, Any]]
+) -> dict[str, Any]:
+    """`compare`'s figures over the caves ``keys``, flown by ``a`` and ``b``."""
+
+    def cave(key: Cave) -> dict[str, Any]:
+        ends = {"outcome_a": a[key]["outcome"], "outcome_b": b[key]["outcome"]}
+        return {
+            "cave": f"{key[0]} seed {key[1]}",
+            "a": a[key]["run_dir"],
+            "b": b[key]["run_dir"],
+        } | ends
+
+    only_a = [k for k in keys if _won(a[k]) and not _won(b[k])]
+    only_b = [k for k in keys if _won(b[k]) and not _won(a[k])]
+    discordant, n = len(only_a) + len(only_b), len(keys)
+    both = sum(_won(a[k]) and _won(b[k]) for k in keys)
+    rate_a, rate_b = (both + len(only_a)) / max(n, 1), (both + len(only_b)) / max(n, 1)
+    p = binomtest(len(only_a), discordant, 0.5).pvalue if discordant else 1.0
+    tests = {}
+    for name in PAIRED_MEASURES:
+        values = [(_measure(a[k], name), _measure(b[k], name)) for k in keys]
+        tests[name] = _signed_rank([(x, y) for x, y in values if x is not None and y is not None])
+    return {
+        "pairs": n,
+        "success_rate_a": round(rate_a, 4) if n else None,
+        "success_rate_b": round(rate_b, 4) if n else None,
+        "difference": round(rate_a - rate_b, 4) if n else None,
+        "difference_ci95": paired_difference_ci(
+            both, len(only_a), len(only_b), n - both - discordant
+        ),
+        "mcnemar_p": float(p),
+        "paired_tests": tests,
+        "only_a": [cave(k) for k in only_a],
+        "only_b": [cave(k) for k in only_b],
+    }
+
+
 def compare(rows_a: Sequence[Mapping[str, Any]], rows_b: Sequence[Mapping[str, Any]]) -> dict:
     """Two sweeps paired by (scenario, seed): success rates and the exact McNemar test.
 
     Only caves completed in both sweeps are paired. McNemar's exact test is the two-sided
     binomial test of the discordant pairs (A succeeded where B failed, and the reverse)
     against an even split: the concordant caves say nothing about which pilot is better.
+    The difference in success comes with Newcombe's paired interval
+    (`paired_difference_ci`), and each of `PAIRED_MEASURES` with Wilcoxon's signed-rank
+    test over the caves where both sweeps recorded it.
 
     Returns:
         "overall" and "per_scenario" entries with the pairs, both success rates, their
-        difference (A - B), the exact p-value, and the caves only A ("only_a") or only
-        B ("only_b") got through: {"cave", "a", "b"} with both run folders.
+        difference (A - B) and its 95% interval, the exact p-value, the signed-rank tests
+        ("paired_tests": {measure: {"pairs", "median_difference", "p"} or None}), and the
+        caves only A ("only_a") or only B ("only_b") got through: {"cave", "a", "b",
+        "outcome_a", "outcome_b"} with both run folders and how each episode ended.
     """
 
-    def completed(rows: Sequence[Mapping[str, Any]]) -> dict[tuple[str, int], Mapping]:
-        return {
-            (str(r["scenario"]), int(r["seed"])): r
-            for r in rows
-            if r["outcome"] != "incomplete" and r.get("seed") not in (None, "")
-        }
-
-    a, b = completed(rows_a), completed(rows_b)
+    a, b = _completed(rows_a), _completed(rows_b)
     paired = sorted(set(a) & set(b))
-
-    def won(row: Mapping[str, Any]) -> bool:
-        return row["outcome"] == "success"
-
-    def cave(key: tuple[str, int]) -> dict[str, Any]:
-        return {"cave": f"{key[0]} seed {key[1]}", "a": a[key]["run_dir"], "b": b[key]["run_dir"]}
-
-    def test(keys: Sequence[tuple[str, int]]) -> dict[str, Any]:
-        only_a = [k for k in keys if won(a[k]) and not won(b[k])]
-        only_b = [k for k in keys if won(b[k]) and not won(a[k])]
-        discordant = len(only_a) + len(only_b)
-        n = len(keys)
-        rate_a = sum(won(a[k]) for k in keys) / max(n, 1)
-        rate_b = sum(won(b[k]) for k in keys) / max(n, 1)
-        p = binomtest(len(only_a), discordant, 0.5).pvalue if discordant else 1.0
-        return {
-            "pairs": n,
-            "success_rate_a": round(rate_a, 4) if n else None,
-            "success_rate_b": round(rate_b, 4) if n else None,
-            "difference": round(rate_a - rate_b, 4) if n else None,
-            "mcnemar_p": float(p),
-            "only_a": [cave(k) for k in only_a],
-            "only_b": [cave(k) for k in only_b],
-        }
-
     scenarios = dict.fromkeys(s for s, _ in paired)
     return {
-        "overall": test(paired),
-        "per_scenario": {s: test([k for k in paired if k[0] == s]) for s in scenarios},
+        "overall": _paired_test(paired, a, b),
+        "per_scenario": {
+            s: _paired_test([k for k in paired if k[0] == s], a, b) for s in scenarios
+        },
         "unpaired": len(set(a) ^ set(b)),
     }

@@ -29,6 +29,7 @@ import shutil
 import threading
 import time
 import traceback
+import warnings
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager, suppress
 from dataclasses import dataclass, replace
@@ -40,8 +41,14 @@ from cavenav import SCENARIO_SET, __version__
 from cavenav.episode.loop import DEFAULT_STEPS, EpisodeConfig, run_episode
 from cavenav.episode.records import read_summary, read_sweep_file
 from cavenav.episode.run_folder import prepare_root, write_atomic, write_json
-from cavenav.episode.settings import FRAME_MODES, SENSOR_FIELDS, EpisodeSettings
-from cavenav.errors import CavenavError, ConfigError, RecordError, RecordingError
+from cavenav.episode.settings import FRAME_MODES, SENSOR_FIELDS, VIDEO_MODES, EpisodeSettings
+from cavenav.errors import (
+    CavenavError,
+    CavenavWarning,
+    ConfigError,
+    RecordError,
+    RecordingError,
+)
 from cavenav.evaluation.results import episode_row, outcome, read_episode, write_results
 from cavenav.pilots.base import Pilot
 from cavenav.pilots.factory import PilotSpec, VLMOptions
@@ -104,6 +111,7 @@ class SweepConfig:
     seeds: tuple[int, ...]
     pilot: PilotSpec
     settings: EpisodeSettings
+    video: str = "none"
 
     def __init__(
         self,
@@ -125,6 +133,7 @@ class SweepConfig:
             TypeError: a name that is not a settings field.
         """
         frames = fields.pop("frames", None)
+        object.__setattr__(self, "video", fields.pop("video", "none"))
         sensors = dict(fields.pop("sensors", {}))
         unknown = set(sensors) - set(SENSOR_FIELDS)
         if unknown:
@@ -137,6 +146,12 @@ class SweepConfig:
         self._check()
 
     def _check(self) -> None:
+        if self.video not in VIDEO_MODES:
+            raise ConfigError(
+                f"--video must be one of {', '.join(VIDEO_MODES)}, not '{self.video}'"
+            )
+        if self.video != "none" and self.settings.frames == "none":
+            raise ConfigError("--video needs the frames it is made of: --frames all or png")
         if not self.scenarios:
             raise ConfigError("give at least one scenario, e.g. --scenarios S1,S2")
         if not self.seeds:
@@ -204,6 +219,7 @@ class SweepConfig:
             "seeds": list(self.seeds),
             "pilot": self.pilot.to_dict(),
             **self.settings.to_dict(),  # "episode", "difficulty", "sensors"
+            **({"video": self.video} if self.video != "none" else {}),
             "created_at": datetime.now(UTC).isoformat(timespec="seconds"),
             "cavenav_version": __version__,
             "scenario_set": SCENARIO_SET,
@@ -224,9 +240,14 @@ class SweepConfig:
             scenarios=tuple(data["scenarios"]),
             seeds=tuple(data["seeds"]),
             pilot=PilotSpec(
-                pilot["name"], VLMOptions(**pilot.get("options", {})), pilot.get("recording")
+                pilot["name"],
+                VLMOptions(**pilot.get("options", {})),
+                pilot.get("recording"),
+                pilot.get("policy"),
+                pilot.get("policy_sha256"),
             ),
             settings=EpisodeSettings.from_dict({**data, "episode": episode}),
+            video=data.get("video", "none"),
         )
 
 
@@ -309,7 +330,8 @@ def plan(config: SweepConfig) -> list[EpisodeJob]:
 
 def _identity(data: Mapping[str, Any]) -> dict[str, Any]:
     """The part of sweep.json a resumed sweep must match."""
-    stamps = ("created_at", "cavenav_version", "scenario_set")  # what wrote it, and when
+    # What wrote it and when, and the videos: a resumed sweep may make more or fewer.
+    stamps = ("created_at", "cavenav_version", "scenario_set", "video")
     same = {k: v for k, v in data.items() if k not in stamps}
     pilot = dict(same["pilot"])
     if "options" in pilot:
@@ -422,7 +444,8 @@ class EpisodeWorker:
         return self.config.settings.episode_config(cave)
 
     def fly(self, job: EpisodeJob) -> dict[str, Any]:
-        """Fly one episode into a fresh run folder; its results row.
+        """Fly one episode into a fresh run folder, with its episode.mp4 where the sweep's
+        ``video`` asks for one; its results row.
 
         Any error is recorded in the run folder's summary (status "crashed", "error")
         and returned in the row: one episode never stops the sweep, unless the sweep
@@ -449,7 +472,28 @@ class EpisodeWorker:
                     raise
             if fault is not None:  # the first cause, naming the file
                 raise fault from None
-        return episode_row(run_dir, self.folder)
+        row = episode_row(run_dir, self.folder)
+        wanted = {"all": True, "failures": row["outcome"] != "success"}.get(self.config.video)
+        if wanted and row.get("status") == "finished":
+            _video(run_dir)
+        return row
+
+
+def _video(run_dir: Path) -> None:
+    """``run_dir/episode.mp4``, made where the episode flew (`cavenav.episode.video`); a
+    video that cannot be made is a warning, not a lost episode, unless the disk is full.
+
+    Raises:
+        RecordingError: it cannot be written (the sweep stops, as for any record).
+    """
+    from cavenav.episode.video import write_video
+
+    try:
+        write_video(run_dir)
+    except RecordingError:
+        raise
+    except CavenavError as exc:
+        warnings.warn(f"no video of {run_dir.name}: {exc}", CavenavWarning, stacklevel=2)
 
 
 def record_error(run_dir: Path, job: EpisodeJob, error: str, trace: str = "") -> None:

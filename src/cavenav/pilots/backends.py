@@ -61,7 +61,12 @@ class Completion:
     Attributes:
         text: the raw reply, reasoning included.
         prompt_tokens, completion_tokens: as reported by the server (or counted locally).
-        latency_s: wall time of the successful request.
+        latency_s: wall time of the successful request, from the call to the parsed reply.
+        model_s: the part of it the model server took: from the built request going on
+            the wire (httpx's request hook) to its parsed reply, leaving out the time
+            spent in this process before, building the request (encoding its images) or
+            waiting for a core to do it, which grows with the episodes in flight; the
+            generation time for a local model; None where not measured.
         retries: transport retries before it (timeouts, 408/409/429/5xx, refused, a
             body that was no reply).
         errors: one line per failed attempt, for the record.
@@ -76,6 +81,7 @@ class Completion:
     errors: tuple[str, ...] = ()
     cached: bool = False
     model: str = ""
+    model_s: float | None = None
 
 
 class Backend(Protocol):
@@ -290,8 +296,9 @@ class OpenAIBackend:
         # The deadline of the attempt this thread is making: sweeps share one backend
         # between threads, and the HTTP hooks run in the thread that sends.
         self._attempt_deadline = threading.local()
+        self._sent = threading.local()  # when this thread's request went on the wire
         hooks: dict[str, list[Callable[..., Any]]] = {
-            "request": [self._cap_timeouts],
+            "request": [self._cap_timeouts, self._mark_sent],
             "response": [self._bound_body],
         }
         # Local servers (vLLM, Ollama, llama.cpp) accept any key; the SDK needs one.
@@ -327,6 +334,11 @@ class OpenAIBackend:
             phase: left if limit is None else min(limit, left)
             for phase, limit in request.extensions["timeout"].items()
         }
+
+    def _mark_sent(self, request: httpx2.Request) -> None:
+        """Request hook: the request is built and about to be sent (`Completion.model_s`
+        counts from here)."""
+        self._sent.at = self._clock()
 
     def _bound_body(self, response: httpx2.Response) -> None:
         """Response hook: the body, read next, stops at the attempt's deadline."""
@@ -438,12 +450,14 @@ class OpenAIBackend:
             return _Failed(BackendUnavailable, line, retry=True, reply=body)
         choice = parsed.choices[0] if parsed.choices else None
         usage = parsed.usage
+        sent = getattr(self._sent, "at", None)
         return Completion(
             text=(choice.message.content or "") if choice else "",
             prompt_tokens=int(getattr(usage, "prompt_tokens", 0) or 0),
             completion_tokens=int(getattr(usage, "completion_tokens", 0) or 0),
             latency_s=self._clock() - start,
             model=parsed.model or cfg.model,
+            model_s=None if sent is None or sent < start else self._clock() - sent,
         )
 
 
@@ -493,7 +507,9 @@ class CachedBackend:
         if path.is_file():
             stored = json.loads(path.read_text())
             stored["errors"] = tuple(stored.get("errors", ()))
-            return Completion(**{**stored, "cached": True, "latency_s": 0.0, "retries": 0})
+            return Completion(
+                **{**stored, "cached": True, "latency_s": 0.0, "retries": 0, "model_s": None}
+            )
         completion = self.inner.complete(messages, json_schema)
         write_then_rename(path, lambda tmp: tmp.write_text(json.dumps(asdict(completion))))
         return completion
@@ -607,10 +623,12 @@ class TransformersBackend:
             )
         new = out[0, inputs["input_ids"].shape[1] :]
         text = self._processor.decode(new, skip_special_tokens=True)
+        generated = time.perf_counter() - start
         return Completion(
             text=text,
             prompt_tokens=int(inputs["input_ids"].shape[1]),
             completion_tokens=int(new.shape[0]),
-            latency_s=time.perf_counter() - start,
+            latency_s=generated,
             model=self.config.model,
+            model_s=generated,
         )

@@ -8,6 +8,7 @@ model client or a loaded model never has to travel between processes.
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -17,7 +18,7 @@ from cavenav.pilots.base import Pilot
 
 __all__ = ["PILOTS", "PilotSpec", "VLMOptions"]
 
-PILOTS = ("geometric", "vlm", "replay", "random")
+PILOTS = ("geometric", "vlm", "replay", "random", "policy")
 
 
 @dataclass(frozen=True)
@@ -71,11 +72,15 @@ class PilotSpec:
         name: one of `PILOTS`.
         vlm: the model settings of the VLM pilot.
         recording: the run folder the replay pilot re-flies.
+        policy: the model file the policy pilot flies (`cavenav.pilots.policy`).
+        policy_sha256: that file's digest as a sweep recorded it; None to read the file's.
     """
 
     name: str = "geometric"
     vlm: VLMOptions = field(default_factory=VLMOptions)
     recording: str | None = None
+    policy: str | None = None
+    policy_sha256: str | None = None
 
     def __post_init__(self) -> None:
         if self.name not in PILOTS:
@@ -86,12 +91,30 @@ class PilotSpec:
             )
         if self.name == "replay" and self.recording is None:
             raise ConfigError("--pilot replay needs --from RUN_DIR")
+        if self.name == "policy" and self.policy is None:
+            raise ConfigError("--pilot policy needs --policy MODEL.zip (a Stable-Baselines3 model)")
         self.vlm.prices()  # a malformed price fails now, not in a worker
 
     @property
     def label(self) -> str:
-        """The name tables and run folders show: ``vlm:MODEL`` for model pilots."""
-        return f"vlm:{self.vlm.model}" if self.name == "vlm" else self.name
+        """The name tables and run folders show: ``vlm:MODEL`` for model pilots,
+        ``policy:FOLDER/FILE`` (no suffix) for learned ones."""
+        if self.name == "vlm":
+            return f"vlm:{self.vlm.model}"
+        if self.name == "policy":
+            from cavenav.pilots.policy import policy_label
+
+            return policy_label(str(self.policy))
+        return self.name
+
+    def image_size(self) -> tuple[int, int] | None:
+        """The (width, height) of the images this pilot must see, where it was trained
+        at one size (the policy pilot); None where any camera will do."""
+        if self.name != "policy":
+            return None
+        from cavenav.pilots.policy import load_policy
+
+        return load_policy(Path(str(self.policy)).absolute()).image_size
 
     def to_dict(self) -> dict[str, Any]:
         """The settings that change what the pilot does (for sweep.json)."""
@@ -100,6 +123,13 @@ class PilotSpec:
             out["options"] = asdict(self.vlm)
         if self.recording is not None:
             out["recording"] = self.recording
+        if self.policy is not None:  # and which model it held, should the file be replaced
+            out["policy"] = self.policy
+            digest = self.policy_sha256
+            if digest is None and Path(self.policy).is_file():
+                digest = hashlib.sha256(Path(self.policy).read_bytes()).hexdigest()
+            if digest is not None:
+                out["policy_sha256"] = digest
         return out
 
     def build(self, seed: int = 0, check: bool = True) -> Pilot:
@@ -120,6 +150,10 @@ class PilotSpec:
             from cavenav.pilots.replay import ReplayPilot
 
             return ReplayPilot(Path(str(self.recording)))
+        if self.name == "policy":
+            from cavenav.pilots.policy import PolicyPilot
+
+            return PolicyPilot(Path(str(self.policy)))
         return _vlm_pilot(self.vlm, check)
 
 

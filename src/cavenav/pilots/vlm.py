@@ -84,6 +84,7 @@ class Exchange:
             "prompt_tokens": completion.prompt_tokens,
             "completion_tokens": completion.completion_tokens,
             "latency_s": round(completion.latency_s, 4),
+            "model_s": None if completion.model_s is None else round(completion.model_s, 4),
             "transport_retries": completion.retries,
             "transport_errors": list(completion.errors),
             "cached": completion.cached,
@@ -306,8 +307,14 @@ class VLMPilot:
             prompt_tokens=prompt_tokens,
             completion_tokens=completion_tokens,
             latency_s=sum(e.completion.latency_s for e in exchanges),
+            model_s=_sum_known([e.completion.model_s for e in exchanges]),
             requeries=max(len(exchanges) - 1, 0),
             transport_retries=sum(e.completion.retries for e in exchanges),
             cached=all(e.completion.cached for e in exchanges),
             cost_usd=self._cost(prompt_tokens, completion_tokens),
         )
+
+
+def _sum_known(values: list[float | None]) -> float | None:
+    """The sum, or None where any part was not measured (a cached or failed request)."""
+    return None if any(v is None for v in values) else sum(values)  # type: ignore[arg-type]
