@@ -127,3 +127,20 @@ def test_a_failure_scores_no_spl(room_scenario: Scenario):
     )
     assert result.termination == "collision"
     assert result.summary["spl"] == 0.0 and result.summary.get("shortest_path_m") is None
+
+
+def test_a_cave_without_a_way_out_is_searched_once(monkeypatch: pytest.MonkeyPatch):
+    """A summary asks for the shortest path each time it is written: a cave with none is
+    not searched again on both grids every time."""
+    searched = []
+
+    def nowhere(scenario: Scenario, voxel_m: float = geodesic.VOXEL_M) -> None:
+        searched.append(voxel_m)
+        raise NoPath(f"{scenario.name}: no way")
+
+    monkeypatch.setattr(geodesic, "shortest_path", nowhere)
+    cave = tube()
+    for _ in range(3):
+        with pytest.raises(NoPath, match="tube: no way"):
+            geodesic.shortest_path_of(cave)
+    assert searched == [geodesic.VOXEL_M, geodesic.VOXEL_M / 2]

@@ -455,14 +455,7 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
     def _observation_dict(self) -> dict[str, np.ndarray]:
         obs, cfg = self.observation, self.sensors
         assert obs is not None
-        limit = np.float32(cfg.sounder_max_range_m)
-        return {
-            "rgb": obs.rgb,
-            "depth": obs.depth_png[..., None],
-            "depth_m": np.minimum(obs.depth_m, np.float32(cfg.depth_max_m))[..., None],
-            "d_top": np.array([min(obs.d_top, limit)], np.float32),
-            "d_bottom": np.array([min(obs.d_bottom, limit)], np.float32),
-        }
+        return obs.arrays(cfg.depth_max_m, cfg.sounder_max_range_m)
 
     def _info(
         self, executed: Action, invalid: str | None, collision_pose: Pose | None

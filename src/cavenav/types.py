@@ -205,6 +205,19 @@ class Observation:
             for a, b in pairs
         )
 
+    def arrays(self, depth_max_m: float, sounder_max_m: float) -> dict[str, np.ndarray]:
+        """The observation as `cavenav.env.CaveNavEnv` gives it to a learner (and a
+        learned pilot takes it back): depths with a channel axis, ``depth_m`` and the
+        sounders' ranges clipped at the sensors' limits, each range a (1,) vector."""
+        limit = np.float32(sounder_max_m)
+        return {
+            "rgb": self.rgb,
+            "depth": self.depth_png[..., None],
+            "depth_m": np.minimum(self.depth_m, np.float32(depth_max_m))[..., None],
+            "d_top": np.array([min(self.d_top, limit)], np.float32),
+            "d_bottom": np.array([min(self.d_bottom, limit)], np.float32),
+        }
+
 
 @dataclass(frozen=True)
 class Usage:

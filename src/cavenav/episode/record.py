@@ -185,7 +185,7 @@ class EpisodeLog:
 
     def summary_record(self, status: str) -> EpisodeSummary:
         """The episode's summary: ``status`` is running, finished, interrupted or crashed."""
-        end = self.poses[-1].position
+        end, flown = self.poses[-1].position, path_length(self.poses)
         interventions = sum(1 for s in self.steps if s.get("shield"))
         return EpisodeSummary.model_validate(
             {
@@ -202,10 +202,10 @@ class EpisodeLog:
                 "shield_interventions": interventions,
                 "invalid_actions": sum(1 for s in self.steps if s.get("invalid_action")),
                 "steps": len(self.steps),
-                "path_length_m": round(path_length(self.poses), 4),
+                "path_length_m": round(flown, 4),
                 "progress_m": round(self.progress_m, 4),
                 "passage_length_m": round(self.scenario.passage_length_m, 4),
-                **self._spl(status),
+                **self._spl(status, flown),
                 **summarise_clearance(self.clearances, self.rules.standoff_m),
                 "final_pose": self.poses[-1].to_dict(),
                 "collision_pose": self.collision_pose,
@@ -224,10 +224,10 @@ class EpisodeLog:
             }
         )
 
-    def _spl(self, status: str) -> dict[str, float | None]:
+    def _spl(self, status: str, flown: float) -> dict[str, float | None]:
         """SPL (Anderson et al. 2018) once the episode is over: for a success, the
         shortest path (`cavenav.world.geodesic`, found at a cave's first success)
-        over the longer of it and the path flown; 0 for a finished failure; unknown where
+        over the longer of it and ``flown``; 0 for a finished failure; unknown where
         no shortest path was found."""
         if status != "finished":
             return {}
@@ -238,7 +238,6 @@ class EpisodeLog:
         except NoPath as exc:
             warnings.warn(f"no SPL for this episode: {exc}", CavenavWarning, stacklevel=2)
             return {}
-        flown = path_length(self.poses)
         return {"shortest_path_m": shortest, "spl": round(shortest / max(flown, shortest), 4)}
 
 

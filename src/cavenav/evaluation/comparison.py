@@ -257,7 +257,7 @@ def write(sweeps: Sequence[Compared], result: Mapping[str, Any], out: Path) -> P
     Raises:
         RecordingError: ``out`` cannot be written (every file whole or not at all).
     """
-    out = Path(out)
+    out, (headers, rows) = Path(out), board(result)
     try:
         out.mkdir(parents=True, exist_ok=True)
         write_json(out / "compare.json", result)
@@ -273,8 +273,8 @@ def write(sweeps: Sequence[Compared], result: Mapping[str, Any], out: Path) -> P
             out / "index.html",
             title=f"{len(sweeps)} pilots side by side",
             result=result,
-            headers=board(result)[0],
-            board=list(zip(result["leaderboard"], board(result)[1], strict=True)),
+            headers=headers,
+            board=list(zip(result["leaderboard"], rows, strict=True)),
             reports=reports,
             discordant=_discordant(sweeps, result, out),
             measures=MEASURE_NAMES,

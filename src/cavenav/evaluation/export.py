@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from cavenav.errors import ConfigError, DependencyError
-from cavenav.evaluation.results import COLUMNS, aggregate
+from cavenav.evaluation.results import COLUMNS, group
 
 __all__ = ["EPISODE_METRICS", "WandbLog", "require_wandb"]
 
@@ -94,8 +94,7 @@ class WandbLog:
             data=[[row.get(c) for c in COLUMNS] for row in rows],
         )
         self.run.log({"results": table})
-        for group in aggregate(rows):
-            if group["scenario"] == "all":
-                for key in SWEEP_TOTALS:
-                    self.run.summary[f"all/{key}"] = group.get(key)
+        totals = group("all", self.folder.name, rows)  # a sweep flies one pilot
+        for key in SWEEP_TOTALS:
+            self.run.summary[f"all/{key}"] = totals[key]
         self.run.finish()

@@ -699,22 +699,15 @@ def _write_sweep_report(
     groups = list(sweep.groups)
     group_headers, group_rows = _table(_AGGREGATE_COLUMNS, groups)
     outcomes = Counter(link.outcome for link in episodes)
+    facts = _sweep_facts(sweep.config)
+    if prices:
+        priced_at = f"USD {prices[0]:g} / {prices[1]:g} per million tokens in / out"
+        facts.append(("prices", f"{priced_at}, applied to the recorded tokens (--price)"))
     return render_page(
         "index.html.j2",
         report / "index.html",
         title=f"sweep {folder.name}",
-        facts=_sweep_facts(sweep.config)
-        + (
-            [
-                (
-                    "prices",
-                    f"USD {prices[0]:g} / {prices[1]:g} per million tokens in / out, "
-                    "applied to the recorded tokens (--price)",
-                )
-            ]
-            if prices
-            else []
-        ),
+        facts=facts,
         groups=list(zip(groups, group_rows, strict=True)),
         group_headers=group_headers,
         episode_headers=headers,

@@ -284,8 +284,14 @@ def wilson(successes: int, trials: int, confidence: float = 0.95) -> tuple[float
     """The Wilson score interval of a success rate (scipy's binomtest), None for no trials."""
     if trials == 0:
         return None
+    low, high = _wilson_bounds(successes, trials, confidence)
+    return round(low, 4), round(high, 4)
+
+
+def _wilson_bounds(successes: int, trials: int, confidence: float) -> tuple[float, float]:
+    """The Wilson score interval, unrounded (Newcombe's interval is built from two)."""
     ci = binomtest(successes, trials).proportion_ci(confidence_level=confidence, method="wilson")
-    return round(float(ci.low), 4), round(float(ci.high), 4)
+    return float(ci.low), float(ci.high)
 
 
 def _mean(values: Iterable[Any]) -> float | None:
@@ -360,11 +366,7 @@ def group(scenario: str, pilot: str, rows: Sequence[Mapping[str, Any]]) -> dict[
 def _per_success(done: Sequence[Mapping[str, Any]], successes: int) -> dict[str, float | None]:
     """Tokens and cost per success: what one way out costs (None without a success, or
     for a pilot without a model)."""
-    tokens = _total(
-        float(r.get("prompt_tokens") or 0) + float(r.get("completion_tokens") or 0)
-        for r in done
-        if r.get("prompt_tokens") not in (None, "")
-    )
+    tokens = _total(_measure(r, "tokens") for r in done)
     cost = _total(r.get("cost_usd") for r in done)
     return {
         "tokens_per_success": round(tokens / successes, 1) if tokens and successes else None,
@@ -400,16 +402,6 @@ def write_results(folder: Path, rows: Sequence[Mapping[str, Any]], meta: Mapping
     write_json(folder / "aggregate.json", {"sweep": meta, "groups": aggregate(rows)})
 
 
-def _wilson_bounds(successes: int, trials: int, z: float) -> tuple[float, float]:
-    """The Wilson score interval, unrounded (Newcombe's interval is built from two)."""
-    p = successes / trials
-    centre = (p + z * z / (2 * trials)) / (1 + z * z / trials)
-    half = (
-        z * math.sqrt(p * (1 - p) / trials + z * z / (4 * trials * trials)) / (1 + z * z / trials)
-    )
-    return centre - half, centre + half
-
-
 def paired_difference_ci(
     both: int, only_a: int, only_b: int, neither: int, confidence: float = 0.95
 ) -> tuple[float, float] | None:
@@ -423,12 +415,9 @@ def paired_difference_ci(
     n = both + only_a + only_b + neither
     if n == 0:
         return None
-    from scipy.stats import norm
-
-    z = float(norm.ppf(0.5 + confidence / 2))
     rate_a, rate_b = (both + only_a) / n, (both + only_b) / n
-    low_a, high_a = _wilson_bounds(both + only_a, n, z)
-    low_b, high_b = _wilson_bounds(both + only_b, n, z)
+    low_a, high_a = _wilson_bounds(both + only_a, n, confidence)
+    low_b, high_b = _wilson_bounds(both + only_b, n, confidence)
     margins = (both + only_a) * (only_b + neither) * (both + only_b) * (only_a + neither)
     association = both * neither - only_a * only_b
     if association > n / 2:
@@ -499,12 +488,13 @@ def _paired_test(
     """`compare`'s figures over the caves ``keys``, flown by ``a`` and ``b``."""
 
     def cave(key: Cave) -> dict[str, Any]:
-        ends = {"outcome_a": a[key]["outcome"], "outcome_b": b[key]["outcome"]}
         return {
             "cave": f"{key[0]} seed {key[1]}",
             "a": a[key]["run_dir"],
             "b": b[key]["run_dir"],
-        } | ends
+            "outcome_a": a[key]["outcome"],
+            "outcome_b": b[key]["outcome"],
+        }
 
     only_a = [k for k in keys if _won(a[k]) and not _won(b[k])]
     only_b = [k for k in keys if _won(b[k]) and not _won(a[k])]

@@ -21,6 +21,7 @@ models you trust. Needs ``pip install 'cavenav[learn]'`` (Stable-Baselines3 and 
 from __future__ import annotations
 
 import functools
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -149,22 +150,15 @@ class PolicyPilot:
         """Nothing to forget: the policy answers each observation alone."""
 
     def _seen(self, observation: Observation) -> dict[str, np.ndarray]:
-        """The observation as the environment gives it to a learner, the policy's keys."""
+        """The observation as the environment gives it to a learner (`Observation.arrays`,
+        at the limits the policy's spaces were saved with), the policy's keys."""
         spaces = self.loaded.observation_space.spaces
-        seen = {
-            "rgb": lambda: observation.rgb,
-            "depth": lambda: observation.depth_png[..., None],
-            "depth_m": lambda: np.minimum(
-                observation.depth_m, np.float32(spaces["depth_m"].high.max())
-            )[..., None],
-            "d_top": lambda: np.array(
-                [min(observation.d_top, float(spaces["d_top"].high.max()))], np.float32
-            ),
-            "d_bottom": lambda: np.array(
-                [min(observation.d_bottom, float(spaces["d_bottom"].high.max()))], np.float32
-            ),
-        }
-        return {key: seen[key]() for key in spaces}
+
+        def high(key: str) -> float:
+            return float(spaces[key].high.max()) if key in spaces else math.inf
+
+        arrays = observation.arrays(high("depth_m"), min(high("d_top"), high("d_bottom")))
+        return {key: arrays[key] for key in spaces}
 
     def decide(self, observation: Observation) -> Decision:
         width, height = self.loaded.image_size

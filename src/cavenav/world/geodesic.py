@@ -54,15 +54,10 @@ class Geodesic:
 
 
 def _past(portals: tuple[ExitPortal, ...], points: np.ndarray) -> np.ndarray:
-    """Which ``points`` (n, 3) lie past any of ``portals``, as `ExitPortal.reached`."""
+    """Which ``points`` (n, 3) lie past any of ``portals`` (`ExitPortal.passed`)."""
     past = np.zeros(len(points), bool)
     for portal in portals:
-        normal = np.asarray(portal.normal, np.float64)
-        normal /= np.linalg.norm(normal)
-        offset = points - np.asarray(portal.point)
-        along = offset @ normal
-        across = np.linalg.norm(offset - along[:, None] * normal, axis=1)
-        past |= (along >= 0.0) & (across <= portal.radius)
+        past |= portal.passed(points)
     return past
 
 
@@ -224,7 +219,8 @@ def shortest_path(
     return Geodesic(round(length, 4), points, voxel)
 
 
-_FOUND: weakref.WeakKeyDictionary[Scenario, Geodesic] = weakref.WeakKeyDictionary()
+# Each cave's shortest path, or why there is none (asked again at every summary written).
+_FOUND: weakref.WeakKeyDictionary[Scenario, Geodesic | NoPath] = weakref.WeakKeyDictionary()
 
 
 def shortest_path_of(scenario: Scenario) -> Geodesic:
@@ -240,5 +236,11 @@ def shortest_path_of(scenario: Scenario) -> Geodesic:
         try:
             _FOUND[scenario] = shortest_path(scenario)
         except NoPath:
-            _FOUND[scenario] = shortest_path(scenario, voxel_m=VOXEL_M / 2)
-    return _FOUND[scenario]
+            try:
+                _FOUND[scenario] = shortest_path(scenario, voxel_m=VOXEL_M / 2)
+            except NoPath as none:
+                _FOUND[scenario] = none
+    found = _FOUND[scenario]
+    if isinstance(found, NoPath):
+        raise NoPath(str(found))  # a fresh one: the kept one's traceback would only grow
+    return found

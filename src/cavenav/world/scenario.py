@@ -64,12 +64,17 @@ class ExitPortal:
     radius: float
 
     def reached(self, position: np.ndarray) -> bool:
-        p = np.asarray(position, np.float64) - np.asarray(self.point)
+        return bool(self.passed(position))
+
+    def passed(self, points: np.ndarray) -> np.ndarray:
+        """Which of ``points`` (..., 3) lie past the portal: `reached`, for many at once
+        (the shortest path's goal is the episode's own)."""
+        p = np.asarray(points, np.float64) - np.asarray(self.point)
         n = np.asarray(self.normal, np.float64)
         n = n / np.linalg.norm(n)
-        along = float(p @ n)
-        across = float(np.linalg.norm(p - along * n))
-        return along >= 0.0 and across <= self.radius
+        along = p @ n
+        across = np.linalg.norm(p - np.multiply.outer(along, n), axis=-1)
+        return (along >= 0.0) & (across <= self.radius)
 
     def distance(self, position: np.ndarray) -> float:
         """Signed distance of ``position`` before the exit plane (positive = not there yet)."""
