@@ -97,6 +97,27 @@ def test_compare_pairs_two_sweeps_and_names_the_caves_that_differ(tmp_path: Path
 
 
 @pytest.mark.slow
+def test_trials_fly_each_cave_again_and_compare_by_the_caves_rates(tmp_path: Path) -> None:
+    room = str(write_room(tmp_path / "caves"))
+    common = ["--scenarios", room, "--seeds", "0-1", "--workers", "1", "--frames", "none"]
+    twice = cavenav("eval", *common, "--steps", "40", "--pilot", "random", "--trials", "2",
+                    "--out", str(tmp_path / "random"))  # fmt: skip
+    once = cavenav("eval", *common, "--steps", "40", "--no-report", "--out", str(tmp_path / "g"))
+    assert twice.returncode == 0 and once.returncode == 0, twice.stderr + once.stderr
+    page = (tmp_path / "random" / "report" / "index.html").read_text()
+    assert "<h2>Caves</h2>" in page and "2 flights of each cave" in page
+    assert page.count('href="episodes/room-seed0001-trial2.html"') >= 1
+
+    done = cavenav("compare", str(tmp_path / "g"), str(tmp_path / "random"))
+    assert done.returncode == 0, done.stderr
+    assert "Wilcoxon p (caves' rates)" in done.stdout and "A did better in 2 caves:" in done.stdout
+    refused = cavenav(
+        "eval", *common, "--steps", "40", "--trials", "0", "--out", str(tmp_path / "x")
+    )
+    assert refused.returncode == 2 and not (tmp_path / "x").exists()
+
+
+@pytest.mark.slow
 def test_a_different_configuration_is_refused_in_one_line(tmp_path: Path) -> None:
     room = str(write_room(tmp_path / "caves"))
     base = ["eval", "--scenarios", room, "--seeds", "0", "--workers", "1", "--frames", "none",

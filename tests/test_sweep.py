@@ -13,6 +13,7 @@ from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
 import pytest
 from scipy.stats import binomtest, wilcoxon
 
@@ -24,6 +25,8 @@ from cavenav.evaluation.comparison import Compared, comparison, latex_table, mar
 from cavenav.evaluation.executors import InProcess, LocalPool, deal
 from cavenav.evaluation.results import (
     aggregate,
+    clustered_difference_ci,
+    clustered_wilson,
     compare,
     episode_row,
     outcome,
@@ -332,6 +335,114 @@ def test_comparison_pairs_caves_and_tests_the_discordant_ones() -> None:
         "outcome_b": "collision",
     }
     assert result["per_scenario"]["S2"]["mcnemar_p"] == 1.0
+
+
+def test_trials_fly_each_cave_several_times_each_with_a_draw_of_its_own(
+    room: str, tmp_path: Path
+) -> None:
+    random = PilotSpec("random")
+    rows = run_sweep(sweep(room, seeds=(0, 1), pilot=random, trials=3), tmp_path / "t", InProcess())
+    assert [(r["episode"], r["trial"]) for r in rows] == [
+        (f"room-seed000{seed}-trial{trial}", trial) for seed in (0, 1) for trial in (1, 2, 3)
+    ]
+    assert json.loads((tmp_path / "t" / "sweep.json").read_text())["trials"] == 3
+
+    def actions(folder: Path) -> list[str]:
+        steps = (folder / "steps.jsonl").read_text().splitlines()
+        return [json.loads(line)["action"] for line in steps]
+
+    once = tmp_path / "once"
+    run_sweep(sweep(room, seeds=(0,), pilot=random), once, InProcess())
+    first, *others = (tmp_path / "t" / "episodes" / f"room-seed0000-trial{k}" for k in (1, 2, 3))
+    assert actions(first) == actions(once / "episodes" / "room-seed0000")  # trial 1: as flown once
+    assert all(actions(other) != actions(first) for other in others)
+
+    summary = json.loads((tmp_path / "t" / "aggregate.json").read_text())
+    assert summary["groups"][0]["caves"] == 2 and summary["groups"][0]["completed"] == 6
+    assert [(c["seed"], c["completed"], len(c["episodes"])) for c in summary["caves"]] == [
+        (0, 3, 3),
+        (1, 3, 3),
+    ]
+    with pytest.raises(ConfigError, match="trials: 3 there, 2 now"):
+        run_sweep(sweep(room, seeds=(0, 1), pilot=random, trials=2), tmp_path / "t", InProcess())
+    with pytest.raises(ConfigError, match="2 scenarios x 30000 seeds x 2 trials is more than"):
+        SweepConfig(("S1", "S2"), tuple(range(30_000)), trials=2)
+
+
+def test_a_rate_over_caves_flown_several_times_allows_for_their_trials_being_alike() -> None:
+    # Every cave's trials alike: the caves are the sample, whatever the episodes' count.
+    assert clustered_wilson([(3, 3), (0, 3)] * 10) == wilson(10, 20)
+    assert clustered_wilson([(3, 3)] * 20) == wilson(20, 20)
+    # Trials that differ within a cave as much as coins do: every episode counts.
+    assert clustered_wilson([(2, 3), (1, 3)] * 10) == wilson(30, 60)
+    assert clustered_wilson([(1, 1), (0, 1)] * 10) == wilson(10, 20)  # one trial a cave
+    low, high = clustered_wilson([(3, 3), (2, 3), (0, 3), (1, 3)] * 5)
+    assert (
+        wilson(30, 60)[1] - wilson(30, 60)[0] < high - low < wilson(10, 20)[1] - wilson(10, 20)[0]
+    )
+    assert clustered_wilson([]) is None
+
+
+def test_the_rate_interval_over_trials_covers_the_true_rate_where_wilson_over_episodes_does_not():
+    """20 caves x 3 trials, the caves' own rates drawn around 0.7 with trials of a cave
+    much alike (intraclass correlation 0.8): Wilson's interval over the 60 episodes misses
+    the mean rate about a quarter of the time; the clustered one about one time in 20."""
+    rng = np.random.default_rng(1)
+    covered = naive = 0
+    for _ in range(400):
+        wins = rng.binomial(3, rng.beta(0.7 * 0.25, 0.3 * 0.25, 20))
+        low, high = clustered_wilson([(int(k), 3) for k in wins])
+        covered += low <= 0.7 <= high
+        low, high = wilson(int(wins.sum()), 60)
+        naive += low <= 0.7 <= high
+    assert covered / 400 > 0.92 and naive / 400 < 0.82
+
+
+def test_a_comparison_with_trials_tests_the_caves_success_rates() -> None:
+    def trials(scenario: str, seed: int, outcomes: str) -> list[dict]:
+        return [
+            {**row(scenario, seed, {"s": "success", "c": "collision"}[o]), "trial": k + 1,
+             "run_dir": f"episodes/{scenario}-seed{seed:04d}-trial{k + 1}"}
+            for k, o in enumerate(outcomes)
+        ]  # fmt: skip
+
+    a = [r for seed in range(8) for r in trials("S1", seed, "sss" if seed < 6 else "scc")]
+    b = [r for seed in range(8) for r in trials("S1", seed, "ccs" if seed < 6 else "scc")]
+    result = compare(a, b)
+    overall = result["overall"]
+    assert result["trials"] and overall["success_test"] == "wilcoxon"
+    rates_a, rates_b = [1.0] * 6 + [1 / 3] * 2, [1 / 3] * 8
+    assert overall["p"] == pytest.approx(wilcoxon(rates_a, rates_b).pvalue)
+    assert overall["difference"] == round(20 / 24 - 8 / 24, 4)
+    low, high = overall["difference_ci95"]
+    assert 0 < low < overall["difference"] < high <= 1
+    assert overall["only_b"] == [] and len(overall["only_a"]) == 6
+    assert overall["only_a"][0] == {
+        "cave": "S1 seed 0",
+        "a": "episodes/S1-seed0000-trial1",  # a success of the side that did better
+        "b": "episodes/S1-seed0000-trial1",  # a failure of the other
+        "outcome_a": "3/3 success",
+        "outcome_b": "1/3 success",
+        "rate_a": 1.0,
+        "rate_b": 0.3333,
+    }
+    # Both always through: no difference, with the width that 8 caves (not 24 episodes) allow.
+    same = compare(
+        [r for seed in range(8) for r in trials("S1", seed, "sss")],
+        [r for seed in range(8) for r in trials("S1", seed, "sss")],
+    )["overall"]
+    margin = 1 - wilson(8, 8)[0]
+    assert same["difference_ci95"] == pytest.approx((-margin, margin), abs=1e-4)
+    assert same["p"] == 1.0
+
+
+def test_trials_alike_in_both_sweeps_narrow_the_difference_when_caves_agree() -> None:
+    """The correlation between the caves' rates counts as Newcombe's counts it for pairs:
+    two pilots that fail in the same hard caves differ less uncertainly."""
+    hard, easy = [(0, 3)] * 4, [(3, 3)] * 4
+    together = clustered_difference_ci(hard + easy + [(3, 3)] * 2, hard + easy + [(0, 3)] * 2)
+    apart = clustered_difference_ci(hard + easy + [(3, 3)] * 2, easy + hard + [(0, 3)] * 2)
+    assert together[1] - together[0] < apart[1] - apart[0]
 
 
 def test_aggregates_count_completed_episodes_only() -> None:

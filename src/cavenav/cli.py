@@ -227,6 +227,9 @@ VideoMode = StrEnum("VideoMode", {name: name for name in VIDEO_MODES})
 VideoOpt = Annotated[
     VideoMode, typer.Option(help="episode.mp4 for none, failures or all episodes, as each ends")
 ]
+TrialsOpt = Annotated[
+    int, typer.Option(min=1, help="flights of each cave, for pilots that sample (temperature > 0)")
+]
 WandbOpt = Annotated[
     bool, typer.Option(help="log episodes, results and videos to Weights & Biases (offline)")
 ]
@@ -265,11 +268,12 @@ def eval_(
     shield: Annotated[bool, typer.Option(help="safety shield between pilot and vehicle")] = False,
     report: Annotated[bool, typer.Option(help="write the HTML report at the end")] = True,
     video: VideoOpt = VideoMode["none"],
+    trials: TrialsOpt = 1,
     wandb: WandbOpt = False,
     settings: EpisodeSettings = FILLED_BY_TAKES,
     vlm: VLMOptions = VLM_FILLED_BY_TAKES,
 ) -> None:
-    """Fly a pilot over scenarios x seeds; results.csv, aggregate.json and an HTML report."""
+    """Fly a pilot over scenarios x seeds (x trials); results.csv, aggregate.json, a report."""
     from cavenav.episode.run_folder import prepare_root
     from cavenav.evaluation.sweep import SweepConfig, check_grid, parse_seeds
 
@@ -277,9 +281,8 @@ def eval_(
         raise CavenavError("a sweep flies geometric, vlm, random or policy pilots, not replay")
     spec = _pilot_spec(pilot, vlm, None, policy)
     settings = replace(_camera_for(spec, settings), shield=shield).with_frames(frames.value)
-    config = SweepConfig(
-        _scenario_list(scenarios), parse_seeds(seeds), spec, settings, video=video.value
-    )
+    grid = (_scenario_list(scenarios), parse_seeds(seeds))
+    config = SweepConfig(*grid, spec, settings, video=video.value, trials=trials)
     check_grid(config)  # every scenario and knob, in milliseconds, before anything is written
     if pilot == "vlm":
         spec.build()  # a missing key or an unreachable server fails now, not in a worker

@@ -146,8 +146,9 @@ def print_comparison(result: Mapping[str, Any], title: str, folders: tuple[Path,
     """Two sweeps paired by cave (`cavenav.evaluation.results.compare`): per scenario and
     overall, then the caves only one of them got through, under ``folders`` (A, B)."""
     table = Table(title=title)
-    for column in ("scenario", "pairs", "A success", "B success", "A - B (95% CI)", "only A",
-                   "only B", "McNemar exact p"):  # fmt: skip
+    trials = result.get("trials")
+    for column in ("scenario", "pairs", "A success", "B success", "A - B (95% CI)",
+                   *_side_columns(trials)):  # fmt: skip
         table.add_column(column)
     entries = [*result["per_scenario"].items(), ("all", result["overall"])]
     for name, r in entries:
@@ -162,7 +163,7 @@ def print_comparison(result: Mapping[str, Any], title: str, folders: tuple[Path,
             f"{r['difference_ci95'][1]:+.0%})",
             str(len(r["only_a"])),
             str(len(r["only_b"])),
-            f"{r['mcnemar_p']:.4g}",
+            f"{r['p']:.4g}",
         )
     _print_table(table)
     if result["unpaired"]:
@@ -170,7 +171,12 @@ def print_comparison(result: Mapping[str, Any], title: str, folders: tuple[Path,
     for side, folder in zip(("a", "b"), folders, strict=True):
         caves = result["overall"][f"only_{side}"]
         if caves:
-            console.print(f"[bold]only {side.upper()} got through ({len(caves)}):[/]")
+            heading = (
+                f"{side.upper()} did better in {len(caves)} caves"
+                if trials
+                else f"only {side.upper()} got through ({len(caves)})"
+            )
+            console.print(f"[bold]{heading}:[/]")
             for cave in caves[:SHOWN_CAVES]:
                 console.print(f"  {cave['cave']}: {folder / cave[side]}", soft_wrap=True)
             if len(caves) > SHOWN_CAVES:
@@ -192,7 +198,7 @@ def print_leaderboard(result: Mapping[str, Any]) -> None:
         table.add_row(*map(escape, row))
     _print_table(table)
     pairs = Table(title="pairs, over the caves both completed")
-    for column in ("A", "B", "caves", "A - B (95% CI)", "only A", "only B", "McNemar exact p"):
+    for column in ("A", "B", "caves", "A - B (95% CI)", *_side_columns(result.get("trials"))):
         pairs.add_column(column)
     for pair in result["pairs"]:
         o = pair["overall"]
@@ -206,6 +212,13 @@ def print_leaderboard(result: Mapping[str, Any]) -> None:
             f"{o['difference']:+.0%} ({low:+.0%} to {high:+.0%})",
             str(len(o["only_a"])),
             str(len(o["only_b"])),
-            f"{o['mcnemar_p']:.4g}",
+            f"{o['p']:.4g}",
         )
     _print_table(pairs)
+
+
+def _side_columns(trials: bool | None) -> tuple[str, str, str]:
+    """The columns of the caves that favour each side, and of the test of success."""
+    if trials:
+        return "A better", "B better", "Wilcoxon p (caves' rates)"
+    return "only A", "only B", "McNemar exact p"

@@ -46,6 +46,19 @@ METHODS = (
     "compared by Wilcoxon's signed-rank test over the caves where both recorded them "
     "(scipy; zero differences dropped); a median difference is A - B."
 )
+# How the same is done where a sweep flew each cave several times (--trials).
+TRIAL_METHODS = (
+    "Where caves were flown several times (--trials), trials of one cave tend to end "
+    "alike, so the episodes are not independent: each success rate's 95% interval is Wilson's at "
+    "the effective sample size, p(1 - p) over the rate's variance between caves, held "
+    "between the number of caves and of episodes (Kish's design effect; the caves' number "
+    "for a rate of 0 or 1). For each such pair, the difference in pooled success (A - B) has "
+    "Newcombe's interval built from those two intervals and the correlation of the two "
+    "rates between caves (the MOVER of Zou and Donner 2008), and its p-value is Wilcoxon's "
+    "signed-rank test of the caves' success rates. Minimum clearance, steps, tokens and "
+    "cost are compared by Wilcoxon's test of each cave's mean over its trials; a median "
+    "difference is A - B."
+)
 
 
 # What the page calls each of `cavenav.evaluation.results.PAIRED_MEASURES`.
@@ -118,6 +131,7 @@ def _sweep_facts(sweep: Compared) -> dict[str, Any]:
         "difficulty": sweep.config.get("difficulty"),
         "cavenav_version": sweep.config.get("cavenav_version"),
         "scenario_set": sweep.config.get("scenario_set"),
+        "trials": sweep.config.get("trials", 1),
         "episodes": len(sweep.rows),
     }
 
@@ -132,6 +146,7 @@ def comparison(sweeps: Sequence[Compared]) -> dict[str, Any]:
     for i, j in itertools.combinations(range(len(sweeps)), 2):
         a, b = sweeps[i], sweeps[j]
         pairs.append({"a": a.label, "b": b.label, **compare(a.rows, b.rows)})
+    trials = any(pair["trials"] for pair in pairs)
     return {
         "sweeps": [_sweep_facts(s) for s in sweeps],
         "leaderboard": [board[k] for k in order],
@@ -142,7 +157,8 @@ def comparison(sweeps: Sequence[Compared]) -> dict[str, Any]:
             for name in scenarios
         },
         "pairs": pairs,
-        "methods": METHODS,
+        "trials": trials,
+        "methods": f"{METHODS} {TRIAL_METHODS}" if trials else METHODS,
     }
 
 

@@ -34,7 +34,7 @@ from cavenav.episode.records import (
 )
 from cavenav.episode.run_folder import write_atomic
 from cavenav.errors import CavenavError, DependencyError, RecordError, RecordingError
-from cavenav.evaluation.results import aggregate, priced
+from cavenav.evaluation.results import aggregate, cave_rates, priced
 from cavenav.evaluation.results import outcome as episode_outcome
 from cavenav.evaluation.sweep import read_rows
 
@@ -233,6 +233,9 @@ _AGGREGATE_COLUMNS = (
         lambda v: str(v[1]) if v[0] == v[1] else f"{v[0]} of {v[1]} completed",
     ),
     Column(
+        "caves", lambda g: g.get("caves") if g.get("caves") != g.get("completed") else None, str
+    ),
+    Column(
         "success [95% CI]",
         lambda g: (g.get("success_rate"), g.get("success_ci95")),
         lambda v: _percent_ci(*v),
@@ -279,6 +282,7 @@ _AGGREGATE_COLUMNS = (
 _EPISODE_COLUMNS = (
     Column("scenario", _key("scenario"), str, numeric=False),
     Column("seed", _key("seed"), str),
+    Column("trial", _key("trial"), str),
     Column("pilot", _key("pilot"), str, numeric=False),
     Column("steps", _key("steps"), _int),
     Column("collisions", _key("collisions"), _int),
@@ -611,6 +615,8 @@ def _sweep_facts(config: Mapping[str, Any]) -> list[tuple[str, str]]:
         ("pilot options", _flat(pilot.get("options") or {})),
         ("episode", _flat(config.get("episode") or {})),
     ]
+    if config.get("trials", 1) > 1:
+        facts.append(("trials", f"{config['trials']} flights of each cave"))
     facts += [
         (key, _flat(config[key]))
         for key in ("difficulty", "sensors")
@@ -699,6 +705,11 @@ def _write_sweep_report(
     groups = list(sweep.groups)
     group_headers, group_rows = _table(_AGGREGATE_COLUMNS, groups)
     outcomes = Counter(link.outcome for link in episodes)
+    pages = {link.id: link.href for link in episodes}
+    caves = [
+        {**cave, "links": [(name, pages[name]) for name in cave["episodes"]]}
+        for cave in (cave_rates(sweep.rows) if sweep.config.get("trials", 1) > 1 else [])
+    ]
     facts = _sweep_facts(sweep.config)
     if prices:
         priced_at = f"USD {prices[0]:g} / {prices[1]:g} per million tokens in / out"
@@ -713,6 +724,7 @@ def _write_sweep_report(
         episode_headers=headers,
         episodes=episodes,
         outcomes=outcomes.most_common(),
+        caves=caves,
     )
 
 

@@ -36,7 +36,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scipy.stats import binomtest, wilcoxon
+from scipy.stats import binomtest, norm, wilcoxon
 
 from cavenav.episode.records import (
     OUTCOMES,
@@ -57,6 +57,8 @@ __all__ = [
     "OUTCOMES",
     "WINDOW",
     "aggregate",
+    "cave_rates",
+    "clustered_wilson",
     "compare",
     "episode_row",
     "group",
@@ -84,6 +86,7 @@ COLUMNS = (
     "episode",
     "scenario",
     "seed",
+    "trial",
     "scenario_set",
     "pilot",
     "status",
@@ -294,6 +297,93 @@ def _wilson_bounds(successes: int, trials: int, confidence: float) -> tuple[floa
     return float(ci.low), float(ci.high)
 
 
+Cave = tuple[str, int]  # (scenario, seed): what pairs two sweeps' episodes, and trials repeat
+
+
+def _by_cave(
+    rows: Iterable[Mapping[str, Any]], completed: bool = True
+) -> dict[Cave, list[Mapping[str, Any]]]:
+    """Completed episodes (``completed=False``: all) by cave, each cave's trials in order."""
+    caves: dict[Cave, list[Mapping[str, Any]]] = {}
+    for r in rows:
+        if (r["outcome"] != "incomplete" or not completed) and r.get("seed") not in (None, ""):
+            caves.setdefault((str(r["scenario"]), int(r["seed"])), []).append(r)
+    return caves
+
+
+Counts = Sequence[tuple[int, int]]  # per cave: (episodes with the event, episodes)
+
+
+def _wilson_at(rate: float, n: float, confidence: float) -> tuple[float, float]:
+    """Wilson's score interval of ``rate`` observed over ``n`` trials, for an ``n`` that
+    need not be whole (an effective sample size), which scipy's binomtest cannot take."""
+    z = float(norm.ppf(0.5 + confidence / 2))
+    share = z * z / n
+    centre = (rate + share / 2) / (1 + share)
+    half = z / (1 + share) * math.sqrt(rate * (1 - rate) / n + share / (4 * n))
+    return max(centre - half, 0.0), min(centre + half, 1.0)
+
+
+def _cluster_covariance(a: Counts, b: Counts) -> float | None:
+    """The between-cave (cluster-robust) covariance of two rates pooled over the same
+    caves, sum over caves of (k_a - p_a n_a)(k_b - p_b n_b) / (N_a N_b), times C / (C - 1);
+    with ``a`` as ``b``, the variance of one. None for fewer than two caves."""
+    if len(a) < 2:
+        return None
+    rate_a = sum(k for k, _ in a) / sum(n for _, n in a)
+    rate_b = sum(k for k, _ in b) / sum(n for _, n in b)
+    spread = sum(
+        (ka - rate_a * na) * (kb - rate_b * nb) for (ka, na), (kb, nb) in zip(a, b, strict=True)
+    )
+    scale = len(a) / (len(a) - 1) / (sum(n for _, n in a) * sum(n for _, n in b))
+    return spread * scale
+
+
+def _effective_trials(counts: Counts) -> float:
+    """Kish's effective sample size of a rate pooled over caves flown several times each:
+    p (1 - p) / V, V its between-cave variance (`_cluster_covariance`), held between the
+    number of caves (every trial of a cave alike) and of episodes (every trial its own).
+    The number of caves where V cannot tell: one cave, or a rate of 0 or 1 (Korn and
+    Graubard 1998 bound it so; taking the caves is the cautious end)."""
+    caves, episodes = len(counts), sum(n for _, n in counts)
+    rate = sum(k for k, _ in counts) / episodes
+    variance = _cluster_covariance(counts, counts)
+    if not variance or rate in (0.0, 1.0):
+        return float(caves)
+    return min(max(rate * (1 - rate) / variance, caves), episodes)
+
+
+def clustered_wilson(counts: Counts, confidence: float = 0.95) -> tuple[float, float] | None:
+    """The 95% interval of a rate pooled over caves flown several times each (``counts``:
+    per cave, episodes with the event and episodes), allowing for a cave's trials being
+    alike: Wilson's interval at the effective sample size (`_effective_trials`). With one
+    trial a cave it is `wilson`. None for no episodes."""
+    episodes = sum(n for _, n in counts)
+    if episodes == 0:
+        return None
+    if episodes == len(counts):
+        return wilson(sum(k for k, _ in counts), episodes, confidence)
+    low, high = _wilson_at(
+        sum(k for k, _ in counts) / episodes, _effective_trials(counts), confidence
+    )
+    return round(low, 4), round(high, 4)
+
+
+def _counts(trials: Iterable[Sequence[Mapping[str, Any]]], event: str) -> list[tuple[int, int]]:
+    """Per cave's completed ``trials``, the episodes whose outcome is ``event``, and all."""
+    return [(sum(r["outcome"] == event for r in rows), len(rows)) for rows in trials]
+
+
+def _interval(
+    done: Sequence[Mapping[str, Any]], event: str, caves: int
+) -> tuple[float, float] | None:
+    """The 95% interval of the rate of ``event`` over ``done``, flown in ``caves`` caves:
+    Wilson's, or `clustered_wilson` where caves were flown several times."""
+    if caves in (0, len(done)):
+        return wilson(sum(r["outcome"] == event for r in done), len(done))
+    return clustered_wilson(_counts(_by_cave(done).values(), event))
+
+
 def _mean(values: Iterable[Any]) -> float | None:
     numbers = [float(v) for v in values if v is not None and v != ""]
     numbers = [v for v in numbers if math.isfinite(v)]
@@ -319,24 +409,28 @@ def group(scenario: str, pilot: str, rows: Sequence[Mapping[str, Any]]) -> dict[
     """The aggregate of one (scenario, pilot) cell over its completed episodes.
 
     Rates and their intervals count every completed episode (errors included: a pilot
-    that crashes the episode did not get through); incomplete ones are left out.
+    that crashes the episode did not get through); incomplete ones are left out. Where
+    caves were flown several times (``--trials``), the intervals allow for a cave's
+    trials being alike (`clustered_wilson`).
     """
     done = [r for r in rows if r["outcome"] != "incomplete"]
     successes = sum(1 for r in done if r["outcome"] == "success")
     collisions = sum(1 for r in done if r["outcome"] == "collision")
     n = len(done)
+    caves = len(_by_cave(done))
     clearance_minima = [r["min_clearance_m"] for r in done if r.get("min_clearance_m") is not None]
     return {
         "scenario": scenario,
         "pilot": pilot,
         "episodes": len(rows),
         "completed": n,
+        "caves": caves,
         "successes": successes,
         "success_rate": round(successes / n, 4) if n else None,
-        "success_ci95": wilson(successes, n),
+        "success_ci95": _interval(done, "success", caves),
         "collisions": collisions,
         "collision_rate": round(collisions / n, 4) if n else None,
-        "collision_ci95": wilson(collisions, n),
+        "collision_ci95": _interval(done, "collision", caves),
         "outcomes": {k: v for k in OUTCOMES if (v := sum(r["outcome"] == k for r in rows))},
         "terminations": dict(Counter(str(r["termination"]) for r in done if r.get("termination"))),
         "min_clearance_m": {
@@ -391,15 +485,37 @@ def aggregate(rows: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
     return groups
 
 
+def cave_rates(rows: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
+    """Each cave's success rate over its completed trials, for a sweep that flew caves
+    several times (``--trials``): scenario, seed, successes, completed, success_rate and
+    its episodes (run folder names, in trial order, incomplete ones included)."""
+    caves = []
+    for key, trials in _by_cave(rows, completed=False).items():
+        done = [r for r in trials if r["outcome"] != "incomplete"]
+        successes = sum(map(_won, done))
+        caves.append({
+            "scenario": key[0],
+            "seed": key[1],
+            "successes": successes,
+            "completed": len(done),
+            "success_rate": round(successes / len(done), 4) if done else None,
+            "episodes": [str(r["episode"]) for r in trials],
+        })  # fmt: skip
+    return caves
+
+
 def write_results(folder: Path, rows: Sequence[Mapping[str, Any]], meta: Mapping[str, Any]) -> None:
-    """results.csv (one row per episode) and aggregate.json (``meta`` under "sweep")."""
+    """results.csv (one row per episode) and aggregate.json (``meta`` under "sweep"; with
+    trials, each cave's rate under "caves")."""
     table = io.StringIO(newline="")
     writer = csv.DictWriter(table, COLUMNS, extrasaction="ignore")
     writer.writeheader()
     for row in rows:
         writer.writerow({k: "" if row.get(k) is None else row.get(k) for k in COLUMNS})
     write_atomic(folder / "results.csv", table.getvalue())
-    write_json(folder / "aggregate.json", {"sweep": meta, "groups": aggregate(rows)})
+    trials = int(meta.get("trials", 1)) > 1
+    caves = {"caves": cave_rates(rows)} if trials else {}
+    write_json(folder / "aggregate.json", {"sweep": meta, "groups": aggregate(rows), **caves})
 
 
 def paired_difference_ci(
@@ -415,16 +531,47 @@ def paired_difference_ci(
     n = both + only_a + only_b + neither
     if n == 0:
         return None
-    rate_a, rate_b = (both + only_a) / n, (both + only_b) / n
-    low_a, high_a = _wilson_bounds(both + only_a, n, confidence)
-    low_b, high_b = _wilson_bounds(both + only_b, n, confidence)
     margins = (both + only_a) * (only_b + neither) * (both + only_b) * (only_a + neither)
     association = both * neither - only_a * only_b
     if association > n / 2:
         association -= n / 2
     elif association >= 0:
         association = 0
-    phi = association / math.sqrt(margins) if margins else 0.0
+    return _combined(
+        ((both + only_a) / n, _wilson_bounds(both + only_a, n, confidence)),
+        ((both + only_b) / n, _wilson_bounds(both + only_b, n, confidence)),
+        association / math.sqrt(margins) if margins else 0.0,
+    )
+
+
+def clustered_difference_ci(
+    a: Counts, b: Counts, confidence: float = 0.95
+) -> tuple[float, float] | None:
+    """The interval of A - B for success rates pooled over the same caves, each flown
+    several times (``a``, ``b``: per cave, successes and episodes): Newcombe's way of
+    combining two rates' intervals (the MOVER of Zou and Donner 2008), with each rate's
+    interval allowing for a cave's trials being alike (`clustered_wilson`) and the
+    correlation of the two rates taken between caves (`_cluster_covariance`). None for no
+    caves."""
+    if not a:
+        return None
+    sides = []
+    for counts in (a, b):
+        rate = sum(k for k, _ in counts) / sum(n for _, n in counts)
+        sides.append((rate, _wilson_at(rate, _effective_trials(counts), confidence)))
+    variance_a, variance_b = _cluster_covariance(a, a), _cluster_covariance(b, b)
+    phi = 0.0
+    if variance_a and variance_b:
+        phi = (_cluster_covariance(a, b) or 0.0) / math.sqrt(variance_a * variance_b)
+    return _combined(sides[0], sides[1], phi)
+
+
+def _combined(
+    a: tuple[float, tuple[float, float]], b: tuple[float, tuple[float, float]], phi: float
+) -> tuple[float, float]:
+    """Newcombe's interval for A - B from each rate and its interval, (rate, (low, high)),
+    and ``phi``, the correlation of the two estimates."""
+    (rate_a, (low_a, high_a)), (rate_b, (low_b, high_b)) = a, b
     difference = rate_a - rate_b
     below = (rate_a - low_a) ** 2 - 2 * phi * (rate_a - low_a) * (high_b - rate_b)
     above = (high_a - rate_a) ** 2 - 2 * phi * (high_a - rate_a) * (rate_b - low_b)
@@ -449,6 +596,12 @@ def _measure(row: Mapping[str, Any], name: str) -> float | None:
     return None if value in (None, "") else float(value)
 
 
+def _cave_mean(trials: Sequence[Mapping[str, Any]], name: str) -> float | None:
+    """The mean of measure ``name`` over a cave's trials that recorded it."""
+    values = [v for r in trials if (v := _measure(r, name)) is not None]
+    return sum(values) / len(values) if values else None
+
+
 def _signed_rank(pairs: Sequence[tuple[float, float]]) -> dict[str, Any] | None:
     """Wilcoxon's signed-rank test of paired values (scipy: exact for up to 50 pairs
     without ties or zeros, else the normal approximation; zero differences dropped),
@@ -467,45 +620,41 @@ def _signed_rank(pairs: Sequence[tuple[float, float]]) -> dict[str, Any] | None:
     }
 
 
-Cave = tuple[str, int]  # (scenario, seed): what pairs two sweeps' episodes
-
-
-def _completed(rows: Sequence[Mapping[str, Any]]) -> dict[Cave, Mapping[str, Any]]:
-    return {
-        (str(r["scenario"]), int(r["seed"])): r
-        for r in rows
-        if r["outcome"] != "incomplete" and r.get("seed") not in (None, "")
-    }
+Trials = Mapping[Cave, Sequence[Mapping[str, Any]]]  # a sweep's completed episodes by cave
 
 
 def _won(row: Mapping[str, Any]) -> bool:
     return row["outcome"] == "success"
 
 
-def _paired_test(
-    keys: Sequence[Cave], a: Mapping[Cave, Mapping[str, Any]], b: Mapping[Cave, Mapping[str, Any]]
-) -> dict[str, Any]:
-    """`compare`'s figures over the caves ``keys``, flown by ``a`` and ``b``."""
+def _measure_tests(keys: Sequence[Cave], a: Trials, b: Trials) -> dict[str, Any]:
+    """Wilcoxon's test of each of `PAIRED_MEASURES` over the caves ``keys`` (a cave's
+    value: the mean over its trials)."""
+    tests = {}
+    for name in PAIRED_MEASURES:
+        values = [(_cave_mean(a[k], name), _cave_mean(b[k], name)) for k in keys]
+        tests[name] = _signed_rank([(x, y) for x, y in values if x is not None and y is not None])
+    return tests
+
+
+def _paired_test(keys: Sequence[Cave], a: Trials, b: Trials) -> dict[str, Any]:
+    """`compare`'s figures over the caves ``keys``, flown once each by ``a`` and ``b``."""
 
     def cave(key: Cave) -> dict[str, Any]:
         return {
             "cave": f"{key[0]} seed {key[1]}",
-            "a": a[key]["run_dir"],
-            "b": b[key]["run_dir"],
-            "outcome_a": a[key]["outcome"],
-            "outcome_b": b[key]["outcome"],
+            "a": a[key][0]["run_dir"],
+            "b": b[key][0]["run_dir"],
+            "outcome_a": a[key][0]["outcome"],
+            "outcome_b": b[key][0]["outcome"],
         }
 
-    only_a = [k for k in keys if _won(a[k]) and not _won(b[k])]
-    only_b = [k for k in keys if _won(b[k]) and not _won(a[k])]
+    only_a = [k for k in keys if _won(a[k][0]) and not _won(b[k][0])]
+    only_b = [k for k in keys if _won(b[k][0]) and not _won(a[k][0])]
     discordant, n = len(only_a) + len(only_b), len(keys)
-    both = sum(_won(a[k]) and _won(b[k]) for k in keys)
+    both = sum(_won(a[k][0]) and _won(b[k][0]) for k in keys)
     rate_a, rate_b = (both + len(only_a)) / max(n, 1), (both + len(only_b)) / max(n, 1)
-    p = binomtest(len(only_a), discordant, 0.5).pvalue if discordant else 1.0
-    tests = {}
-    for name in PAIRED_MEASURES:
-        values = [(_measure(a[k], name), _measure(b[k], name)) for k in keys]
-        tests[name] = _signed_rank([(x, y) for x, y in values if x is not None and y is not None])
+    p = float(binomtest(len(only_a), discordant, 0.5).pvalue) if discordant else 1.0
     return {
         "pairs": n,
         "success_rate_a": round(rate_a, 4) if n else None,
@@ -514,38 +663,93 @@ def _paired_test(
         "difference_ci95": paired_difference_ci(
             both, len(only_a), len(only_b), n - both - discordant
         ),
-        "mcnemar_p": float(p),
-        "paired_tests": tests,
+        "success_test": "mcnemar",
+        "p": p,
+        "mcnemar_p": p,
+        "paired_tests": _measure_tests(keys, a, b),
         "only_a": [cave(k) for k in only_a],
         "only_b": [cave(k) for k in only_b],
     }
 
 
-def compare(rows_a: Sequence[Mapping[str, Any]], rows_b: Sequence[Mapping[str, Any]]) -> dict:
-    """Two sweeps paired by (scenario, seed): success rates and the exact McNemar test.
+def _paired_rates(keys: Sequence[Cave], a: Trials, b: Trials) -> dict[str, Any]:
+    """`compare`'s figures over the caves ``keys`` where a sweep flew some of them
+    several times (``--trials``): each cave's success rate in each sweep."""
+    counts_a, counts_b = (
+        _counts((a[k] for k in keys), "success"),
+        _counts((b[k] for k in keys), "success"),
+    )
+    rates = [(ka / na, kb / nb) for (ka, na), (kb, nb) in zip(counts_a, counts_b, strict=True)]
 
-    Only caves completed in both sweeps are paired. McNemar's exact test is the two-sided
-    binomial test of the discordant pairs (A succeeded where B failed, and the reverse)
-    against an even split: the concordant caves say nothing about which pilot is better.
-    The difference in success comes with Newcombe's paired interval
-    (`paired_difference_ci`), and each of `PAIRED_MEASURES` with Wilcoxon's signed-rank
-    test over the caves where both sweeps recorded it.
+    def cave(key: Cave, rate_a: float, rate_b: float) -> dict[str, Any]:
+        """The cave, and from each side an episode that shows the difference: a success
+        of the side that did better, a failure of the other."""
+        better_a = rate_a > rate_b
+        shown_a = next((r for r in a[key] if _won(r) == better_a), a[key][0])
+        shown_b = next((r for r in b[key] if _won(r) != better_a), b[key][0])
+        return {
+            "cave": f"{key[0]} seed {key[1]}",
+            "a": shown_a["run_dir"],
+            "b": shown_b["run_dir"],
+            "outcome_a": f"{sum(map(_won, a[key]))}/{len(a[key])} success",
+            "outcome_b": f"{sum(map(_won, b[key]))}/{len(b[key])} success",
+            "rate_a": round(rate_a, 4),
+            "rate_b": round(rate_b, 4),
+        }
+
+    n = len(keys)
+    pooled = [sum(k for k, _ in c) / max(sum(m for _, m in c), 1) for c in (counts_a, counts_b)]
+    test = _signed_rank(rates)
+    return {
+        "pairs": n,
+        "episodes_a": sum(m for _, m in counts_a),
+        "episodes_b": sum(m for _, m in counts_b),
+        "success_rate_a": round(pooled[0], 4) if n else None,
+        "success_rate_b": round(pooled[1], 4) if n else None,
+        "difference": round(pooled[0] - pooled[1], 4) if n else None,
+        "difference_ci95": clustered_difference_ci(counts_a, counts_b),
+        "success_test": "wilcoxon",
+        "p": test["p"] if test else 1.0,
+        "mcnemar_p": None,
+        "paired_tests": _measure_tests(keys, a, b),
+        "only_a": [cave(k, x, y) for k, (x, y) in zip(keys, rates, strict=True) if x > y],
+        "only_b": [cave(k, x, y) for k, (x, y) in zip(keys, rates, strict=True) if y > x],
+    }
+
+
+def compare(rows_a: Sequence[Mapping[str, Any]], rows_b: Sequence[Mapping[str, Any]]) -> dict:
+    """Two sweeps paired by cave (scenario, seed): success rates, their difference and
+    the test of it, and paired tests of the other measures.
+
+    Only caves completed in both sweeps are paired. Flown once each, McNemar's exact test
+    is the two-sided binomial test of the discordant pairs (A succeeded where B failed,
+    and the reverse) against an even split: the concordant caves say nothing about which
+    pilot is better; the difference in success comes with Newcombe's paired interval
+    (`paired_difference_ci`). Where a sweep flew caves several times (``--trials``),
+    each cave has a success rate: the difference is of the pooled rates, its interval
+    allows for a cave's trials being alike (`clustered_difference_ci`), and the test is
+    Wilcoxon's signed-rank test of the caves' rates. Each of `PAIRED_MEASURES` gets
+    Wilcoxon's test over the caves where both sweeps recorded it (a cave's value: the
+    mean over its trials).
 
     Returns:
-        "overall" and "per_scenario" entries with the pairs, both success rates, their
-        difference (A - B) and its 95% interval, the exact p-value, the signed-rank tests
-        ("paired_tests": {measure: {"pairs", "median_difference", "p"} or None}), and the
-        caves only A ("only_a") or only B ("only_b") got through: {"cave", "a", "b",
-        "outcome_a", "outcome_b"} with both run folders and how each episode ended.
+        "overall" and "per_scenario" entries with the pairs (caves), both success rates,
+        their difference (A - B) and its 95% interval, the test ("success_test":
+        "mcnemar" or "wilcoxon") and its p-value ("p"; "mcnemar_p" too, None with
+        trials), the signed-rank tests ("paired_tests": {measure: {"pairs",
+        "median_difference", "p"} or None}), and the caves where A ("only_a") or B
+        ("only_b") did better: {"cave", "a", "b", "outcome_a", "outcome_b"} with an
+        episode of each side and how it ended (with trials: "2/3 success", and "rate_a",
+        "rate_b").
     """
-
-    a, b = _completed(rows_a), _completed(rows_b)
+    a, b = _by_cave(rows_a), _by_cave(rows_b)
     paired = sorted(set(a) & set(b))
+    repeated = any(len(a[k]) > 1 or len(b[k]) > 1 for k in paired)
+    test = _paired_rates if repeated else _paired_test
     scenarios = dict.fromkeys(s for s, _ in paired)
     return {
-        "overall": _paired_test(paired, a, b),
-        "per_scenario": {
-            s: _paired_test([k for k in paired if k[0] == s], a, b) for s in scenarios
-        },
+        "overall": test(paired, a, b),
+        "per_scenario": {s: test([k for k in paired if k[0] == s], a, b) for s in scenarios},
         "unpaired": len(set(a) ^ set(b)),
+        "trials": repeated,
     }

@@ -37,6 +37,8 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any, Protocol
 
+import numpy as np
+
 from cavenav import SCENARIO_SET, __version__
 from cavenav.episode.loop import DEFAULT_STEPS, EpisodeConfig, run_episode
 from cavenav.episode.records import read_summary, read_sweep_file
@@ -105,6 +107,11 @@ class SweepConfig:
         pilot: which pilot flies every episode.
         settings: every episode's settings; its difficulty knobs are each set on the
             families that have them (`difficulty_for`).
+        video: which episodes get an episode.mp4 (`VIDEO_MODES`).
+        trials: flights of each cave, for pilots that sample (a VLM at a temperature
+            above 0, the random pilot). Each trial draws its own sensor noise and, for
+            the random pilot, its own actions; the first is the flight a sweep of one
+            trial makes. A deterministic pilot flies every trial alike.
     """
 
     scenarios: tuple[str, ...]
@@ -112,6 +119,7 @@ class SweepConfig:
     pilot: PilotSpec
     settings: EpisodeSettings
     video: str = "none"
+    trials: int = 1
 
     def __init__(
         self,
@@ -134,6 +142,7 @@ class SweepConfig:
         """
         frames = fields.pop("frames", None)
         object.__setattr__(self, "video", fields.pop("video", "none"))
+        object.__setattr__(self, "trials", fields.pop("trials", 1))
         sensors = dict(fields.pop("sensors", {}))
         unknown = set(sensors) - set(SENSOR_FIELDS)
         if unknown:
@@ -156,10 +165,13 @@ class SweepConfig:
             raise ConfigError("give at least one scenario, e.g. --scenarios S1,S2")
         if not self.seeds:
             raise ConfigError("give at least one seed, e.g. --seeds 0-19")
-        if len(self.scenarios) * len(self.seeds) > MAX_EPISODES:
+        if not isinstance(self.trials, int) or self.trials < 1:
+            raise ConfigError(f"--trials must be a whole number of 1 or more, not {self.trials}")
+        if self.episodes > MAX_EPISODES:
+            trials = f" x {self.trials} trials" if self.trials > 1 else ""
             raise ConfigError(
-                f"{len(self.scenarios)} scenarios x {len(self.seeds)} seeds is more than the "
-                f"{MAX_EPISODES:,} episodes a sweep flies; split it into several sweeps"
+                f"{len(self.scenarios)} scenarios x {len(self.seeds)} seeds{trials} is more "
+                f"than the {MAX_EPISODES:,} episodes a sweep flies; split it into several sweeps"
             )
         files = [s for s in self.scenarios if s not in SCENARIOS]
         for knob in self.settings.difficulty:
@@ -167,6 +179,11 @@ class SweepConfig:
                 raise ConfigError(
                     f"difficulty knob {knob} applies to none of {', '.join(self.scenarios)}"
                 )
+
+    @property
+    def episodes(self) -> int:
+        """Episodes in the grid: scenarios x seeds x trials."""
+        return len(self.scenarios) * len(self.seeds) * self.trials
 
     # The settings under the names a SweepConfig gave them before it held an
     # `EpisodeSettings`, read-only, for the scripts that read them.
@@ -220,6 +237,7 @@ class SweepConfig:
             "pilot": self.pilot.to_dict(),
             **self.settings.to_dict(),  # "episode", "difficulty", "sensors"
             **({"video": self.video} if self.video != "none" else {}),
+            **({"trials": self.trials} if self.trials > 1 else {}),
             "created_at": datetime.now(UTC).isoformat(timespec="seconds"),
             "cavenav_version": __version__,
             "scenario_set": SCENARIO_SET,
@@ -248,23 +266,42 @@ class SweepConfig:
             ),
             settings=EpisodeSettings.from_dict({**data, "episode": episode}),
             video=data.get("video", "none"),
+            trials=data.get("trials", 1),
         )
 
 
 @dataclass(frozen=True)
 class EpisodeJob:
-    """One cell of the grid: a cave (scenario, seed) and where its run folder goes."""
+    """One cell of the grid: a cave (scenario, seed), which of its trials (None in a sweep
+    of one trial a cave) and where its run folder goes."""
 
     scenario: str
     seed: int
+    trial: int | None = None
 
     @property
     def episode(self) -> str:
-        """The run folder's name: SCENARIO-seedNNNN (a scenario file by its stem)."""
+        """The run folder's name: SCENARIO-seedNNNN, then -trialK in a sweep of several
+        trials (a scenario file by its stem)."""
         stem = (
             Path(self.scenario).stem if self.scenario.lower().endswith(".toml") else self.scenario
         )
-        return re.sub(r"[^A-Za-z0-9_.-]+", "_", f"{stem}-seed{self.seed:04d}")
+        trial = f"-trial{self.trial}" if self.trial is not None else ""
+        return re.sub(r"[^A-Za-z0-9_.-]+", "_", f"{stem}-seed{self.seed:04d}{trial}")
+
+    @property
+    def noise_seed(self) -> int:
+        """Seeds the sensor noise: 0 for the first trial (as in a sweep of one), then one
+        more for each trial."""
+        return (self.trial or 1) - 1
+
+    @property
+    def pilot_seed(self) -> int:
+        """Seeds the random pilot: the cave's seed for the first trial, then a draw of its
+        own for each other (from the cave's seed and the trial, so it repeats)."""
+        if (self.trial or 1) == 1:
+            return self.seed
+        return int(np.random.SeedSequence([self.seed, self.trial]).generate_state(1)[0])
 
 
 def parse_seeds(text: str) -> tuple[int, ...]:
@@ -316,12 +353,18 @@ def check_grid(config: SweepConfig) -> None:
 
 
 def plan(config: SweepConfig) -> list[EpisodeJob]:
-    """Every episode of the grid, scenario by scenario.
+    """Every episode of the grid, scenario by scenario, each cave's trials together.
 
     Raises:
         ConfigError: two scenarios would share run folders (two files with one name).
     """
-    jobs = [EpisodeJob(s, seed) for s in config.scenarios for seed in config.seeds]
+    trials: list[int | None] = list(range(1, config.trials + 1)) if config.trials > 1 else [None]
+    jobs = [
+        EpisodeJob(s, seed, trial)
+        for s in config.scenarios
+        for seed in config.seeds
+        for trial in trials
+    ]
     names = [job.episode for job in jobs]
     if len(set(names)) != len(names):
         raise ConfigError("two scenarios of --scenarios share a name; rename one of the files")
@@ -434,14 +477,15 @@ class EpisodeWorker:
     def _pilot(self, job: EpisodeJob) -> Pilot:
         spec = self.config.pilot
         if spec.name == "random":  # seeded per cave, so every episode is reproducible
-            return spec.build(seed=job.seed)
+            return spec.build(seed=job.pilot_seed)
         if getattr(self._local, "pilot", None) is None:
             self._local.pilot = spec.build()
         return self._local.pilot
 
-    def episode_config(self, cave: Scenario) -> EpisodeConfig:
-        """The `EpisodeConfig` of this sweep's episode in ``cave``."""
-        return self.config.settings.episode_config(cave)
+    def episode_config(self, cave: Scenario, job: EpisodeJob | None = None) -> EpisodeConfig:
+        """The `EpisodeConfig` of this sweep's episode in ``cave`` (``job``: its trial's)."""
+        config = self.config.settings.episode_config(cave)
+        return replace(config, seed=job.noise_seed) if job else config
 
     def fly(self, job: EpisodeJob) -> dict[str, Any]:
         """Fly one episode into a fresh run folder, with its episode.mp4 where the sweep's
@@ -462,7 +506,7 @@ class EpisodeWorker:
             if run_dir.exists():
                 shutil.rmtree(run_dir)  # an interrupted or crashed attempt: start again
             cave = self._cave(job)
-            run_episode(cave, self._pilot(job), self.episode_config(cave), run_dir)
+            run_episode(cave, self._pilot(job), self.episode_config(cave, job), run_dir)
         except Exception as exc:  # noqa: BLE001 - recorded, and the sweep goes on
             fault = _folder_fault(job, exc)
             try:
@@ -472,7 +516,7 @@ class EpisodeWorker:
                     raise
             if fault is not None:  # the first cause, naming the file
                 raise fault from None
-        row = episode_row(run_dir, self.folder)
+        row = {**episode_row(run_dir, self.folder), "trial": job.trial}
         wanted = {"all": True, "failures": row["outcome"] != "success"}.get(self.config.video)
         if wanted and row.get("status") == "finished":
             _video(run_dir)
@@ -573,7 +617,7 @@ def run_sweep(
     with _only_sweep_in(folder):
         jobs = prepare(config, folder)
         if started:
-            started(len(jobs), len(config.scenarios) * len(config.seeds))  # the grid
+            started(len(jobs), config.episodes)
         try:
             executor.run(config, folder, jobs, done or (lambda row: None))
         except BaseException:
@@ -678,6 +722,7 @@ def read_rows(folder: Path, write: bool = True) -> list[dict[str, Any]]:
         if row["status"] in ("missing", "damaged"):  # no summary to say whose it is
             row.update(scenario=job.scenario, pilot=config.pilot.label)
         row["seed"] = job.seed  # a mesh file's summary has none, yet its episodes pair by it
+        row["trial"] = job.trial
         rows.append(row)
     if write:
         write_results(folder, rows, meta)
