@@ -178,7 +178,7 @@ def main() -> None:
                 f"{m['frames']:>7.1f} {m['recording']:>10.1f} {m['step']:>11.1f}"
             )
 
-        _, isolated, _, _, fresh = bench(SCENARIO, poses=8, repeats=5)
+        _, isolated, *_, fresh = bench(SCENARIO, poses=8, repeats=5)
         for frames in (True, False):
             m = medians[frames]
             in_episode = m["sense"] + m["physics"]

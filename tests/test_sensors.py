@@ -16,6 +16,7 @@ from cavenav.sensors.depth import (
     denormalise_depth,
     normalise_depth,
     read_exr,
+    save_png,
     write_exr,
 )
 from cavenav.sensors.rig import SensorConfig, SensorRig
@@ -222,3 +223,26 @@ def test_the_run_options_override_the_scenario_sensors_table() -> None:
     config = SensorConfig().for_scenario("S1", {}, {}, table, options)
     assert config.resolution == (84, 84) and config.sounder_pixels == (8, 6)
     assert SensorConfig().for_scenario("S1", {}, {}).resolution == (640, 480)
+
+
+def test_frames_are_standard_pngs_that_common_readers_open_pixel_for_pixel(
+    tmp_path: Path,
+) -> None:
+    import io
+
+    import imageio.v3 as iio
+    from PIL import Image
+
+    rng = np.random.default_rng(0)
+    colour = rng.integers(0, 256, (48, 64, 3), dtype=np.uint8)
+    depth = rng.integers(0, 256, (48, 64), dtype=np.uint8)
+    save_png(colour[:, ::-1], tmp_path / "colour.png")  # a view, as a flipped image is
+    save_png(depth, tmp_path / "depth.png")
+    in_memory = io.BytesIO()
+    save_png(colour, in_memory)
+    with Image.open(tmp_path / "colour.png") as image:
+        assert image.format == "PNG" and image.mode == "RGB"
+        assert np.array_equal(np.asarray(image), colour[:, ::-1])
+    with Image.open(tmp_path / "depth.png") as image:
+        assert image.mode == "L" and np.array_equal(np.asarray(image), depth)
+    assert np.array_equal(iio.imread(in_memory.getvalue()), colour)

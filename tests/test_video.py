@@ -177,11 +177,15 @@ def test_a_missing_or_cut_short_frame_is_a_grey_panel_with_a_warning_naming_the_
     (run_dir / "frames" / "step_0003_depth.png").unlink()
     with pytest.warns(CavenavWarning) as warned:
         video = write_video(run_dir)
-    assert [str(w.message) for w in warned] == [
-        f"{run_dir}: step 1: frames/step_0001_rgb.png cannot be read (image file is truncated); "
-        "shown as a grey panel",
-        f"{run_dir}: step 3: frames/step_0003_depth.png is missing; shown as a grey panel",
-    ]
+    cut, missing = (str(w.message) for w in warned)
+    # Pillow's own words follow, with how much it could not read where it says so
+    assert cut.startswith(
+        f"{run_dir}: step 1: frames/step_0001_rgb.png cannot be read (image file is truncated"
+    ) and cut.endswith("; shown as a grey panel")
+    assert (
+        missing
+        == f"{run_dir}: step 3: frames/step_0003_depth.png is missing; shown as a grey panel"
+    )
     _, _, frames = read_video(video)
     assert len(frames) == STEPS  # the video is still made, a frame for every step
     grey = np.array([60, 60, 60])

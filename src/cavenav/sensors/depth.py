@@ -8,16 +8,22 @@ mean time and size per frame:
 
 | file | chosen: time, size | other settings measured |
 | --- | --- | --- |
-| colour PNG | zlib level 1, run-length: 36 ms, 770 kB | level 1: 52 ms, 788 kB; 0: 21 ms, 922 kB |
+| colour PNG | fpng: 2.0 ms, 343 kB | Pillow at zlib level 1, run-length: 17.5 ms, 266 kB |
 | depth PNG | zlib level 1, run-length: 5 ms, 40 kB | level 1: 6 ms, 44 kB; 6: 14 ms, 28 kB |
 | depth EXR | no compression: 6 ms, 1237 kB | ZIP: 22 ms, 998 kB; HTJ2K: 11 ms, 402 kB |
 
-The sensor noise makes colour and metric depth hard to compress: run-length coding
-(zlib's Z_RLE, no string search) gets as small as level 6, faster. ZIP saves a fifth of an
-EXR for three times the time, on a step whose encoding already competes with the ray cast
-for two cores; HTJ2K, lossless and a third of the size, is an option (`EXR_COMPRESSIONS`,
-``--exr-compression``) rather than the default because readers built on OpenEXR before
-3.4 (OpenCV, Blender 4) cannot open it.
+Colour timings are of scenario set 4's frames (set 1's noisier ones took Pillow 36 ms,
+770 kB; level 0: 21 ms, 922 kB). QOI (imagecodecs) took 2.7 ms and 431 kB, but no
+browser shows it, and lossless WebP at its fastest 50 ms and 233 kB. So colour frames go
+through fpng (Rich Geldreich's PNG writer, a deflate coder made for images), which
+writes a standard PNG that every reader opens in a ninth of the time of zlib's fastest
+setting, for a fifth more bytes: the writer thread that saves frames shares two cores
+with the ray cast, so its time is the loop's. For the grey depth image (fpng writes
+colour only), run-length coding (zlib's Z_RLE, no string search) gets as small as level
+6, faster. ZIP saves a fifth of an EXR for three times the time, on a step whose
+encoding already competes with the ray cast for two cores; HTJ2K, lossless and a third
+of the size, is an option (`EXR_COMPRESSIONS`, ``--exr-compression``) rather than the
+default because readers built on OpenEXR before 3.4 (OpenCV, Blender 4) cannot open it.
 """
 
 from __future__ import annotations
@@ -87,8 +93,18 @@ EXR_COMPRESSIONS: dict[str, str] = {
 
 
 def save_png(image: np.ndarray, target: str | Path | IO[bytes]) -> None:
-    """Write a uint8 (H, W) or (H, W, 3) image as PNG with the settings measured above."""
-    from PIL import Image  # here: pilots read depth images through this module, not PNGs
+    """Write a uint8 (H, W) or (H, W, 3) image as PNG with the settings measured above:
+    colour through fpng, grey through Pillow (fpng writes only colour)."""
+    if image.ndim == 3 and image.shape[2] == 3:
+        import fpng  # here, as Pillow: pilots read depth images through this module
+
+        data = fpng.from_ndarray(np.ascontiguousarray(image, dtype=np.uint8))
+        if isinstance(target, str | Path):
+            Path(target).write_bytes(data)
+        else:
+            target.write(data)
+        return
+    from PIL import Image
 
     Image.fromarray(image).save(target, format="PNG", compress_level=1, compress_type=zlib.Z_RLE)
 
