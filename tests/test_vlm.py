@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import base64
+import io
 import json
 import os
 import subprocess
@@ -15,10 +17,13 @@ from PIL import Image
 
 from cavenav.actions import parse_action, to_twist
 from cavenav.episode.loop import EpisodeConfig, run_episode
-from cavenav.errors import BackendAuthError
+from cavenav.errors import BackendAuthError, ConfigError
+from cavenav.pilots import request_images
 from cavenav.pilots.backends import CachedBackend, OpenAIBackend, OpenAIConfig
+from cavenav.pilots.factory import PilotSpec, VLMOptions
 from cavenav.pilots.prompt import PromptConfig
 from cavenav.pilots.replay import ReplayPilot
+from cavenav.pilots.request_images import ImageEncoding
 from cavenav.pilots.vlm import VLMPilot
 from cavenav.types import Usage
 from cavenav.world.scenarios import load_scenario
@@ -189,6 +194,54 @@ def test_the_reply_cache_makes_a_rerun_free(server: FakeVLM, tmp_path: Path) -> 
     assert len(server.requests) == n_requests
     assert again.poses == first.poses
     assert all(s["vlm"]["cached"] for s in again.steps)
+
+
+def test_each_image_is_encoded_once_however_often_it_is_sent_or_recorded(
+    server: FakeVLM, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    encoded, encode = [], request_images._encode
+
+    def counted(image: np.ndarray, how: ImageEncoding) -> str:
+        encoded.append(image.ndim)
+        return encode(image, how)
+
+    monkeypatch.setattr(request_images, "_encode", counted)
+    config = EpisodeConfig(max_steps=4, save_frames=False, plots=False)
+    run_episode(load_scenario("S4"), pilot_for(server), config, tmp_path / "run")
+    # Four steps of colour and depth, each sent again twice as history and named in
+    # steps.jsonl, encoded once each.
+    assert encoded == [3, 2] * 4
+    steps = read_jsonl(tmp_path / "run" / "steps.jsonl")
+    assert all(set(s["model_images"]) == {"rgb", "depth_png"} for s in steps)
+
+
+def test_the_default_images_are_the_pngs_reply_caches_know_and_jpeg_and_a_size_are_settings(
+    server: FakeVLM, tmp_path: Path
+) -> None:
+    image = np.random.default_rng(0).integers(0, 256, (48, 64, 3), dtype=np.uint8)
+    png = io.BytesIO()
+    Image.fromarray(image).save(png, format="PNG", compress_level=1)  # what caches were keyed by
+    assert request_images.data_url(image) == (
+        "data:image/png;base64," + base64.b64encode(png.getvalue()).decode("ascii")
+    )
+
+    config = OpenAIConfig(model="fake-vlm", base_url=server.base_url, **QUICK)
+    smaller = ImageEncoding("jpeg", 80, (320, 240))
+    pilot = VLMPilot(OpenAIBackend(config), images=smaller)
+    episode = EpisodeConfig(max_steps=2, save_frames=False, plots=False)
+    run_episode(load_scenario("S4"), pilot, episode, tmp_path / "run")
+    urls = [p["image_url"]["url"] for p in server.requests[1]["messages"][1]["content"]
+            if p["type"] == "image_url"]  # fmt: skip
+    assert [u.split(";")[0] for u in urls] == ["data:image/jpeg", "data:image/png"] * 2
+    for url in urls:
+        with Image.open(io.BytesIO(base64.b64decode(url.split(",", 1)[1]))) as sent:
+            assert sent.size == (320, 240)
+    recorded = read_jsonl(tmp_path / "run" / "steps.jsonl")[1]["model_images"]
+    assert recorded["rgb"].endswith(".jpg") and recorded["depth_png"].endswith(".png")
+    with pytest.raises(ConfigError, match="--jpeg-quality must lie in 1-100"):
+        ImageEncoding("jpeg", 0)
+    with pytest.raises(ConfigError, match="--image-size: 'big' is not a resolution"):
+        PilotSpec("vlm", VLMOptions(model="m", image_size="big"))
 
 
 def test_structured_mode_sends_a_fixed_key_schema(server: FakeVLM) -> None:

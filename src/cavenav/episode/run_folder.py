@@ -409,16 +409,17 @@ class RunFolder:
 
     def _sent_images(self, obs: Observation) -> dict[str, str]:
         """The stored images (under images/) that are ``obs``'s colour and depth images as
-        a model pilot sends them (`cavenav.pilots.vlm.png_data_url`): the current
+        a model pilot sent them (`cavenav.pilots.request_images.sent_as`): the current
         observation among the earlier ones and the map that a request also carries, told
-        by their content rather than by the prompt's wording. Empty for a pilot that
-        sends them otherwise."""
-        from cavenav.pilots.vlm import png_data_url  # only steps with a model's requests
+        by the images themselves rather than by the prompt's wording, and not encoded
+        again. Empty for a pilot that sent them otherwise."""
+        from cavenav.pilots.request_images import sent_as  # only steps with model requests
 
         images = {"rgb": obs.rgb, "depth_png": obs.depth_png if obs.has_depth else None}
         sent = {}
         for key, image in images.items():
-            name = None if image is None else self._stored.get(png_data_url(image))
+            url = None if image is None else sent_as(image)
+            name = None if url is None else self._stored.get(url)
             if name is not None:
                 sent[key] = name
         return sent

@@ -15,6 +15,7 @@ from typing import Any
 
 from cavenav.errors import ConfigError
 from cavenav.pilots.base import Pilot
+from cavenav.pilots.request_images import ImageEncoding
 
 __all__ = ["PILOTS", "PilotSpec", "VLMOptions"]
 
@@ -48,6 +49,9 @@ class VLMOptions:
     prompt_file: str | None = None
     structured: bool = False
     map_image: bool = False  # a top-down picture of the pilot's map with each step
+    image_format: str = "png"  # how the colour image is sent: png or jpeg
+    jpeg_quality: int = 90
+    image_size: str | None = None  # "WxH": the images are resized to it before sending
     price: str | None = None  # "input,output" USD per million tokens
     cache: str | None = None  # reply cache folder
     device: str = "auto"  # transformers only
@@ -62,6 +66,18 @@ class VLMOptions:
                 f"--price must be 'input,output' in USD per million tokens, got '{self.price}'"
             ) from None
         return price_in, price_out
+
+    def request_images(self) -> ImageEncoding:
+        """How the observations' images travel (`cavenav.pilots.request_images`).
+
+        Raises:
+            ConfigError: an unknown format, a quality outside 1-100 or a size that is not
+                WIDTHxHEIGHT.
+        """
+        from cavenav.sensors.camera import parse_resolution
+
+        size = parse_resolution(self.image_size, "--image-size") if self.image_size else None
+        return ImageEncoding(self.image_format, self.jpeg_quality, size)  # type: ignore[arg-type]
 
 
 @dataclass(frozen=True)
@@ -93,7 +109,8 @@ class PilotSpec:
             raise ConfigError("--pilot replay needs --from RUN_DIR")
         if self.name == "policy" and self.policy is None:
             raise ConfigError("--pilot policy needs --policy MODEL.zip (a Stable-Baselines3 model)")
-        self.vlm.prices()  # a malformed price fails now, not in a worker
+        self.vlm.prices()  # a malformed price or image setting fails now, not in a worker
+        self.vlm.request_images()
 
     @property
     def label(self) -> str:
@@ -210,4 +227,5 @@ def _vlm_pilot(options: VLMOptions, check: bool) -> Pilot:
         detail=options.detail,
         price_per_mtok=options.prices(),
         check=check,
+        images=options.request_images(),
     )

@@ -11,15 +11,12 @@ substitutes a default action.
 
 from __future__ import annotations
 
-import base64
-import io
 import math
 from collections import deque
 from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
-from PIL import Image
 
 from cavenav.actions import format_action
 from cavenav.cave_map import CaveMap
@@ -27,6 +24,7 @@ from cavenav.errors import ActionError, BackendAuthError, BackendError, PilotFai
 from cavenav.pilots.backends import Backend, Completion, Message, request_hash
 from cavenav.pilots.prompt import STRUCTURED_SCHEMA, PromptConfig, render_repair, render_system
 from cavenav.pilots.reply import parse_reply
+from cavenav.pilots.request_images import PNG, ImageEncoding, data_url
 from cavenav.reckoning import executed_since
 from cavenav.types import Action, Decision, Observation, Usage
 
@@ -34,10 +32,9 @@ __all__ = ["EncodedObservation", "Exchange", "VLMPilot", "build_messages", "png_
 
 
 def png_data_url(image: np.ndarray) -> str:
-    """An (H, W) or (H, W, 3) uint8 image as a PNG data URL."""
-    buffer = io.BytesIO()
-    Image.fromarray(image).save(buffer, format="PNG", compress_level=1)
-    return "data:image/png;base64," + base64.b64encode(buffer.getvalue()).decode("ascii")
+    """An (H, W) or (H, W, 3) uint8 image as a PNG data URL, encoded once
+    (`cavenav.pilots.request_images.data_url`)."""
+    return data_url(image)
 
 
 @dataclass(frozen=True)
@@ -174,6 +171,7 @@ class VLMPilot:
         detail: str | None = None,
         price_per_mtok: tuple[float, float] | None = None,
         check: bool = True,
+        images: ImageEncoding = PNG,
     ):
         """
         Args:
@@ -183,12 +181,14 @@ class VLMPilot:
             detail: image detail sent with each image ("low", "high", "auto"), if any.
             price_per_mtok: (input, output) USD per million tokens, for a cost estimate.
             check: verify the backend (key, reachability) now, not at step 40.
+            images: the format and size the observations' images are sent in.
         """
         self.backend = backend
         self.prompt = prompt or PromptConfig()
         self.max_requeries = max_requeries
         self.detail = detail
         self.price_per_mtok = price_per_mtok
+        self.images = images
         self.name = f"vlm:{backend.model}"
         # Rendered once now so a broken template fails before the first step, then for
         # each new camera (depth range, field of view) the observations come from.
@@ -223,8 +223,8 @@ class VLMPilot:
 
     def decide(self, observation: Observation) -> Decision:
         current = EncodedObservation(
-            png_data_url(observation.rgb),
-            png_data_url(observation.depth_png) if observation.has_depth else None,
+            data_url(observation.rgb, self.images),
+            data_url(observation.depth_png, self.images) if observation.has_depth else None,
             observation.d_top,
             observation.d_bottom,
         )
