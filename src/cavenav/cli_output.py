@@ -119,7 +119,9 @@ def print_groups(rows: list[dict]) -> None:
 
     groups = aggregate(rows)
     pilots = sorted({g["pilot"] for g in groups})
-    table = Table(title=f"{', '.join(pilots)}: success with its 95% Wilson interval")
+    trials = any(g["caves"] not in (0, g["completed"]) for g in groups)
+    interval = "Wilson interval, trials of a cave alike" if trials else "Wilson interval"
+    table = Table(title=f"{', '.join(pilots)}: success with its 95% {interval}")
     for column in ("scenario", "done", "success", "95% CI", "collided", "other outcomes",
                    "min clear.", "path eff.", "steps"):  # fmt: skip
         table.add_column(column)
