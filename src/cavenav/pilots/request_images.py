@@ -55,12 +55,6 @@ class ImageEncoding:
         if not 1 <= self.quality <= 100:
             raise ConfigError(f"--jpeg-quality must lie in 1-100, not {self.quality}")
 
-    def describe(self) -> str:
-        """E.g. "JPEG at quality 85, 320x240" or "PNG at the camera's size"."""
-        kind = "PNG" if self.colour == "png" else f"JPEG at quality {self.quality}"
-        size = "the camera's size" if self.size is None else "x".join(map(str, self.size))
-        return f"{kind}, {size} (depth as PNG)"
-
 
 PNG = ImageEncoding()
 # The data URL each live image array was last sent as, by id: the entry goes when the
