@@ -311,7 +311,13 @@ def _by_cave(
     return caves
 
 
+Trials = Mapping[Cave, Sequence[Mapping[str, Any]]]  # a sweep's completed episodes by cave
 Counts = Sequence[tuple[int, int]]  # per cave: (episodes with the event, episodes)
+
+
+def _pooled(counts: Counts) -> float:
+    """The rate over every cave's episodes together."""
+    return sum(k for k, _ in counts) / sum(n for _, n in counts)
 
 
 def _wilson_at(rate: float, n: float, confidence: float) -> tuple[float, float]:
@@ -330,8 +336,7 @@ def _cluster_covariance(a: Counts, b: Counts) -> float | None:
     with ``a`` as ``b``, the variance of one. None for fewer than two caves."""
     if len(a) < 2:
         return None
-    rate_a = sum(k for k, _ in a) / sum(n for _, n in a)
-    rate_b = sum(k for k, _ in b) / sum(n for _, n in b)
+    rate_a, rate_b = _pooled(a), _pooled(b)
     spread = sum(
         (ka - rate_a * na) * (kb - rate_b * nb) for (ka, na), (kb, nb) in zip(a, b, strict=True)
     )
@@ -345,8 +350,7 @@ def _effective_trials(counts: Counts) -> float:
     number of caves (every trial of a cave alike) and of episodes (every trial its own).
     The number of caves where V cannot tell: one cave, or a rate of 0 or 1 (Korn and
     Graubard 1998 bound it so; taking the caves is the cautious end)."""
-    caves, episodes = len(counts), sum(n for _, n in counts)
-    rate = sum(k for k, _ in counts) / episodes
+    caves, episodes, rate = len(counts), sum(n for _, n in counts), _pooled(counts)
     variance = _cluster_covariance(counts, counts)
     if not variance or rate in (0.0, 1.0):
         return float(caves)
@@ -363,10 +367,14 @@ def clustered_wilson(counts: Counts, confidence: float = 0.95) -> tuple[float, f
         return None
     if episodes == len(counts):
         return wilson(sum(k for k, _ in counts), episodes, confidence)
-    low, high = _wilson_at(
-        sum(k for k, _ in counts) / episodes, _effective_trials(counts), confidence
-    )
+    _, (low, high) = _clustered_side(counts, confidence)
     return round(low, 4), round(high, 4)
+
+
+def _clustered_side(counts: Counts, confidence: float) -> tuple[float, tuple[float, float]]:
+    """A rate pooled over caves and its unrounded interval at the effective sample size."""
+    rate = _pooled(counts)
+    return rate, _wilson_at(rate, _effective_trials(counts), confidence)
 
 
 def _counts(trials: Iterable[Sequence[Mapping[str, Any]]], event: str) -> list[tuple[int, int]]:
@@ -375,13 +383,13 @@ def _counts(trials: Iterable[Sequence[Mapping[str, Any]]], event: str) -> list[t
 
 
 def _interval(
-    done: Sequence[Mapping[str, Any]], event: str, caves: int
+    done: Sequence[Mapping[str, Any]], event: str, caves: Trials
 ) -> tuple[float, float] | None:
-    """The 95% interval of the rate of ``event`` over ``done``, flown in ``caves`` caves:
-    Wilson's, or `clustered_wilson` where caves were flown several times."""
-    if caves in (0, len(done)):
+    """The 95% interval of the rate of ``event`` over ``done``, the same episodes by cave
+    in ``caves``: Wilson's, or `clustered_wilson` where caves were flown several times."""
+    if len(caves) in (0, len(done)):
         return wilson(sum(r["outcome"] == event for r in done), len(done))
-    return clustered_wilson(_counts(_by_cave(done).values(), event))
+    return clustered_wilson(_counts(caves.values(), event))
 
 
 def _mean(values: Iterable[Any]) -> float | None:
@@ -417,14 +425,14 @@ def group(scenario: str, pilot: str, rows: Sequence[Mapping[str, Any]]) -> dict[
     successes = sum(1 for r in done if r["outcome"] == "success")
     collisions = sum(1 for r in done if r["outcome"] == "collision")
     n = len(done)
-    caves = len(_by_cave(done))
+    caves = _by_cave(done)
     clearance_minima = [r["min_clearance_m"] for r in done if r.get("min_clearance_m") is not None]
     return {
         "scenario": scenario,
         "pilot": pilot,
         "episodes": len(rows),
         "completed": n,
-        "caves": caves,
+        "caves": len(caves),
         "successes": successes,
         "success_rate": round(successes / n, 4) if n else None,
         "success_ci95": _interval(done, "success", caves),
@@ -555,15 +563,11 @@ def clustered_difference_ci(
     caves."""
     if not a:
         return None
-    sides = []
-    for counts in (a, b):
-        rate = sum(k for k, _ in counts) / sum(n for _, n in counts)
-        sides.append((rate, _wilson_at(rate, _effective_trials(counts), confidence)))
     variance_a, variance_b = _cluster_covariance(a, a), _cluster_covariance(b, b)
     phi = 0.0
     if variance_a and variance_b:
         phi = (_cluster_covariance(a, b) or 0.0) / math.sqrt(variance_a * variance_b)
-    return _combined(sides[0], sides[1], phi)
+    return _combined(_clustered_side(a, confidence), _clustered_side(b, confidence), phi)
 
 
 def _combined(
@@ -618,9 +622,6 @@ def _signed_rank(pairs: Sequence[tuple[float, float]]) -> dict[str, Any] | None:
         "median_difference": round(float(np.median(differences)), 4),
         "p": p,
     }
-
-
-Trials = Mapping[Cave, Sequence[Mapping[str, Any]]]  # a sweep's completed episodes by cave
 
 
 def _won(row: Mapping[str, Any]) -> bool:
@@ -681,9 +682,10 @@ def _paired_rates(keys: Sequence[Cave], a: Trials, b: Trials) -> dict[str, Any]:
     )
     rates = [(ka / na, kb / nb) for (ka, na), (kb, nb) in zip(counts_a, counts_b, strict=True)]
 
-    def cave(key: Cave, rate_a: float, rate_b: float) -> dict[str, Any]:
-        """The cave, and from each side an episode that shows the difference: a success
-        of the side that did better, a failure of the other."""
+    def cave(k: int) -> dict[str, Any]:
+        """The ``k``-th cave, and from each side an episode that shows the difference: a
+        success of the side that did better, a failure of the other."""
+        key, (rate_a, rate_b) = keys[k], rates[k]
         better_a = rate_a > rate_b
         shown_a = next((r for r in a[key] if _won(r) == better_a), a[key][0])
         shown_b = next((r for r in b[key] if _won(r) != better_a), b[key][0])
@@ -691,14 +693,14 @@ def _paired_rates(keys: Sequence[Cave], a: Trials, b: Trials) -> dict[str, Any]:
             "cave": f"{key[0]} seed {key[1]}",
             "a": shown_a["run_dir"],
             "b": shown_b["run_dir"],
-            "outcome_a": f"{sum(map(_won, a[key]))}/{len(a[key])} success",
-            "outcome_b": f"{sum(map(_won, b[key]))}/{len(b[key])} success",
+            "outcome_a": "{}/{} success".format(*counts_a[k]),
+            "outcome_b": "{}/{} success".format(*counts_b[k]),
             "rate_a": round(rate_a, 4),
             "rate_b": round(rate_b, 4),
         }
 
     n = len(keys)
-    pooled = [sum(k for k, _ in c) / max(sum(m for _, m in c), 1) for c in (counts_a, counts_b)]
+    pooled = [_pooled(c) if n else 0.0 for c in (counts_a, counts_b)]
     test = _signed_rank(rates)
     return {
         "pairs": n,
@@ -712,8 +714,8 @@ def _paired_rates(keys: Sequence[Cave], a: Trials, b: Trials) -> dict[str, Any]:
         "p": test["p"] if test else 1.0,
         "mcnemar_p": None,
         "paired_tests": _measure_tests(keys, a, b),
-        "only_a": [cave(k, x, y) for k, (x, y) in zip(keys, rates, strict=True) if x > y],
-        "only_b": [cave(k, x, y) for k, (x, y) in zip(keys, rates, strict=True) if y > x],
+        "only_a": [cave(k) for k, (x, y) in enumerate(rates) if x > y],
+        "only_b": [cave(k) for k, (x, y) in enumerate(rates) if y > x],
     }
 
 
