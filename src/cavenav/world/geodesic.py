@@ -102,9 +102,12 @@ def _graph(free: np.ndarray, voxel: float):  # noqa: ANN202 - a scipy sparse mat
         offset = np.array(step) - 1
         if tuple(offset) <= (0, 0, 0):  # each pair once; the graph is symmetric
             continue
+        # The block from a voxel to its neighbour: its other corners, each shift once
+        # (a step along one axis has one, across a face's diagonal three).
+        corners = {tuple(np.array(corner) * offset) for corner in np.ndindex(2, 2, 2)}
         joined = free.copy()
-        for corner in np.ndindex(2, 2, 2):  # the block from a voxel to its neighbour
-            joined &= _shifted(free, np.array(corner) * offset)
+        for corner in corners - {(0, 0, 0)}:
+            joined &= _shifted(free, np.array(corner))
         rows.append(index[joined])
         columns.append(index[tuple(np.nonzero(joined) + offset[:, None])])
         weights.append(np.full(int(joined.sum()), voxel * float(np.linalg.norm(offset))))
@@ -196,15 +199,14 @@ def shortest_path(
     free = _free(caster, centres, shape, voxel, radius_m)
     free &= ~_past(scenario.entrances, centres)  # out the way it came in is no way out
     start = np.asarray(scenario.start.position, np.float64)
-    nearest = np.argsort(np.linalg.norm(centres - start, axis=1))[:27]
-    seeds = [int(k) for k in nearest if free[k]]
-    if not seeds:
+    reach = np.linalg.norm(centres - start, axis=1)
+    nearest = np.argpartition(reach, 26)[:27] if len(reach) > 27 else np.arange(len(reach))
+    seed = next((int(k) for k in nearest[np.argsort(reach[nearest])] if free[k]), None)
+    if seed is None:
         raise NoPath(f"{scenario.name}: no free voxel ({voxel:.2f} m) beside the start")
-    index = np.cumsum(free) - 1
     graph = _graph(free.reshape(shape), voxel)
-    distances, previous = dijkstra(
-        graph, directed=False, indices=int(index[seeds[0]]), return_predecessors=True
-    )
+    node = int(np.count_nonzero(free[:seed]))  # its number among the free voxels
+    distances, previous = dijkstra(graph, directed=False, indices=node, return_predecessors=True)
     free_centres = centres[free]
     goals = np.flatnonzero(_past(scenario.exits, free_centres) & np.isfinite(distances))
     if not len(goals):
