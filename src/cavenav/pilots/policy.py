@@ -47,6 +47,8 @@ class LoadedPolicy:
         observation_space: the ``Dict`` space it was trained on.
         low, high: its action box, float64 (4,).
         image_size: (width, height) of the images it sees.
+        limits: the depth and sounder ranges its spaces were saved with (inf for what it
+            does not see), as `Observation.arrays` takes them.
     """
 
     policy: Any
@@ -54,6 +56,7 @@ class LoadedPolicy:
     low: np.ndarray
     high: np.ndarray
     image_size: tuple[int, int]
+    limits: tuple[float, float]
 
 
 @functools.cache
@@ -90,12 +93,17 @@ def load_policy(path: Path) -> LoadedPolicy:
     policy.set_training_mode(False)
     seen = observations.spaces
     image = next(seen[k] for k in ("rgb", "depth", "depth_m") if k in seen)
+
+    def high(key: str) -> float:
+        return float(seen[key].high.max()) if key in seen else math.inf
+
     return LoadedPolicy(
         policy,
         observations,
         np.asarray(actions.low, np.float64),
         np.asarray(actions.high, np.float64),
         _image_size(image),
+        (high("depth_m"), min(high("d_top"), high("d_bottom"))),
     )
 
 
@@ -152,13 +160,8 @@ class PolicyPilot:
     def _seen(self, observation: Observation) -> dict[str, np.ndarray]:
         """The observation as the environment gives it to a learner (`Observation.arrays`,
         at the limits the policy's spaces were saved with), the policy's keys."""
-        spaces = self.loaded.observation_space.spaces
-
-        def high(key: str) -> float:
-            return float(spaces[key].high.max()) if key in spaces else math.inf
-
-        arrays = observation.arrays(high("depth_m"), min(high("d_top"), high("d_bottom")))
-        return {key: arrays[key] for key in spaces}
+        arrays = observation.arrays(*self.loaded.limits)
+        return {key: arrays[key] for key in self.loaded.observation_space.spaces}
 
     def decide(self, observation: Observation) -> Decision:
         width, height = self.loaded.image_size
