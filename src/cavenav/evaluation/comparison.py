@@ -274,11 +274,12 @@ def write(sweeps: Sequence[Compared], result: Mapping[str, Any], out: Path) -> P
         RecordingError: ``out`` cannot be written (every file whole or not at all).
     """
     out, (headers, rows) = Path(out), board(result)
+    markdown, latex = markdown_table(result), latex_table(result)
     try:
         out.mkdir(parents=True, exist_ok=True)
         write_json(out / "compare.json", result)
-        write_atomic(out / "leaderboard.md", markdown_table(result))
-        write_atomic(out / "leaderboard.tex", latex_table(result))
+        write_atomic(out / "leaderboard.md", markdown)
+        write_atomic(out / "leaderboard.tex", latex)
         reports = {
             s.label: Path(os.path.relpath(s.path / "report" / "index.html", out)).as_posix()
             for s in sweeps
@@ -294,8 +295,8 @@ def write(sweeps: Sequence[Compared], result: Mapping[str, Any], out: Path) -> P
             reports=reports,
             discordant=_discordant(sweeps, result, out),
             measures=MEASURE_NAMES,
-            markdown=markdown_table(result),
-            latex=latex_table(result),
+            markdown=markdown,
+            latex=latex,
         )
     except OSError as exc:
         raise RecordingError.cannot_write(f"the comparison in {out}", exc) from None
