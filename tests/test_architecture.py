@@ -1,6 +1,7 @@
 """Imports flow one way: types <- world <- sensors <- reckoning <- shield, cave_map <- pilots
 <- env <- episode <- evaluation <- cli; `headway` (what "stuck" means) sits below env;
-`files` (how every layer writes a file in place) is a leaf like types;
+`files` (how every layer writes a file in place) is a leaf like types, and `energy` (what
+moves cost a BlueROV2) knows only types;
 `vehicle` (the MAVLink bridge) knows only types, actions and kinematics: the environment
 takes it as a `Motion` without importing it."""
 
@@ -54,6 +55,17 @@ TOP = ("cavenav.evaluation", "cavenav.cli")  # nothing below them imports these
                 "cavenav.world",
                 "cavenav.shield",
                 "cavenav.cave_map",
+                "cavenav.pilots",
+                "cavenav.env",
+                "cavenav.episode",
+                *TOP,
+            ),
+        ),
+        (
+            "energy.py",
+            (
+                "cavenav.world",
+                "cavenav.sensors",
                 "cavenav.pilots",
                 "cavenav.env",
                 "cavenav.episode",

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import csv
+import io
 import json
 from dataclasses import fields
 from pathlib import Path
@@ -222,6 +224,25 @@ def test_eval_flies_every_episode_at_the_resolution_it_was_given(tmp_path: Path)
     recorded = json.loads((out / "sweep.json").read_text())["sensors"]
     assert recorded["resolution"] == [84, 84] and recorded["sounder_resolution"] == [4, 3]
     assert camera_of(out / "episodes") == ([84, 84], [4, 3])
+
+
+@pytest.mark.slow
+def test_a_sweep_flies_in_the_current_and_budget_it_was_given_and_tables_the_energy(
+    tmp_path: Path,
+) -> None:
+    room, out = str(write_room(tmp_path / "caves")), tmp_path / "sweep"
+    args = ["--scenarios", room, "--seeds", "0", "--steps", "2", "--frames", "none",
+            "--workers", "1", "--no-report", "--out", str(out),
+            "--resolution", "84x84"]  # fmt: skip
+    done = cavenav("eval", *args, "--discharge", "5.6", "--gusts", "0", "--battery-wh", "50")
+    assert done.returncode == 0, done.stderr
+    episode = json.loads((out / "sweep.json").read_text())["episode"]
+    assert (episode["discharge_m3s"], episode["gusts"], episode["battery_wh"]) == (5.6, 0.0, 50.0)
+    (row,) = csv.DictReader(io.StringIO((out / "results.csv").read_text()))
+    assert float(row["mean_current_m_s"]) == pytest.approx(0.1, rel=0.03)  # 5.6 m³/s in 8 x 7 m
+    assert float(row["energy_wh"]) > 0 and float(row["mean_drift_m"]) > 0
+    refused = cavenav("eval", *args, "--gusts", "2")
+    assert refused.returncode == 2 and "--gusts" in refused.stderr
 
 
 def test_every_vlm_option_is_one_flag_with_one_help_in_run_eval_and_fly() -> None:

@@ -1,4 +1,4 @@
-"""The closed loop, its six endings, and the run folder it leaves behind."""
+"""The closed loop, its seven endings, and the run folder it leaves behind."""
 
 from __future__ import annotations
 
@@ -161,6 +161,23 @@ def test_a_pilot_that_fails_for_good_ends_as_pilot_failure(room_scenario: Scenar
     result = run_episode(room_scenario, Scripted(Action(forward=0.5), fail_at=3), FAST)
     assert result.termination == "pilot_failure"
     assert result.summary["steps"] == 4 and "3 attempts" in result.summary["failure"]
+
+
+def test_spending_the_energy_budget_ends_the_episode_as_battery(
+    room_scenario: Scenario, tmp_path: Path
+) -> None:
+    config = EpisodeConfig(plots=False, save_frames=False, battery_wh=0.1)
+    result = run_episode(room_scenario, Scripted(Action(forward=0.5)), config, tmp_path / "run")
+    assert result.termination == "battery" and not result.success
+    assert result.summary["terminated"] and result.summary["steps"] == 4  # 0.0263 Wh a step
+    assert outcome(result.summary, result.steps) == "battery"
+    steps = [
+        json.loads(line) for line in (tmp_path / "run" / "steps.jsonl").read_text().splitlines()
+    ]
+    assert result.summary["energy_wh"] == pytest.approx(
+        sum(s["energy_wh"] for s in steps), abs=1e-4
+    )
+    assert result.summary["energy_wh"] >= 0.1 and result.summary["moving_s"] == 4.0
 
 
 def test_the_run_folder_holds_summary_steps_frames_and_plots(

@@ -53,6 +53,14 @@ def test_a_puff_rises_below_the_vehicle_and_drifts_aft_of_the_move() -> None:
     assert after.peak_g_m3 < puff.peak_g_m3
 
 
+def test_a_current_carries_the_cloud_downstream() -> None:
+    cloud = SiltCloud().stirred(LEVEL, FORWARD, 0.6)
+    still = cloud.stirred(LEVEL, Action(), 5.0)
+    flowing = cloud.stirred(LEVEL, Action(), 5.0, lambda at: np.array([0.1, 0.0, 0.0]))
+    (a,), (b,) = still.puffs, flowing.puffs
+    assert np.subtract(b.centre, a.centre) == pytest.approx([0.1 * silt_module.STEP_SECONDS, 0, 0])
+
+
 def test_the_cloud_keeps_its_silt_when_its_oldest_puffs_merge() -> None:
     cloud = SiltCloud()
     for k in range(MAX_PUFFS + 6):

@@ -277,6 +277,24 @@ def test_map_image_sends_the_pilots_own_map_and_explains_it(server: FakeVLM) -> 
     assert sum(p["type"] == "image_url" for p in plain["messages"][1]["content"]) == 2
 
 
+def test_energy_aware_prompting_tells_the_model_what_its_battery_has_left(
+    server: FakeVLM,
+) -> None:
+    config = OpenAIConfig(model="fake-vlm", base_url=server.base_url, **QUICK)
+    pilot = VLMPilot(OpenAIBackend(config), PromptConfig(energy=True, history=0))
+    flown = EpisodeConfig(max_steps=3, save_frames=False, plots=False, battery_wh=2.0)
+    result = run_episode(load_scenario("S4"), pilot, flown)
+    assert "# Your battery" in server.requests[0]["messages"][0]["content"]
+    told = [
+        [text for part in request["messages"][1]["content"]
+         if (text := part.get("text", "")).startswith("Battery: ")]
+        for request in server.requests[-3:]
+    ]  # fmt: skip
+    assert told[0] == ["Battery: 2.00 Wh left."]
+    spent = result.steps[0]["energy_wh"] + result.steps[1]["energy_wh"]
+    assert told[2] == [f"Battery: {2.0 - spent:.2f} Wh left."]
+
+
 @pytest.mark.slow
 def test_cli_runs_the_vlm_pilot_and_replays_it(server: FakeVLM, tmp_path: Path) -> None:
     base = [

@@ -33,7 +33,15 @@ from rich.markup import escape
 from rich.table import Table
 
 from cavenav.cli_flights import fly_episode, fly_sweep, fly_vehicle
-from cavenav.cli_options import SETTINGS, VLM, ExrCompression, finite, takes
+from cavenav.cli_options import (
+    LIVE_VIEW,
+    SETTINGS,
+    VLM,
+    ExrCompression,
+    LiveView,
+    finite,
+    takes,
+)
 from cavenav.cli_output import (
     console,
     errors,
@@ -68,11 +76,15 @@ PolicyOpt = Annotated[
 ]
 # Placeholder defaults: `takes` puts each group's flags in their place and passes the
 # value built from them (`cavenav.cli_options`), so a command never sees these.
-FILLED_BY_TAKES, VLM_FILLED_BY_TAKES = EpisodeSettings(), VLMOptions()
+FILLED_BY_TAKES, VLM_FILLED_BY_TAKES, VIEW_FILLED_BY_TAKES = (
+    EpisodeSettings(),
+    VLMOptions(),
+    LiveView(),
+)
 
 
 @app.command()
-@takes(settings=SETTINGS, vlm=VLM)
+@takes(settings=SETTINGS, vlm=VLM, view=LIVE_VIEW)
 def run(
     scenario: ScenarioArg,
     pilot: PilotOpt = "geometric",
@@ -95,6 +107,7 @@ def run(
     policy: PolicyOpt = None,
     settings: EpisodeSettings = FILLED_BY_TAKES,
     vlm: VLMOptions = VLM_FILLED_BY_TAKES,
+    view: LiveView = VIEW_FILLED_BY_TAKES,
 ) -> None:
     """Fly one episode and write its run folder (summary, steps, frames, plots)."""
     from cavenav.episode.run_folder import new_run_dir, prepare_root
@@ -110,15 +123,21 @@ def run(
         shield=shield,
     )
     prepare_root(out)  # a folder that cannot be written is refused before the cave is built
-    with console.status(f"building {scenario} (seed {seed})"):
-        cave = settings.load(scenario, seed)
+    cave = _built(settings, scenario, seed)
     config = settings.episode_config(cave)
     console.print(
         f"[bold]{cave.name}[/]: {cave.description or cave.mesh.name} "
         f"({cave.mesh.triangle_count:,} triangles)"
     )
     run_dir = new_run_dir(out, cave.name, pilot, cave.seed)
-    fly_episode(cave, flyer, config, run_dir)
+    fly_episode(cave, flyer, config, run_dir, view=view)
+
+
+def _built(settings: EpisodeSettings, scenario: str, seed: int) -> Any:  # noqa: ANN401
+    """The cave ``scenario`` of ``seed``, built under a status line (a large mesh takes a
+    while)."""
+    with console.status(f"building {scenario} (seed {seed})"):
+        return settings.load(scenario, seed)
 
 
 def _pilot_spec(pilot: str, vlm: VLMOptions, from_: Path | None, policy: Path | None) -> PilotSpec:
@@ -189,7 +208,7 @@ def render(
 
 
 @app.command()
-@takes(vlm=VLM.without("history", "map_image", "price", "cache"))
+@takes(vlm=VLM.without("history", "map_image", "energy_prompt", "price", "cache"))
 def ask(
     image: Annotated[Path, typer.Argument(help="a colour photograph (PNG or JPEG)")],
     depth: Annotated[Path | None, typer.Option(help="a depth PNG (dark near, bright far)")] = None,
@@ -396,6 +415,44 @@ def _model_prices(given: list[str]) -> dict[str, tuple[float, float]]:
 
 
 @app.command()
+def view(
+    run_folder: Annotated[Path, typer.Argument(help="a run folder (cavenav run, eval or fly)")],
+    save: Annotated[
+        Path | None, typer.Option(help="write the recording to this .rrd file, open no viewer")
+    ] = None,
+    scenario: Annotated[
+        str | None,
+        typer.Option(help="the cave flown, for a scenario file (a family's is rebuilt)"),
+    ] = None,
+) -> None:
+    """Show a recorded episode in Rerun: the cave, the path, the frames kept, the sounders
+    and every decision, on a step timeline (pip install -e '.[rerun]')."""
+    from cavenav.episode.records import read_steps, read_summary
+    from cavenav.episode.rerun_log import log_run_folder, open_recording
+
+    summary = read_summary(run_folder / "summary.json")
+    steps = read_steps(run_folder / "steps.jsonl")
+    cave = _recorded_cave(summary, scenario)
+    recording = open_recording(run_folder.name, live=save is None, save=save)
+    log_run_folder(recording, run_folder, summary, steps, cave)
+    if save is not None:
+        console.print(f"rerun: [bold]{save}[/]", soft_wrap=True)
+
+
+def _recorded_cave(summary: dict[str, Any], scenario: str | None) -> Any:  # noqa: ANN401
+    """The cave a run folder's episode flew: ``scenario`` where given, else the family's
+    cave of its seed and difficulty; None for a scenario file not given (said so)."""
+    from cavenav.world.scenarios import SCENARIOS
+
+    name = scenario or summary.get("scenario")
+    if scenario is None and name not in SCENARIOS:
+        errors.print(f"no cave shown: give the scenario file it flew with --scenario ({name})")
+        return None
+    settings = EpisodeSettings(difficulty=summary.get("difficulty") or {})
+    return settings.load(str(name), int(summary.get("seed") or 0))
+
+
+@app.command()
 def report(
     folder: Annotated[Path, typer.Argument(help="a sweep folder or a run folder")],
     price: Annotated[
@@ -448,7 +505,7 @@ commands of an action with --dry-run --action TEXT."""
 
 
 @app.command()
-@takes(settings=SETTINGS, vlm=VLM)
+@takes(settings=SETTINGS, vlm=VLM, view=LIVE_VIEW)
 def fly(
     connect: Annotated[
         str | None,
@@ -487,6 +544,7 @@ def fly(
     policy: PolicyOpt = None,
     settings: EpisodeSettings = FILLED_BY_TAKES,
     vlm: VLMOptions = VLM_FILLED_BY_TAKES,
+    view: LiveView = VIEW_FILLED_BY_TAKES,
 ) -> None:
     """Fly a pilot on an ArduSub vehicle over MAVLink (BlueROV2); with --sim, in a cave."""
     from cavenav.vehicle.mavlink import load_bridge_config
@@ -502,13 +560,23 @@ def fly(
 
     spec = _pilot_spec(pilot, vlm, from_, policy)
     flyer = spec.build(seed=seed)
-    settings = replace(_camera_for(spec, settings), save_frames=frames, shield=shield)
+    settings = _on_a_vehicle(replace(settings, save_frames=frames, shield=shield), spec)
     prepare_root(out)
-    with console.status(f"building {sim} (seed {seed})"):
-        cave = settings.load(sim, seed)
-    episode = settings.episode_config(cave)
+    cave = _built(settings, sim, seed)
     run_dir = new_run_dir(out, cave.name, pilot, cave.seed)
-    fly_vehicle(bridge, cave, flyer, episode, run_dir, confirm=None if yes else typer.confirm)
+    confirm = None if yes else typer.confirm
+    fly_vehicle(bridge, cave, flyer, settings.episode_config(cave), run_dir, confirm, view)
+
+
+def _on_a_vehicle(settings: EpisodeSettings, spec: PilotSpec) -> EpisodeSettings:
+    """``settings`` for ``spec``'s pilot on a vehicle over MAVLink (`_camera_for`); the
+    vehicle meets its own water, so a simulated current is refused before connecting."""
+    if not settings.current.still:
+        raise CavenavError(
+            "--discharge: a vehicle over MAVLink meets its own water; "
+            "simulate one with `cavenav fake-sub --current`"
+        )
+    return _camera_for(spec, settings)
 
 
 def _print_dry_run(bridge: Any, actions: list[str]) -> None:  # noqa: ANN401

@@ -21,6 +21,7 @@ from rich.progress import (
     TimeRemainingColumn,
 )
 
+from cavenav.cli_options import LiveView
 from cavenav.cli_output import console, errors, print_summary
 from cavenav.errors import CavenavError
 
@@ -33,11 +34,18 @@ def fly_episode(
     config: Any,  # noqa: ANN401
     run_dir: Path,
     motion: Any = None,  # noqa: ANN401
+    view: LiveView | None = None,
 ) -> None:
-    """Fly the episode with a progress bar, print its summary, and exit as the README says."""
+    """Fly the episode with a progress bar, print its summary, and exit as the README says;
+    ``view`` shows it as it flies."""
     from cavenav.episode.loop import run_episode, step_budget
     from cavenav.episode.records import EpisodeSummary
 
+    try:
+        watchers = _watchers(view, config, run_dir)
+    except CavenavError:
+        _remove_if_empty(run_dir)  # refused before anything was flown
+        raise
     with Progress(*_bar(), console=console) as progress:
         # Before the first step: the kernels load (the first run on a machine compiles
         # them, about a minute), the lighting tables are built and the start is checked.
@@ -52,7 +60,7 @@ def fly_episode(
             progress.update(task, advance=1, description=f"flying {cave.name}", status=status[:60])
 
         try:
-            result = run_episode(cave, flyer, config, run_dir, on_step, motion)
+            result = run_episode(cave, flyer, config, run_dir, on_step, motion, watchers)
         except KeyboardInterrupt:
             progress.stop()
             errors.print(_interrupted(run_dir), soft_wrap=True)
@@ -69,8 +77,21 @@ def fly_episode(
     console.print(f"run folder: [bold]{run_dir}[/]", soft_wrap=True)
     for name in summary.plots.values():
         console.print(f"plot:       {run_dir / name}", soft_wrap=True)
+    if view and view.rerun_save:
+        console.print(f"rerun:      {view.rerun_save}", soft_wrap=True)
     if summary.termination == "pilot_failure":
         raise typer.Exit(1)
+
+
+def _watchers(view: LiveView | None, config: Any, run_dir: Path) -> list[Any]:  # noqa: ANN401
+    """The live view ``view`` asks for, as the episode loop's watchers."""
+    if view is None or not view.wanted:
+        return []
+    from cavenav.episode.rerun_log import RerunWatcher, open_recording
+
+    save = Path(view.rerun_save) if view.rerun_save else None
+    recording = open_recording(run_dir.name, live=view.rerun, save=save)
+    return [RerunWatcher(recording, config.sensors.camera)]
 
 
 def _bar() -> tuple[ProgressColumn, ...]:
@@ -175,6 +196,7 @@ def fly_vehicle(
     episode: Any,  # noqa: ANN401
     run_dir: Path,
     confirm: Any,  # noqa: ANN401
+    view: LiveView | None = None,
 ) -> None:
     """Fly the episode through the MAVLink bridge; a failed connection leaves no folder."""
     from cavenav.vehicle.mavlink import ArduSubMotion
@@ -189,7 +211,7 @@ def fly_vehicle(
             soft_wrap=True,
             highlight=False,
         )
-        fly_episode(cave, flyer, episode, run_dir, motion)
+        fly_episode(cave, flyer, episode, run_dir, motion, view)
     except CavenavError:
         motion.close()  # closes the command log
         if not (run_dir / "summary.json").exists():  # failed to connect: nothing was flown,

@@ -26,11 +26,13 @@ from cavenav.sensors.depth import EXR_COMPRESSIONS
 from cavenav.sensors.optics import WATER_TYPES
 
 __all__ = [
+    "LIVE_VIEW",
     "SETTINGS",
     "VLM",
     "Backend",
     "ExrCompression",
     "Flag",
+    "LiveView",
     "OptionGroup",
     "Sounder",
     "WaterType",
@@ -228,6 +230,13 @@ VLM = OptionGroup(
             "every step: the memory ablation",
             "--map-image",
         ),
+        _vlm(
+            "energy_prompt",
+            bool,
+            "tell the model what its battery has left with every step, and what moves cost: "
+            "energy-aware prompting (pair with --battery-wh)",
+            "--energy-prompt",
+        ),
         _vlm("image_format", str, "how the colour image is sent: png or jpeg (depth: png)"),
         _vlm("jpeg_quality", int, "quality of a jpeg colour image", min=1, max=100),
         _vlm("image_size", str, "WIDTHxHEIGHT the images are resized to before sending"),
@@ -239,6 +248,17 @@ VLM = OptionGroup(
 )
 
 _SETTINGS = EpisodeSettings()
+
+
+def _sizes(**given: str | None) -> dict[str, tuple[int, int]]:
+    """The pixel counts given, parsed, each by its flag's name."""
+    from cavenav.sensors.camera import parse_resolution
+
+    return {
+        key: parse_resolution(text, f"--{key.replace('_', '-')}")
+        for key, text in given.items()
+        if text is not None
+    }
 
 
 def episode_settings(
@@ -262,6 +282,9 @@ def episode_settings(
     resolution: str | None = None,
     sounder_resolution: str | None = None,
     difficulty: list[str] | None = None,
+    discharge: float = _SETTINGS.discharge_m3s,
+    gusts: float = _SETTINGS.gusts,
+    battery_wh: float | None = _SETTINGS.battery_wh,
 ) -> EpisodeSettings:
     """`EpisodeSettings` from the episode, sensor and optics flags, one keyword each (so a
     flag renamed in `SETTINGS` alone fails when a command is declared); frames and
@@ -270,7 +293,6 @@ def episode_settings(
     Raises:
         ConfigError: a bad pixel count or difficulty knob, refused before any work.
     """
-    from cavenav.sensors.camera import parse_resolution
     from cavenav.world.scenarios import parse_difficulty
 
     optics = {  # the keys of `cavenav.sensors.optics.optics_from_table`
@@ -287,19 +309,17 @@ def episode_settings(
         "depth_dropout": depth_dropout,
         "depth_noise_m": depth_noise,
     }
-    sizes = {"resolution": resolution, "sounder_resolution": sounder_resolution}
     return EpisodeSettings(
         steps=steps,
         stuck_after=stuck_after or None,  # the flag's 0 is "never"
         sounder=sounder,
         depth_max_m=depth_max,
         optics={key: value for key, value in optics.items() if value is not None},
-        **{
-            key: parse_resolution(text, f"--{key.replace('_', '-')}")
-            for key, text in sizes.items()
-            if text is not None
-        },
+        **_sizes(resolution=resolution, sounder_resolution=sounder_resolution),
         difficulty=parse_difficulty(difficulty or []).to_dict(),
+        discharge_m3s=discharge,
+        gusts=gusts,
+        battery_wh=battery_wh,
     )
 
 
@@ -430,6 +450,68 @@ SETTINGS = OptionGroup(
             "a difficulty knob of the cave family, KEY=VALUE (repeat for more), "
             "e.g. constriction_m=2.5; see the README's cave families",
         ),
+        _flag(
+            "discharge",
+            float,
+            _SETTINGS.discharge_m3s,
+            "water flowing through the cave, m³/s: positive from the exit toward the start "
+            "(a spring's outflow, against the vehicle), negative toward the exit; it runs "
+            "faster where the passage narrows and carries the vehicle; 0: still water",
+            metavar="M3S",
+            callback=finite,
+        ),
+        _flag(
+            "gusts",
+            float,
+            _SETTINGS.gusts,
+            "the current's slow turbulent gusts, as a fraction of its speed",
+            min=0,
+            max=1,
+            metavar="FRACTION",
+        ),
+        _flag(
+            "battery_wh",
+            float,
+            _SETTINGS.battery_wh,
+            "an energy budget in Wh: the episode ends as 'battery' once the moves have "
+            "spent it (a BlueROV2's full pack holds 266 Wh); default: no budget",
+            min=0.001,
+            callback=finite,
+        ),
     ),
     episode_settings,
+)
+
+
+@dataclass(frozen=True)
+class LiveView:
+    """Where an episode is shown as it flies, in Rerun (`cavenav.episode.rerun_log`).
+
+    Attributes:
+        rerun: spawn a live Rerun viewer.
+        rerun_save: write the recording to this .rrd file.
+    """
+
+    rerun: bool = False
+    rerun_save: str | None = None
+
+    @property
+    def wanted(self) -> bool:
+        return self.rerun or self.rerun_save is not None
+
+
+# `run` and `fly`: a live 3D view of the episode.
+LIVE_VIEW = OptionGroup(
+    (
+        _flag(
+            "rerun",
+            bool,
+            False,
+            "show the episode live in a Rerun viewer: cave, path, camera, depth, sounders, "
+            "map and each decision (pip install -e '.[rerun]')",
+            "--rerun",
+        ),
+        _flag("rerun_save", Path, None, "write the Rerun recording to this .rrd file"),
+    ),
+    LiveView,
 )

@@ -102,12 +102,16 @@ def _summary_rows(s: EpisodeSummary) -> list[tuple[str, Any]]:
             ("transport retries", usage.transport_retries),
             ("cost", "-" if usage.cost_usd is None else f"${usage.cost_usd:.4f}"),
         ]
-    if s.mean_drift_m is not None:  # flown on a vehicle (cavenav fly)
-        rows += [
-            ("drift from command", f"{s.mean_drift_m:.3f} m mean, "
-             f"{s.max_drift_m:.3f} m max, {s.max_drift_deg:.1f} deg max"),
-            ("action on the vehicle", f"{s.mean_physics_ms / 1e3:.2f} s mean"),
-        ]  # fmt: skip
+    if s.energy_wh is not None:
+        rows.append(("energy", f"{s.energy_wh:.2f} Wh over {s.moving_s:.0f} s of moves"))
+    if s.mean_current_m_s is not None:
+        rows.append(("current met", f"{s.mean_current_m_s:.2f} m/s mean, "
+                     f"{s.max_current_m_s:.2f} m/s max"))  # fmt: skip
+    if s.mean_drift_m is not None:  # flown on a vehicle (cavenav fly) or in a current
+        rows.append(("drift from command", f"{s.mean_drift_m:.3f} m mean, "
+                     f"{s.max_drift_m:.3f} m max, {s.max_drift_deg:.1f} deg max"))  # fmt: skip
+    if s.mean_drift_m is not None and s.mean_current_m_s is None:  # a vehicle
+        rows.append(("action on the vehicle", f"{s.mean_physics_ms / 1e3:.2f} s mean"))
     if s.failure:
         rows.append(("failure", s.failure))
     return rows

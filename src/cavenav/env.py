@@ -35,12 +35,15 @@ from cavenav.actions import (
     parse_action,
     snap_action,
 )
+from cavenav.energy import BATTERY_WH, PowerModel, lamp_watts
 from cavenav.errors import ActionError, ConfigError
 from cavenav.kinematics import Drift, Kinematic, Motion
 from cavenav.sensors.camera import pixel_size
 from cavenav.sensors.rig import SensorConfig, SensorRig
-from cavenav.types import DEFAULT_RULES, Action, Observation, Pose, Rules, VehicleBody
+from cavenav.types import DEFAULT_RULES, Action, Cruise, Observation, Pose, Rules, VehicleBody
 from cavenav.world.collision import clearance, swept_collision
+from cavenav.world.current import Current, CurrentField, carry
+from cavenav.world.geodesic import NoPath, shortest_path_of
 from cavenav.world.raycast import RayCaster
 from cavenav.world.scenarios import SCENARIOS, Scenario, load_scenario, validate_start
 from cavenav.world.silt import SiltCloud
@@ -91,6 +94,50 @@ def _drift(motion: Motion, pose: Pose, action: Action, reached: Pose) -> Drift |
     if hasattr(motion, "drift"):
         return motion.drift(pose, action, reached)
     return Drift.of(pose, action, reached)
+
+
+def _water(motion: Motion | None, current: Current | None) -> Current:
+    """The current the simulated vehicle flies in; refused with a vehicle's own motion."""
+    current = current or Current()
+    if motion is not None and not current.still:
+        raise ConfigError(
+            "a current is simulated water for the simulated vehicle; a vehicle over "
+            "MAVLink meets its own (the fake one has its own current)"
+        )
+    return current
+
+
+def _check_modes(render_mode: str | None, action_format: str) -> None:
+    if render_mode not in (None, "rgb_array"):
+        raise ConfigError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
+    if action_format not in ("text", "vector"):
+        raise ConfigError(f"action_format must be 'text' or 'vector', got {action_format!r}")
+
+
+def _sized(sensors: SensorConfig, resolution: tuple[int, int] | None) -> SensorConfig:
+    """``sensors`` with the forward camera at ``resolution`` where given."""
+    if resolution is None:
+        return sensors
+    return sensors.with_resolution(*pixel_size(resolution, "resolution"))
+
+
+def _penalty(collision_penalty: float | None) -> dict[str, float]:
+    """`Reward`'s collision term as the keyword before `Reward` sets it."""
+    return {} if collision_penalty is None else {"collision": collision_penalty}
+
+
+def _budget(battery_wh: float | None) -> float | None:
+    if battery_wh is not None and not (math.isfinite(battery_wh) and battery_wh > 0):
+        raise ConfigError(f"battery {battery_wh} Wh: give a finite energy above 0")
+    return battery_wh
+
+
+def _power(sensors: SensorConfig, body: VehicleBody) -> PowerModel:
+    """What the vehicle draws, with the lamps ``sensors`` light the cave with."""
+    optics = sensors.optics
+    lamps_on = optics.light_power is None or optics.light_power > 0
+    lamps_w = lamp_watts(optics.lamp_count, optics.lamp_lumens) if lamps_on else 0.0
+    return PowerModel(lamps_w=lamps_w, body=body)
 
 
 def _observation_space(sensors: SensorConfig) -> spaces.Dict:
@@ -209,7 +256,8 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
     Episode: ``terminated`` when the vehicle passes an exit portal, leaves through the
     cave's entrance (a mesh scenario's ``[entrance]``: a failure, never success) or
     touches a surface (the whole swept move is checked; after a collision the vehicle
-    stays at its last safe pose); ``truncated`` only through wrappers: Gymnasium's
+    stays at its last safe pose), or when the moves have spent an energy budget
+    (``battery_wh``; "battery"); ``truncated`` only through wrappers: Gymnasium's
     ``TimeLimit`` (150 steps when made with ``gymnasium.make``, whatever the scenario's
     own ``step_budget``: pass ``max_episode_steps`` for the longer families) and
     `cavenav.wrappers.StuckLimit` where you add it.
@@ -227,13 +275,25 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
     ``action`` (the action executed, canonical), ``invalid_action`` (the reason, or
     None), ``progress_m`` (made good since the start), ``collision_pose``,
     ``scenario``/``cave_seed``, ``termination`` ("exit", "collision",
-    "exited_entrance" or None while the episode goes on) and, after a step,
-    ``reward_terms`` (`Reward`'s terms, which sum to the reward). For drivers, typed:
+    "exited_entrance", "battery" or None while the episode goes on), ``energy_used_wh``
+    and ``energy_left_wh`` (`cavenav.energy`), ``clock_s`` (the time the moves took
+    through the water), ``current_m_s`` (the water's speed at the vehicle; None in still
+    water) and, after a step, ``reward_terms`` (`Reward`'s terms, which sum to the
+    reward), ``step_energy_wh`` and ``move_s``. For drivers, typed:
     ``observation`` (the `Observation` a pilot receives; its ``previous_action`` is the
     action executed), ``vehicle_pose`` (the `Pose`, unrounded) and ``timings``
     (`Timings`, equal whatever they hold, so that ``info`` stays deterministic). A
-    `Motion` that drifts from its commands (a vehicle) adds ``commanded_pose``,
-    ``drift_m`` and ``drift_deg`` (`cavenav.kinematics.Drift`).
+    `Motion` that drifts from its commands (a vehicle), or a current, adds
+    ``commanded_pose``, ``drift_m`` and ``drift_deg`` (`cavenav.kinematics.Drift`).
+
+    Water and battery: with a ``current`` (`cavenav.world.current.Current`) the water
+    flows through the cave and carries the vehicle for each move's duration at its cruise
+    speed (``cruise``, `cavenav.types.Cruise`); ``info`` then gains the drift. None or a
+    discharge of 0 keep SPEC section 5's kinematics; a vehicle (``motion``) meets its own
+    water, so the two do not go together. Every move's energy is counted
+    (`cavenav.energy`, with the lamps of ``sensors``): against ``battery_wh`` where
+    given, and the episode ends as "battery" once that is spent; otherwise against a
+    full pack, which never ends an episode.
 
     Reset options (for that reset only): ``scenario`` (a family name, a scenario file's path,
     or a `Scenario`), ``cave_seed`` (which cave of a procedural family). Seeds are drawn
@@ -242,6 +302,7 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 4}
+    _field: CurrentField | None  # the episode's flowing water; None: still
 
     def __init__(
         self,
@@ -258,6 +319,8 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
         reward: Reward | None = None,
         render_mode: str | None = None,
         motion: Motion | None = None,
+        current: Current | None = None,
+        battery_wh: float | None = None,
     ):
         """
         Args:
@@ -281,19 +344,16 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
                 default), or a vehicle (`cavenav.vehicle.mavlink.ArduSubMotion`), whose
                 reported pose is then sensed and checked; ``info`` gains the move's
                 drift from the pose the kinematics command (`Motion.drift`).
+            current, battery_wh: the water's flow and an energy budget (class docstring).
         """
-        if render_mode not in (None, "rgb_array"):
-            raise ConfigError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
-        if action_format not in ("text", "vector"):
-            raise ConfigError(f"action_format must be 'text' or 'vector', got {action_format!r}")
+        _check_modes(render_mode, action_format)
         self.render_mode, self.body = render_mode, body or VehicleBody()
-        self.sensors = sensors or SensorConfig()
-        if resolution is not None:
-            self.sensors = self.sensors.with_resolution(*pixel_size(resolution, "resolution"))
+        self.sensors = _sized(sensors or SensorConfig(), resolution)
         self.rules, self.space, self.action_format = rules, space, action_format
-        penalty = {} if collision_penalty is None else {"collision": collision_penalty}
-        self.reward = replace(reward or Reward(), **penalty)
+        self.reward = replace(reward or Reward(), **_penalty(collision_penalty))
         self.motion: Motion = motion or Kinematic()
+        self.current, self.battery_wh = _water(motion, current), _budget(battery_wh)
+        self.cruise, self.power = Cruise(), _power(self.sensors, self.body)
         self._default_scenario, self._default_cave_seed = scenario, cave_seed
         self._world: _World | None = None
         self.observation_space = _observation_space(self.sensors)
@@ -302,7 +362,8 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
         self.observation: Observation | None = None
         self._timings, self._clearance, self._progress = Timings(0.0), math.inf, 0.0
         self._steps = self._noise_seed = 0
-        self._ended = self._left_by_entrance = False
+        self._ended = self._left_by_entrance = self._flat = False
+        self._field, self._clock_s, self._energy_wh = None, 0.0, 0.0  # water, time, energy
 
     # ------------------------------------------------------------------ the cave
     @property
@@ -369,10 +430,13 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
         self._clearance = clearance(self.caster, self.pose)
         self._progress = self.scenario.progress(self.pose.position)
         self._steps = 0
-        self._ended = self._left_by_entrance = False
+        self._ended = self._left_by_entrance = self._flat = False
         self._silt = SiltCloud() if self._silts_out() else None
+        self._field = self._current_field()
+        self._clock_s = self._energy_wh = 0.0
         started = time.perf_counter()
-        self.observation = self._world.rig.observe(self.pose, 0, self._noise_seed)
+        observation = self._world.rig.observe(self.pose, 0, self._noise_seed)
+        self.observation = replace(observation, energy_left_wh=self._energy_left_wh)
         self._timings = Timings(sense_ms=1e3 * (time.perf_counter() - started))
         return self._observation_dict(), self._info(Action(), None, None)
 
@@ -388,7 +452,12 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
         started = time.perf_counter()
         command, invalid = self.command(action)
         start = self.pose
-        moved = self.motion.move(start, command)
+        passage = carry(self._field, start, command, self._clock_s, self.cruise)
+        flowing = self._field is not None
+        moved = passage.reached if flowing else self.motion.move(start, command)
+        self._clock_s += passage.seconds
+        step_wh = self.power.energy_wh(passage.dt, passage.through_water)
+        self._energy_wh += step_wh
         hit = swept_collision(self.caster, self.body, start, moved, self._clearance)
         collision_pose = moved if hit else None
         if not hit:
@@ -402,19 +471,29 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
         terms = self._reward_terms(progress - self._progress, hit, exited)
         self._progress = progress
         self._steps += 1
-        self._ended = hit or exited or self._left_by_entrance
+        self._flat = not (hit or exited or self._left_by_entrance) and self._battery_spent
+        self._ended = hit or exited or self._left_by_entrance or self._flat
         if self._silt is not None:
             floor = float(self.caster.first_hit(self.pose.position, np.array([0.0, 0.0, -1.0])))
-            self._silt = self._silt.stirred(self.pose, command, floor)
+            field, now = self._field, self._clock_s
+            water = None if field is None else (lambda at: field.velocity(at, now))
+            self._silt = self._silt.stirred(self.pose, command, floor, water)
         sensed = time.perf_counter()
         observation = self._world.rig.observe(self.pose, self._steps, self._noise_seed, self._silt)
-        self.observation = replace(observation, previous_action=command)
+        self.observation = replace(
+            observation, previous_action=command, energy_left_wh=self._energy_left_wh
+        )
         self._timings = Timings(
             physics_ms=1e3 * (sensed - started), sense_ms=1e3 * (time.perf_counter() - sensed)
         )
         info = self._info(command, invalid, collision_pose)
         info["reward_terms"] = terms
-        drift = _drift(self.motion, start, command, moved)
+        info.update(step_energy_wh=step_wh, move_s=passage.seconds)
+        drift = (
+            Drift.of(start, command, moved)
+            if flowing
+            else _drift(self.motion, start, command, moved)
+        )
         if drift is not None:
             info.update(drift.to_info())
         return self._observation_dict(), float(sum(terms.values())), self._ended, False, info
@@ -426,6 +505,33 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
         return self.observation.rgb.copy()
 
     # ------------------------------------------------------------------ helpers
+    @property
+    def _energy_left_wh(self) -> float:
+        """What the battery has left: of the budget, else of a full pack."""
+        return (self.battery_wh or BATTERY_WH) - self._energy_wh
+
+    @property
+    def _battery_spent(self) -> bool:
+        return self.battery_wh is not None and self._energy_wh >= self.battery_wh
+
+    def _current_field(self) -> CurrentField | None:
+        """The water of this episode: measured on the cave, gusts drawn from the
+        episode's seed; None in still water.
+
+        Raises:
+            ConfigError: a flowing current in a cave with no centre line and no path
+                from the start to an exit to take for one.
+        """
+        if self.current.still:
+            return None
+        line = self.scenario.centreline
+        if line is None:
+            try:
+                line = shortest_path_of(self.scenario).points
+            except NoPath as exc:
+                raise ConfigError(f"a current needs the passage's course: {exc}") from None
+        return CurrentField.measure(self.caster, line, self.current, self._noise_seed)
+
     def _silts_out(self) -> bool:
         """Whether thrust near the floor raises silt: the optics' setting, else the cave's
         own choice (the crawl's silt floor silts out)."""
@@ -462,8 +568,13 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
     ) -> dict[str, Any]:
         assert self.pose is not None and self._world is not None
         collided, entrance = collision_pose is not None, self._left_by_entrance
-        exited = self._ended and not collided and not entrance
-        ending = {"collision": collided, "exit": exited, "exited_entrance": entrance}
+        exited = self._ended and not collided and not entrance and not self._flat
+        ending = {
+            "collision": collided,
+            "exit": exited,
+            "exited_entrance": entrance,
+            "battery": self._flat,
+        }
         return {
             "pose": self.pose.to_dict(),
             "clearance_m": float(self._clearance),
@@ -481,7 +592,17 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
             "vehicle_pose": self.pose,
             "timings": self._timings,
             "silt_g": None if self._silt is None else round(self._silt.mass_g, 1),
+            "energy_used_wh": self._energy_wh,
+            "energy_left_wh": self._energy_left_wh,
+            "clock_s": self._clock_s,
+            "current_m_s": self._water_speed(),
         }
+
+    def _water_speed(self) -> float | None:
+        """The water's speed where the vehicle is now, m/s; None in still water."""
+        if self._field is None or self.pose is None:
+            return None
+        return float(np.linalg.norm(self._field.velocity(self.pose.position, self._clock_s)))
 
 
 def learner_env(

@@ -22,6 +22,7 @@ import numpy as np
 __all__ = [
     "DEFAULT_RULES",
     "Action",
+    "Cruise",
     "Decision",
     "Observation",
     "Pose",
@@ -74,6 +75,11 @@ class Pose:
             "yaw_deg": round(self.yaw_deg, 3),
         }
 
+    @classmethod
+    def from_dict(cls, pose: Mapping[str, float]) -> Pose:
+        """The pose `to_dict` wrote (a run folder's ``pose``)."""
+        return cls(pose["x"], pose["y"], pose["z"], math.radians(pose["yaw_deg"]))
+
 
 @dataclass(frozen=True)
 class Action:
@@ -116,6 +122,23 @@ class Rules:
 
 
 DEFAULT_RULES = Rules()
+
+
+@dataclass(frozen=True)
+class Cruise:
+    """How fast the vehicle flies a move through the water: what a move lasts, and so how
+    far a current carries it and what the move costs in energy (`cavenav.energy`).
+
+    Chosen, not measured: a third of a BlueROV2's published top speed of 1.5 m/s, a pace
+    for a confined cave, and a turn of 30 degrees a second.
+
+    Attributes:
+        speed_m_s: speed along the straight move of SPEC section 5.
+        yaw_deg_s: rate of the turn in place before it.
+    """
+
+    speed_m_s: float = 0.5
+    yaw_deg_s: float = 30.0
 
 
 @dataclass(frozen=True)
@@ -180,6 +203,9 @@ class Observation:
             ``cavenav ask`` alone). The VLM pilot then sends no depth image and says so;
             ``depth_m`` is NaN and ``depth_png`` 0 (near) everywhere, so that a reader
             that misses this flag sees no free space rather than open water.
+        energy_left_wh: what the battery has left, as a BlueROV2 reports it (a budget
+            given to the environment, else the full pack); None when the source does not
+            say.
     """
 
     rgb: np.ndarray
@@ -193,6 +219,7 @@ class Observation:
     step: int = 0
     previous_action: Action | None = None
     has_depth: bool = True
+    energy_left_wh: float | None = None
 
     def __eq__(self, other: object) -> bool:
         """Field by field, the images by value (NaN equal to NaN): two renderings of one

@@ -7,9 +7,10 @@ summary), the run folder, the progress callback. It drives the environment as an
 Gymnasium user would, through `reset` and `step` alone: what the pilot sees, where the
 vehicle is and how long each stage took come back in ``info``.
 
-Each episode ends in exactly one of six ways: ``exit`` (the exit portal was reached),
+Each episode ends in exactly one of seven ways: ``exit`` (the exit portal was reached),
 ``collision`` (the body touched a surface along the move), ``exited_entrance`` (it left
-the cave the way it came in: a failure), ``budget`` (out of steps: Gymnasium's
+the cave the way it came in: a failure), ``battery`` (the moves spent the energy budget,
+`EpisodeConfig.battery_wh`), ``budget`` (out of steps: Gymnasium's
 truncation), ``stuck`` (no headway for `EpisodeConfig.stuck_after` steps: turning on the
 spot, going to and fro, or circling over old ground) or ``pilot_failure`` (the pilot could
 not produce a valid action).
@@ -22,7 +23,7 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import gymnasium as gym
 from gymnasium.wrappers import TimeLimit
@@ -36,6 +37,7 @@ from cavenav.pilots.base import Pilot
 from cavenav.sensors.depth import ExrCompression
 from cavenav.sensors.rig import SensorConfig
 from cavenav.types import DEFAULT_RULES, Observation, Pose, Rules, VehicleBody
+from cavenav.world.current import Current
 from cavenav.world.scenarios import Scenario
 from cavenav.wrappers import SafetyShield, StuckLimit
 
@@ -44,6 +46,7 @@ __all__ = [
     "TERMINATIONS",
     "EpisodeConfig",
     "EpisodeResult",
+    "Watcher",
     "make_env",
     "run_episode",
     "step_budget",
@@ -73,6 +76,9 @@ class EpisodeConfig:
             the exit than ever before nor a 2 m cube of the cave entered for the first
             time. 50 leaves room to explore a side passage and come back out of it; None
             never ends an episode so.
+        current: the water's flow (`cavenav.world.current`); still by default.
+        battery_wh: an energy budget that ends the episode as ``battery`` once spent;
+            None never does (the energy is recorded either way).
     """
 
     max_steps: int | None = None
@@ -86,6 +92,8 @@ class EpisodeConfig:
     stuck_after: int | None = 50
     sensors: SensorConfig = field(default_factory=SensorConfig)
     body: VehicleBody = field(default_factory=VehicleBody)
+    current: Current = field(default_factory=Current)
+    battery_wh: float | None = None
 
 
 @dataclass
@@ -107,6 +115,23 @@ class EpisodeResult:
         return self.summary["termination"]
 
 
+class Watcher(Protocol):
+    """Watches an episode as it flies, e.g. a live 3D view (`cavenav.episode.rerun_log`)."""
+
+    def started(self, scenario: Scenario, pilot: Pilot, info: Mapping[str, Any]) -> None:
+        """The episode begins: the reset's ``info`` (the start pose, the first observation)."""
+        ...
+
+    def stepped(self, record: Mapping[str, Any], info: Mapping[str, Any]) -> None:
+        """A step was logged as ``record``; ``info`` is the environment's after it (empty
+        when the pilot failed)."""
+        ...
+
+    def close(self) -> None:
+        """The episode is over, however it ended."""
+        ...
+
+
 def step_budget(scenario: Scenario, config: EpisodeConfig) -> int:
     """The steps an episode of ``config`` gets in ``scenario``: ``config.max_steps`` when
     set, else the scenario's own budget, else `DEFAULT_STEPS`."""
@@ -117,7 +142,13 @@ def make_env(scenario: Scenario, config: EpisodeConfig, motion: Motion | None = 
     """The environment an episode of ``config`` flies: budget, the stuck limit, then the
     shield if asked."""
     env: gym.Env = CaveNavEnv(
-        scenario, sensors=config.sensors, body=config.body, rules=config.rules, motion=motion
+        scenario,
+        sensors=config.sensors,
+        body=config.body,
+        rules=config.rules,
+        motion=motion,
+        current=config.current,
+        battery_wh=config.battery_wh,
     )
     env = TimeLimit(env, max_episode_steps=step_budget(scenario, config))
     if config.stuck_after:
@@ -132,14 +163,16 @@ def run_episode(
     run_dir: str | Path | None = None,
     on_step: Callable[[dict[str, Any]], None] | None = None,
     motion: Motion | None = None,
+    watchers: Sequence[Watcher] = (),
 ) -> EpisodeResult:
-    """Fly ``pilot`` through ``scenario`` until one of the six endings (module docstring).
+    """Fly ``pilot`` through ``scenario`` until one of the seven endings (module docstring).
 
     Args:
         run_dir: where to write the run folder (must not exist); None records nothing.
         on_step: called with each step's record, e.g. to advance a progress bar.
         motion: who carries out the actions (`CaveNavEnv`'s ``motion``): the kinematics
             by default, or a vehicle, e.g. over MAVLink (`cavenav fly`).
+        watchers: shown the episode as it flies (`Watcher`).
 
     Raises:
         ScenarioError: the start pose is not inside the passage or touches a wall.
@@ -156,7 +189,9 @@ def run_episode(
         pilot.reset()
         if folder:
             _write(folder.write_json, folder.path, "summary.json", log.summary("running"))
-        _fly(env, pilot, log, info, folder, on_step)
+        for watcher in watchers:
+            watcher.started(scenario, pilot, info)
+        _fly(env, pilot, log, info, folder, _telling(on_step, watchers))
         status = "finished"
     except KeyboardInterrupt:
         status = "interrupted"
@@ -172,9 +207,26 @@ def run_episode(
             caster = env.get_wrapper_attr("caster")
             folder.finish(summary, log, caster, plots=config.plots and status == "finished")
         env.close()
+        for watcher in watchers:
+            watcher.close()
     return EpisodeResult(
         summary, log.poses, log.clearances, log.steps, folder.path if folder else None
     )
+
+
+def _telling(
+    on_step: Callable[[dict[str, Any]], None] | None, watchers: Sequence[Watcher]
+) -> Callable[[dict[str, Any], dict[str, Any]], None]:
+    """One callback for each step: ``on_step`` with its record, the watchers with its
+    record and the environment's ``info`` after it."""
+
+    def tell(record: dict[str, Any], info: dict[str, Any]) -> None:
+        if on_step:
+            on_step(record)
+        for watcher in watchers:
+            watcher.stepped(record, info)
+
+    return tell
 
 
 def _run_folder(run_dir: str | Path | None, config: EpisodeConfig) -> RunFolder | None:
@@ -192,7 +244,7 @@ def _fly(
     log: EpisodeLog,
     info: dict[str, Any],
     folder: RunFolder | None,
-    on_step: Callable[[dict[str, Any]], None] | None,
+    on_step: Callable[[dict[str, Any], dict[str, Any]], None],
 ) -> None:
     """Step until the episode ends, from the ``info`` of the reset, and settle the folder.
 
@@ -210,8 +262,7 @@ def _fly(
             record, exchanges, info = _step(env, pilot, log, observation, info["timings"])
             if folder:
                 _hand_over(folder, log, mark, record, observation, exchanges)
-            if on_step:
-                on_step(record)
+            on_step(record, info)
         if folder:
             _settle(folder, log)
     except (KeyboardInterrupt, Exception):

@@ -110,6 +110,8 @@ class EpisodeLog:
                 self.termination = "exit"
             elif info.get("entrance"):
                 self.termination = "exited_entrance"
+            elif info.get("termination") == "battery":
+                self.termination = "battery"
         if self.termination is None and info.get("stuck"):
             self.termination = "stuck"
         if self.termination is None and truncated:
@@ -124,17 +126,8 @@ class EpisodeLog:
             collision=info["collision"],
             progress_m=round(self.progress_m, 4),
             **decision.extra,
+            **_carried_out(info),
         )
-        if "drift_m" in info:  # a vehicle carried the action out (cavenav fly)
-            record.update(
-                commanded_pose=info["commanded_pose"],
-                drift_m=round(info["drift_m"], 4),
-                drift_deg=round(info["drift_deg"], 3),
-            )
-        if info.get("silt_g") is not None:  # silt-out is on: grams hanging in the water
-            record["silt_g"] = info["silt_g"]
-        if info.get("shield"):
-            record["shield"] = info["shield"]
         if info["invalid_action"]:
             record["invalid_action"] = info["invalid_action"]
             record["proposed"] = decision.action_text
@@ -220,6 +213,7 @@ class EpisodeLog:
                 "mean_pilot_ms": _mean_timing(self.steps, "pilot"),
                 "usage": Usage.total(self.usage),
                 **_drift(self.steps),
+                **_energy(self.steps),
                 **self._meta,
             }
         )
@@ -241,6 +235,28 @@ class EpisodeLog:
         return {"shortest_path_m": shortest, "spl": round(shortest / max(flown, shortest), 4)}
 
 
+def _carried_out(info: dict[str, Any]) -> dict[str, Any]:
+    """What the environment says of how the move went, where it says it: the drift (a
+    vehicle or a current), the energy and time it took, the water's speed, the silt
+    hanging in the water and the shield's intervention."""
+    found: dict[str, Any] = {}
+    if "drift_m" in info:
+        found.update(
+            commanded_pose=info["commanded_pose"],
+            drift_m=round(info["drift_m"], 4),
+            drift_deg=round(info["drift_deg"], 3),
+        )
+    if "step_energy_wh" in info:
+        found.update(energy_wh=round(info["step_energy_wh"], 6), move_s=round(info["move_s"], 3))
+    if info.get("current_m_s") is not None:
+        found["current_m_s"] = round(info["current_m_s"], 4)
+    if info.get("silt_g") is not None:
+        found["silt_g"] = info["silt_g"]
+    if info.get("shield"):
+        found["shield"] = info["shield"]
+    return found
+
+
 def _drift(steps: list[dict[str, Any]]) -> dict[str, float]:
     """Mean and largest drift between commanded and reached poses, when a vehicle flew."""
     metres = [s["drift_m"] for s in steps if "drift_m" in s]
@@ -254,6 +270,19 @@ def _drift(steps: list[dict[str, Any]]) -> dict[str, float]:
         "max_drift_deg": round(max(degrees), 3),
         "mean_physics_ms": _mean_timing(steps, "physics"),
     }
+
+
+def _energy(steps: list[dict[str, Any]]) -> dict[str, float]:
+    """The energy and time the moves took, and the water's speed where it flowed."""
+    found: dict[str, float] = {
+        "energy_wh": round(sum(s.get("energy_wh") or 0.0 for s in steps), 4),
+        "moving_s": round(sum(s.get("move_s") or 0.0 for s in steps), 2),
+    }
+    speeds = [s["current_m_s"] for s in steps if s.get("current_m_s") is not None]
+    if speeds:
+        found["mean_current_m_s"] = round(sum(speeds) / len(speeds), 4)
+        found["max_current_m_s"] = round(max(speeds), 4)
+    return found
 
 
 def _mean_timing(steps: list[dict[str, Any]], key: str) -> float | None:

@@ -56,7 +56,9 @@ __all__ = [
 
 # How an episode ended (summary.json's ``termination``): `TERMINATED` ones end the task
 # (Gymnasium's ``terminated``), `TRUNCATED` ones cut it short (``truncated``).
-Termination = Literal["exit", "collision", "budget", "pilot_failure", "exited_entrance", "stuck"]
+Termination = Literal[
+    "exit", "collision", "budget", "pilot_failure", "exited_entrance", "stuck", "battery"
+]
 TERMINATIONS: tuple[Termination, ...] = get_args(Termination)
 TRUNCATED: tuple[Termination, ...] = ("budget", "stuck")
 TERMINATED: tuple[Termination, ...] = tuple(t for t in TERMINATIONS if t not in TRUNCATED)
@@ -70,6 +72,7 @@ Outcome = Literal[
     "collision",
     "pilot_failure",
     "exited_entrance",
+    "battery",
     "budget",
     "stuck",
     "oscillating",
@@ -182,6 +185,10 @@ class EpisodeSummary(_Record):
     mean_drift_deg: float | None = None
     max_drift_deg: float | None = None
     mean_physics_ms: float | None = None
+    energy_wh: float | None = None  # the battery energy the moves used (cavenav.energy)
+    moving_s: float | None = None  # how long the moves took through the water
+    mean_current_m_s: float | None = None  # the water's speed met, where it flowed
+    max_current_m_s: float | None = None
     cavenav_version: str | None = None
     scenario_set: str | None = None  # `cavenav.SCENARIO_SET`; None: set 1, before it was written
     python: str | None = None
@@ -225,6 +232,9 @@ class StepRecord(_Record):
     commanded_pose: _Pose | None = None
     drift_m: float | None = None
     drift_deg: float | None = None
+    energy_wh: float | None = None
+    move_s: float | None = None
+    current_m_s: float | None = None
     shield: dict[str, Any] | None = None
     invalid_action: str | None = None
     proposed: str | None = None

@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING, Any
 
 from cavenav.errors import ConfigError
 from cavenav.sensors.depth import DEPTH_RANGE_M, EXR_COMPRESSIONS
+from cavenav.world.current import Current
 
 if TYPE_CHECKING:
     from cavenav.episode.loop import EpisodeConfig
@@ -54,6 +55,8 @@ class EpisodeSettings:
         resolution, sounder_resolution: (width, height) pixels over the scenario's
             [sensors] table; None keeps it.
         difficulty: `Difficulty` knobs of the cave family, by name.
+        discharge_m3s, gusts: the water's flow (`cavenav.world.current.Current`).
+        battery_wh: an energy budget that ends an episode as ``battery``; None: none.
     """
 
     steps: int | None = None
@@ -68,6 +71,9 @@ class EpisodeSettings:
     resolution: tuple[int, int] | None = None
     sounder_resolution: tuple[int, int] | None = None
     difficulty: Mapping[str, float] = field(default_factory=dict)
+    discharge_m3s: float = Current.discharge_m3s
+    gusts: float = Current.gusts
+    battery_wh: float | None = None
 
     def __post_init__(self) -> None:
         if self.exr_compression not in EXR_COMPRESSIONS:
@@ -83,6 +89,14 @@ class EpisodeSettings:
             from cavenav.world.scenarios import Difficulty
 
             Difficulty.from_dict(self.difficulty)
+        Current(self.discharge_m3s, self.gusts)  # a bad value fails here, not in a worker
+        if self.battery_wh is not None and not (0 < self.battery_wh < float("inf")):
+            raise ConfigError(f"battery {self.battery_wh} Wh: give a finite energy above 0")
+
+    @property
+    def current(self) -> Current:
+        """The water's flow these settings ask for."""
+        return Current(self.discharge_m3s, self.gusts)
 
     @property
     def frames(self) -> str:
@@ -129,6 +143,8 @@ class EpisodeSettings:
             exr_compression=self.exr_compression,  # type: ignore[arg-type]
             shield=self.shield,
             sensors=self.sensors_for(cave),
+            current=self.current,
+            battery_wh=self.battery_wh,
         )
 
     def to_dict(self) -> dict[str, Any]:
@@ -141,6 +157,9 @@ class EpisodeSettings:
         }
         if self.exr_compression != "none":  # no sweep flag sets it: absent, as before
             episode["exr_compression"] = self.exr_compression
+        for key in _WATER:  # absent in still water with no budget, as before they existed
+            if getattr(self, key) != getattr(_DEFAULTS, key):
+                episode[key] = getattr(self, key)
         sensors: dict[str, Any] = {
             "sounder": self.sounder,
             "depth_max_m": self.depth_max_m,
@@ -166,9 +185,14 @@ class EpisodeSettings:
             raise ConfigError(f"sensors: unknown key(s) {', '.join(sorted(unknown))}")
         frames = episode.pop("frames", "all")
         settings = cls(
-            **{k: episode[k] for k in ("steps", "stuck_after", "shield", "exr_compression")
+            **{k: episode[k] for k in ("steps", "stuck_after", "shield", "exr_compression", *_WATER)
                if k in episode},
             **sensors,
             difficulty=data.get("difficulty", {}),
         )  # fmt: skip
         return settings.with_frames(frames)
+
+
+_DEFAULTS = EpisodeSettings()
+# The settings of the water and the battery, kept in sweep.json's "episode" when set.
+_WATER = ("discharge_m3s", "gusts", "battery_wh")

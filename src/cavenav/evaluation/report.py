@@ -263,6 +263,7 @@ _AGGREGATE_COLUMNS = (
     ),
     Column("steps", _key("steps"), lambda v: _num(v, 1)),
     Column("shield interventions", _key("shield_interventions"), lambda v: _num(v, 1)),
+    Column("energy", _key("energy_wh"), lambda v: _num(v, 2, " Wh")),
     Column("pilot time", _key("mean_pilot_ms"), lambda v: _num(v, 1, " ms")),
     Column("model latency", _key("mean_model_latency_s"), lambda v: _num(v, 2, " s")),
     Column(
@@ -298,6 +299,9 @@ _EPISODE_COLUMNS = (
     Column("below standoff", _key("steps_below_standoff"), _int),
     Column("shield", _key("shield_interventions"), _int, zero_is_empty=True),
     Column("invalid", _key("invalid_actions"), _int, zero_is_empty=True),
+    Column("energy (Wh)", _key("energy_wh"), lambda v: _num(v, 2)),
+    Column("current (m/s)", _key("mean_current_m_s"), lambda v: _num(v, 2)),
+    Column("drift (m)", _key("mean_drift_m"), lambda v: _num(v, 2)),
     Column("re-queries", _key("requeries"), _int, zero_is_empty=True),
     Column("retries", _key("transport_retries"), _int, zero_is_empty=True),
     Column(
@@ -340,6 +344,7 @@ def _summary_facts(s: EpisodeSummary, outcome: str) -> list[tuple[str, str]]:
         ("SPL / shortest path", f"{_num(s.spl, 3)} / {_num(s.shortest_path_m, 2, ' m')}"),
         ("shield", f"on, {s.shield_interventions or 0} interventions" if s.shield else "off"),
         ("invalid actions", str(s.invalid_actions or 0)),
+        ("energy", f"{_num(s.energy_wh, 2, ' Wh')} over {_num(s.moving_s, 0, ' s')} of moves"),
         ("sense / pilot", f"{_num(s.mean_sense_ms, 1)} / {_num(s.mean_pilot_ms, 1)} ms a step"),
         ("wall time", _num(s.wall_time_s, 1, " s")),
         ("started", s.started_at or _EMPTY),

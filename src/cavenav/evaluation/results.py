@@ -9,6 +9,7 @@ Outcomes (the failure taxonomy, one per episode):
     collision      it touched a surface
     pilot_failure  the pilot could not produce a valid action (e.g. persistent bad replies)
     exited_entrance  it left the cave through its entrance, the way it came in
+    battery        its moves spent the energy budget (`cavenav eval --battery-wh`)
     budget         out of steps while still making headway: one of the last `WINDOW`
                    steps made headway as `cavenav.headway` counts it (too slow, not lost)
     stuck          ended by the driver for want of headway (termination ``stuck``, by
@@ -77,7 +78,7 @@ __all__ = [
 WINDOW = 30
 MOVED_M = 1.5
 # Every termination but the exit (a success) and the budget (judged by the last steps)
-# is an outcome of its own: collision, pilot_failure, exited_entrance, stuck.
+# is an outcome of its own: collision, pilot_failure, exited_entrance, battery, stuck.
 _OWN_OUTCOMES: tuple[Outcome, ...] = tuple(
     o for o in OUTCOMES if o in TERMINATIONS and o not in ("exit", "budget")
 )
@@ -106,6 +107,10 @@ COLUMNS = (
     "steps_below_standoff",
     "shield_interventions",
     "invalid_actions",
+    "energy_wh",
+    "moving_s",
+    "mean_current_m_s",
+    "mean_drift_m",
     "requeries",
     "transport_retries",
     "prompt_tokens",
@@ -246,6 +251,10 @@ def _summary_columns(s: EpisodeSummary) -> dict[str, Any]:
         "steps_below_standoff": s.steps_below_standoff,
         "shield_interventions": s.shield_interventions if s.shield else None,
         "invalid_actions": s.invalid_actions,
+        "energy_wh": s.energy_wh,
+        "moving_s": s.moving_s,
+        "mean_current_m_s": s.mean_current_m_s,
+        "mean_drift_m": s.mean_drift_m,
         "mean_pilot_ms": s.mean_pilot_ms,
         "mean_sense_ms": s.mean_sense_ms,
         "wall_time_s": s.wall_time_s,
@@ -454,6 +463,7 @@ def group(scenario: str, pilot: str, rows: Sequence[Mapping[str, Any]]) -> dict[
         "spl": _spl(done),
         "steps": _mean(r.get("steps") for r in done),
         "shield_interventions": _mean(r.get("shield_interventions") for r in done),
+        "energy_wh": _mean(r.get("energy_wh") for r in done),
         "mean_pilot_ms": _mean(r.get("mean_pilot_ms") for r in done),
         "mean_model_latency_s": _mean(r.get("mean_model_latency_s") for r in done),
         **model_time_percentiles(t for r in done for t in r.get("model_step_s") or []),

@@ -49,6 +49,7 @@ class VLMOptions:
     prompt_file: str | None = None
     structured: bool = False
     map_image: bool = False  # a top-down picture of the pilot's map with each step
+    energy_prompt: bool = False  # tell the model its battery's energy left
     image_format: str = "png"  # how the colour image is sent: png or jpeg
     jpeg_quality: int = 90
     image_size: str | None = None  # "WxH": the images are resized to it before sending
@@ -219,6 +220,7 @@ def _vlm_pilot(options: VLMOptions, check: bool) -> Pilot:
         system_file=Path(options.prompt_file) if options.prompt_file else None,
         structured=options.structured,
         map_image=options.map_image,
+        energy=options.energy_prompt,
     )
     return VLMPilot(
         engine,

@@ -13,11 +13,14 @@ from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
 
+import numpy as np
+
 from cavenav.actions import DEFAULT_SPACE, ActionSpace
+from cavenav.energy import PowerModel
 from cavenav.errors import ConfigError
 from cavenav.sensors.camera import CameraIntrinsics
 from cavenav.sensors.depth import DEPTH_RANGE_M
-from cavenav.types import DEFAULT_RULES, Rules
+from cavenav.types import DEFAULT_RULES, Cruise, Rules
 
 __all__ = ["STRUCTURED_SCHEMA", "PromptConfig", "render_repair", "render_system"]
 
@@ -35,6 +38,8 @@ class PromptConfig:
         map_image: send a top-down picture of the pilot's map with each current
             observation (`cavenav.cave_map`), and explain it in the system prompt.
         map_span_m: how many metres across that picture is.
+        energy: tell the model what its battery has left with each current observation,
+            and what moves cost (`cavenav.energy`): energy-aware prompting.
     """
 
     space: ActionSpace = field(default_factory=lambda: DEFAULT_SPACE)
@@ -44,6 +49,7 @@ class PromptConfig:
     structured: bool = False
     map_image: bool = False
     map_span_m: float = 32.0
+    energy: bool = False
 
     def fields(
         self, depth_range: tuple[float, float] = DEPTH_RANGE_M, hfov_deg: float | None = None
@@ -81,7 +87,15 @@ class PromptConfig:
             "vertical_min_m": _num(space.vertical_range_m[0]),
             "vertical_max_m": _num(space.vertical_range_m[1]),
             "map_span_m": _num(self.map_span_m),
+            "energy_per_m_wh": f"{_cruise_wh_per_m():.3f}",
         }
+
+
+def _cruise_wh_per_m() -> float:
+    """What a metre straight ahead at cruise speed costs a BlueROV2 with two lamps."""
+    cruise = Cruise()
+    seconds = 1.0 / cruise.speed_m_s
+    return PowerModel().energy_wh(np.array([seconds]), np.array([[cruise.speed_m_s, 0.0, 0.0]]))
 
 
 def _num(value: float) -> str:
@@ -123,6 +137,8 @@ def render_system(
         text = _render(_template("system.md"), fields, "system.md")
     if config.map_image:
         text += "\n\n" + _render(_template("map.md"), fields, "map.md")
+    if config.energy:
+        text += "\n\n" + _render(_template("energy.md"), fields, "energy.md")
     if config.structured:
         text += "\n\n" + _template("structured.md")
     return text

@@ -131,13 +131,15 @@ def build_messages(
     history: list[EncodedObservation],
     detail: str | None = None,
     map_view: tuple[str, str] | None = None,
+    energy_left_wh: float | None = None,
 ) -> list[Message]:
     """OpenAI-format messages: system prompt, then one user turn with every image.
 
     Each observation is introduced by its sounder readings ("unknown" where not
     measured) and by what its images are; one without a depth image gets a sentence
     saying so (`NO_DEPTH_TEXT`) in place of the image. ``map_view`` is the pilot's map
-    as (a line of text, a picture's data URL), sent after the current images.
+    as (a line of text, a picture's data URL), sent after the current images;
+    ``energy_left_wh``, when given, what the battery has left, said after them.
     """
     content: list[dict[str, Any]] = []
     for k, seen in enumerate(history):
@@ -154,6 +156,8 @@ def build_messages(
             {"type": "text", "text": f"Your map (heading up). {words}"},
             _image(url, detail),
         ]
+    if energy_left_wh is not None:
+        content.append({"type": "text", "text": f"Battery: {energy_left_wh:.2f} Wh left."})
     content.append(
         {"type": "text", "text": "Think step by step, then give the final one-pair dictionary."}
     )
@@ -287,7 +291,8 @@ class VLMPilot:
             span = self.prompt.map_span_m
             map_view = (self.map.describe(), png_data_url(self.map.top_down(span_m=span)))
         system = self._system_for(observation)
-        return build_messages(system, current, list(self._history), self.detail, map_view)
+        energy = observation.energy_left_wh if self.prompt.energy else None
+        return build_messages(system, current, list(self._history), self.detail, map_view, energy)
 
     def _records(self, exchanges: list[Exchange]) -> tuple[dict[str, Any], ...]:
         return tuple(e.to_record(self.backend.model) for e in exchanges)

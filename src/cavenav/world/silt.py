@@ -15,7 +15,9 @@ Each step (taken to last `STEP_SECONDS`):
    speed. Vertical thrust, which blows straight at the floor, counts fully; horizontal
    thrust half.
 2. **Hanging.** Every puff spreads by turbulent diffusion (sigma^2 grows by 2 K dt),
-   drifts with its decaying wash, and sinks at fine silt's settling speed. Puffs too thin
+   drifts with its decaying wash and with the cave's current where the water flows
+   (`cavenav.world.current`: upstream, a diver's silt falls behind), and sinks at fine
+   silt's settling speed. Puffs too thin
    to see are dropped, and past `MAX_PUFFS` the two oldest merge.
 
 The stirring constants are assumptions, set by eye to give what divers report (a few
@@ -27,6 +29,7 @@ published figures (below).
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -57,6 +60,7 @@ SCATTERING_M2_PER_G = (0.5, 0.5, 0.5)  # R, G, B
 EXTINCTION_M2_PER_G = (0.53, 0.55, 0.59)  # scattering plus absorption
 SILT_PHASE_G = 0.9
 FAINTEST_G_M3 = 0.01  # a puff whose peak concentration falls below this is dropped
+Water = Callable[[np.ndarray], np.ndarray]  # the water's velocity (3,) at a point (3,)
 
 
 @dataclass(frozen=True)
@@ -107,10 +111,13 @@ class SiltCloud:
             total += p.peak_g_m3 * np.exp(-0.5 * r2 / p.sigma**2)
         return total
 
-    def stirred(self, pose: Pose, action: Action, floor_m: float) -> SiltCloud:
+    def stirred(
+        self, pose: Pose, action: Action, floor_m: float, water: Water | None = None
+    ) -> SiltCloud:
         """This cloud after ``action`` ended at ``pose``, with the floor ``floor_m`` below
-        the vehicle's centre (inf: none in reach), then one step of hanging."""
-        cloud = self._hung(STEP_SECONDS)
+        the vehicle's centre (inf: none in reach), then one step of hanging in ``water``
+        (the current's velocity at a point; None: still)."""
+        cloud = self._hung(STEP_SECONDS, water)
         mass = STIR_G * _effort(action) * max(0.0, 1.0 - floor_m / WASH_REACH_M) ** 2
         if mass <= 0.0:
             return cloud
@@ -121,11 +128,13 @@ class SiltCloud:
         puff = Puff(_vec(below + 0.4 * aft), PUFF_SIGMA_M, mass, _vec(WASH_SPEED_M_S * aft))
         return _capped(SiltCloud((*cloud.puffs, puff)))
 
-    def _hung(self, seconds: float) -> SiltCloud:
+    def _hung(self, seconds: float, water: Water | None = None) -> SiltCloud:
         kept = []
         for p in self.puffs:
             decay = math.exp(-seconds / WASH_DECAY_S)
             travel = np.asarray(p.velocity) * WASH_DECAY_S * (1.0 - decay)
+            if water is not None:
+                travel = travel + water(np.asarray(p.centre)) * seconds
             centre = np.asarray(p.centre) + travel - np.array([0.0, 0.0, SETTLING_M_S * seconds])
             sigma = math.sqrt(p.sigma**2 + 2.0 * DIFFUSIVITY_M2_S * seconds)
             moved = replace(
