@@ -1,7 +1,7 @@
 """Success against current: the geometric pilot, with and without the shield, as the
 discharge rises.
 
-    .venv/bin/python benchmarks/currents.py                 # about 25 minutes on 2 cores
+    .venv/bin/python benchmarks/currents.py          # 50 caves a cell: about 25 minutes on 2 cores
     .venv/bin/python benchmarks/currents.py --discharges 0,4,8 --seeds 1000-1001
 
 Each discharge is one `cavenav eval` sweep per pilot over the held-out caves (S1-S5 by
@@ -71,7 +71,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--discharges", default="0,1,2,3,4,6", help="m³/s, comma-separated")
     parser.add_argument("--scenarios", default="S1,S2,S3,S4,S5")
-    parser.add_argument("--seeds", default="1000-1004")
+    parser.add_argument("--seeds", default="1000-1009")
     parser.add_argument("--out", type=Path, default=None, help="keep the sweeps here")
     args = parser.parse_args()
     root = args.out or Path(tempfile.mkdtemp(prefix="currents-"))

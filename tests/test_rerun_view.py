@@ -63,10 +63,23 @@ def test_a_live_view_with_no_display_is_refused_before_anything_is_flown(tmp_pat
     )
     assert done.returncode == 2
     assert done.stderr.strip().splitlines() == [
-        "error: --rerun needs a display for its viewer (DISPLAY is not set): record with "
-        "--rerun-save FILE.rrd and open it with `rerun FILE.rrd` where there is one"
+        "error: the Rerun viewer needs a display (DISPLAY is not set): save the recording to "
+        "a file (--rerun-save, or --save with cavenav view) and open it with `rerun FILE` "
+        "where there is one"
     ]
     assert list(tmp_path.iterdir()) == []  # no empty run folder left behind
+
+
+def test_a_recording_that_cannot_be_written_is_refused_before_anything_is_flown(
+    tmp_path: Path,
+) -> None:
+    blocked = tmp_path / "a-file"
+    blocked.write_text("")
+    runs = tmp_path / "runs"
+    done = cavenav("run", *FLOWN, "--out", str(runs), "--rerun-save", str(blocked / "s4.rrd"))
+    assert done.returncode == 2 and len(done.stderr.strip().splitlines()) == 1
+    assert done.stderr.startswith(f"error: cannot write the Rerun recording {blocked / 's4.rrd'}")
+    assert not runs.exists() or list(runs.iterdir()) == []
 
 
 def test_view_of_a_folder_that_is_not_a_run_says_so_in_one_line(tmp_path: Path) -> None:

@@ -127,6 +127,22 @@ def test_gusts_vary_in_time_and_hold_the_depth(room_scenario: Scenario) -> None:
         assert info["vehicle_pose"].z == pytest.approx(before.z, abs=1e-12)  # depth hold
 
 
+@pytest.mark.parametrize("discharge", [3.2, -3.2])
+def test_a_gust_travels_downstream_with_the_flow(room_scenario: Scenario, discharge: float) -> None:
+    field = CurrentField.measure(
+        RayCaster(room_scenario.mesh), ALONG_THE_CORRIDOR, Current(discharge, gusts=0.5), seed=0
+    )
+    nearer_start, nearer_exit = np.array([0.0, 4.0, 0.0]), np.array([0.0, -2.0, 0.0])
+    upstream, downstream = (
+        (nearer_exit, nearer_start) if discharge > 0 else (nearer_start, nearer_exit)
+    )
+    later = 6.0 / (abs(discharge) / ROOM_SECTION_M2)  # 6 m at the flow's speed
+    for t in (0.0, 7.0, 30.0):
+        assert np.linalg.norm(field.velocity(downstream, t + later)) == pytest.approx(
+            np.linalg.norm(field.velocity(upstream, t)), rel=0.03
+        )
+
+
 def test_the_same_seed_flies_the_same_water_and_another_seed_other_gusts(
     room_scenario: Scenario,
 ) -> None:
@@ -199,12 +215,22 @@ def test_lamps_switched_off_draw_nothing(room_scenario: Scenario) -> None:
     assert CaveNavEnv(room_scenario, resolution=SMALL).power.lamps_w == 30.0
 
 
-def test_holding_depth_against_rising_water_costs_energy() -> None:
-    still = carry(None, Pose(0, 0, 0, 0), Action(forward=1.0), 0.0, Cruise())
-    rising = still.through_water.copy()
-    rising[:, 2] -= 0.2
+def test_holding_depth_against_the_waters_rise_and_fall_costs_energy(
+    room_scenario: Scenario,
+) -> None:
+    field = CurrentField.measure(
+        RayCaster(room_scenario.mesh), ALONG_THE_CORRIDOR, Current(6.4, gusts=1.0), seed=3
+    )
+    move, start = Action(forward=1.0), room_scenario.start
+    still = carry(None, start, move, 10.0, Cruise())
+    flowing = carry(field, start, move, 10.0, Cruise())
+    assert flowing.reached.z == still.reached.z  # held
+    vertical = flowing.through_water[:, 2]
+    assert np.abs(vertical).max() > 0.01  # the thrusters push against the water's own
     model = PowerModel()
-    assert model.energy_wh(still.dt, rising) > model.energy_wh(still.dt, still.through_water)
+    assert model.energy_wh(flowing.dt, flowing.through_water) > model.energy_wh(
+        still.dt, still.through_water
+    )
 
 
 def test_an_energy_budget_ends_the_episode_as_battery(room_scenario: Scenario) -> None:

@@ -55,7 +55,7 @@ class Thruster:
     def power_w(self, thrust_n: np.ndarray) -> np.ndarray:
         """Electrical power for each thrust (either sign), capped at full throttle."""
         share = np.minimum(np.abs(thrust_n) / self.max_thrust_n, 1.0)
-        return self.max_power_w * share**1.5
+        return self.max_power_w * share * np.sqrt(share)  # sqrt is exact on every CPU
 
 
 def _at_pack_voltage(at_12v: float, at_16v: float) -> float:

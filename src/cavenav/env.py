@@ -447,7 +447,8 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
             raise gym.error.ResetNeeded("Call reset before using step method.")
         if self._ended:
             raise gym.error.ResetNeeded(
-                "The episode has ended (exit, entrance or collision): call reset before step."
+                "The episode has ended (exit, entrance, collision or battery): call reset "
+                "before step."
             )
         started = time.perf_counter()
         command, invalid = self.command(action)

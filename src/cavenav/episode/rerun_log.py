@@ -75,20 +75,35 @@ def _rerun() -> Any:  # noqa: ANN401 - the module
 
 
 def open_recording(name: str, *, live: bool = False, save: Path | None = None) -> Any:  # noqa: ANN401
-    """A Rerun recording that goes to a live viewer (``live``, spawned here) and/or to
-    ``save`` (an .rrd file)."""
+    """A Rerun recording that goes to a live viewer (``live``, spawned here), to ``save``
+    (an .rrd file), or to both.
+
+    Raises:
+        ConfigError: no display for the viewer, no viewer, or a file that cannot be written.
+    """
     rr = _rerun()
     recording = rr.RecordingStream("cavenav", recording_id=name)
-    if save is not None:
-        Path(save).parent.mkdir(parents=True, exist_ok=True)
-        recording.save(str(save))
     if live:
-        _spawn(recording, connect=save is None)
+        _spawn(recording)
+    sinks = [rr.GrpcSink()] if live else []
+    if save is not None:
+        try:
+            Path(save).parent.mkdir(parents=True, exist_ok=True)
+            sinks.append(rr.FileSink(str(save)))
+        except (OSError, RuntimeError) as exc:
+            raise ConfigError(
+                f"cannot write the Rerun recording {save}: {_first_line(exc)}"
+            ) from None
+    recording.set_sinks(*sinks)
     return recording
 
 
-def _spawn(recording: Any, connect: bool) -> None:  # noqa: ANN401
-    """Start a Rerun viewer for ``recording``: the one rerun-sdk installed beside this
+def _first_line(error: BaseException) -> str:
+    return str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
+
+
+def _spawn(recording: Any) -> None:  # noqa: ANN401
+    """Start a Rerun viewer (not yet connected): the one rerun-sdk installed beside this
     Python (a virtual environment's bin folder need not be on PATH).
 
     Raises:
@@ -97,17 +112,17 @@ def _spawn(recording: Any, connect: bool) -> None:  # noqa: ANN401
     headless = not any(os.environ.get(name) for name in ("DISPLAY", "WAYLAND_DISPLAY"))
     if sys.platform.startswith("linux") and headless:
         raise ConfigError(
-            "--rerun needs a display for its viewer (DISPLAY is not set): record with "
-            "--rerun-save FILE.rrd and open it with `rerun FILE.rrd` where there is one"
+            "the Rerun viewer needs a display (DISPLAY is not set): save the recording to a "
+            "file (--rerun-save, or --save with cavenav view) and open it with `rerun FILE` "
+            "where there is one"
         )
     here = str(Path(sys.executable).parent)
     if (Path(here) / "rerun").is_file() and here not in os.environ.get("PATH", ""):
         os.environ["PATH"] = os.pathsep.join([here, os.environ.get("PATH", "")])
     try:
-        recording.spawn(connect=connect)
+        recording.spawn(connect=False)
     except RuntimeError as exc:
-        first = str(exc).strip().splitlines()[0]
-        raise ConfigError(f"--rerun: no Rerun viewer could be started ({first})") from None
+        raise ConfigError(f"no Rerun viewer could be started ({_first_line(exc)})") from None
 
 
 def _ceiling(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:

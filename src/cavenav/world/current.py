@@ -15,7 +15,9 @@ Real flow is turbulent: on top of the mean, slow gusts of a `Current.gusts` frac
 RMS over the mean speed) change the speed along the passage and push across it (0.7 of
 that across, as in open-channel turbulence). Each gust is a sum of sinusoids with periods
 of 11 to 67 s and seeded phases, carried down the passage with the mean flow (Taylor's
-frozen turbulence), so a gust met here meets the vehicle again downstream.
+frozen turbulence), so a gust met here arrives downstream later. The water at a point is
+that of the nearest section of the centre line: a side passage or a dead end off it
+(a maze's) flows as the passage beside it, where real water would stand nearly still.
 
 A positive discharge flows from the exit toward the start, against the vehicle: the
 outflow of a spring, which cave divers swim up. A negative one flows toward the exit, as
@@ -43,6 +45,7 @@ import numpy as np
 from cavenav.errors import ConfigError
 from cavenav.kinematics import apply
 from cavenav.types import Action, Cruise, Pose
+from cavenav.world.procedural import cpu_independent
 from cavenav.world.raycast import RayCaster
 
 __all__ = ["Current", "CurrentField", "Passage", "carry", "cruise_seconds"]
@@ -83,7 +86,8 @@ class Current:
 
 
 def _frames(tangents: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Two unit vectors across each tangent (n, 3): one horizontal, one below it."""
+    """Two unit vectors across each tangent (n, 3): one horizontal, one at right angles
+    to it and the tangent (up, for a level passage)."""
     side = np.cross(tangents, [0.0, 0.0, 1.0])
     flat = np.linalg.norm(side, axis=1) < 1e-6  # a vertical shaft
     side[flat] = [1.0, 0.0, 0.0]
@@ -100,14 +104,12 @@ def _resample(line: np.ndarray, spacing: float) -> tuple[np.ndarray, np.ndarray]
 
 
 def _star_areas(
-    caster: RayCaster, origins: np.ndarray, side: np.ndarray, below: np.ndarray
+    caster: RayCaster, origins: np.ndarray, side: np.ndarray, up: np.ndarray
 ) -> np.ndarray:
     """(n,) the area of the star of rays from each origin across the passage, m^2."""
     angles = np.linspace(0.0, 2.0 * math.pi, SECTION_RAYS, endpoint=False)
-    directions = (
-        np.cos(angles)[None, :, None] * side[:, None]
-        + np.sin(angles)[None, :, None] * below[:, None]
-    )
+    cos, sin = cpu_independent(math.cos, angles), cpu_independent(math.sin, angles)
+    directions = cos[None, :, None] * side[:, None] + sin[None, :, None] * up[:, None]
     rays_from = np.broadcast_to(origins[:, None], directions.shape)
     reach = np.minimum(caster.first_hit(rays_from, directions).astype(np.float64), SECTION_REACH_M)
     # The star polygon: triangles between neighbouring rays.
@@ -116,11 +118,11 @@ def _star_areas(
 
 def _section_areas(caster: RayCaster, points: np.ndarray, tangents: np.ndarray) -> np.ndarray:
     """The cross-section of the passage at each point, m^2 (module docstring)."""
-    side, below = _frames(tangents)
+    side, up = _frames(tangents)
     shifts = SECTION_OFFSET_M * np.array([[0, 0], [1, 0], [-1, 0], [0, 1], [0, -1]])
-    origins = points[None] + shifts[:, None, :1] * side + shifts[:, None, 1:] * below
+    origins = points[None] + shifts[:, None, :1] * side + shifts[:, None, 1:] * up
     flat = origins.reshape(-1, 3)
-    stars = _star_areas(caster, flat, np.tile(side, (5, 1)), np.tile(below, (5, 1)))
+    stars = _star_areas(caster, flat, np.tile(side, (5, 1)), np.tile(up, (5, 1)))
     up = caster.count_intersections(flat, np.broadcast_to([0.0, 0.0, 1.0], flat.shape))
     in_water = (up % 2 == 1).reshape(5, -1)
     if in_water[0].sum() < max(2, len(points) // 2):  # not a closed mesh: no test
@@ -130,7 +132,9 @@ def _section_areas(caster: RayCaster, points: np.ndarray, tangents: np.ndarray) 
     if known.any():
         s = np.arange(len(points))
         areas = np.interp(s, s[known], areas[known])
-    return np.round(np.maximum(areas, SMALLEST_SECTION_M2), 3)  # the same on every CPU
+    # Rounded, so that the last bits of a ray cast, which may differ between CPUs, rarely
+    # reach the water's speed.
+    return np.round(np.maximum(areas, SMALLEST_SECTION_M2), 3)
 
 
 @dataclass(frozen=True, eq=False)
@@ -179,20 +183,23 @@ class CurrentField:
         return max(float(self.speeds.mean()), 1e-6)
 
     def _gust(self, tau: float) -> np.ndarray:
-        """(3,) unit-RMS gusts (along, side, below) at advected time ``tau``."""
+        """(3,) unit-RMS gusts (along, side, up) at advected time ``tau``; through the C
+        library's sine, the same on every CPU (`cpu_independent`)."""
         omega = 2.0 * math.pi / np.asarray(GUST_PERIODS_S)
-        return np.sin(omega * tau + self.phases).sum(axis=1) * math.sqrt(2.0 / len(GUST_PERIODS_S))
+        waves = cpu_independent(math.sin, omega * tau + self.phases)
+        return waves.sum(axis=1) * math.sqrt(2.0 / len(GUST_PERIODS_S))
 
     def velocity(self, position: np.ndarray, time_s: float) -> np.ndarray:
         """(3,) the water's velocity at ``position`` and ``time_s``, m/s (world frame)."""
         if self.current.still:
             return np.zeros(3)
         k = int(np.argmin(((self.points - position) ** 2).sum(axis=1)))
-        tau = time_s - self.arcs[k] / self._gust_speed  # gusts travel with the flow
-        along, side, below = self.current.gusts * self._gust(tau) * [1, ACROSS_GUSTS, ACROSS_GUSTS]
-        side_axis, below_axis = _frames(self.tangents[k : k + 1])
-        flow = (1.0 + along) * self.tangents[k] + side * side_axis[0] + below * below_axis[0]
-        return -math.copysign(self.speeds[k], self.current.discharge_m3s) * flow
+        downstream = -math.copysign(1.0, self.current.discharge_m3s)  # +1: toward the exit
+        tau = time_s - downstream * self.arcs[k] / self._gust_speed  # gusts go with the flow
+        along, side, up = self.current.gusts * self._gust(tau) * [1, ACROSS_GUSTS, ACROSS_GUSTS]
+        side_axis, up_axis = _frames(self.tangents[k : k + 1])
+        flow = (1.0 + along) * self.tangents[k] + side * side_axis[0] + up * up_axis[0]
+        return downstream * self.speeds[k] * flow
 
 
 def cruise_seconds(action: Action, cruise: Cruise) -> tuple[float, float]:

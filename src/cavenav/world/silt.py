@@ -16,8 +16,9 @@ Each step (taken to last `STEP_SECONDS`):
    thrust half.
 2. **Hanging.** Every puff spreads by turbulent diffusion (sigma^2 grows by 2 K dt),
    drifts with its decaying wash and with the cave's current where the water flows
-   (`cavenav.world.current`: upstream, a diver's silt falls behind), and sinks at fine
-   silt's settling speed. Puffs too thin
+   (`cavenav.world.current`, as it runs at the step's end: upstream, a diver's silt falls
+   behind), and sinks at fine silt's settling speed. The silt keeps its own clock of
+   `STEP_SECONDS` a step, whatever the move took. Puffs too thin
    to see are dropped, and past `MAX_PUFFS` the two oldest merge.
 
 The stirring constants are assumptions, set by eye to give what divers report (a few
