@@ -499,7 +499,8 @@ step, what the simulator gives it:
   - two echo-sounder ranges, up and down (e.g. Blue Robotics Ping2 sonars),
 and the bridge needs the vehicle's pose, LOCAL_POSITION_NED and ATTITUDE, in both modes
 (a DVL or another position estimate).
-cavenav has no driver for these sensors yet. Fly the loop in simulation with
+Of these, cavenav reads only the echo sounders so far (cavenav.vehicle.ping), and fly
+does not use them yet. Fly the loop in simulation with
 --sim SCENARIO against `cavenav fake-sub` or ArduSub's SITL, or print the MAVLink
 commands of an action with --dry-run --action TEXT."""
 

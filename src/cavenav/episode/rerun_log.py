@@ -36,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-from cavenav.errors import CavenavWarning, ConfigError
+from cavenav.errors import CavenavWarning, ConfigError, DependencyError
 from cavenav.sensors.camera import CameraIntrinsics
 from cavenav.sensors.depth import read_exr
 from cavenav.types import Observation, Pose, VehicleBody
@@ -68,7 +68,7 @@ def _rerun() -> Any:  # noqa: ANN401 - the module
     try:
         import rerun
     except ImportError:
-        raise ConfigError(
+        raise DependencyError(
             "the Rerun view needs rerun-sdk: pip install -e '.[rerun]' (or pip install rerun-sdk)"
         ) from None
     return rerun
