@@ -63,6 +63,26 @@ def test_nothing_answering_at_the_address_is_a_vehicle_error() -> None:
         silent.close()
 
 
+def test_a_failed_second_sounder_closes_the_first_again() -> None:
+    silent = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    silent.bind(("127.0.0.1", 0))
+    with FakePing1D(lambda: 2.0) as ceiling:
+        opened: list[PingSounder] = []
+        real_init = PingSounder.__init__
+
+        def remember(self: PingSounder, *args: object, **kwargs: object) -> None:
+            real_init(self, *args, **kwargs)  # type: ignore[arg-type]
+            opened.append(self)
+
+        with pytest.MonkeyPatch.context() as patch:
+            patch.setattr(PingSounder, "__init__", remember)
+            with pytest.raises(VehicleError, match="no answer"):
+                PingSounders.connect(ceiling.address, f"udp:127.0.0.1:{silent.getsockname()[1]}")
+        (up,) = opened
+        assert up.device.iodev.fileno() == -1  # closed
+    silent.close()
+
+
 @pytest.mark.parametrize(
     ("text", "address"),
     [

@@ -127,12 +127,21 @@ class PingSounders:
 
     @classmethod
     def connect(cls, up: str | None, down: str | None, min_confidence: int = 50) -> PingSounders:
-        """Open the sounders at the addresses given (None: that one is not fitted)."""
-        opened = [
-            PingSounder(PingAddress.parse(text), min_confidence) if text else None
-            for text in (up, down)
-        ]
-        return cls(*opened)
+        """Open the sounders at the addresses given (None: that one is not fitted).
+
+        Raises:
+            ConfigError, VehicleError: an address or a device (one opened before it is
+                closed again).
+        """
+        above, below = (PingAddress.parse(text) if text else None for text in (up, down))
+        sounders = cls(None, None)
+        try:
+            sounders.up = PingSounder(above, min_confidence) if above else None
+            sounders.down = PingSounder(below, min_confidence) if below else None
+        except VehicleError:
+            sounders.close()
+            raise
+        return sounders
 
     def read(self) -> tuple[float, float]:
         """(d_top, d_bottom) in metres; NaN where unknown or not fitted."""
