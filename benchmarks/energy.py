@@ -16,13 +16,10 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 from pathlib import Path
 
-import numpy as np
-
 from cavenav.actions import parse_action
-from cavenav.energy import KGF_N, PowerModel, Thruster
+from cavenav.energy import KGF_N, PowerModel, Thruster, thrusters_w
 from cavenav.types import Cruise, Pose
 from cavenav.world.current import carry
 
@@ -30,21 +27,14 @@ PUBLISHED = {"12 V": Thruster(3.71 * KGF_N, 205.0), "16 V": Thruster(5.25 * KGF_
 
 
 def flown_wh(steps: list[dict], thruster: Thruster, model: PowerModel) -> float:
-    """The moves of ``steps`` with ``thruster`` on every mount, Wh."""
-    vectored = 4.0 * math.cos(math.radians(45.0))
+    """The moves of ``steps`` against ``model``'s drag, with ``thruster`` on every mount, Wh."""
     total = 0.0
     for step in steps:
         if step.get("action") is None:
             continue
         action = parse_action(step["action"])
         passage = carry(None, Pose.from_dict(step["pose"]), action, 0.0, Cruise())
-        force = model.drag_n_s2_m2 * passage.through_water * np.abs(passage.through_water)
-        surge, sway, heave = force.T
-        watts = 2.0 * (
-            thruster.power_w((surge + sway) / vectored)
-            + thruster.power_w((surge - sway) / vectored)
-            + thruster.power_w(heave / 2.0)
-        )
+        watts = thrusters_w(model.drag_n(passage.through_water), thruster)
         total += float(((watts + model.hotel_w + model.lamps_w) * passage.dt).sum())
     return total / 3600.0
 

@@ -1,7 +1,7 @@
 """Imports flow one way: types <- world <- sensors <- reckoning <- shield, cave_map <- pilots
 <- env <- episode <- evaluation <- cli; `headway` (what "stuck" means) sits below env;
 `files` (how every layer writes a file in place) is a leaf like types, and `energy` (what
-moves cost a BlueROV2) knows only types;
+moves cost a BlueROV2) knows only types and errors;
 `vehicle` (the MAVLink bridge) knows only types, actions and kinematics: the environment
 takes it as a `Motion` without importing it."""
 

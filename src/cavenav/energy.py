@@ -32,9 +32,18 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from cavenav.errors import ConfigError
 from cavenav.types import VehicleBody
 
-__all__ = ["BATTERY_WH", "T200", "PowerModel", "Thruster", "lamp_watts"]
+__all__ = [
+    "BATTERY_WH",
+    "T200",
+    "PowerModel",
+    "Thruster",
+    "checked_budget",
+    "lamp_watts",
+    "thrusters_w",
+]
 
 KGF_N = 9.80665
 BATTERY_VOLTS, BATTERY_AH = 14.8, 18.0
@@ -67,6 +76,28 @@ T200 = Thruster(
 )
 
 
+def thrusters_w(force_n: np.ndarray, thruster: Thruster) -> np.ndarray:
+    """(k,) what six ``thruster`` draw to push (k, 3) body-frame forces (forward, right,
+    up): surge and sway shared by the four vectored at 45 degrees, heave by the two
+    vertical."""
+    surge, sway, heave = force_n[:, 0], force_n[:, 1], force_n[:, 2]
+    power, vectored = thruster.power_w, 4.0 * VECTORED
+    return 2.0 * (
+        power((surge + sway) / vectored) + power((surge - sway) / vectored) + power(heave / 2.0)
+    )
+
+
+def checked_budget(battery_wh: float | None) -> float | None:
+    """An energy budget as given, or None for none.
+
+    Raises:
+        ConfigError: a budget that is not a finite energy above 0.
+    """
+    if battery_wh is not None and not (math.isfinite(battery_wh) and battery_wh > 0):
+        raise ConfigError(f"battery {battery_wh} Wh: give a finite energy above 0")
+    return battery_wh
+
+
 def lamp_watts(count: int, lumens: float) -> float:
     """What ``count`` lamps of ``lumens`` each draw."""
     return count * lumens / LUMENS_PER_WATT
@@ -96,17 +127,19 @@ class PowerModel:
         front = b.width * b.height
         return surge * np.array([1.0, b.length * b.height / front, b.length * b.width / front])
 
+    def drag_n(self, through_water: np.ndarray) -> np.ndarray:
+        """(k, 3) the drag at each (k, 3) body-frame velocity through the water, N."""
+        return self.drag_n_s2_m2 * through_water * np.abs(through_water)
+
     def thrust_power_w(self, through_water: np.ndarray) -> np.ndarray:
         """(k,) the thrusters' draw at each (k, 3) body-frame velocity through the water."""
-        force = self.drag_n_s2_m2 * through_water * np.abs(through_water)
-        surge, sway, heave = force[:, 0], force[:, 1], force[:, 2]
-        power = self.thruster.power_w
-        vectored = 4.0 * VECTORED
-        return 2.0 * (
-            power((surge + sway) / vectored) + power((surge - sway) / vectored) + power(heave / 2.0)
-        )
+        return thrusters_w(self.drag_n(through_water), self.thruster)
 
     def energy_wh(self, dt: np.ndarray, through_water: np.ndarray) -> float:
         """Energy over time steps ``dt`` (k,) at velocities ``through_water`` (k, 3), Wh."""
         watts = self.thrust_power_w(through_water) + self.hotel_w + self.lamps_w
         return float((watts * dt).sum() / 3600.0)
+
+    def straight_wh_per_m(self, speed_m_s: float) -> float:
+        """What a metre straight ahead at ``speed_m_s`` costs, Wh."""
+        return self.energy_wh(np.array([1.0 / speed_m_s]), np.array([[speed_m_s, 0.0, 0.0]]))

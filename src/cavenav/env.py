@@ -35,7 +35,7 @@ from cavenav.actions import (
     parse_action,
     snap_action,
 )
-from cavenav.energy import BATTERY_WH, PowerModel, lamp_watts
+from cavenav.energy import BATTERY_WH, PowerModel, checked_budget, lamp_watts
 from cavenav.errors import ActionError, ConfigError
 from cavenav.kinematics import Drift, Kinematic, Motion
 from cavenav.sensors.camera import pixel_size
@@ -124,12 +124,6 @@ def _sized(sensors: SensorConfig, resolution: tuple[int, int] | None) -> SensorC
 def _penalty(collision_penalty: float | None) -> dict[str, float]:
     """`Reward`'s collision term as the keyword before `Reward` sets it."""
     return {} if collision_penalty is None else {"collision": collision_penalty}
-
-
-def _budget(battery_wh: float | None) -> float | None:
-    if battery_wh is not None and not (math.isfinite(battery_wh) and battery_wh > 0):
-        raise ConfigError(f"battery {battery_wh} Wh: give a finite energy above 0")
-    return battery_wh
 
 
 def _power(sensors: SensorConfig, body: VehicleBody) -> PowerModel:
@@ -352,7 +346,7 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
         self.rules, self.space, self.action_format = rules, space, action_format
         self.reward = replace(reward or Reward(), **_penalty(collision_penalty))
         self.motion: Motion = motion or Kinematic()
-        self.current, self.battery_wh = _water(motion, current), _budget(battery_wh)
+        self.current, self.battery_wh = _water(motion, current), checked_budget(battery_wh)
         self.cruise, self.power = Cruise(), _power(self.sensors, self.body)
         self._default_scenario, self._default_cave_seed = scenario, cave_seed
         self._world: _World | None = None

@@ -15,6 +15,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any
 
+from cavenav.energy import checked_budget
 from cavenav.errors import ConfigError
 from cavenav.sensors.depth import DEPTH_RANGE_M, EXR_COMPRESSIONS
 from cavenav.world.current import Current
@@ -90,8 +91,7 @@ class EpisodeSettings:
 
             Difficulty.from_dict(self.difficulty)
         Current(self.discharge_m3s, self.gusts)  # a bad value fails here, not in a worker
-        if self.battery_wh is not None and not (0 < self.battery_wh < float("inf")):
-            raise ConfigError(f"battery {self.battery_wh} Wh: give a finite energy above 0")
+        checked_budget(self.battery_wh)
 
     @property
     def current(self) -> Current:

@@ -13,8 +13,6 @@ from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
 
-import numpy as np
-
 from cavenav.actions import DEFAULT_SPACE, ActionSpace
 from cavenav.energy import PowerModel
 from cavenav.errors import ConfigError
@@ -87,15 +85,9 @@ class PromptConfig:
             "vertical_min_m": _num(space.vertical_range_m[0]),
             "vertical_max_m": _num(space.vertical_range_m[1]),
             "map_span_m": _num(self.map_span_m),
-            "energy_per_m_wh": f"{_cruise_wh_per_m():.3f}",
+            # a metre straight ahead at cruise, with two lamps
+            "energy_per_m_wh": f"{PowerModel().straight_wh_per_m(Cruise().speed_m_s):.3f}",
         }
-
-
-def _cruise_wh_per_m() -> float:
-    """What a metre straight ahead at cruise speed costs a BlueROV2 with two lamps."""
-    cruise = Cruise()
-    seconds = 1.0 / cruise.speed_m_s
-    return PowerModel().energy_wh(np.array([seconds]), np.array([[cruise.speed_m_s, 0.0, 0.0]]))
 
 
 def _num(value: float) -> str:

@@ -25,7 +25,10 @@ from dataclasses import dataclass
 from types import TracebackType
 from typing import Any
 
-from cavenav.errors import ConfigError, DependencyError, VehicleError
+import brping
+from brping import definitions
+
+from cavenav.errors import ConfigError, VehicleError
 
 __all__ = ["FakePing1D", "PingAddress", "PingSounder", "PingSounders"]
 
@@ -33,16 +36,6 @@ SERIAL_BAUD = 115200
 HEADER = struct.Struct("<2sHHBB")  # "BR", payload length, message id, source, destination
 PROTOCOL_VERSION, GENERAL_REQUEST = 5, 6  # the ping protocol's common messages
 GENERAL_INFO, DISTANCE_SIMPLE = 1210, 1211  # Ping1D's
-
-
-def _brping() -> Any:  # noqa: ANN401 - the module
-    try:
-        import brping
-    except ImportError:
-        raise DependencyError(
-            "reading Ping sounders needs bluerobotics-ping: pip install bluerobotics-ping"
-        ) from None
-    return brping
 
 
 @dataclass(frozen=True)
@@ -86,7 +79,7 @@ class PingSounder:
             VehicleError: the device cannot be opened or does not answer.
         """
         self.address, self.min_confidence = address, min_confidence
-        device = _brping().Ping1D(payload_dict=_ping1d_messages())
+        device = brping.Ping1D(payload_dict=_ping1d_messages())
         try:
             with contextlib.redirect_stdout(io.StringIO()):  # it prints "Opening ..."
                 if address.kind == "udp":
@@ -159,13 +152,12 @@ def _ping1d_messages() -> dict[int, Any]:
     """The Ping1D's own message table. The library's combined table, which a device made
     without one uses, gives message 1211 to the S500's altitude (bluerobotics-ping 0.2.5),
     and a Ping1D's ``distance_simple`` then cannot be read."""
-    definitions = _brping().definitions
     return {**definitions.payload_dict_common, **definitions.payload_dict_ping1d}
 
 
 def _message(message_id: int, **fields: int) -> bytes:
     """A Ping1D message, packed by the library's own `PingMessage`."""
-    message = _brping().PingMessage(message_id, payload_dict=_ping1d_messages())
+    message = brping.PingMessage(message_id, payload_dict=_ping1d_messages())
     for name, value in fields.items():
         setattr(message, name, value)
     return bytes(message.pack_msg_data())
