@@ -770,10 +770,24 @@ def wait_until(condition: Callable[[], bool], timeout_s: float = 5.0) -> bool:
 # ---------------------------------------------------------------------------- the command
 
 
-def test_fly_without_a_simulator_says_what_a_real_vehicle_must_provide() -> None:
-    result = cavenav("fly")
+def test_fly_on_a_vehicles_own_sensors_refuses_the_geometric_pilot_without_depth(
+    tmp_path: Path,
+) -> None:
+    result = cavenav("fly", "--pilot", "geometric", "--out", str(tmp_path / "runs"))
     assert result.returncode == 2
-    assert "forward depth image" in result.stderr and "--sim" in result.stderr
+    (line,) = result.stderr.strip().splitlines()
+    assert "steers by the depth image: give --depth-model FOLDER" in line
+    assert not (tmp_path / "runs").exists()
+
+
+def test_fly_on_a_vehicles_own_sensors_refuses_a_bad_camera_address(tmp_path: Path) -> None:
+    result = cavenav("fly", "--pilot", "random", "--camera", "udp:99999", "--out", str(tmp_path))
+    assert result.returncode == 2
+    assert result.stderr.strip().splitlines() == [
+        "error: camera 'udp:99999': give udp:PORT (RTP H.264, BlueOS sends to 5600), "
+        "rtsp://HOST:PORT/PATH or a URL FFmpeg opens"
+    ]
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_fly_dry_run_prints_the_commands_and_sends_nothing() -> None:

@@ -22,7 +22,9 @@ import contextlib
 import math
 import os
 import sys
+import time
 import warnings
+from collections.abc import Callable
 from dataclasses import replace
 from enum import StrEnum
 from pathlib import Path
@@ -32,13 +34,17 @@ import typer
 from rich.markup import escape
 from rich.table import Table
 
-from cavenav.cli_flights import fly_episode, fly_sweep, fly_vehicle
+from cavenav.cli_flights import fly_episode, fly_on_own_sensors, fly_sweep, fly_vehicle
 from cavenav.cli_options import (
+    CAVE_SCENE,
     LIVE_VIEW,
+    OWN_SENSORS,
     SETTINGS,
     VLM,
+    CaveScene,
     ExrCompression,
     LiveView,
+    OwnSensors,
     finite,
     takes,
 )
@@ -81,6 +87,7 @@ FILLED_BY_TAKES, VLM_FILLED_BY_TAKES, VIEW_FILLED_BY_TAKES = (
     VLMOptions(),
     LiveView(),
 )
+OWN_SENSORS_FILLED_BY_TAKES, CAVE_SCENE_FILLED_BY_TAKES = OwnSensors(), CaveScene()
 
 
 @app.command()
@@ -490,23 +497,8 @@ class FlyMode(StrEnum):
     guided = "guided"
 
 
-# What `cavenav fly` without --sim needs from a real vehicle, and does not have yet.
-REAL_VEHICLE_INPUTS = """\
-cavenav fly without --sim would fly a real vehicle on its own sensors. A pilot needs, each
-step, what the simulator gives it:
-  - a forward colour image (640x480 by default, 53 degrees across),
-  - a forward depth image in metres, registered to it (a stereo pair or a depth camera),
-  - two echo-sounder ranges, up and down (e.g. Blue Robotics Ping2 sonars),
-and the bridge needs the vehicle's pose, LOCAL_POSITION_NED and ATTITUDE, in both modes
-(a DVL or another position estimate).
-Of these, cavenav reads only the echo sounders so far (cavenav.vehicle.ping), and fly
-does not use them yet. Fly the loop in simulation with
---sim SCENARIO against `cavenav fake-sub` or ArduSub's SITL, or print the MAVLink
-commands of an action with --dry-run --action TEXT."""
-
-
 @app.command()
-@takes(settings=SETTINGS, vlm=VLM, view=LIVE_VIEW)
+@takes(settings=SETTINGS, vlm=VLM, view=LIVE_VIEW, own=OWN_SENSORS)
 def fly(
     connect: Annotated[
         str | None,
@@ -546,27 +538,89 @@ def fly(
     settings: EpisodeSettings = FILLED_BY_TAKES,
     vlm: VLMOptions = VLM_FILLED_BY_TAKES,
     view: LiveView = VIEW_FILLED_BY_TAKES,
+    own: OwnSensors = OWN_SENSORS_FILLED_BY_TAKES,
 ) -> None:
-    """Fly a pilot on an ArduSub vehicle over MAVLink (BlueROV2); with --sim, in a cave."""
+    """Fly a pilot on an ArduSub vehicle over MAVLink (BlueROV2): on its own camera,
+    sounders and depth model, or with --sim in a simulated cave."""
     from cavenav.vehicle.mavlink import load_bridge_config
 
     bridge = load_bridge_config(config, connect=connect, mode=mode.value if mode else None)
     if dry_run:
         _print_dry_run(bridge, action or [])
         return
+    spec = _pilot_spec(pilot, vlm, from_, policy)
+    settings = replace(settings, save_frames=frames, shield=shield)
+    confirm = None if yes else typer.confirm
     if sim is None:
-        errors.print(REAL_VEHICLE_INPUTS, highlight=False)
-        raise typer.Exit(2)
+        _fly_own_sensors(bridge, spec, own, settings, view, out, confirm)
+    else:
+        _fly_in_a_simulated_cave(bridge, spec, (sim, seed), settings, view, out, confirm)
+
+
+def _fly_in_a_simulated_cave(
+    bridge: Any,  # noqa: ANN401
+    spec: PilotSpec,
+    cave_and_seed: tuple[str, int],
+    settings: EpisodeSettings,
+    view: LiveView,
+    out: Path,
+    confirm: Callable[[str], bool] | None,
+) -> None:
+    """`fly --sim`: each observation rendered where the vehicle reports it is."""
     from cavenav.episode.run_folder import new_run_dir, prepare_root
 
-    spec = _pilot_spec(pilot, vlm, from_, policy)
+    scenario, seed = cave_and_seed
     flyer = spec.build(seed=seed)
-    settings = _on_a_vehicle(replace(settings, save_frames=frames, shield=shield), spec)
+    settings = _on_a_vehicle(settings, spec)
     prepare_root(out)
-    cave = _built(settings, sim, seed)
-    run_dir = new_run_dir(out, cave.name, pilot, cave.seed)
-    confirm = None if yes else typer.confirm
+    cave = _built(settings, scenario, seed)
+    run_dir = new_run_dir(out, cave.name, spec.name, cave.seed)
     fly_vehicle(bridge, cave, flyer, settings.episode_config(cave), run_dir, confirm, view)
+
+
+def _fly_own_sensors(
+    bridge: Any,  # noqa: ANN401
+    spec: PilotSpec,
+    own: OwnSensors,
+    settings: EpisodeSettings,
+    view: LiveView,
+    out: Path,
+    confirm: Callable[[str], bool] | None,
+) -> None:
+    """`fly` without --sim: the pilot on the vehicle's own sensors (`fly_on_own_sensors`)."""
+    if view.wanted or settings.battery_wh is not None:
+        raise CavenavError(
+            "--rerun, --rerun-save and --battery-wh need --sim: a vehicle on its own "
+            "sensors has no cave model to show, and reports its own battery"
+        )
+    from cavenav.episode.loop import DEFAULT_STEPS
+    from cavenav.episode.on_vehicle import Flight
+    from cavenav.episode.run_folder import new_run_dir, prepare_root
+    from cavenav.vehicle.camera import CameraAddress
+    from cavenav.vehicle.ping import PingAddress
+
+    camera = CameraAddress.parse(own.camera)  # refused before any folder or connection
+    for sounder in (own.ping_up, own.ping_down):
+        if sounder:
+            PingAddress.parse(sounder)
+
+    if spec.name in ("geometric", "policy") and own.depth_model is None:
+        raise CavenavError(
+            f"the {spec.name} pilot steers by the depth image: give --depth-model FOLDER "
+            "(a metric monocular depth model), or fly --pilot vlm, which is told it has none"
+        )
+    settings = _on_a_vehicle(settings, spec)
+    vehicle = {
+        "connect": bridge.connect, "mode": bridge.mode, "camera": str(camera),
+        "camera_hfov_deg": own.camera_hfov, "ping_up": own.ping_up, "ping_down": own.ping_down,
+        "depth_model": own.depth_model,
+    }  # fmt: skip
+    flight = Flight(settings.steps or DEFAULT_STEPS, settings.shield, settings.save_frames, vehicle)
+    flyer = spec.build(seed=0)
+    prepare_root(out)
+    run_dir = new_run_dir(out, "vehicle", spec.name, None)
+    size = settings.resolution or (640, 480)
+    fly_on_own_sensors(bridge, flyer, flight, (own, size), run_dir, confirm)
 
 
 def _on_a_vehicle(settings: EpisodeSettings, spec: PilotSpec) -> EpisodeSettings:
@@ -594,6 +648,7 @@ def _print_dry_run(bridge: Any, actions: list[str]) -> None:  # noqa: ANN401
 
 
 @app.command("fake-sub")
+@takes(cave=CAVE_SCENE)
 def fake_sub(
     connect: Annotated[
         str, typer.Option(help="where to send (the bridge listens there with udpin)")
@@ -612,8 +667,10 @@ def fake_sub(
         float, typer.Option(min=0.1, callback=finite, help="FS_PILOT_TIMEOUT, seconds")
     ] = 3.0,
     seed: Annotated[int, typer.Option(min=0, help="seed of the execution noise")] = 0,
+    cave: CaveScene = CAVE_SCENE_FILLED_BY_TAKES,
 ) -> None:
-    """A simulated ArduSub autopilot on MAVLink, for `cavenav fly --sim` with no vehicle."""
+    """A simulated ArduSub autopilot on MAVLink, for `cavenav fly` with no vehicle; with
+    --scene, its camera and sounders too, rendered in a cave."""
     from cavenav.vehicle.fake_sub import FakeSubConfig, FakeSubState, serve
 
     try:
@@ -644,9 +701,46 @@ def fake_sub(
             soft_wrap=True,
         )
 
+    if cave.scene is not None:
+        _serve_in_a_cave(settings, EpisodeSettings(), cave, show)
+        return
     console.print(f"fake ArduSub sending to {connect}; Ctrl-C stops it")
     with contextlib.suppress(KeyboardInterrupt):
         serve(settings, on_state=show)
+
+
+def _serve_in_a_cave(
+    config: Any,  # noqa: ANN401 - lazy imports
+    settings: EpisodeSettings,
+    scene: CaveScene,
+    show: Callable[[Any], None],
+) -> None:
+    """`fake-sub --scene`: the fake autopilot with its camera and sounders in a cave
+    (`cavenav.cave_sensors`), until Ctrl-C."""
+    from cavenav.cave_sensors import CaveSensors
+    from cavenav.vehicle.fake_sub import FakeSub
+
+    assert scene.scene is not None
+    cave = _built(settings, scene.scene, scene.cave_seed)
+    pings = (scene.ping_up_port, scene.ping_down_port)
+    with FakeSub(config) as sub, CaveSensors(
+        sub, cave, settings.sensors_for(cave), scene.camera_port, pings
+    ) as sensors:  # fmt: skip
+        console.print(
+            f"fake ArduSub in {cave.name} sending to {config.address}; camera "
+            f"udp:{scene.camera_port} "
+            f"(RTP H.264), sounders {sensors.up.address} (up) and {sensors.down.address} "
+            "(down); Ctrl-C stops it",
+            soft_wrap=True,
+            highlight=False,
+        )
+        with contextlib.suppress(KeyboardInterrupt):
+            while True:
+                time.sleep(1.0)
+                show(sub.state())
+                clearance = sensors.clearance_m()
+                where = "[red]inside rock[/]" if clearance < 0 else f"clearance {clearance:.2f} m"
+                console.print(f"         {where}", highlight=False)
 
 
 @app.command()

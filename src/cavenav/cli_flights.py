@@ -5,6 +5,7 @@ what Ctrl-C, SIGTERM or a refused start leave behind (the exit statuses of `cave
 from __future__ import annotations
 
 import contextlib
+import math
 import signal
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -21,11 +22,11 @@ from rich.progress import (
     TimeRemainingColumn,
 )
 
-from cavenav.cli_options import LiveView
+from cavenav.cli_options import LiveView, OwnSensors
 from cavenav.cli_output import console, errors, print_summary
 from cavenav.errors import CavenavError
 
-__all__ = ["fly_episode", "fly_sweep", "fly_vehicle"]
+__all__ = ["fly_episode", "fly_on_own_sensors", "fly_sweep", "fly_vehicle", "open_sensors"]
 
 
 def fly_episode(
@@ -221,3 +222,89 @@ def fly_vehicle(
     finally:
         motion.close()
     console.print(f"commands:   {run_dir / 'mavlink.jsonl'}", soft_wrap=True)
+
+
+def open_sensors(own: OwnSensors, size: tuple[int, int], stack: contextlib.ExitStack) -> Any:  # noqa: ANN401 - VehicleSenses
+    """Open every sensor ``own`` names (each closed by ``stack``), the slow depth model
+    last; the camera's frames come at ``size`` (width, height)."""
+    from cavenav.episode.on_vehicle import VehicleSenses
+    from cavenav.sensors.camera import CameraIntrinsics
+    from cavenav.vehicle.camera import CameraAddress, VideoCamera
+    from cavenav.vehicle.ping import PingSounders
+
+    address = CameraAddress.parse(own.camera)
+    sounders = PingSounders.connect(own.ping_up, own.ping_down)
+    stack.callback(sounders.close)
+    with console.status(f"opening the camera stream {address}"):
+        camera = VideoCamera(address, size)
+    stack.callback(camera.close)
+    depth = None
+    if own.depth_model is not None:
+        from cavenav.sensors.monocular import MonocularDepth
+
+        with console.status(f"loading the depth model {own.depth_model}"):
+            depth = MonocularDepth(own.depth_model)
+    focal_mm = 18.0 / math.tan(math.radians(own.camera_hfov) / 2)  # on a 36 mm sensor
+    intrinsics = CameraIntrinsics(*size, focal_mm=focal_mm)
+    return VehicleSenses(camera, sounders, depth, intrinsics)
+
+
+def fly_on_own_sensors(
+    bridge: Any,  # noqa: ANN401 - lazy imports
+    flyer: Any,  # noqa: ANN401
+    flight: Any,  # noqa: ANN401
+    sensors: tuple[OwnSensors, tuple[int, int]],
+    run_dir: Path,
+    confirm: Any,  # noqa: ANN401
+) -> None:
+    """Fly a vehicle on its camera, sounders and depth source (``sensors``: which, and
+    the camera's frame size), with no simulator; refused sensors or a failed connection
+    leave no folder."""
+    from cavenav.episode.on_vehicle import fly_on_sensors
+    from cavenav.vehicle.mavlink import ArduSubMotion
+
+    with contextlib.ExitStack() as stack:
+        motion = ArduSubMotion(bridge, run_dir / "mavlink.jsonl", confirm=confirm, reckon=True)
+        stack.callback(motion.close)
+        try:
+            senses = open_sensors(*sensors, stack)
+            console.print(
+                f"[bold]vehicle[/] through MAVLink ({bridge.mode} mode, {bridge.connect}): "
+                "waiting for the vehicle's heartbeat",
+                soft_wrap=True,
+                highlight=False,
+            )
+            with Progress(*_bar(), console=console) as progress:
+                task = progress.add_task("flying", total=flight.max_steps, status="")
+
+                def on_step(record: dict) -> None:
+                    status = f"{record.get('action') or ''}"
+                    progress.update(task, advance=1, status=status[:60])
+
+                summary = fly_on_sensors(flyer, senses, motion, flight, run_dir, on_step)
+        except KeyboardInterrupt:
+            errors.print(_interrupted(run_dir), soft_wrap=True)
+            raise typer.Exit(130) from None
+        except CavenavError as exc:
+            if not (run_dir / "summary.json").exists():  # nothing was flown
+                (run_dir / "mavlink.jsonl").unlink(missing_ok=True)
+                _remove_if_empty(run_dir)
+            else:
+                exc.args = (f"{exc} (the record so far is in {run_dir})",)
+            raise
+    _print_flight(summary, run_dir)
+
+
+def _print_flight(summary: dict[str, Any], run_dir: Path) -> None:
+    sigma = summary.get("position_sigma_m")
+    where = f" (reckoned, +/- {sigma:.2f} m)" if sigma is not None else ""
+    console.print(
+        f"{summary['termination']} after {summary['steps']} steps: "
+        f"{summary['path_length_m']:.2f} m flown, {summary['progress_m']:.2f} m from the "
+        f"start{where}",
+        highlight=False,
+    )
+    console.print(f"run folder: [bold]{run_dir}[/]", soft_wrap=True)
+    console.print(f"commands:   {run_dir / 'mavlink.jsonl'}", soft_wrap=True)
+    if summary["termination"] == "pilot_failure":
+        raise typer.Exit(1)

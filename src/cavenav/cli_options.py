@@ -26,7 +26,9 @@ from cavenav.sensors.depth import EXR_COMPRESSIONS
 from cavenav.sensors.optics import WATER_TYPES
 
 __all__ = [
+    "CAVE_SCENE",
     "LIVE_VIEW",
+    "OWN_SENSORS",
     "SETTINGS",
     "VLM",
     "Backend",
@@ -514,4 +516,92 @@ LIVE_VIEW = OptionGroup(
         _flag("rerun_save", Path, None, "write the Rerun recording to this .rrd file"),
     ),
     LiveView,
+)
+
+
+@dataclass(frozen=True)
+class OwnSensors:
+    """A vehicle's own sensors, for `cavenav fly` without --sim (`cavenav.episode.on_vehicle`).
+
+    Attributes:
+        camera: the video stream (`cavenav.vehicle.camera.CameraAddress`).
+        camera_hfov: the camera's horizontal field of view in water, degrees.
+        ping_up, ping_down: the sounders' addresses (`cavenav.vehicle.ping.PingAddress`);
+            None: not fitted.
+        depth_model: the folder of a metric monocular depth model; None: no depth image.
+    """
+
+    camera: str = "udp:5600"
+    camera_hfov: float = 53.13
+    ping_up: str | None = None
+    ping_down: str | None = None
+    depth_model: str | None = None
+
+
+OWN_SENSORS = OptionGroup(
+    (
+        _flag(
+            "camera",
+            str,
+            "udp:5600",
+            "without --sim: the video, udp:PORT (RTP H.264, as BlueOS sends it) or rtsp://...",
+        ),
+        _flag(
+            "camera_hfov",
+            float,
+            53.13,
+            "without --sim: the camera's horizontal field of view in water, degrees",
+            min=10,
+            max=170,
+            callback=finite,
+        ),
+        _flag(
+            "ping_up",
+            str,
+            None,
+            "without --sim: the upward sounder, udp:HOST:PORT or serial:DEVICE[:BAUD]",
+        ),  # fmt: skip
+        _flag("ping_down", str, None, "without --sim: the downward sounder (udp:HOST:9090)"),
+        _flag(
+            "depth_model",
+            Path,
+            None,
+            "without --sim: a folder holding a metric monocular depth model (none: no depth image)",
+        ),
+    ),
+    OwnSensors,
+)
+
+
+@dataclass(frozen=True)
+class CaveScene:
+    """Where `cavenav fake-sub --scene` puts the fake vehicle, and where its camera and
+    sounders answer (`cavenav.cave_sensors`)."""
+
+    scene: str | None = None
+    cave_seed: int = 0
+    camera_port: int = 5600
+    ping_up_port: int = 9091
+    ping_down_port: int = 9090
+
+
+def _port(name: str, default: int, text: str) -> Flag:
+    return _flag(name, int, default, f"--scene: {text}", min=1, max=65535)
+
+
+CAVE_SCENE = OptionGroup(
+    (
+        _flag(
+            "scene",
+            str,
+            None,
+            "serve the vehicle's camera (RTP H.264) and sounders "
+            "(Ping1D) rendered in this cave (a family or a .toml)",
+        ),  # fmt: skip
+        _flag("cave_seed", int, 0, "seed of the --scene cave", min=0),
+        _port("camera_port", 5600, "the camera's UDP port on 127.0.0.1"),
+        _port("ping_up_port", 9091, "the upward Ping1D's UDP port"),
+        _port("ping_down_port", 9090, "the downward Ping1D's UDP port"),
+    ),
+    CaveScene,
 )

@@ -18,6 +18,9 @@ of `Rules` (SPEC section 3):
 4. No move enters space that was never seen free: every point along the straight move,
    and the body's leading edge beyond its end, must lie in the view of a remembered depth
    image in front of the surface there, in the sounders' column, or inside the body.
+5. Without a depth image (`Observation.has_depth`: a vehicle with no depth source) only
+   vertical moves fly, judged by the sounders: every turn and horizontal move goes where
+   nothing was seen.
 
 Crawlway mode: where the open margin cannot be kept for the way on, that is in a passage
 pinched on both sides (surfaces nearer than the open margin on opposite sides of the
@@ -198,9 +201,11 @@ class DepthMemory:
         s = sampling_stride(w, self.stride, self.columns)
         focal = 0.5 * w / math.tan(math.radians(obs.hfov_deg) / 2)
         # Surface points at every s-th pixel, as the geometric pilot has always kept them.
-        seen = DepthSamples.of(obs, s)
-        keep = seen.surface & (seen.depth < self.max_range_m)
-        points = seen.points(ahead_m=obs.camera_offset_m)[keep].astype(np.float32)
+        points = np.empty((0, 3), np.float32)
+        if obs.has_depth:  # without one, no surface is known and no space free (depth 0)
+            seen = DepthSamples.of(obs, s)
+            keep = seen.surface & (seen.depth < self.max_range_m)
+            points = seen.points(ahead_m=obs.camera_offset_m)[keep].astype(np.float32)
         sounded = [(0.0, 0.0, z) for z in (obs.d_top, -obs.d_bottom) if abs(z) < self.max_range_m]
         points = np.concatenate([points, np.array(sounded, np.float32).reshape(-1, 3)])
         # Free space: the nearest depth in each block and its neighbours.
@@ -568,6 +573,8 @@ class Shield:
         cfg, rules = self.config, self.config.rules
         if action.is_hold:
             return ""
+        if not s.sighted and (action.forward or action.right or action.yaw_deg):
+            return "no depth image: only a vertical move, which the sounders judge, flies blind"
         if action.yaw_deg and s.turn_room_m < cfg.body.turn_radius + 0.05:
             return f"a surface {s.turn_room_m:.2f} m beside the centre leaves no room to turn"
         judged = crawlway_move(
@@ -646,6 +653,7 @@ class _Situation:
     turn_room_m: float  # horizontal distance to the nearest surface at the body's height
     nearest_m: float  # the nearest surface, or the ceiling or floor if nearer
     away: Action  # a 0.1 m lateral or vertical shift away from the nearest surface
+    sighted: bool  # a depth image came with the observation
 
     @classmethod
     def of(cls, obs: Observation, memory: DepthMemory, cfg: ShieldConfig) -> _Situation:
@@ -668,6 +676,7 @@ class _Situation:
             turn_room_m=float(beside.min()) if beside.size else math.inf,
             nearest_m=min(around.nearest_m, obs.d_top, obs.d_bottom),
             away=away,
+            sighted=obs.has_depth,
         )
 
 

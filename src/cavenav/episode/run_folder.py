@@ -83,7 +83,8 @@ def new_run_dir(root: str | Path, scenario: str, pilot: str, seed: int | None) -
     """
     root = Path(root)
     stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
-    safe = re.sub(r"[^A-Za-z0-9_.-]+", "_", f"{stamp}_{scenario}_{pilot}_seed{seed}")
+    seeded = "" if seed is None else f"_seed{seed}"  # a vehicle's own sensors have none
+    safe = re.sub(r"[^A-Za-z0-9_.-]+", "_", f"{stamp}_{scenario}_{pilot}{seeded}")
     for suffix in itertools.count(1):
         path = root / (safe if suffix == 1 else f"{safe}_{suffix}")
         try:

@@ -8,7 +8,7 @@ FS_PILOT_TIMEOUT), so that a bridge that flies this fake should fly the real veh
 * HEARTBEAT at 1 Hz (MAV_TYPE_SUBMARINE, ArduSub's base_mode bits, custom_mode = mode
   number, system_status STANDBY / ACTIVE, CRITICAL while a failsafe is active);
 * COMMAND_LONG MAV_CMD_COMPONENT_ARM_DISARM, MAV_CMD_DO_SET_MODE and
-  MAV_CMD_SET_MESSAGE_INTERVAL (for ATTITUDE and LOCAL_POSITION_NED), and the SET_MODE
+  MAV_CMD_SET_MESSAGE_INTERVAL (for the streamed messages below), and the SET_MODE
   message, each answered with a COMMAND_ACK; other commands are UNSUPPORTED;
 * the modes MANUAL (at boot), STABILIZE, ALT_HOLD and GUIDED; other mode numbers are
   refused with "No such mode", GUIDED without a position estimate too;
@@ -18,7 +18,9 @@ FS_PILOT_TIMEOUT), so that a bridge that flies this fake should fly the real veh
 * GUIDED position targets (SET_POSITION_TARGET_LOCAL_NED with velocity and acceleration
   ignored) in MAV_FRAME_LOCAL_NED, LOCAL_OFFSET_NED and BODY_OFFSET_NED, with a yaw or
   holding the heading;
-* ATTITUDE and LOCAL_POSITION_NED streams.
+* ATTITUDE, VFR_HUD (the depth as a negative altitude and the heading, as ArduSub fills
+  it in) and LOCAL_POSITION_NED streams; without a position estimate, no
+  LOCAL_POSITION_NED, as ArduSub sends none when its EKF has no horizontal position.
 
 What it simplifies: the vehicle is kinematic (velocities are reached at once, roll and pitch
 stay zero), the water has no surface and no bottom, GUIDED velocity targets and yaw rates
@@ -66,7 +68,11 @@ MODE_NAMES = {STABILIZE: "STABILIZE", ALT_HOLD: "ALT_HOLD", GUIDED: "GUIDED", MA
 AUTOPILOT_COMPONENT = 1  # MAV_COMP_ID_AUTOPILOT1
 NEUTRAL_STICKS = (0, 0, 500, 0)  # MANUAL_CONTROL x, y, z, r with no pilot input
 GAIN_REDRAW_S = 1.0  # how long one draw of the thrusters' gain error lasts
-STREAMED = (MAV.MAVLINK_MSG_ID_ATTITUDE, MAV.MAVLINK_MSG_ID_LOCAL_POSITION_NED)
+STREAMED = (
+    MAV.MAVLINK_MSG_ID_ATTITUDE,
+    MAV.MAVLINK_MSG_ID_VFR_HUD,
+    MAV.MAVLINK_MSG_ID_LOCAL_POSITION_NED,
+)
 TARGET_FRAMES = (
     MAV.MAV_FRAME_LOCAL_NED,
     MAV.MAV_FRAME_LOCAL_OFFSET_NED,
@@ -556,10 +562,16 @@ class FakeSub:
         )
 
     def _send(self, message_id: int, now: float) -> None:
-        """Send one ATTITUDE, or one LOCAL_POSITION_NED if there is a position estimate."""
+        """Send one ATTITUDE, one VFR_HUD, or one LOCAL_POSITION_NED if there is a position
+        estimate."""
         boot_ms = int((now - self._boot) * 1000.0) & 0xFFFFFFFF
         if message_id == MAV.MAVLINK_MSG_ID_ATTITUDE:
             self._conn.mav.attitude_send(boot_ms, 0.0, 0.0, self._yaw, 0.0, 0.0, self._yaw_rate)
+        elif message_id == MAV.MAVLINK_MSG_ID_VFR_HUD:
+            speed = float(np.hypot(*self._velocity[:2]))
+            heading = round(math.degrees(self._yaw)) % 360
+            climb, altitude = -float(self._velocity[2]), -float(self._position[2])
+            self._conn.mav.vfr_hud_send(speed, speed, heading, 0, altitude, climb)
         elif self.config.position_estimate:
             self._conn.mav.local_position_ned_send(
                 boot_ms, *(float(v) for v in self._position), *(float(v) for v in self._velocity)

@@ -14,8 +14,12 @@ straight translation, each a *segment*. Two ways to drive a segment, chosen by t
   absolute, so a relative turn can go the wrong way. Needs a position estimate (a DVL).
 
 Both modes read the pose from ``LOCAL_POSITION_NED`` and ``ATTITUDE`` (requested at
-``telemetry_hz`` with ``MAV_CMD_SET_MESSAGE_INTERVAL``): ALT_HOLD itself needs only the
-depth sensor, but the loop places each observation at the reported pose.
+``telemetry_hz`` with ``MAV_CMD_SET_MESSAGE_INTERVAL``, with ``VFR_HUD`` for the depth):
+ALT_HOLD itself needs only the depth sensor, and a vehicle flown on its own sensors
+(`ArduSubMotion` with ``reckon``) that reports no position is placed by dead reckoning
+from its depth, its heading and the commanded motion (`cavenav.vehicle.dead_reckoning`),
+with the uncertainty that implies; in a simulated cave (``cavenav fly --sim``) the
+observation is rendered where the vehicle is, so a reported position is required.
 
 Only standard MAVLink messages and ArduSub's documented behaviour are relied on
 (https://ardupilot.org/sub/docs/modes.html, .../parameters.html: ``SYSID_MYGCS``,
@@ -61,6 +65,7 @@ from cavenav.actions import format_action
 from cavenav.errors import ConfigError, DependencyError, VehicleError, invalid_field
 from cavenav.kinematics import Drift, turn_deg, wrap_angle
 from cavenav.types import Action, Pose
+from cavenav.vehicle.dead_reckoning import DeadReckoning
 from cavenav.vehicle.frames import NedFrame, NedPose, body_offset, body_to_ned
 
 __all__ = [
@@ -197,6 +202,12 @@ class BridgeConfig(BaseModel):
     )
     yaw_tolerance_deg: float = Field(3.0, gt=0, le=45, description="guided: heading reached within")
     segment_cap_s: float = Field(30.0, gt=0, le=300, description="no segment lasts longer")
+    reckoning_distance_error: float = Field(
+        0.1, ge=0, le=1, description="dead reckoning: the speed calibration's error, a fraction"
+    )
+    reckoning_heading_error_deg: float = Field(
+        3.0, ge=0, le=45, description="dead reckoning: the compass's error, degrees"
+    )
     min_depth_m: float = Field(0.3, description="no target shallower (autopilot depth)")
     max_depth_m: float = Field(100.0, description="no target deeper")
     disarm_at_end: bool = True
@@ -361,6 +372,9 @@ class _Telemetry:
     position: tuple[float, float, float] | None = None
     position_at: float = -math.inf
     yaw: float | None = None
+    attitude_at: float = -math.inf
+    depth: float | None = None  # VFR_HUD's, where no position is reported
+    depth_at: float = -math.inf
     acks: dict[int, int] = field(default_factory=dict)
     failure: BaseException | None = None  # what stopped the link thread
     refused: str | None = None  # why the link refuses to fly: a second vehicle or peer
@@ -523,7 +537,9 @@ class ArduSubLink:
             elif kind == "LOCAL_POSITION_NED":
                 t.position, t.position_at = (message.x, message.y, message.z), now
             elif kind == "ATTITUDE":
-                t.yaw = message.yaw
+                t.yaw, t.attitude_at = message.yaw, now
+            elif kind == "VFR_HUD":  # ArduSub's altitude is the depth, negative
+                t.depth, t.depth_at = -message.alt, now
             elif kind == "COMMAND_ACK":
                 t.acks[message.command] = message.result
             self._seen.notify_all()
@@ -657,10 +673,10 @@ class ArduSubLink:
         )
 
     def request_telemetry(self) -> None:
-        """Ask for ATTITUDE and LOCAL_POSITION_NED at ``telemetry_hz`` (a vehicle streams
-        what its SRn_ parameters or another ground station asked for otherwise)."""
+        """Ask for ATTITUDE, VFR_HUD and LOCAL_POSITION_NED at ``telemetry_hz`` (a vehicle
+        streams what its SRn_ parameters or another ground station asked for otherwise)."""
         interval_us = 1e6 / self.config.telemetry_hz
-        for message in ("ATTITUDE", "LOCAL_POSITION_NED"):
+        for message in ("ATTITUDE", "VFR_HUD", "LOCAL_POSITION_NED"):
             number = getattr(self._mavlink, f"MAVLINK_MSG_ID_{message}")
             try:
                 self.command("MAV_CMD_SET_MESSAGE_INTERVAL", number, interval_us)
@@ -686,6 +702,15 @@ class ArduSubLink:
             raise VehicleError("the vehicle has reported no LOCAL_POSITION_NED and ATTITUDE yet")
         return NedPose(*t.position, yaw=t.yaw)
 
+    def depth(self) -> float:
+        """The latest depth: the reported position's, else VFR_HUD's."""
+        t = self.telemetry
+        if t.position is not None:
+            return t.position[2]
+        if t.depth is None:
+            raise VehicleError("the vehicle has reported no depth (LOCAL_POSITION_NED or VFR_HUD)")
+        return t.depth
+
     def close(self) -> None:
         """Neutral sticks, then stop the thread and close the socket and the log."""
         try:
@@ -707,6 +732,9 @@ class ArduSubMotion:
     `start` connects, sets the mode, arms after the operator's confirmation and pairs
     the reported pose with the scenario's start (`NedFrame`); `move` flies one action
     and returns the pose the autopilot reports afterwards, in the world frame.
+
+    With ``reckon``, a vehicle that reports no position (no DVL) is flown in manual mode
+    on dead reckoning: `position` says which, and `position_sigma_m` how uncertain.
     """
 
     def __init__(
@@ -714,19 +742,34 @@ class ArduSubMotion:
         config: BridgeConfig,
         log_path: Path | None = None,
         confirm: Callable[[str], bool] | None = None,
+        reckon: bool = False,
     ):
         """
         Args:
             log_path: the command log (JSON lines), e.g. RUN_DIR/mavlink.jsonl.
             confirm: asked "arm the vehicle?" before arming; None waives it (simulation).
+            reckon: without a reported position, reckon one (manual mode only); False
+                requires LOCAL_POSITION_NED (a simulated cave renders where it says).
         """
         self.config = config
         self._log_path = log_path
         self._confirm = confirm
+        self._reckon = reckon
         self._link: ArduSubLink | None = None
         self._ready = False  # connected: the mode set, armed, a pose reported
         self._frame: NedFrame | None = None
         self._armed_here = False  # disarm at the end only a vehicle the bridge armed
+        self._reckoning: DeadReckoning | None = None  # None: the position is reported
+
+    @property
+    def position(self) -> str:
+        """ "reckoned" when the vehicle is placed by dead reckoning, else "reported"."""
+        return "reported" if self._reckoning is None else "reckoned"
+
+    @property
+    def position_sigma_m(self) -> float | None:
+        """The reckoned position's horizontal uncertainty (1 sigma); None when reported."""
+        return None if self._reckoning is None else self._reckoning.sigma_m
 
     def listen(self) -> tuple[str, int] | None:
         """Open the link now, without waiting for the vehicle, and return where it listens
@@ -735,8 +778,16 @@ class ArduSubMotion:
 
     def start(self, pose: Pose) -> Pose:
         link = self._connect()
-        self._frame = NedFrame(link.pose(), pose)
+        self._frame = NedFrame(self._ned_pose(link), pose)
         return pose
+
+    def _ned_pose(self, link: ArduSubLink) -> NedPose:
+        """The reported pose, or the reckoned one at the measured depth and heading."""
+        reckoned = self._reckoning
+        if reckoned is None:
+            return link.pose()
+        assert link.telemetry.yaw is not None
+        return NedPose(reckoned.north, reckoned.east, link.depth(), link.telemetry.yaw)
 
     def _open(self) -> ArduSubLink:
         if self._link is None:
@@ -761,13 +812,34 @@ class ArduSubMotion:
                 raise VehicleError("the operator declined to arm the vehicle")
             link.set_armed(True)
             self._armed_here = True
-        link.wait_for(
-            "no LOCAL_POSITION_NED and ATTITUDE (the pose needs a position estimate, e.g. a DVL)",
-            lambda t: t.position is not None and t.yaw is not None,
-            config.connect_timeout_s,
-        )
+        self._find_position(link)
         self._ready = True
         return link
+
+    def _find_position(self, link: ArduSubLink) -> None:
+        """Wait for the pose telemetry; without a reported position (and ``reckon``, in
+        manual mode) start dead reckoning from here."""
+        config = self.config
+        if not self._reckon or config.mode == "guided":
+            link.wait_for(
+                "no LOCAL_POSITION_NED and ATTITUDE (the pose needs a position estimate, "
+                "e.g. a DVL" + (")" if not self._reckon else "; manual mode reckons one)"),
+                lambda t: t.position is not None and t.yaw is not None,
+                config.connect_timeout_s,
+            )
+            return
+        link.wait_for(
+            "no ATTITUDE and VFR_HUD (dead reckoning needs the heading and the depth)",
+            lambda t: t.yaw is not None and (t.depth is not None or t.position is not None),
+            config.connect_timeout_s,
+        )
+        with suppress(VehicleError):  # a position may come a few telemetry periods later
+            link.wait_for("", lambda t: t.position is not None, 3.0 / config.telemetry_hz + 0.5)
+        if link.telemetry.position is None:
+            self._reckoning = DeadReckoning(
+                config.reckoning_distance_error, config.reckoning_heading_error_deg
+            )
+            link.log.write("note", {"position": "reckoned", "why": "no LOCAL_POSITION_NED"})
 
     @property
     def _mode(self) -> int:
@@ -786,15 +858,26 @@ class ArduSubMotion:
                 else:
                     self._reach(link, segment)
             ended = time.monotonic()
-            link.wait_for(
-                "no LOCAL_POSITION_NED after the action",
-                lambda t: t.position_at >= ended,
-                self.config.heartbeat_timeout_s,
-            )
+            if self._reckoning is None:
+                link.wait_for(
+                    "no LOCAL_POSITION_NED after the action",
+                    lambda t: t.position_at >= ended,
+                    self.config.heartbeat_timeout_s,
+                )
+            else:
+                link.wait_for(
+                    "no ATTITUDE and VFR_HUD after the action",
+                    lambda t: min(t.attitude_at, t.depth_at) >= ended,
+                    self.config.heartbeat_timeout_s,
+                )
+                assert link.telemetry.yaw is not None
+                self._reckoning = self._reckoning.moved(
+                    action.forward, action.right, link.telemetry.yaw
+                )
         except BaseException:
             self._stop_moving(link)
             raise
-        return frame.to_world(link.pose())
+        return frame.to_world(self._ned_pose(link))
 
     def drift(self, pose: Pose, action: Action, reached: Pose) -> Drift:
         """Against the whole ``action``, even where the depth limits cut it short."""
@@ -802,7 +885,7 @@ class ArduSubMotion:
 
     def _within_depth_limits(self, link: ArduSubLink, action: Action) -> Action:
         """``action`` with its vertical part cut so that the depth stays within limits."""
-        depth = link.pose().down
+        depth = link.depth()
         target = min(max(depth - action.up, self.config.min_depth_m), self.config.max_depth_m)
         if abs(target - (depth - action.up)) < 1e-9:
             return action

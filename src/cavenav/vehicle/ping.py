@@ -171,11 +171,20 @@ class FakePing1D:
     Use as a context manager; ``address`` is where it listens (``udp:127.0.0.1:PORT``).
     """
 
-    def __init__(self, distance_m: Callable[[], float], confidence: int = 100):
+    def __init__(self, distance_m: Callable[[], float], confidence: int = 100, port: int = 0):
+        """``port``: where to listen on 127.0.0.1 (0: a free port the system picks).
+
+        Raises:
+            ConfigError: the port is taken.
+        """
         self.distance_m, self.confidence = distance_m, confidence
         self.requests: list[int] = []
         self._socket = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self._socket.bind(("127.0.0.1", 0))
+        try:
+            self._socket.bind(("127.0.0.1", port))
+        except OSError as exc:
+            self._socket.close()
+            raise ConfigError(f"a fake Ping1D cannot listen on UDP port {port}: {exc}") from None
         self._socket.settimeout(0.1)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._serve, daemon=True)

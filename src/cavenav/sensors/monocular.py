@@ -1,0 +1,77 @@
+"""Depth in metres from the colour image alone: a monocular depth model, for a vehicle
+that carries no depth camera (a BlueROV2 as sold has none).
+
+The model runs through transformers' ``depth-estimation`` pipeline, so any model that
+pipeline takes will do, but the method needs metres: a *metric* model (Depth Anything
+V2 Metric, ZoeDepth, DPT trained on metric data). A model whose configuration says it
+predicts relative depth is refused, because relative inverse depth read as metres puts
+the far wall next to the lens. cavenav downloads nothing: the model is a local folder
+(``save_pretrained`` of one fetched beforehand).
+
+What it estimates is no measurement: the run folder names the model, and pilots judge
+the estimate as a depth image like any other. The shield then guards against what the
+model believes, not what is there.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from cavenav.errors import ConfigError, DependencyError
+
+__all__ = ["MonocularDepth"]
+
+INSTALL_HINT = "a monocular depth model runs on transformers: pip install -e '.[transformers]'"
+
+
+class MonocularDepth:
+    """A transformers depth-estimation model that gives metres for an RGB image."""
+
+    def __init__(self, model: str | Path, device: str = "auto"):
+        """Load the model in the folder ``model`` on ``device`` ("auto": CUDA when there
+        is one, else the CPU).
+
+        Raises:
+            ConfigError: no such folder, or a model that predicts relative depth.
+            DependencyError: transformers or torch is not installed.
+        """
+        folder = Path(model)
+        if not (folder / "config.json").is_file():
+            raise ConfigError(
+                f"depth model {model}: not a folder holding a model (config.json); give the "
+                "folder a metric depth model was saved to (cavenav downloads nothing)"
+            )
+        try:
+            import torch
+            from transformers import AutoConfig, pipeline
+        except ImportError:
+            raise DependencyError(INSTALL_HINT) from None
+        kind = getattr(AutoConfig.from_pretrained(folder), "depth_estimation_type", "metric")
+        if kind == "relative":
+            raise ConfigError(
+                f"depth model {model}: it predicts relative depth, and the pilots need "
+                "metres: give a metric model (e.g. Depth Anything V2 Metric)"
+            )
+        if device == "auto":
+            device = "cuda" if torch.cuda.is_available() else "cpu"
+        self.name, self.device = folder.name, device
+        self._pipeline: Any = pipeline("depth-estimation", model=str(folder), device=device)
+
+    def __call__(self, rgb: np.ndarray) -> np.ndarray:
+        """Planar depth in metres, (H, W) float32 like ``rgb``; NaN where the model gave
+        no positive finite value."""
+        from PIL import Image
+
+        predicted = self._pipeline(Image.fromarray(rgb))["predicted_depth"]
+        depth = np.asarray(predicted.float().cpu().numpy(), np.float32).squeeze()
+        if depth.shape != rgb.shape[:2]:  # a pipeline that did not resize it back
+            depth = np.asarray(
+                Image.fromarray(depth).resize(rgb.shape[1::-1], Image.Resampling.BILINEAR),
+                np.float32,
+            )
+        depth[~(np.isfinite(depth) & (depth > 0))] = math.nan
+        return depth

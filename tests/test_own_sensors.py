@@ -1,0 +1,314 @@
+"""Flying a vehicle on its own sensors (`cavenav fly` without --sim): the camera stream, a
+monocular depth model, dead reckoning without a DVL, and the closed loop against fakes on
+loopback (the simulated autopilot, an H.264 stream encoded on the fly, two Ping1Ds)."""
+
+from __future__ import annotations
+
+import json
+import math
+import socket
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from cavenav.errors import ConfigError, VehicleError
+from cavenav.shield import Shield
+from cavenav.types import Action, Observation
+from cavenav.vehicle.camera import CameraAddress, FakeCamera, VideoCamera
+from cavenav.vehicle.dead_reckoning import DeadReckoning
+from cavenav.vehicle.fake_sub import FakeSub, FakeSubConfig
+from cavenav.vehicle.mavlink import ArduSubMotion, BridgeConfig
+from cavenav.vehicle.ping import FakePing1D
+
+from .conftest import cavenav
+
+
+def free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+def grey(level: int, size: tuple[int, int] = (320, 240)) -> np.ndarray:
+    return np.full((size[1], size[0], 3), level, np.uint8)
+
+
+# ---------------------------------------------------------------------------- the camera
+
+
+@pytest.mark.parametrize(
+    ("text", "kind", "where"),
+    [
+        ("udp:5600", "udp", "5600"),
+        ("rtsp://192.168.2.2:8554/video_stream__dev_video2", "rtsp",
+         "rtsp://192.168.2.2:8554/video_stream__dev_video2"),
+        ("udp://0.0.0.0:5600", "url", "udp://0.0.0.0:5600"),
+    ],
+)  # fmt: skip
+def test_a_camera_address_names_blueos_streams(text: str, kind: str, where: str) -> None:
+    address = CameraAddress.parse(text)
+    assert (address.kind, address.where, str(address)) == (kind, where, text)
+
+
+@pytest.mark.parametrize("text", ["udp:", "udp:0", "udp:70000", "udp:port", " "])
+def test_a_bad_camera_address_is_one_line(text: str) -> None:
+    with pytest.raises(ConfigError, match="camera"):
+        CameraAddress.parse(text)
+
+
+@pytest.mark.slow
+def test_the_camera_gives_the_first_frame_after_a_moment_at_the_pilots_size() -> None:
+    levels = iter(range(10**6))
+    shown: list[int] = []
+
+    def frame(index: int) -> np.ndarray:
+        shown.append(40 + (next(levels) * 10) % 200)
+        return grey(shown[-1])
+
+    with FakeCamera(frame, free_udp_port()) as stream:
+        camera = VideoCamera(CameraAddress.parse(stream.address), size=(160, 120), timeout_s=10)
+        try:
+            camera.frame_after(time.monotonic())  # joined the stream
+            moment = time.monotonic()
+            sent_before = len(shown)
+            image = camera.frame_after(moment)
+        finally:
+            camera.close()
+    assert image.shape == (120, 160, 3) and image.dtype == np.uint8
+    # H.264 at ultrafast is lossy: the grey comes back within a few levels, and it is one
+    # of the frames streamed after the moment, not one queued before it.
+    level = int(np.median(image[..., 1]))
+    later = shown[sent_before - 1 :]
+    assert min(abs(level - sent) for sent in later) <= 4, (level, later[:5])
+
+
+def test_a_stream_that_never_comes_is_a_vehicle_error_naming_the_camera() -> None:
+    port = free_udp_port()
+    started = time.monotonic()
+    with pytest.raises(VehicleError, match=f"camera udp:{port}"):
+        VideoCamera(CameraAddress.parse(f"udp:{port}"), timeout_s=1.0)
+    assert time.monotonic() - started < 15
+
+
+# ---------------------------------------------------------------------------- monocular depth
+
+
+@pytest.fixture(scope="module")
+def depth_model(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    pytest.importorskip("transformers")
+    from .tiny_depth import build_tiny_depth_anything
+
+    return build_tiny_depth_anything(tmp_path_factory.mktemp("tiny-depth"))
+
+
+def test_a_monocular_model_gives_metres_at_the_images_size(depth_model: Path) -> None:
+    from cavenav.sensors.monocular import MonocularDepth
+
+    estimate = MonocularDepth(depth_model, device="cpu")
+    rgb = np.random.default_rng(0).integers(0, 255, (120, 160, 3), dtype=np.uint8)
+    depth = estimate(rgb)
+    assert depth.shape == (120, 160) and depth.dtype == np.float32
+    assert np.all((depth > 0) & (depth <= 20))  # the head's metric range
+
+
+def test_a_relative_depth_model_is_refused(tmp_path: Path) -> None:
+    pytest.importorskip("transformers")
+    from cavenav.sensors.monocular import MonocularDepth
+
+    from .tiny_depth import build_tiny_depth_anything
+
+    relative = build_tiny_depth_anything(tmp_path / "relative", kind="relative")
+    with pytest.raises(ConfigError, match="relative depth"):
+        MonocularDepth(relative)
+
+
+def test_a_depth_model_must_be_a_local_folder(tmp_path: Path) -> None:
+    from cavenav.sensors.monocular import MonocularDepth
+
+    with pytest.raises(ConfigError, match="downloads nothing"):
+        MonocularDepth("depth-anything/Depth-Anything-V2-Metric-Indoor-Small-hf")
+
+
+# ---------------------------------------------------------------------------- dead reckoning
+
+
+def test_reckoning_adds_moves_turned_by_the_measured_heading() -> None:
+    east = math.radians(90)
+    reckoned = DeadReckoning().moved(1.0, 0.0, east).moved(0.0, 0.5, east)
+    assert reckoned.north == pytest.approx(-0.5) and reckoned.east == pytest.approx(1.0)
+
+
+def test_the_calibration_error_grows_with_distance_and_the_compass_error_in_quadrature() -> None:
+    reckoned = DeadReckoning(distance_error=0.1, heading_error_deg=3.0)
+    for _ in range(10):
+        reckoned = reckoned.moved(1.0, 0.0, 0.0)
+    # 10 m: the calibration 0.1 x 10 m, the compass sqrt(10) x 1 m x 3 degrees.
+    expected = math.hypot(1.0, math.sqrt(10) * math.radians(3.0))
+    assert reckoned.sigma_m == pytest.approx(expected)
+    assert DeadReckoning(heading_error_deg=0.0).moved(2.0, 0.0, 0.0).sigma_m == pytest.approx(0.2)
+
+
+def udp_sub(position: bool) -> tuple[FakeSub, BridgeConfig]:
+    port = free_udp_port()
+    sub = FakeSub(
+        FakeSubConfig(
+            address=f"udpout:127.0.0.1:{port}", start_ned=(0.0, 0.0, 30.0),
+            position_estimate=position,
+        )
+    )  # fmt: skip
+    return sub, BridgeConfig(connect=f"udpin:127.0.0.1:{port}", connect_timeout_s=10.0)
+
+
+@pytest.mark.slow
+def test_without_a_dvl_manual_mode_reckons_the_position_and_measures_depth_and_heading() -> None:
+    from cavenav.types import Pose
+
+    sub, bridge = udp_sub(position=False)
+    motion = ArduSubMotion(bridge, reckon=True)
+    with sub:
+        try:
+            start = motion.start(Pose(0.0, 0.0, 0.0, 0.0))
+            assert motion.position == "reckoned" and motion.position_sigma_m == 0.0
+            reached = motion.move(start, Action(forward=1.0, up=-0.5, yaw_deg=-90))
+            truth = sub.state()
+        finally:
+            motion.close()
+    # A right turn of 90 degrees, then 1 m forward: east, in the fake's north-east frame.
+    assert truth.east == pytest.approx(1.0, abs=0.15) and abs(truth.north) < 0.15
+    # Depth and heading as measured; the horizontal position as commanded.
+    assert reached.z == pytest.approx(30.0 - truth.down, abs=0.02)
+    assert math.degrees(reached.psi) == pytest.approx(-truth.yaw_deg, abs=1.0)
+    assert math.hypot(reached.x, reached.y) == pytest.approx(1.0, abs=1e-6)
+    assert motion.position_sigma_m == pytest.approx(math.hypot(0.1, math.radians(3.0)))
+
+
+@pytest.mark.slow
+def test_without_a_dvl_a_simulated_cave_or_guided_mode_is_refused() -> None:
+    from cavenav.types import Pose
+
+    sub, bridge = udp_sub(position=False)
+    bridge = bridge.model_copy(update={"connect_timeout_s": 2.0})
+    with sub:
+        for motion in (ArduSubMotion(bridge), ArduSubMotion(
+            bridge.model_copy(update={"mode": "guided"}), reckon=True)):  # fmt: skip
+            try:
+                refused = "LOCAL_POSITION_NED|refused MAV_CMD_DO_SET_MODE"
+                with pytest.raises(VehicleError, match=refused):
+                    motion.start(Pose(0.0, 0.0, 0.0, 0.0))
+            finally:
+                motion.close()
+
+
+# ---------------------------------------------------------------------------- the shield
+
+
+def test_without_a_depth_image_the_shield_lets_only_vertical_moves_fly() -> None:
+    blind = Observation(
+        rgb=np.zeros((120, 160, 3), np.uint8), depth_m=np.full((120, 160), np.nan, np.float32),
+        depth_png=np.zeros((120, 160), np.uint8), d_top=1.5, d_bottom=2.5,
+        depth_range=(0.0, 20.0), hfov_deg=53.13, has_depth=False,
+    )  # fmt: skip
+    shield = Shield()
+    shield.observe(blind)
+    assert shield.judge(Action(up=-1.0)).action == Action(up=-1.0)
+    for move in (Action(forward=0.5), Action(right=0.2), Action(yaw_deg=15)):
+        verdict = shield.judge(move)
+        assert "no depth image" in verdict.reason
+        assert not (verdict.action.forward or verdict.action.right or verdict.action.yaw_deg)
+
+
+# ---------------------------------------------------------------------------- the closed loop
+
+
+@pytest.mark.slow
+def test_fly_without_a_simulator_flies_the_vehicles_own_sensors(
+    tmp_path: Path, depth_model: Path
+) -> None:
+    """The geometric pilot on the tiny depth model, the fake sub with no DVL, a camera
+    whose grey level shows the vehicle's true depth, and two sounders that read a ceiling
+    at 26 m and a floor at 34 m."""
+    sub, bridge = udp_sub(position=False)
+
+    def true_depth_grey(index: int) -> np.ndarray:
+        return grey(round(4 * sub.state().down) % 256)  # 30 m: 120
+
+    with (
+        sub,
+        FakeCamera(true_depth_grey, free_udp_port()) as camera,
+        FakePing1D(lambda: sub.state().down - 26.0) as ceiling,
+        FakePing1D(lambda: 34.0 - sub.state().down) as floor,
+    ):
+        result = cavenav(
+            "fly", "--connect", bridge.connect, "--camera", camera.address,
+            "--ping-up", ceiling.address, "--ping-down", floor.address,
+            "--depth-model", str(depth_model), "--steps", "3", "--yes",
+            "--out", str(tmp_path),
+        )  # fmt: skip
+        truth = sub.state()
+    assert result.returncode == 0, result.stderr
+    (run_dir,) = tmp_path.iterdir()
+    summary = json.loads((run_dir / "summary.json").read_text())
+    steps = [json.loads(line) for line in (run_dir / "steps.jsonl").read_text().splitlines()]
+    ending = (summary["status"], summary["termination"], summary["steps"])
+    assert ending == ("finished", "budget", 3)
+    assert summary["success"] is None and summary["position"] == "reckoned"
+    assert summary["vehicle"]["depth_image"] is True
+    for step in steps:  # to the millimetre the ping protocol gives
+        depth_then = 30.0 - step["pose"]["z"]
+        assert step["d_top_m"] == pytest.approx(depth_then - 26.0, abs=0.03)
+        assert step["d_bottom_m"] == pytest.approx(34.0 - depth_then, abs=0.03)
+    # Each step's frame is the camera's after the move before it: its grey is the depth
+    # the vehicle had then, which the record's pose says (the pose's z is -depth + 30 m).
+    for step in steps:
+        rgb = np.asarray(Image.open(run_dir / step["frames"]["rgb"]))
+        depth_then = 30.0 - step["pose"]["z"]
+        assert abs(float(np.median(rgb[..., 1])) - 4 * depth_then) <= 5, step["step"]
+        assert (run_dir / step["frames"]["depth_exr"]).is_file()
+    flown = math.hypot(truth.north, truth.east)
+    assert flown > 0.2  # it moved on its own sensors
+    assert summary["progress_m"] == pytest.approx(flown, abs=0.1 + 0.2 * flown)
+    assert summary["position_sigma_m"] > 0
+
+
+@pytest.mark.slow
+def test_a_fake_sub_in_a_cave_streams_its_camera_and_answers_as_its_sounders(
+    tmp_path: Path,
+) -> None:
+    """`cavenav fake-sub --scene`: what the bridge reads is rendered at the true pose."""
+    from cavenav.cave_sensors import CaveSensors
+    from cavenav.sensors.rig import SensorConfig
+    from cavenav.vehicle.ping import PingSounders
+    from cavenav.world.scenarios import load_scenario
+
+    from .conftest import write_room
+
+    room = load_scenario(str(write_room(tmp_path)), 0)  # 7 m high, the start halfway up
+    sub, _ = udp_sub(position=False)
+    sensors = SensorConfig().with_resolution(160, 120)
+    pings = (free_udp_port(), free_udp_port())
+    with sub, CaveSensors(sub, room, sensors, free_udp_port(), pings) as cave:
+        assert cave.pose() == room.start  # 2 m from the end wall behind it
+        assert cave.clearance_m() == pytest.approx(2.0, abs=0.01)
+        sounders = PingSounders.connect(cave.up.address, cave.down.address)
+        camera = VideoCamera(CameraAddress.parse(f"udp:{cave.camera.port}"), (160, 120))
+        try:
+            d_top, d_bottom = sounders.read()
+            streamed = camera.frame_after(time.monotonic())
+        finally:
+            sounders.close()
+            camera.close()
+    assert d_top == pytest.approx(3.5, abs=0.01) and d_bottom == pytest.approx(3.5, abs=0.01)
+    from cavenav.sensors.rig import SensorRig
+    from cavenav.world.raycast import RayCaster
+
+    rendered = SensorRig(RayCaster(room.mesh), sensors).render(room.start).rgb
+    assert abs(float(streamed.mean()) - float(rendered.mean())) < 3  # H.264, lossy
+
+
+def test_a_cameras_password_is_never_shown_or_recorded() -> None:
+    address = CameraAddress.parse("rtsp://pilot:hunter2@192.168.2.2:8554/video")
+    assert address.where == "rtsp://pilot:hunter2@192.168.2.2:8554/video"  # what FFmpeg opens
+    assert str(address) == "rtsp://pilot:[redacted]@192.168.2.2:8554/video"
