@@ -166,6 +166,40 @@ def test_a_current_that_cannot_be_is_refused(discharge: float, gusts: float) -> 
         Current(discharge, gusts)
 
 
+def water_file(tmp_path, table: str) -> str:
+    from .conftest import write_room
+
+    path = write_room(tmp_path)
+    path.write_text(path.read_text() + f"[water]\n{table}\n")
+    return str(path)
+
+
+def test_a_scenario_files_water_flows_unless_the_episode_says_otherwise(tmp_path) -> None:
+    from cavenav.episode.settings import EpisodeSettings
+    from cavenav.world.scenarios import load_scenario
+
+    cave = load_scenario(water_file(tmp_path, "discharge_m3s = 2.0\ngusts = 0.1"), 0)
+    assert cave.water == {"discharge_m3s": 2.0, "gusts": 0.1}
+    assert EpisodeSettings().episode_config(cave).current == Current(2.0, 0.1)
+    assert EpisodeSettings(discharge_m3s=0.0).current_for(cave).still  # --discharge 0
+    assert EpisodeSettings(gusts=0.5).current_for(cave) == Current(2.0, 0.5)
+    still = load_scenario(water_file(tmp_path / "still", ""), 0)
+    assert EpisodeSettings().current_for(still) == Current()  # SPEC section 5
+
+
+@pytest.mark.parametrize(
+    ("table", "field"),
+    [("discharge_m3s = 1e9", "water.discharge_m3s"), ("gusts = 2", "water.gusts"),
+     ("speed = 1", "water.speed")],
+)  # fmt: skip
+def test_a_water_table_that_cannot_be_is_refused_by_field(tmp_path, table: str, field: str) -> None:
+    from cavenav.world.scenarios import load_scenario
+
+    with pytest.raises(ConfigError, match=field.replace(".", r"\.")) as refused:
+        load_scenario(water_file(tmp_path, table), 0)
+    assert "\n" not in str(refused.value)
+
+
 # ------------------------------------------------------------------ the energy
 
 

@@ -574,6 +574,10 @@ def _fly_in_a_simulated_cave(
     settings = _on_a_vehicle(settings, spec)
     prepare_root(out)
     cave = _built(settings, scenario, seed)
+    if not settings.current_for(cave).still:  # the scenario file's [water]
+        console.print(f"[yellow]note:[/] {cave.name}'s [water] is not simulated: a vehicle "
+                      "over MAVLink meets its own water", soft_wrap=True)  # fmt: skip
+        settings = replace(settings, discharge_m3s=0.0)
     run_dir = new_run_dir(out, cave.name, spec.name, cave.seed)
     fly_vehicle(bridge, cave, flyer, settings.episode_config(cave), run_dir, confirm, view)
 
@@ -626,7 +630,7 @@ def _fly_own_sensors(
 def _on_a_vehicle(settings: EpisodeSettings, spec: PilotSpec) -> EpisodeSettings:
     """``settings`` for ``spec``'s pilot on a vehicle over MAVLink (`_camera_for`); the
     vehicle meets its own water, so a simulated current is refused before connecting."""
-    if not settings.current.still:
+    if settings.flowing:
         raise CavenavError(
             "--discharge: a vehicle over MAVLink meets its own water; "
             "simulate one with `cavenav fake-sub --current`"

@@ -284,8 +284,8 @@ def episode_settings(
     resolution: str | None = None,
     sounder_resolution: str | None = None,
     difficulty: list[str] | None = None,
-    discharge: float = _SETTINGS.discharge_m3s,
-    gusts: float = _SETTINGS.gusts,
+    discharge: float | None = _SETTINGS.discharge_m3s,
+    gusts: float | None = _SETTINGS.gusts,
     battery_wh: float | None = _SETTINGS.battery_wh,
 ) -> EpisodeSettings:
     """`EpisodeSettings` from the episode, sensor and optics flags, one keyword each (so a
@@ -458,7 +458,8 @@ SETTINGS = OptionGroup(
             _SETTINGS.discharge_m3s,
             "water flowing through the cave, m³/s: positive from the exit toward the start "
             "(a spring's outflow, against the vehicle), negative toward the exit; it runs "
-            "faster where the passage narrows and carries the vehicle; 0: still water",
+            "faster where the passage narrows and carries the vehicle; 0: still water; "
+            "default: the cave's own (a scenario file's [water]; the families are still)",
             metavar="M3S",
             callback=finite,
         ),
@@ -466,7 +467,8 @@ SETTINGS = OptionGroup(
             "gusts",
             float,
             _SETTINGS.gusts,
-            "the current's slow turbulent gusts, as a fraction of its speed",
+            "the current's slow turbulent gusts, as a fraction of its speed (default: the "
+            "cave's own, else 0.2)",
             min=0,
             max=1,
             metavar="FRACTION",

@@ -56,7 +56,9 @@ class EpisodeSettings:
         resolution, sounder_resolution: (width, height) pixels over the scenario's
             [sensors] table; None keeps it.
         difficulty: `Difficulty` knobs of the cave family, by name.
-        discharge_m3s, gusts: the water's flow (`cavenav.world.current.Current`).
+        discharge_m3s, gusts: the water's flow (`cavenav.world.current.Current`); None
+            keeps the cave's own (`Scenario.water`: still, but where a scenario file's
+            [water] table says otherwise).
         battery_wh: an energy budget that ends an episode as ``battery``; None: none.
     """
 
@@ -72,8 +74,8 @@ class EpisodeSettings:
     resolution: tuple[int, int] | None = None
     sounder_resolution: tuple[int, int] | None = None
     difficulty: Mapping[str, float] = field(default_factory=dict)
-    discharge_m3s: float = Current.discharge_m3s
-    gusts: float = Current.gusts
+    discharge_m3s: float | None = None
+    gusts: float | None = None
     battery_wh: float | None = None
 
     def __post_init__(self) -> None:
@@ -90,13 +92,22 @@ class EpisodeSettings:
             from cavenav.world.scenarios import Difficulty
 
             Difficulty.from_dict(self.difficulty)
-        Current(self.discharge_m3s, self.gusts)  # a bad value fails here, not in a worker
+        self.current_for({})  # a bad value fails here, not in a worker
         checked_budget(self.battery_wh)
 
     @property
-    def current(self) -> Current:
-        """The water's flow these settings ask for."""
-        return Current(self.discharge_m3s, self.gusts)
+    def flowing(self) -> bool:
+        """Whether these settings make the water flow, whatever the cave's own."""
+        return bool(self.discharge_m3s)
+
+    def current_for(self, cave: Scenario | Mapping[str, Any]) -> Current:
+        """The water's flow in ``cave`` (or a [water] table): these settings over its own."""
+        water = cave if isinstance(cave, Mapping) else cave.water
+        discharge, gusts = self.discharge_m3s, self.gusts
+        return Current(
+            water.get("discharge_m3s", Current.discharge_m3s) if discharge is None else discharge,
+            water.get("gusts", Current.gusts) if gusts is None else gusts,
+        )
 
     @property
     def frames(self) -> str:
@@ -143,7 +154,7 @@ class EpisodeSettings:
             exr_compression=self.exr_compression,  # type: ignore[arg-type]
             shield=self.shield,
             sensors=self.sensors_for(cave),
-            current=self.current,
+            current=self.current_for(cave),
             battery_wh=self.battery_wh,
         )
 

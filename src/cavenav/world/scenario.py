@@ -98,6 +98,9 @@ class Scenario:
         step_budget: the number of steps a fair episode of this cave gets, for a cave
             too long for the SPEC's 150 (the harder families: a few steps per metre of
             passage, see their builders); None leaves the caller's default of 150.
+        water: the flow the cave has unless an episode says otherwise (a scenario file's
+            [water] table: ``discharge_m3s``, ``gusts``; `cavenav.world.current.Current`).
+            The families are still water (SPEC section 5); empty: still.
     """
 
     name: str
@@ -112,6 +115,7 @@ class Scenario:
     sensors: Mapping[str, Any] = field(default_factory=dict)  # the file's [sensors] table
     entrances: tuple[ExitPortal, ...] = ()
     step_budget: int | None = None
+    water: Mapping[str, Any] = field(default_factory=dict)  # a file's [water], a family's own
 
     def exited(self, position: np.ndarray) -> bool:
         """Whether ``position`` lies past any exit portal."""

@@ -25,6 +25,9 @@ A mesh file (its path relative to the file)::
     resolution = [160, 120]     # forward camera, default [640, 480]; the horizontal
                                 # field of view (53 deg) is kept at any size
     sounder_resolution = [32, 24]   # each echo sounder's depth camera
+    [water]                     # optional: the flow (--discharge, --gusts override it)
+    discharge_m3s = 2.0         # from the exit toward the start; default 0, still
+    gusts = 0.2                 # RMS of the slow gusts, a fraction of the mean speed
     [[entrance]]                # optional: the portal it came in by, if open;
     point = [0.0, 10.0, 2.0]    # leaving through it is never success
     normal = [0.0, 1.0, 0.0]    # pointing out of the cave
@@ -56,6 +59,7 @@ built at ``seed``: "hard S1" kept as a file, to sweep seeds over::
     constriction_m = 2.4
     [optics]                    # optional, as above
     [sensors]                   # optional, as above
+    [water]                     # optional, as above
 """
 
 from __future__ import annotations
@@ -161,6 +165,16 @@ class _SensorsModel(BaseModel):
     )
 
 
+class _WaterModel(BaseModel):
+    """A scenario file's [water] table: the cave's flow (`cavenav.world.current.Current`)."""
+
+    model_config = _STRICT
+    discharge_m3s: float | None = Field(
+        None, ge=-1e4, le=1e4, description="m³/s from the exit toward the start (0)"
+    )
+    gusts: float | None = Field(None, ge=0, le=1, description="gusts, a fraction of the speed")
+
+
 class _ScenarioFileModel(BaseModel):
     model_config = _STRICT
     name: str | None = None
@@ -185,6 +199,7 @@ class _ScenarioFileModel(BaseModel):
         default_factory=dict, description="water and light; see cavenav.sensors.optics"
     )
     sensors: _SensorsModel = Field(default_factory=_SensorsModel)
+    water: _WaterModel = Field(default_factory=_WaterModel)
 
     @field_validator("exit", "entrance", mode="before")
     @classmethod
@@ -227,6 +242,7 @@ class _FamilyFileModel(BaseModel):
         default_factory=dict, description="water and light; see cavenav.sensors.optics"
     )
     sensors: _SensorsModel = Field(default_factory=_SensorsModel)
+    water: _WaterModel = Field(default_factory=_WaterModel)
 
     @field_validator("family")
     @classmethod
@@ -335,6 +351,7 @@ def _mesh_scenario(path: Path, model: _ScenarioFileModel) -> Scenario:
         optics=model.optics,
         centreline=centreline,
         sensors=model.sensors.model_dump(exclude_none=True),
+        water=model.water.model_dump(exclude_none=True),
         entrances=entrances,
         step_budget=model.step_budget,
     )
@@ -366,6 +383,7 @@ def _family_scenario(
         description=model.description or cave.description,
         optics=model.optics,
         sensors=model.sensors.model_dump(exclude_none=True),
+        water=model.water.model_dump(exclude_none=True) or cave.water,
     )
 
 
