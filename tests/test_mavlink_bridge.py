@@ -780,6 +780,16 @@ def test_fly_on_a_vehicles_own_sensors_refuses_the_geometric_pilot_without_depth
     assert not (tmp_path / "runs").exists()
 
 
+def test_fly_on_a_vehicles_own_sensors_keeps_the_shield_without_a_depth_image(
+    tmp_path: Path,
+) -> None:
+    result = cavenav("fly", "--pilot", "random", "--no-shield", "--out", str(tmp_path))
+    assert result.returncode == 2
+    (line,) = result.stderr.strip().splitlines()
+    assert "--no-shield without --depth-model" in line
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_fly_on_a_vehicles_own_sensors_refuses_a_bad_camera_address(tmp_path: Path) -> None:
     result = cavenav("fly", "--pilot", "random", "--camera", "udp:99999", "--out", str(tmp_path))
     assert result.returncode == 2

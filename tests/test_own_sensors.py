@@ -4,6 +4,8 @@ loopback (the simulated autopilot, an H.264 stream encoded on the fly, two Ping1
 
 from __future__ import annotations
 
+import contextlib
+import itertools
 import json
 import math
 import socket
@@ -30,6 +32,21 @@ def free_udp_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
         probe.bind(("127.0.0.1", 0))
         return probe.getsockname()[1]
+
+
+def free_rtp_port() -> int:
+    """An even UDP port with the next one free too: RTP there, its RTCP on the next."""
+    for _ in range(100):
+        port = free_udp_port() & ~1
+        with contextlib.ExitStack() as held:
+            try:
+                for each in (port, port + 1):
+                    probe = held.enter_context(socket.socket(socket.AF_INET, socket.SOCK_DGRAM))
+                    probe.bind(("0.0.0.0", each))
+            except OSError:
+                continue
+            return port
+    raise AssertionError("no free pair of UDP ports")
 
 
 def grey(level: int, size: tuple[int, int] = (320, 240)) -> np.ndarray:
@@ -68,25 +85,47 @@ def test_the_camera_gives_the_first_frame_after_a_moment_at_the_pilots_size() ->
         shown.append(40 + (next(levels) * 10) % 200)
         return grey(shown[-1])
 
-    with FakeCamera(frame, free_udp_port()) as stream:
-        camera = VideoCamera(CameraAddress.parse(stream.address), size=(160, 120), timeout_s=10)
+    with FakeCamera(frame, free_rtp_port()) as stream:
+        address = CameraAddress.parse(stream.address)
+        camera = VideoCamera(address, size=(160, 120), timeout_s=10, latency_s=1.0)
         try:
-            camera.frame_after(time.monotonic())  # joined the stream
             moment = time.monotonic()
-            sent_before = len(shown)
+            sent_before = len(shown)  # streamed before the moment (and a second after it)
             image = camera.frame_after(moment)
+            waited = time.monotonic() - moment
         finally:
             camera.close()
     assert image.shape == (120, 160, 3) and image.dtype == np.uint8
+    assert waited >= 1.0  # the latency given: nothing decoded sooner is taken
     # H.264 at ultrafast is lossy: the grey comes back within a few levels, and it is one
-    # of the frames streamed after the moment, not one queued before it.
+    # of the frames streamed at least half a second after the moment (a second's latency
+    # given, less frames in flight), not one queued before it.
     level = int(np.median(image[..., 1]))
-    later = shown[sent_before - 1 :]
+    later = shown[sent_before + 5 :]
     assert min(abs(level - sent) for sent in later) <= 4, (level, later[:5])
 
 
+def test_a_wide_stream_is_cropped_to_the_pilots_aspect_not_squeezed() -> None:
+    """A 16:9 stream given at 4:3: its sides go, so the pixels stay square, and the field
+    of view given to the pilot is the part kept."""
+    wide = np.zeros((180, 320, 3), np.uint8)
+    wide[:, 40:280] = (0, 200, 0)  # the middle 4:3 of it green, the sides black
+
+    with FakeCamera(lambda index: wide, free_rtp_port()) as stream:
+        camera = VideoCamera(CameraAddress.parse(stream.address), size=(160, 120))
+        try:
+            image = camera.frame_after(time.monotonic())
+            hfov = camera.hfov_deg(90.0)
+        finally:
+            camera.close()
+    # Squeezed, a quarter of the frame would be the black sides; cropped, none is (but
+    # for the codec's blur at the seams).
+    assert (image[..., 1] > 100).mean() > 0.97
+    assert hfov == pytest.approx(math.degrees(2 * math.atan(240 / 320)), abs=0.5)
+
+
 def test_a_stream_that_never_comes_is_a_vehicle_error_naming_the_camera() -> None:
-    port = free_udp_port()
+    port = free_rtp_port()
     started = time.monotonic()
     with pytest.raises(VehicleError, match=f"camera udp:{port}"):
         VideoCamera(CameraAddress.parse(f"udp:{port}"), timeout_s=1.0)
@@ -125,6 +164,18 @@ def test_a_relative_depth_model_is_refused(tmp_path: Path) -> None:
         MonocularDepth(relative)
 
 
+def test_a_depth_model_that_does_not_say_it_gives_metres_is_refused(tmp_path: Path) -> None:
+    """DPT's configuration has no kind: MiDaS (relative inverse depth) is a DPT."""
+    pytest.importorskip("transformers")
+    from transformers import DPTConfig
+
+    from cavenav.sensors.monocular import MonocularDepth
+
+    DPTConfig().save_pretrained(tmp_path)
+    with pytest.raises(ConfigError, match=r"\(dpt\) does not say it predicts metres"):
+        MonocularDepth(tmp_path)
+
+
 def test_a_depth_model_must_be_a_local_folder(tmp_path: Path) -> None:
     from cavenav.sensors.monocular import MonocularDepth
 
@@ -151,11 +202,11 @@ def test_the_calibration_error_grows_with_distance_and_the_compass_error_in_quad
     assert DeadReckoning(heading_error_deg=0.0).moved(2.0, 0.0, 0.0).sigma_m == pytest.approx(0.2)
 
 
-def udp_sub(position: bool) -> tuple[FakeSub, BridgeConfig]:
+def udp_sub(position: bool, depth: float = 30.0) -> tuple[FakeSub, BridgeConfig]:
     port = free_udp_port()
     sub = FakeSub(
         FakeSubConfig(
-            address=f"udpout:127.0.0.1:{port}", start_ned=(0.0, 0.0, 30.0),
+            address=f"udpout:127.0.0.1:{port}", start_ned=(0.0, 0.0, depth),
             position_estimate=position,
         )
     )  # fmt: skip
@@ -202,6 +253,48 @@ def test_without_a_dvl_a_simulated_cave_or_guided_mode_is_refused() -> None:
                 motion.close()
 
 
+@pytest.mark.slow
+def test_without_a_dvl_the_depth_is_the_bar30s_and_limits_never_add_a_move() -> None:
+    """The depth from SCALED_PRESSURE2 (fresh water, standard air), kept for the flight;
+    an ascent asked for above the shallowest depth allowed is cut to none, not turned
+    into a descent the shield never judged."""
+    from cavenav.types import Pose
+
+    sub, bridge = udp_sub(position=False, depth=0.2)
+    motion = ArduSubMotion(bridge.model_copy(update={"min_depth_m": 0.3}), reckon=True)
+    with sub:
+        try:
+            start = motion.start(Pose(0.0, 0.0, 0.0, 0.0))
+            assert motion.depth_source == "SCALED_PRESSURE2"
+            motion.move(start, Action(up=0.5))
+            flown = motion.flown
+            depth = sub.state().down
+        finally:
+            motion.close()
+    assert flown == Action() and depth == pytest.approx(0.2, abs=1e-6)
+
+
+def test_the_geometric_pilot_flies_with_a_sounder_that_reads_nothing_sure() -> None:
+    """NaN (no sounder fitted, or one below its confidence) is unknown: never centred
+    toward, never counted as the nearest surface, said as such."""
+    from dataclasses import replace
+
+    from cavenav.env import CaveNavEnv
+    from cavenav.pilots.geometric import GeometricPilot
+    from cavenav.world.scenarios import load_scenario
+
+    env = CaveNavEnv(load_scenario("S1", 0), resolution=(160, 120))
+    _, info = env.reset(seed=0)
+    for top, bottom in [(math.nan, 1.2), (1.2, math.nan), (math.nan, math.nan)]:
+        observation = replace(info["observation"], d_top=top, d_bottom=bottom)
+        decision = GeometricPilot().decide(observation)
+        assert math.isfinite(decision.action.up)
+        assert "unknown" in decision.justification
+        verdict = Shield()
+        verdict.observe(observation)
+        verdict.judge(decision.action)  # judged, not raised
+
+
 # ---------------------------------------------------------------------------- the shield
 
 
@@ -228,18 +321,23 @@ def test_fly_without_a_simulator_flies_the_vehicles_own_sensors(
     tmp_path: Path, depth_model: Path
 ) -> None:
     """The geometric pilot on the tiny depth model, the fake sub with no DVL, a camera
-    whose grey level shows the vehicle's true depth, and two sounders that read a ceiling
-    at 26 m and a floor at 34 m."""
+    whose grey level shows the vehicle's true depth, 40 levels a metre, and two sounders
+    that read the ceiling 1 m above and the floor 3 m below wherever the vehicle is: it
+    descends on every step to centre itself, so a frame from before a move shows another
+    depth than the one after it."""
     sub, bridge = udp_sub(position=False)
 
+    def grey_of(depth: float) -> float:
+        return 128 + 40 * (depth - 30.0)  # 30 m: 128; 3 m deeper at most: 248
+
     def true_depth_grey(index: int) -> np.ndarray:
-        return grey(round(4 * sub.state().down) % 256)  # 30 m: 120
+        return grey(round(min(max(grey_of(sub.state().down), 0), 255)))
 
     with (
         sub,
-        FakeCamera(true_depth_grey, free_udp_port()) as camera,
-        FakePing1D(lambda: sub.state().down - 26.0) as ceiling,
-        FakePing1D(lambda: 34.0 - sub.state().down) as floor,
+        FakeCamera(true_depth_grey, free_rtp_port()) as camera,
+        FakePing1D(lambda: 1.0) as ceiling,
+        FakePing1D(lambda: 3.0) as floor,
     ):
         result = cavenav(
             "fly", "--connect", bridge.connect, "--camera", camera.address,
@@ -256,19 +354,18 @@ def test_fly_without_a_simulator_flies_the_vehicles_own_sensors(
     assert ending == ("finished", "budget", 3)
     assert summary["success"] is None and summary["position"] == "reckoned"
     assert summary["vehicle"]["depth_image"] is True
-    for step in steps:  # to the millimetre the ping protocol gives
-        depth_then = 30.0 - step["pose"]["z"]
-        assert step["d_top_m"] == pytest.approx(depth_then - 26.0, abs=0.03)
-        assert step["d_bottom_m"] == pytest.approx(34.0 - depth_then, abs=0.03)
+    assert [(s["d_top_m"], s["d_bottom_m"]) for s in steps] == [(1.0, 3.0)] * 3
     # Each step's frame is the camera's after the move before it: its grey is the depth
-    # the vehicle had then, which the record's pose says (the pose's z is -depth + 30 m).
-    for step in steps:
+    # the vehicle had then, which the record's pose says (the pose's z is -depth + 30 m),
+    # and each move changed the depth by a decimetre or more, 4 grey levels or more.
+    depths = [30.0 - step["pose"]["z"] for step in steps]
+    assert all(later - earlier >= 0.1 for earlier, later in itertools.pairwise(depths))
+    for step, depth in zip(steps, depths, strict=True):
         rgb = np.asarray(Image.open(run_dir / step["frames"]["rgb"]))
-        depth_then = 30.0 - step["pose"]["z"]
-        assert abs(float(np.median(rgb[..., 1])) - 4 * depth_then) <= 5, step["step"]
+        assert abs(float(np.median(rgb[..., 1])) - grey_of(depth)) <= 2.5, step["step"]
         assert (run_dir / step["frames"]["depth_exr"]).is_file()
     flown = math.hypot(truth.north, truth.east)
-    assert flown > 0.2  # it moved on its own sensors
+    assert flown > 0.05  # forward too, though slowly: the ceiling is within the standoff
     assert summary["progress_m"] == pytest.approx(flown, abs=0.1 + 0.2 * flown)
     assert summary["position_sigma_m"] > 0
 
@@ -289,7 +386,7 @@ def test_a_fake_sub_in_a_cave_streams_its_camera_and_answers_as_its_sounders(
     sub, _ = udp_sub(position=False)
     sensors = SensorConfig().with_resolution(160, 120)
     pings = (free_udp_port(), free_udp_port())
-    with sub, CaveSensors(sub, room, sensors, free_udp_port(), pings) as cave:
+    with sub, CaveSensors(sub, room, sensors, free_rtp_port(), pings) as cave:
         assert cave.pose() == room.start  # 2 m from the end wall behind it
         assert cave.clearance_m() == pytest.approx(2.0, abs=0.01)
         sounders = PingSounders.connect(cave.up.address, cave.down.address)

@@ -27,6 +27,7 @@ import warnings
 from collections.abc import Callable
 from dataclasses import replace
 from enum import StrEnum
+from functools import partial
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -613,17 +614,23 @@ def _fly_own_sensors(
             f"the {spec.name} pilot steers by the depth image: give --depth-model FOLDER "
             "(a metric monocular depth model), or fly --pilot vlm, which is told it has none"
         )
+    if not settings.shield and own.depth_model is None:
+        raise CavenavError(
+            "--no-shield without --depth-model would fly turns and horizontal moves into "
+            "water nothing has seen: keep the shield (it lets vertical moves fly) or give one"
+        )
     settings = _on_a_vehicle(settings, spec)
     vehicle = {
         "connect": bridge.connect, "mode": bridge.mode, "camera": str(camera),
-        "camera_hfov_deg": own.camera_hfov, "ping_up": own.ping_up, "ping_down": own.ping_down,
+        "camera_hfov_deg": own.camera_hfov, "camera_latency_s": own.camera_latency,
+        "ping_up": own.ping_up, "ping_down": own.ping_down,
         "depth_model": own.depth_model,
     }  # fmt: skip
     flight = Flight(settings.steps or DEFAULT_STEPS, settings.shield, settings.save_frames, vehicle)
     flyer = spec.build(seed=0)
     prepare_root(out)
-    run_dir = new_run_dir(out, "vehicle", spec.name, None)
     size = settings.resolution or (640, 480)
+    run_dir = partial(new_run_dir, out, "vehicle", spec.name, None)
     fly_on_own_sensors(bridge, flyer, flight, (own, size), run_dir, confirm)
 
 

@@ -11,6 +11,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
+import click
 import typer
 from rich.progress import (
     BarColumn,
@@ -236,7 +237,7 @@ def open_sensors(own: OwnSensors, size: tuple[int, int], stack: contextlib.ExitS
     sounders = PingSounders.connect(own.ping_up, own.ping_down)
     stack.callback(sounders.close)
     with console.status(f"opening the camera stream {address}"):
-        camera = VideoCamera(address, size)
+        camera = VideoCamera(address, size, latency_s=own.camera_latency)
     stack.callback(camera.close)
     depth = None
     if own.depth_model is not None:
@@ -244,7 +245,8 @@ def open_sensors(own: OwnSensors, size: tuple[int, int], stack: contextlib.ExitS
 
         with console.status(f"loading the depth model {own.depth_model}"):
             depth = MonocularDepth(own.depth_model)
-    focal_mm = 18.0 / math.tan(math.radians(own.camera_hfov) / 2)  # on a 36 mm sensor
+    hfov = camera.hfov_deg(own.camera_hfov)  # less where the stream's sides are cropped
+    focal_mm = 18.0 / math.tan(math.radians(hfov) / 2)  # on a 36 mm sensor
     intrinsics = CameraIntrinsics(*size, focal_mm=focal_mm)
     return VehicleSenses(camera, sounders, depth, intrinsics)
 
@@ -254,45 +256,71 @@ def fly_on_own_sensors(
     flyer: Any,  # noqa: ANN401
     flight: Any,  # noqa: ANN401
     sensors: tuple[OwnSensors, tuple[int, int]],
-    run_dir: Path,
+    new_run_dir: Callable[[], Path],
     confirm: Any,  # noqa: ANN401
 ) -> None:
     """Fly a vehicle on its camera, sounders and depth source (``sensors``: which, and
-    the camera's frame size), with no simulator; refused sensors or a failed connection
-    leave no folder."""
-    from cavenav.episode.on_vehicle import fly_on_sensors
-    from cavenav.vehicle.mavlink import ArduSubMotion
-
+    the camera's frame size), with no simulator. The sensors open before the run folder
+    is made (`new_run_dir`); a start that fails or is interrupted before the first step
+    leaves no folder."""
     with contextlib.ExitStack() as stack:
-        motion = ArduSubMotion(bridge, run_dir / "mavlink.jsonl", confirm=confirm, reckon=True)
-        stack.callback(motion.close)
+        senses = open_sensors(*sensors, stack)
+        run_dir = new_run_dir()
         try:
-            senses = open_sensors(*sensors, stack)
-            console.print(
-                f"[bold]vehicle[/] through MAVLink ({bridge.mode} mode, {bridge.connect}): "
-                "waiting for the vehicle's heartbeat",
-                soft_wrap=True,
-                highlight=False,
-            )
-            with Progress(*_bar(), console=console) as progress:
-                task = progress.add_task("flying", total=flight.max_steps, status="")
-
-                def on_step(record: dict) -> None:
-                    status = f"{record.get('action') or ''}"
-                    progress.update(task, advance=1, status=status[:60])
-
-                summary = fly_on_sensors(flyer, senses, motion, flight, run_dir, on_step)
-        except KeyboardInterrupt:
-            errors.print(_interrupted(run_dir), soft_wrap=True)
+            summary = _fly_on(bridge, flyer, flight, senses, run_dir, confirm)
+        except (KeyboardInterrupt, click.Abort):  # Abort: Ctrl-C at "arm the vehicle?"
+            if _forget_if_unflown(run_dir):
+                errors.print("interrupted before the flight began: nothing was recorded")
+            else:
+                errors.print(_interrupted(run_dir), soft_wrap=True)
             raise typer.Exit(130) from None
         except CavenavError as exc:
-            if not (run_dir / "summary.json").exists():  # nothing was flown
-                (run_dir / "mavlink.jsonl").unlink(missing_ok=True)
-                _remove_if_empty(run_dir)
-            else:
+            if not _forget_if_unflown(run_dir):
                 exc.args = (f"{exc} (the record so far is in {run_dir})",)
             raise
     _print_flight(summary, run_dir)
+
+
+def _fly_on(
+    bridge: Any,  # noqa: ANN401
+    flyer: Any,  # noqa: ANN401
+    flight: Any,  # noqa: ANN401
+    senses: Any,  # noqa: ANN401
+    run_dir: Path,
+    confirm: Any,  # noqa: ANN401
+) -> dict[str, Any]:
+    """`fly_on_sensors` through the MAVLink bridge, with a progress bar; the vehicle is
+    released (neutral sticks, disarmed, the link closed) before this returns or raises."""
+    from cavenav.episode.on_vehicle import fly_on_sensors
+    from cavenav.vehicle.mavlink import ArduSubMotion
+
+    motion = ArduSubMotion(bridge, run_dir / "mavlink.jsonl", confirm=confirm, reckon=True)
+    try:
+        console.print(
+            f"[bold]vehicle[/] through MAVLink ({bridge.mode} mode, {bridge.connect}): "
+            "waiting for the vehicle's heartbeat",
+            soft_wrap=True,
+            highlight=False,
+        )
+        with Progress(*_bar(), console=console) as progress:
+            task = progress.add_task("flying", total=flight.max_steps, status="")
+
+            def on_step(record: dict) -> None:
+                progress.update(task, advance=1, status=f"{record.get('action') or ''}"[:60])
+
+            return fly_on_sensors(flyer, senses, motion, flight, run_dir, on_step)
+    finally:
+        motion.close()
+
+
+def _forget_if_unflown(run_dir: Path) -> bool:
+    """Remove ``run_dir`` if no flight began there (no summary.json: only the command log
+    of a connection that failed or was stopped); whether it did."""
+    if (run_dir / "summary.json").exists():
+        return False
+    (run_dir / "mavlink.jsonl").unlink(missing_ok=True)
+    _remove_if_empty(run_dir)
+    return True
 
 
 def _print_flight(summary: dict[str, Any], run_dir: Path) -> None:

@@ -528,6 +528,7 @@ class OwnSensors:
     Attributes:
         camera: the video stream (`cavenav.vehicle.camera.CameraAddress`).
         camera_hfov: the camera's horizontal field of view in water, degrees.
+        camera_latency: seconds from the camera's sensor to a decoded frame.
         ping_up, ping_down: the sounders' addresses (`cavenav.vehicle.ping.PingAddress`);
             None: not fitted.
         depth_model: the folder of a metric monocular depth model; None: no depth image.
@@ -535,6 +536,7 @@ class OwnSensors:
 
     camera: str = "udp:5600"
     camera_hfov: float = 53.13
+    camera_latency: float = 0.2
     ping_up: str | None = None
     ping_down: str | None = None
     depth_model: str | None = None
@@ -558,11 +560,21 @@ OWN_SENSORS = OptionGroup(
             callback=finite,
         ),
         _flag(
+            "camera_latency",
+            float,
+            0.2,
+            "without --sim: seconds from the camera's sensor to a decoded frame; each step "
+            "waits for a frame decoded this long after the move ended",
+            min=0,
+            max=5,
+            callback=finite,
+        ),
+        _flag(
             "ping_up",
             str,
             None,
             "without --sim: the upward sounder, udp:HOST:PORT or serial:DEVICE[:BAUD]",
-        ),  # fmt: skip
+        ),
         _flag("ping_down", str, None, "without --sim: the downward sounder (udp:HOST:9090)"),
         _flag(
             "depth_model",

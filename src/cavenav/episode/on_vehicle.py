@@ -66,6 +66,8 @@ class VehicleMotion(Protocol):
 
     position: str  # "reported" or "reckoned"
     position_sigma_m: float | None
+    depth_source: str | None  # where a reckoned depth comes from; None: the position
+    flown: Action  # the last move's action as flown (cut at the depth limits)
 
     def start(self, pose: Pose) -> Pose: ...
 
@@ -141,7 +143,6 @@ class _Log:
         self.usage: list[Usage] = []
         self.termination: str | None = None
         self.failure: str | None = None
-        self.sigmas: list[float] = []
         self._started = time.perf_counter()
         self._meta = {
             "cavenav_version": __version__,
@@ -151,6 +152,15 @@ class _Log:
             "started_at": datetime.now(UTC).isoformat(timespec="seconds"),
             "vehicle": {**flight.vehicle, "depth_image": depth_source},
         }
+
+    def mark(self) -> tuple:
+        """Where the log stands, to `rewind` to when a step cannot be recorded."""
+        return len(self.steps), len(self.poses), len(self.usage), self.termination, self.failure
+
+    def rewind(self, mark: tuple) -> None:
+        """Forget what was logged since ``mark``: the summary then agrees with the folder."""
+        steps, poses, usage, self.termination, self.failure = mark
+        del self.steps[steps:], self.poses[poses:], self.usage[usage:]
 
     def record(self, step: dict[str, Any], timing_ms: dict[str, float]) -> dict[str, Any]:
         step["timing_ms"] = {k: round(v, 2) for k, v in timing_ms.items()}
@@ -180,6 +190,7 @@ class _Log:
                 "progress_m": round(_from_start(self.poses[0], self.poses[-1]), 4),
                 "final_pose": self.poses[-1].to_dict(),
                 "position": motion.position,
+                "depth_source": motion.depth_source,
                 "position_sigma_m": None if sigma is None else round(sigma, 4),
                 "failure": self.failure,
                 "wall_time_s": round(time.perf_counter() - self._started, 3),
@@ -226,7 +237,10 @@ def fly_on_sensors(
         pilot.reset()
         folder.write_json("summary.json", log.summary("running", motion))
         _fly(pilot, senses, motion, shield, log, folder, on_step)
-        folder.flush()
+        try:
+            folder.flush()
+        except LostStep as lost:
+            raise _taken_back(folder, log, lost) from lost.error
         status = "finished"
     except KeyboardInterrupt:
         status = "interrupted"
@@ -251,7 +265,7 @@ def _fly(
 ) -> None:
     moved_at, previous = time.monotonic(), None
     for step in range(log.flight.max_steps):
-        started = time.perf_counter()
+        mark, started = log.mark(), time.perf_counter()
         observation = senses.sense(moved_at, step, previous)
         timing = {"sense": 1e3 * (time.perf_counter() - started)}
         if shield is not None:
@@ -263,16 +277,18 @@ def _fly(
         except PilotFailure as failure:
             timing["pilot"] = 1e3 * (time.perf_counter() - started)
             _failed(failure, log, record)
-            _hand_over(folder, log, log.record(record, timing), observation, failure, motion)
+            step_record = log.record(record, timing)
+            _hand_over(folder, log, mark, step_record, observation, failure, motion)
             return
         timing["pilot"] = 1e3 * (time.perf_counter() - started)
+        started = time.perf_counter()
         previous = _carry_out(decision, shield, motion, log, record)
-        moved_at = time.monotonic()
-        timing["physics"] = 1e3 * (moved_at - started) - timing["pilot"]
+        moved_at = time.monotonic()  # the camera's clock
+        timing["physics"] = 1e3 * (time.perf_counter() - started)
         if step + 1 == log.flight.max_steps:
             log.termination = "budget"
         step_record = log.record(record, timing)
-        _hand_over(folder, log, step_record, observation, decision, motion)
+        _hand_over(folder, log, mark, step_record, observation, decision, motion)
         if on_step:
             on_step(step_record)
 
@@ -309,8 +325,8 @@ def _carry_out(
     the action flown."""
     proposed, invalid = read_action(decision.action_text, DEFAULT_SPACE)
     verdict = None if invalid or shield is None else shield.judge(proposed)
-    executed = verdict.action if verdict is not None else proposed
-    pose = motion.move(log.poses[-1], executed)
+    pose = motion.move(log.poses[-1], verdict.action if verdict is not None else proposed)
+    executed = motion.flown
     log.poses.append(pose)
     record.update(
         action=format_action(executed),
@@ -333,15 +349,27 @@ def _carry_out(
 def _hand_over(
     folder: RunFolder,
     log: _Log,
+    mark: tuple,
     record: dict[str, Any],
     observation: Observation,
     answer: Decision | PilotFailure,
     motion: VehicleMotion,
 ) -> None:
-    """Queue the step for the folder, with the pilot's exchanges with its model."""
+    """Queue the step just logged for the folder (with the pilot's exchanges with its
+    model), as `cavenav.episode.loop` does: a step the folder could not write is taken
+    back from the log with every step after it, and so is one that Ctrl-C kept from the
+    queue, so that the summary agrees with the folder."""
     summary = log.summary("running", motion)
     try:
-        folder.record(record, observation, answer.exchanges, summary)
+        folder.record(record, observation, answer.exchanges, summary, undo=mark)
     except LostStep as lost:
-        del log.steps[-1:]
-        raise RecordingError.cannot_write(f"the run folder {folder.path}", lost.error) from None
+        raise _taken_back(folder, log, lost) from lost.error
+    except KeyboardInterrupt:
+        log.rewind(mark)
+        raise
+
+
+def _taken_back(folder: RunFolder, log: _Log, lost: LostStep) -> RecordingError:
+    """Forget the lost step and those after it; the error to end the flight with."""
+    log.rewind(lost.undo)  # type: ignore[arg-type]
+    return RecordingError.cannot_write(f"the run folder {folder.path}", lost.error)

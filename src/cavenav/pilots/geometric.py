@@ -674,8 +674,10 @@ class GeometricPilot:
         what was seen; why it is capped; the state after a look at a side."""
         rules, yaw = self.config.rules, heading.yaw
         forward, constraint = _cap_forward(rules, heading, nearest, obs.hfov_deg / 2)
-        # Vertical: centre between ceiling and floor, and follow the passage's slope.
-        up = 0.5 * (obs.d_top - obs.d_bottom) + math.tan(math.radians(heading.elevation)) * forward
+        # Vertical: centre between ceiling and floor (where both sounders read: an unknown
+        # side is never moved toward to centre), and follow the passage's slope.
+        centre = 0.5 * (obs.d_top - obs.d_bottom) if math.isfinite(obs.d_top - obs.d_bottom) else 0
+        up = centre + math.tan(math.radians(heading.elevation)) * forward
         up = self._snap_up(float(np.clip(up, -1.0, 1.0)))
         right, look = self._lateral(scene, forward, yaw, state)
         # Below the standoff, forward motion must come with a turn or a shift: in a
@@ -723,8 +725,11 @@ class GeometricPilot:
             state = state.turned_back()  # the look was not made as chosen: nothing to turn back
         heading, state = self._heading(scene, observation.hfov_deg / 2, state)
         d_top, d_bottom = observation.d_top, observation.d_bottom
-        # The standoff counts walls beside the next move's path: they will be beside us.
-        nearest = min(d_top, d_bottom, scene.nearest_m, scene.ahead_m, scene.beside_m)
+        # The standoff counts walls beside the next move's path: they will be beside us. A
+        # sounder that reads nothing sure (NaN) counts for nothing here; the moves toward
+        # it are refused as never seen free (`_keep_clear`).
+        sounded = [d for d in (d_top, d_bottom) if not math.isnan(d)]
+        nearest = min(*sounded, scene.nearest_m, scene.ahead_m, scene.beside_m)
         proposed, constraint, state = self._propose(heading, scene, observation, nearest, state)
         action, shielded = self._make_safe(proposed, scene, nearest)
         if shielded:
@@ -733,7 +738,7 @@ class GeometricPilot:
         text = format_action(action)
         justification = (
             f"Situation: {heading.situation}; free straight ahead {scene.ahead_m:.1f} m; "
-            f"ceiling {d_top:.1f} m, floor {d_bottom:.1f} m; nearest surface "
+            f"ceiling {_metres(d_top)}, floor {_metres(d_bottom)}; nearest surface "
             f"{scene.nearest_m:.1f} m {'left' if scene.nearest_left else 'right'}. "
             f"Constraints: {constraint}. Choice: {text}"
             f"{_why(action.yaw_deg, action.up, action.right)}."
@@ -741,6 +746,10 @@ class GeometricPilot:
         return Decision(
             action=action, action_text=text, justification=justification, raw=justification
         )
+
+
+def _metres(distance: float) -> str:
+    return "unknown" if math.isnan(distance) else f"{distance:.1f} m"
 
 
 def _toward_roomier(scene: _Scene, degrees: float) -> float:

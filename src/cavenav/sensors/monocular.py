@@ -28,6 +28,31 @@ __all__ = ["MonocularDepth"]
 INSTALL_HINT = "a monocular depth model runs on transformers: pip install -e '.[transformers]'"
 
 
+# Models whose configuration says nothing of their kind (DPT, GLPN, ZoeDepth) are as likely
+# relative (MiDaS) as metric: only these are taken without being told (`METRIC_TYPES`).
+METRIC_TYPES = ("zoedepth", "glpn", "depth_pro")
+
+
+def _check_metric(config: Any, model: str | Path) -> None:  # noqa: ANN401 - a transformers config
+    """Refuse a model that is not known to predict metres.
+
+    Raises:
+        ConfigError: a relative model, or one whose kind its configuration does not say.
+    """
+    kind = getattr(config, "depth_estimation_type", None)
+    if kind == "metric" or (kind is None and config.model_type in METRIC_TYPES):
+        return
+    said = (
+        "it predicts relative depth"
+        if kind == "relative"
+        else (f"its configuration ({config.model_type}) does not say it predicts metres")
+    )
+    raise ConfigError(
+        f"depth model {model}: {said}, and the pilots need metres: give a metric model "
+        "(Depth Anything V2 Metric, ZoeDepth, GLPN, Depth Pro)"
+    )
+
+
 class MonocularDepth:
     """A transformers depth-estimation model that gives metres for an RGB image."""
 
@@ -50,16 +75,15 @@ class MonocularDepth:
             from transformers import AutoConfig, pipeline
         except ImportError:
             raise DependencyError(INSTALL_HINT) from None
-        kind = getattr(AutoConfig.from_pretrained(folder), "depth_estimation_type", "metric")
-        if kind == "relative":
-            raise ConfigError(
-                f"depth model {model}: it predicts relative depth, and the pilots need "
-                "metres: give a metric model (e.g. Depth Anything V2 Metric)"
-            )
-        if device == "auto":
-            device = "cuda" if torch.cuda.is_available() else "cpu"
+        try:
+            config = AutoConfig.from_pretrained(folder)
+            _check_metric(config, model)
+            if device == "auto":
+                device = "cuda" if torch.cuda.is_available() else "cpu"
+            self._pipeline: Any = pipeline("depth-estimation", model=str(folder), device=device)
+        except (OSError, ValueError, KeyError, RuntimeError) as exc:  # a broken or odd model
+            raise ConfigError(f"depth model {model}: cannot load it: {exc}") from None
         self.name, self.device = folder.name, device
-        self._pipeline: Any = pipeline("depth-estimation", model=str(folder), device=device)
 
     def __call__(self, rgb: np.ndarray) -> np.ndarray:
         """Planar depth in metres, (H, W) float32 like ``rgb``; NaN where the model gave

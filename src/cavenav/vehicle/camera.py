@@ -8,9 +8,12 @@ description, which `VideoCamera` writes itself) or an ``rtsp://`` URL (over TCP,
 survives a tether's lost datagrams); any other URL or file FFmpeg opens is taken as is.
 
 A live stream must be read all the time or its frames queue up and go stale: a thread of
-`VideoCamera` decodes every frame and keeps only the latest with the time it arrived, and
-`frame_after` waits for the first frame that arrived after a given moment (a move's end),
-so that a pilot never decides on what the camera saw before the vehicle moved.
+`VideoCamera` decodes every frame and keeps only the latest with the time it was decoded,
+and `frame_after` waits for the first frame decoded ``latency_s`` or more after a given
+moment (a move's end). The stream carries no clock shared with this machine, so the
+latency from the sensor to the decoder is a setting (0.2 s by default, an H.264 stream's
+over a tether; measure yours): set too short, a pilot may decide on what the camera saw
+before the vehicle stopped.
 
 `FakeCamera` streams frames from a function as RTP H.264 on 127.0.0.1, for tests and for
 flying the loop without a vehicle.
@@ -81,7 +84,10 @@ class CameraAddress:
             return cls("udp", port)
         if not text.strip():
             raise ConfigError("camera: give udp:PORT, rtsp://HOST:PORT/PATH or a URL")
-        return cls("rtsp" if text.startswith("rtsp://") else "url", text)
+        return cls("rtsp" if text.casefold().startswith("rtsp://") else "url", text)
+
+    def __repr__(self) -> str:
+        return f"CameraAddress({str(self)!r})"
 
     def __str__(self) -> str:
         """The address as it may be shown and recorded: a password in the URL (an IP
@@ -96,20 +102,36 @@ class CameraAddress:
 
 
 class VideoCamera:
-    """The latest frame of a video stream, as RGB at the pilot's size, decoded on a thread."""
+    """The latest frame of a video stream, decoded on a thread, as RGB at the pilot's size.
+
+    A frame is converted only when asked for: centre-cropped to the pilot's aspect ratio
+    (BlueOS streams 16:9; squeezing it into 4:3 would make the pixels taller than wide,
+    and every reader of the depth image assumes square ones), then scaled.
+    `hfov_deg` turns the stream's field of view into the frames'.
+    """
 
     def __init__(
-        self, address: CameraAddress, size: tuple[int, int] = (640, 480), timeout_s: float = 10.0
+        self,
+        address: CameraAddress,
+        size: tuple[int, int] = (640, 480),
+        timeout_s: float = 10.0,
+        latency_s: float = 0.2,
     ):
-        """Open the stream and wait for its first frame; ``size`` is (width, height) the
-        frames are scaled to.
+        """Open the stream and wait for its first frame.
+
+        Args:
+            size: (width, height) of the frames given.
+            latency_s: from light on the sensor to a decoded frame here (the camera's
+                encoder, the tether, the decoder): a frame that arrives sooner than this
+                after a moment may show what was before it.
 
         Raises:
             DependencyError: PyAV is not installed.
             VehicleError: the stream did not open, or sent no frame, within ``timeout_s``.
         """
         av = _av()
-        self.address, self.size, self.timeout_s = address, size, timeout_s
+        self.address, self.size = address, size
+        self.timeout_s, self.latency_s = timeout_s, latency_s
         self._folder = tempfile.TemporaryDirectory(prefix="cavenav-camera-")
         target, options = self._source(address)
         try:
@@ -118,7 +140,7 @@ class VideoCamera:
         except (av.FFmpegError, OSError) as exc:  # its text names the URL: not shown
             self._folder.cleanup()
             raise VehicleError(f"camera {address}: cannot open the stream: {_why(exc)}") from None
-        self._latest: tuple[np.ndarray, float] | None = None
+        self._latest: tuple[Any, float] | None = None  # an av.VideoFrame, when it arrived
         self.frames = 0  # decoded so far
         self._failure: BaseException | None = None
         self._arrived = threading.Condition()
@@ -126,8 +148,8 @@ class VideoCamera:
         self._thread = threading.Thread(target=self._decode, name="camera", daemon=True)
         self._thread.start()
         try:  # a stream that sends nothing is found now, before a vehicle is armed
-            self.frame_after(-math.inf)
-        except VehicleError:
+            self._first = self._wait_after(-math.inf)
+        except BaseException:
             self.close()
             raise
 
@@ -148,10 +170,8 @@ class VideoCamera:
             for frame in self._container.decode(video=0):
                 if self._stop.is_set():
                     break
-                width, height = self.size
-                rgb = frame.to_ndarray(format="rgb24", width=width, height=height)
                 with self._arrived:
-                    self._latest = (rgb, time.monotonic())
+                    self._latest = (frame, time.monotonic())
                     self.frames += 1
                     self._arrived.notify_all()
         except BaseException as exc:  # the stream ended or broke: said at the next read
@@ -163,16 +183,24 @@ class VideoCamera:
                 self._failure = self._failure or EOFError("the stream ended")
                 self._arrived.notify_all()
 
-    def frame_after(self, moment: float) -> np.ndarray:
-        """The first frame that arrived after the monotonic time ``moment``.
+    def _covering(self, frame: Any) -> tuple[int, int]:  # noqa: ANN401 - an av.VideoFrame
+        """The size the stream's frame is scaled to before the crop: the pilot's size
+        covered, the stream's aspect ratio kept."""
+        width, height = self.size
+        scale = max(width / frame.width, height / frame.height)
+        return max(width, round(frame.width * scale)), max(height, round(frame.height * scale))
 
-        Raises:
-            VehicleError: none came within ``timeout_s``, or the stream ended.
-        """
+    def hfov_deg(self, stream_hfov_deg: float) -> float:
+        """The horizontal field of view of the frames given, for a stream that sees
+        ``stream_hfov_deg`` across (less where its sides are cropped)."""
+        kept = self.size[0] / self._covering(self._first)[0]
+        return math.degrees(2 * math.atan(kept * math.tan(math.radians(stream_hfov_deg) / 2)))
+
+    def _wait_after(self, moment: float) -> Any:  # noqa: ANN401 - an av.VideoFrame
         deadline = time.monotonic() + self.timeout_s
         with self._arrived:
             while self._latest is None or self._latest[1] <= moment:
-                if self._failure is not None and not self._stop.is_set():
+                if self._failure is not None:
                     raise VehicleError(f"camera {self.address}: {_why(self._failure)}")
                 left = deadline - time.monotonic()
                 if left <= 0:
@@ -182,10 +210,27 @@ class VideoCamera:
                 self._arrived.wait(min(left, 0.1))
             return self._latest[0]
 
+    def frame_after(self, moment: float) -> np.ndarray:
+        """The first frame that arrived ``latency_s`` or more after the monotonic time
+        ``moment``, (height, width, 3) uint8 RGB at ``size``.
+
+        Raises:
+            VehicleError: none came within ``timeout_s``, or the stream ended.
+        """
+        frame = self._wait_after(moment + self.latency_s)
+        covered_width, covered_height = self._covering(frame)
+        rgb = frame.to_ndarray(format="rgb24", width=covered_width, height=covered_height)
+        width, height = self.size
+        top, left = (covered_height - height) // 2, (covered_width - width) // 2
+        return np.ascontiguousarray(rgb[top : top + height, left : left + width])
+
     def close(self) -> None:
         """Stop decoding; the thread closes the stream at its next frame (or, with the
-        stream silent, at its read timeout). Safe to repeat."""
+        stream silent, at its read timeout). Safe to repeat; a read waiting on it ends."""
         self._stop.set()
+        with self._arrived:
+            self._failure = self._failure or EOFError("the camera was closed")
+            self._arrived.notify_all()
         self._thread.join(timeout=1.0)
         self._folder.cleanup()
 

@@ -1,8 +1,8 @@
 """Where a vehicle with no position estimate is: dead reckoning, with its uncertainty.
 
-A BlueROV2 without a DVL measures its depth (the pressure sensor, reported in
-``VFR_HUD.alt`` as a negative altitude) and its heading (``ATTITUDE.yaw``), but not where
-it is across the cave: ArduSub then sends no ``LOCAL_POSITION_NED``. The horizontal
+A BlueROV2 without a DVL measures its depth (the Bar30 pressure sensor, in
+``SCALED_PRESSURE2``; see `cavenav.vehicle.mavlink`) and its heading (``ATTITUDE.yaw``),
+but not where it is across the cave: ArduSub then sends no ``LOCAL_POSITION_NED``. The horizontal
 position is reckoned from the commanded motion: each move's forward and sideways
 metres, turned by the heading measured after the move (ALT_HOLD holds the heading while
 it translates), added up. Depth and heading are measured, so they do not drift.

@@ -19,7 +19,8 @@ FS_PILOT_TIMEOUT), so that a bridge that flies this fake should fly the real veh
   ignored) in MAV_FRAME_LOCAL_NED, LOCAL_OFFSET_NED and BODY_OFFSET_NED, with a yaw or
   holding the heading;
 * ATTITUDE, VFR_HUD (the depth as a negative altitude and the heading, as ArduSub fills
-  it in) and LOCAL_POSITION_NED streams; without a position estimate, no
+  it in with an EKF origin set), SCALED_PRESSURE2 (a Bar30 in fresh water under a
+  standard atmosphere) and LOCAL_POSITION_NED streams; without a position estimate, no
   LOCAL_POSITION_NED, as ArduSub sends none when its EKF has no horizontal position.
 
 What it simplifies: the vehicle is kinematic (velocities are reached at once, roll and pitch
@@ -71,8 +72,10 @@ GAIN_REDRAW_S = 1.0  # how long one draw of the thrusters' gain error lasts
 STREAMED = (
     MAV.MAVLINK_MSG_ID_ATTITUDE,
     MAV.MAVLINK_MSG_ID_VFR_HUD,
+    MAV.MAVLINK_MSG_ID_SCALED_PRESSURE2,
     MAV.MAVLINK_MSG_ID_LOCAL_POSITION_NED,
 )
+SURFACE_HPA, FRESH_WATER_HPA_PER_M = 1013.25, 1000.0 * 9.80665 / 100.0
 TARGET_FRAMES = (
     MAV.MAV_FRAME_LOCAL_NED,
     MAV.MAV_FRAME_LOCAL_OFFSET_NED,
@@ -562,8 +565,8 @@ class FakeSub:
         )
 
     def _send(self, message_id: int, now: float) -> None:
-        """Send one ATTITUDE, one VFR_HUD, or one LOCAL_POSITION_NED if there is a position
-        estimate."""
+        """Send one ATTITUDE, VFR_HUD or SCALED_PRESSURE2, or one LOCAL_POSITION_NED if
+        there is a position estimate."""
         boot_ms = int((now - self._boot) * 1000.0) & 0xFFFFFFFF
         if message_id == MAV.MAVLINK_MSG_ID_ATTITUDE:
             self._conn.mav.attitude_send(boot_ms, 0.0, 0.0, self._yaw, 0.0, 0.0, self._yaw_rate)
@@ -572,6 +575,9 @@ class FakeSub:
             heading = round(math.degrees(self._yaw)) % 360
             climb, altitude = -float(self._velocity[2]), -float(self._position[2])
             self._conn.mav.vfr_hud_send(speed, speed, heading, 0, altitude, climb)
+        elif message_id == MAV.MAVLINK_MSG_ID_SCALED_PRESSURE2:
+            pressure = SURFACE_HPA + FRESH_WATER_HPA_PER_M * float(self._position[2])
+            self._conn.mav.scaled_pressure2_send(boot_ms, pressure, 0.0, 1200, 0)
         elif self.config.position_estimate:
             self._conn.mav.local_position_ned_send(
                 boot_ms, *(float(v) for v in self._position), *(float(v) for v in self._velocity)

@@ -14,12 +14,17 @@ straight translation, each a *segment*. Two ways to drive a segment, chosen by t
   absolute, so a relative turn can go the wrong way. Needs a position estimate (a DVL).
 
 Both modes read the pose from ``LOCAL_POSITION_NED`` and ``ATTITUDE`` (requested at
-``telemetry_hz`` with ``MAV_CMD_SET_MESSAGE_INTERVAL``, with ``VFR_HUD`` for the depth):
+``telemetry_hz`` with ``MAV_CMD_SET_MESSAGE_INTERVAL``, with the depth's messages below):
 ALT_HOLD itself needs only the depth sensor, and a vehicle flown on its own sensors
 (`ArduSubMotion` with ``reckon``) that reports no position is placed by dead reckoning
 from its depth, its heading and the commanded motion (`cavenav.vehicle.dead_reckoning`),
 with the uncertainty that implies; in a simulated cave (``cavenav fly --sim``) the
-observation is rendered where the vehicle is, so a reported position is required.
+observation is rendered where the vehicle is, so a reported position is required. The
+depth then comes from ``SCALED_PRESSURE2`` (a BlueROV2's Bar30, the pressure less
+``surface_pressure_hpa`` over ``water_density_kg_m3`` times g) or, without it, from
+``VFR_HUD``'s altitude (ArduSub's ``get_alt_msl``: minus the depth, but 0 until the
+autopilot has an EKF origin, so a reading of exactly 0 is not taken for one); the source
+chosen at the start is kept for the flight.
 
 Only standard MAVLink messages and ArduSub's documented behaviour are relied on
 (https://ardupilot.org/sub/docs/modes.html, .../parameters.html: ``SYSID_MYGCS``,
@@ -89,6 +94,9 @@ POSITION_AND_YAW = 8 | 16 | 32 | 64 | 128 | 256 | 2048
 # What a vehicle sends about itself: with a submarine's HEARTBEAT, what the bridge reads the
 # pose from. Heard from a second source, it means a second vehicle on the link.
 POSE_TELEMETRY = ("LOCAL_POSITION_NED", "ATTITUDE")
+# Where a vehicle with no position says its depth, the preferred first.
+DEPTH_SOURCES = ("SCALED_PRESSURE2", "VFR_HUD")
+GRAVITY = 9.80665  # m/s², standard
 
 # pymavlink's network addresses, "SCHEME:HOST:PORT", and whether each listens (a listening
 # one may take port 0, a port the system picks). Log files, websockets, multicast and Unix
@@ -207,6 +215,12 @@ class BridgeConfig(BaseModel):
     )
     reckoning_heading_error_deg: float = Field(
         3.0, ge=0, le=45, description="dead reckoning: the compass's error, degrees"
+    )
+    surface_pressure_hpa: float = Field(
+        1013.25, ge=500, le=1100, description="dead reckoning: the air's pressure at the water"
+    )
+    water_density_kg_m3: float = Field(
+        1000.0, ge=950, le=1100, description="dead reckoning: fresh 1000, sea 1025"
     )
     min_depth_m: float = Field(0.3, description="no target shallower (autopilot depth)")
     max_depth_m: float = Field(100.0, description="no target deeper")
@@ -373,8 +387,8 @@ class _Telemetry:
     position_at: float = -math.inf
     yaw: float | None = None
     attitude_at: float = -math.inf
-    depth: float | None = None  # VFR_HUD's, where no position is reported
-    depth_at: float = -math.inf
+    # Depths measured apart from a position, by source: (metres, arrival time).
+    depths: dict[str, tuple[float, float]] = field(default_factory=dict)
     acks: dict[int, int] = field(default_factory=dict)
     failure: BaseException | None = None  # what stopped the link thread
     refused: str | None = None  # why the link refuses to fly: a second vehicle or peer
@@ -538,8 +552,11 @@ class ArduSubLink:
                 t.position, t.position_at = (message.x, message.y, message.z), now
             elif kind == "ATTITUDE":
                 t.yaw, t.attitude_at = message.yaw, now
-            elif kind == "VFR_HUD":  # ArduSub's altitude is the depth, negative
-                t.depth, t.depth_at = -message.alt, now
+            elif kind == "VFR_HUD" and message.alt != 0.0:  # 0: no EKF origin yet
+                t.depths["VFR_HUD"] = (-message.alt, now)
+            elif kind == "SCALED_PRESSURE2":
+                pascals = 100.0 * (message.press_abs - self.config.surface_pressure_hpa)
+                t.depths[kind] = (pascals / (self.config.water_density_kg_m3 * GRAVITY), now)
             elif kind == "COMMAND_ACK":
                 t.acks[message.command] = message.result
             self._seen.notify_all()
@@ -673,10 +690,10 @@ class ArduSubLink:
         )
 
     def request_telemetry(self) -> None:
-        """Ask for ATTITUDE, VFR_HUD and LOCAL_POSITION_NED at ``telemetry_hz`` (a vehicle
+        """Ask for the pose's and the depth's messages at ``telemetry_hz`` (a vehicle
         streams what its SRn_ parameters or another ground station asked for otherwise)."""
         interval_us = 1e6 / self.config.telemetry_hz
-        for message in ("ATTITUDE", "VFR_HUD", "LOCAL_POSITION_NED"):
+        for message in ("ATTITUDE", "LOCAL_POSITION_NED", *DEPTH_SOURCES):
             number = getattr(self._mavlink, f"MAVLINK_MSG_ID_{message}")
             try:
                 self.command("MAV_CMD_SET_MESSAGE_INTERVAL", number, interval_us)
@@ -702,14 +719,17 @@ class ArduSubLink:
             raise VehicleError("the vehicle has reported no LOCAL_POSITION_NED and ATTITUDE yet")
         return NedPose(*t.position, yaw=t.yaw)
 
-    def depth(self) -> float:
-        """The latest depth: the reported position's, else VFR_HUD's."""
+    def depth(self, source: str | None = None) -> float:
+        """The latest depth from ``source`` (one of `DEPTH_SOURCES`); None: the reported
+        position's."""
         t = self.telemetry
-        if t.position is not None:
+        if source is None:
+            if t.position is None:
+                raise VehicleError("the vehicle has reported no LOCAL_POSITION_NED yet")
             return t.position[2]
-        if t.depth is None:
-            raise VehicleError("the vehicle has reported no depth (LOCAL_POSITION_NED or VFR_HUD)")
-        return t.depth
+        if source not in t.depths:
+            raise VehicleError(f"the vehicle has reported no depth in {source}")
+        return t.depths[source][0]
 
     def close(self) -> None:
         """Neutral sticks, then stop the thread and close the socket and the log."""
@@ -760,11 +780,19 @@ class ArduSubMotion:
         self._frame: NedFrame | None = None
         self._armed_here = False  # disarm at the end only a vehicle the bridge armed
         self._reckoning: DeadReckoning | None = None  # None: the position is reported
+        self._depth_source: str | None = None  # where a reckoning vehicle's depth comes from
+        self.flown = Action()  # the last move's action, as cut at the depth limits
 
     @property
     def position(self) -> str:
         """ "reckoned" when the vehicle is placed by dead reckoning, else "reported"."""
         return "reported" if self._reckoning is None else "reckoned"
+
+    @property
+    def depth_source(self) -> str | None:
+        """Where a reckoning vehicle's depth comes from (`DEPTH_SOURCES`); None: the
+        reported position."""
+        return self._depth_source
 
     @property
     def position_sigma_m(self) -> float | None:
@@ -787,7 +815,8 @@ class ArduSubMotion:
         if reckoned is None:
             return link.pose()
         assert link.telemetry.yaw is not None
-        return NedPose(reckoned.north, reckoned.east, link.depth(), link.telemetry.yaw)
+        depth = link.depth(self._depth_source)
+        return NedPose(reckoned.north, reckoned.east, depth, link.telemetry.yaw)
 
     def _open(self) -> ArduSubLink:
         if self._link is None:
@@ -829,17 +858,27 @@ class ArduSubMotion:
             )
             return
         link.wait_for(
-            "no ATTITUDE and VFR_HUD (dead reckoning needs the heading and the depth)",
-            lambda t: t.yaw is not None and (t.depth is not None or t.position is not None),
+            "no ATTITUDE with a depth (SCALED_PRESSURE2, or VFR_HUD's altitude, which ArduSub "
+            "sends as 0 until it has an EKF origin): dead reckoning needs the heading and the "
+            "depth",
+            lambda t: t.yaw is not None and (bool(t.depths) or t.position is not None),
             config.connect_timeout_s,
         )
-        with suppress(VehicleError):  # a position may come a few telemetry periods later
-            link.wait_for("", lambda t: t.position is not None, 3.0 / config.telemetry_hz + 0.5)
+        with suppress(VehicleError):  # a position, or the Bar30, a few periods later
+            link.wait_for(
+                "LOCAL_POSITION_NED",
+                lambda t: t.position is not None or DEPTH_SOURCES[0] in t.depths,
+                3.0 / config.telemetry_hz + 0.5,
+            )
         if link.telemetry.position is None:
             self._reckoning = DeadReckoning(
                 config.reckoning_distance_error, config.reckoning_heading_error_deg
             )
-            link.log.write("note", {"position": "reckoned", "why": "no LOCAL_POSITION_NED"})
+            self._depth_source = next(s for s in DEPTH_SOURCES if s in link.telemetry.depths)
+            link.log.write(
+                "note", {"position": "reckoned", "depth": self._depth_source,
+                         "why": "no LOCAL_POSITION_NED"},
+            )  # fmt: skip
 
     @property
     def _mode(self) -> int:
@@ -849,7 +888,7 @@ class ArduSubMotion:
         link, frame = self._link, self._frame
         if link is None or frame is None:
             raise VehicleError("the vehicle is not started: call start() first")
-        action = self._within_depth_limits(link, action)
+        action = self.flown = self._within_depth_limits(link, action)
         try:
             for segment in plan(action, self.config):
                 link.check_alive(self._mode)
@@ -865,9 +904,10 @@ class ArduSubMotion:
                     self.config.heartbeat_timeout_s,
                 )
             else:
+                source = self._depth_source
                 link.wait_for(
-                    "no ATTITUDE and VFR_HUD after the action",
-                    lambda t: min(t.attitude_at, t.depth_at) >= ended,
+                    f"no ATTITUDE and {source} after the action",
+                    lambda t: min(t.attitude_at, t.depths[source][1]) >= ended,
                     self.config.heartbeat_timeout_s,
                 )
                 assert link.telemetry.yaw is not None
@@ -884,9 +924,15 @@ class ArduSubMotion:
         return Drift.of(pose, action, reached)
 
     def _within_depth_limits(self, link: ArduSubLink, action: Action) -> Action:
-        """``action`` with its vertical part cut so that the depth stays within limits."""
-        depth = link.depth()
-        target = min(max(depth - action.up, self.config.min_depth_m), self.config.max_depth_m)
+        """``action`` with its vertical part cut so that the depth stays within limits:
+        cut, never lengthened or reversed (a vehicle already beyond a limit holds its
+        depth), so that it flies no vertical motion the shield did not judge."""
+        depth = link.depth(self._depth_source)
+        lowest, highest = self.config.max_depth_m, self.config.min_depth_m
+        if action.up > 0:  # rising: at most to the shallowest depth allowed
+            target = depth - min(action.up, max(depth - highest, 0.0))
+        else:
+            target = depth - max(action.up, -max(lowest - depth, 0.0))
         if abs(target - (depth - action.up)) < 1e-9:
             return action
         limited = replace(action, up=round(depth - target, 2))
