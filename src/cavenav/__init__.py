@@ -40,6 +40,7 @@ if "cavenav/CaveNav-v0" not in gymnasium.registry:
     gymnasium.register(
         id="cavenav/CaveNav-v0",
         entry_point="cavenav.env:CaveNavEnv",
+        vector_entry_point="cavenav.vector_env:CaveNavVectorEnv",
         max_episode_steps=150,
     )
 if "cavenav/CaveNav-vector-v0" not in gymnasium.registry:
@@ -48,5 +49,6 @@ if "cavenav/CaveNav-vector-v0" not in gymnasium.registry:
     gymnasium.register(
         id="cavenav/CaveNav-vector-v0",
         entry_point="cavenav.env:learner_env",
+        vector_entry_point="cavenav.vector_env:learner_vector_env",
         max_episode_steps=150,
     )

@@ -19,6 +19,7 @@ from __future__ import annotations
 import math
 import string
 import time
+from collections.abc import Mapping, MutableMapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
@@ -192,6 +193,13 @@ class ActionText(spaces.Text):
         )
 
 
+def _spaces(
+    sensors: SensorConfig, action_format: str, space: ActionSpace
+) -> tuple[spaces.Dict, spaces.Space]:
+    """The observation and action spaces of an environment with these settings."""
+    return _observation_space(sensors), _action_space(action_format, space)
+
+
 def _action_space(action_format: str, space: ActionSpace) -> spaces.Space:
     """Action strings over `ACTION_CHARSET`, or a ``Box`` of the largest magnitudes."""
     if action_format == "text":
@@ -216,6 +224,20 @@ class Timings:
 
     sense_ms: float = field(compare=False)
     physics_ms: float | None = field(default=None, compare=False)
+
+
+@dataclass(frozen=True)
+class Move:
+    """What `CaveNavEnv.begin_step` did, for `CaveNavEnv.end_step` to report."""
+
+    command: Action  # as carried out (a hold when inadmissible)
+    invalid: str | None  # why the action was not admissible
+    collision_pose: Pose | None  # where the body touched, if it did
+    terms: dict[str, float]  # the reward's terms
+    energy_wh: float
+    seconds: float  # the move's duration through the water
+    drift: Drift | None
+    started: float  # perf_counter at the step's start
 
 
 @dataclass(frozen=True)
@@ -297,6 +319,9 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 4}
     _field: CurrentField | None  # the episode's flowing water; None: still
+    _world: _World | None  # the cave flown; None before the first reset
+    pose: Pose | None  # where the vehicle is; None before the first reset
+    observation: Observation | None
 
     def __init__(
         self,
@@ -315,6 +340,7 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
         motion: Motion | None = None,
         current: Current | None = None,
         battery_wh: float | None = None,
+        caves: MutableMapping[tuple[str, int | None], tuple[Scenario, RayCaster]] | None = None,
     ):
         """
         Args:
@@ -339,6 +365,7 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
                 reported pose is then sensed and checked; ``info`` gains the move's
                 drift from the pose the kinematics command (`Motion.drift`).
             current, battery_wh: the water's flow and an energy budget (class docstring).
+            caves: built caves and ray casters shared by environments (`cavenav.vector_env`).
         """
         _check_modes(render_mode, action_format)
         self.render_mode, self.body = render_mode, body or VehicleBody()
@@ -349,11 +376,9 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
         self.current, self.battery_wh = _water(motion, current), checked_budget(battery_wh)
         self.cruise, self.power = Cruise(), _power(self.sensors, self.body)
         self._default_scenario, self._default_cave_seed = scenario, cave_seed
-        self._world: _World | None = None
-        self.observation_space = _observation_space(self.sensors)
-        self.action_space = _action_space(action_format, space)
-        self.pose: Pose | None = None
-        self.observation: Observation | None = None
+        self._world, self._caves = None, caves
+        self.observation_space, self.action_space = _spaces(self.sensors, action_format, space)
+        self.pose, self.observation = None, None
         self._timings, self._clearance, self._progress = Timings(0.0), math.inf, 0.0
         self._steps = self._noise_seed = 0
         self._ended = self._left_by_entrance = self._flat = False
@@ -397,9 +422,15 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
             key = (SCENARIOS[name].name if procedural else name, cave_seed if procedural else None)
         if self._world is not None and self._world.key == key:
             return self._world
-        cave = scenario if isinstance(scenario, Scenario) else load_scenario(key[0], key[1] or 0)
-        caster = RayCaster(cave.mesh)
+        if self._caves is not None and key in self._caves:
+            cave, caster = self._caves[key]
+        else:
+            name, seed = key
+            cave = scenario if isinstance(scenario, Scenario) else load_scenario(name, seed or 0)
+            caster = RayCaster(cave.mesh)
         validate_start(cave, caster, self.body)
+        if self._caves is not None:
+            self._caves[key] = cave, caster
         self._world = None  # free the previous cave's tables before building the next
         return _World(key, cave, caster, SensorRig(caster, self.sensors))
 
@@ -437,6 +468,12 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
     def step(
         self, action: str | np.ndarray | Action
     ) -> tuple[dict[str, np.ndarray], float, bool, bool, dict[str, Any]]:
+        return self.end_step(self.begin_step(action))
+
+    def begin_step(self, action: str | np.ndarray | Action) -> Move:
+        """The first half of `step`: the move, its collision check and its reward, up to
+        what the sensors see after it (`end_step`). A batched environment
+        (`cavenav.vector_env`) casts many environments' `sensor_rays` between the two."""
         if self._world is None or self.pose is None:
             raise gym.error.ResetNeeded("Call reset before using step method.")
         if self._ended:
@@ -454,7 +491,6 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
         step_wh = self.power.energy_wh(passage.dt, passage.through_water)
         self._energy_wh += step_wh
         hit = swept_collision(self.caster, self.body, start, moved, self._clearance)
-        collision_pose = moved if hit else None
         if not hit:
             self.pose = moved
             self._clearance = clearance(self.caster, moved)
@@ -473,25 +509,41 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
             field, now = self._field, self._clock_s
             water = None if field is None else (lambda at: field.velocity(at, now))
             self._silt = self._silt.stirred(self.pose, command, floor, water)
+        if flowing:
+            drift: Drift | None = Drift.of(start, command, moved)
+        else:
+            drift = _drift(self.motion, start, command, moved)
+        return Move(command, invalid, moved if hit else None, terms, step_wh, passage.seconds,
+                    drift, started)  # fmt: skip
+
+    def sensor_rays(self) -> np.ndarray:
+        """The rays the sensors cast where the vehicle is now (`SensorRig.rays`)."""
+        assert self._world is not None and self.pose is not None
+        return self._world.rig.rays(self.pose)
+
+    def end_step(
+        self, move: Move, cast: Mapping[str, np.ndarray] | None = None
+    ) -> tuple[dict[str, np.ndarray], float, bool, bool, dict[str, Any]]:
+        """The second half of `step`: what the sensors see after ``move``; ``cast``: what
+        casting `sensor_rays` gave, when the caller cast them (None casts here)."""
+        assert self._world is not None and self.pose is not None
         sensed = time.perf_counter()
-        observation = self._world.rig.observe(self.pose, self._steps, self._noise_seed, self._silt)
+        observation = self._world.rig.observe(
+            self.pose, self._steps, self._noise_seed, self._silt, cast
+        )
         self.observation = replace(
-            observation, previous_action=command, energy_left_wh=self._energy_left_wh
+            observation, previous_action=move.command, energy_left_wh=self._energy_left_wh
         )
         self._timings = Timings(
-            physics_ms=1e3 * (sensed - started), sense_ms=1e3 * (time.perf_counter() - sensed)
+            physics_ms=1e3 * (sensed - move.started), sense_ms=1e3 * (time.perf_counter() - sensed)
         )
-        info = self._info(command, invalid, collision_pose)
-        info["reward_terms"] = terms
-        info.update(step_energy_wh=step_wh, move_s=passage.seconds)
-        drift = (
-            Drift.of(start, command, moved)
-            if flowing
-            else _drift(self.motion, start, command, moved)
-        )
-        if drift is not None:
-            info.update(drift.to_info())
-        return self._observation_dict(), float(sum(terms.values())), self._ended, False, info
+        info = self._info(move.command, move.invalid, move.collision_pose)
+        info["reward_terms"] = move.terms
+        info.update(step_energy_wh=move.energy_wh, move_s=move.seconds)
+        if move.drift is not None:
+            info.update(move.drift.to_info())
+        reward = float(sum(move.terms.values()))
+        return self._observation_dict(), reward, self._ended, False, info
 
     def render(self) -> np.ndarray | None:
         """The forward colour image (H, W, 3) uint8 with ``render_mode="rgb_array"``."""

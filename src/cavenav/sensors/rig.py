@@ -424,24 +424,51 @@ class SensorRig:
         radiance: bool,
         noise_seed: int | None = None,
         silt: SiltCloud | None = None,
+        cast: Mapping[str, np.ndarray] | None = None,
     ) -> tuple[Frame, tuple[float, float]]:
-        """The forward frame and the sounders' (d_top, d_bottom), from one cast."""
+        """The forward frame and the sounders' (d_top, d_bottom), from one cast (``cast``:
+        what casting `rays` gave, when the caller cast them)."""
         with _numba_threads(self._threads):
-            return self._render_on(pose, radiance, noise_seed, silt)
+            return self._render_on(pose, radiance, noise_seed, silt, cast)
 
-    def _render_on(
-        self, pose: Pose, radiance: bool, noise_seed: int | None, silt: SiltCloud | None
-    ) -> tuple[Frame, tuple[float, float]]:
-        cfg = self.config
-        optics = cfg.optics
-        camera = cfg.camera
-        rot = camera_to_world(pose).astype(np.float32)
-        origin = self.camera_position(pose).astype(np.float32)
-        # Write origins and directions straight into the ray buffer Open3D reads.
+    def rays(self, pose: Pose) -> np.ndarray:
+        """The rays an observation at ``pose`` casts, (n, 6) origins and directions: the
+        camera's pixels, then the sounders'. For a caller that casts many observations'
+        rays in one call (`cavenav.vector_env`) and gives each its part (`observe`'s
+        ``cast``); the buffer is this rig's own, overwritten by its next observation."""
+        self._fill(pose, *self._camera_at(pose))
+        return self._rays
+
+    def _camera_at(self, pose: Pose) -> tuple[np.ndarray, np.ndarray]:
+        """The camera's rotation to the world and its origin at ``pose``."""
+        return camera_to_world(pose).astype(np.float32), self.camera_position(pose).astype(
+            np.float32
+        )
+
+    def _cast(self, pose: Pose, rot: np.ndarray, origin: np.ndarray) -> dict[str, np.ndarray]:
+        """Fill the ray buffer at ``pose`` and cast it."""
+        self._fill(pose, rot, origin)
+        return self.caster.cast_raw_rays(self._rays)
+
+    def _fill(self, pose: Pose, rot: np.ndarray, origin: np.ndarray) -> None:
+        """Write the rays at ``pose`` into the ray buffer Open3D reads."""
         n, rays = len(self._pixel_dirs), self._rays
         fill_rays(self._pixel_dirs, rot, origin, rays)
         self._sounder_rays(pose, rays[n:])  # 0.5% more rays, one call fewer
-        raw = self.caster.cast_raw_rays(rays)
+
+    def _render_on(
+        self,
+        pose: Pose,
+        radiance: bool,
+        noise_seed: int | None,
+        silt: SiltCloud | None,
+        cast: Mapping[str, np.ndarray] | None = None,
+    ) -> tuple[Frame, tuple[float, float]]:
+        cfg = self.config
+        optics, camera = cfg.optics, cfg.camera
+        rot, origin = self._camera_at(pose)
+        n, rays = len(self._pixel_dirs), self._rays
+        raw = self._cast(pose, rot, origin) if cast is None else cast  # else cast with others
         readings = self._readings(raw["t_hit"][n:])
         depth = raw["t_hit"][:n]
         lamp_tuple = self._lamps_at(origin, rot)
@@ -550,6 +577,7 @@ class SensorRig:
         step: int = 0,
         noise_seed: int | None = None,
         silt: SiltCloud | None = None,
+        cast: Mapping[str, np.ndarray] | None = None,
     ) -> Observation:
         """Render everything a pilot sees at ``pose``, from one ray cast.
 
@@ -557,9 +585,11 @@ class SensorRig:
             noise_seed: seeds this observation's sensor noise (an episode's own draw);
                 None uses the configuration's seed.
             silt: the silt hanging in the water (`cavenav.world.silt`); None: clear.
+            cast: what `RayCaster.cast_raw_rays` gave for `rays` at ``pose``, when the
+                caller cast them with others; None casts here.
         """
         cfg = self.config
-        frame, (d_top, d_bottom) = self._render(pose, False, noise_seed, silt)
+        frame, (d_top, d_bottom) = self._render(pose, False, noise_seed, silt, cast)
         return Observation(
             rgb=frame.rgb,
             depth_m=frame.depth_m,
