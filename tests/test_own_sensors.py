@@ -353,6 +353,8 @@ def test_fly_without_a_simulator_flies_the_vehicles_own_sensors(
     ending = (summary["status"], summary["termination"], summary["steps"])
     assert ending == ("finished", "budget", 3)
     assert summary["success"] is None and summary["position"] == "reckoned"
+    assert summary["plots"] == {"topdown": "topdown.png", "side": "side.png"}
+    assert all((run_dir / name).stat().st_size > 10_000 for name in summary["plots"].values())
     assert summary["vehicle"]["depth_image"] is True
     assert [(s["d_top_m"], s["d_bottom_m"]) for s in steps] == [(1.0, 3.0)] * 3
     # Each step's frame is the camera's after the move before it: its grey is the depth

@@ -151,6 +151,7 @@ class _Log:
             "pid": os.getpid(),
             "started_at": datetime.now(UTC).isoformat(timespec="seconds"),
             "vehicle": {**flight.vehicle, "depth_image": depth_source},
+            "config": {"max_steps": flight.max_steps, "shield": flight.shield},
         }
 
     def mark(self) -> tuple:
@@ -250,8 +251,21 @@ def fly_on_sensors(
         raise
     finally:
         summary = log.summary(status, motion)
+        if status == "finished" and log.steps:
+            summary["plots"] = _plotted(summary, log, folder.path)
         folder.finish(summary, log, None, plots=False)  # type: ignore[arg-type]
     return summary
+
+
+def _plotted(summary: dict[str, Any], log: _Log, where: Path) -> dict[str, str]:
+    """topdown.png and side.png of the flight (`plot_flight`); none on a full disk."""
+    from cavenav.episode.plots import plot_flight  # matplotlib, once the flight is over
+
+    title = f"vehicle · {summary['pilot']} · {summary['termination']} after {len(log.steps)} steps"
+    try:
+        return plot_flight(log.steps, title, where, summary.get("position_sigma_m") or 0.0)
+    except OSError:
+        return {}
 
 
 def _fly(

@@ -21,6 +21,7 @@ from matplotlib.axes import Axes
 from matplotlib.collections import LineCollection
 from matplotlib.colors import Normalize
 from matplotlib.figure import Figure
+from matplotlib.patches import Circle
 
 from cavenav.episode.records import EpisodeSummary
 from cavenav.types import Pose
@@ -28,7 +29,7 @@ from cavenav.world.mesh import CaveMesh
 from cavenav.world.raycast import RayCaster
 from cavenav.world.scenarios import ExitPortal, Scenario
 
-__all__ = ["draw_exits", "draw_footprint", "footprint_raster", "plot_episode"]
+__all__ = ["draw_exits", "draw_footprint", "footprint_raster", "plot_episode", "plot_flight"]
 
 _CMAP = "viridis"
 # Light grey under the path's colours, as 8-bit RGBA (images are not rounded, lines are).
@@ -252,3 +253,63 @@ def _densify(points: np.ndarray, spacing: float) -> tuple[np.ndarray, np.ndarray
     s = np.concatenate([[0.0], np.cumsum(seg)])
     s_new = np.unique(np.concatenate([np.arange(0.0, s[-1], spacing), s]))
     return np.stack([np.interp(s_new, s, points[:, k]) for k in range(3)], axis=1), s_new
+
+
+def plot_flight(
+    steps: Sequence[Mapping[str, Any]], title: str, out_dir: Path, final_sigma_m: float = 0.0
+) -> dict[str, str]:
+    """A flight on a vehicle's own sensors (`cavenav.episode.on_vehicle`), where there is
+    no cave model: topdown.png, the path as reported or reckoned with its one-sigma
+    uncertainty around each pose; side.png, the path unrolled with the ceiling and floor
+    the sounders read above and below it (left open where a sounder read nothing sure).
+    Returns the file names.
+
+    Args:
+        steps: steps.jsonl's records (pose, position_sigma_m, d_top_m, d_bottom_m, and
+            next_pose for the end of the last move).
+        final_sigma_m: the uncertainty where the last move ended.
+    """
+    poses = [step["pose"] for step in steps] + [steps[-1].get("next_pose") or steps[-1]["pose"]]
+    p = np.array([[pose["x"], pose["y"], pose["z"]] for pose in poses])
+    sigma = [step.get("position_sigma_m") or 0.0 for step in steps] + [final_sigma_m]
+    fig = Figure(figsize=(8, 8))
+    ax = fig.subplots()
+    ax.plot(p[:, 0], p[:, 1], color="tab:blue", lw=2, marker=".", zorder=3, label="path")
+    for (x, y, _), radius in zip(p, sigma, strict=True):
+        if radius > 0:
+            ax.add_patch(Circle((x, y), radius, fill=False, color="tab:orange", alpha=0.5))
+    ax.plot(*p[0, :2], marker="o", color="tab:green", ms=9, zorder=5, label="start")
+    ax.plot([], [], color="tab:orange", label="one sigma of the reckoned position")
+    centre = 0.5 * (p[:, :2].min(axis=0) + p[:, :2].max(axis=0))
+    half = max(1.0, float(np.ptp(p[:, :2], axis=0).max()) / 2 + max(sigma, default=0.0) + 0.5)
+    ax.set(xlim=(centre[0] - half, centre[0] + half), ylim=(centre[1] - half, centre[1] + half))
+    ax.set_aspect("equal")
+    ax.set(xlabel="x (m)", ylabel="y (m)", title=title)
+    ax.legend(loc="upper left", fontsize=8)
+    fig.savefig(out_dir / "topdown.png", dpi=110, bbox_inches="tight")
+    _plot_sounded(steps, p, title, out_dir / "side.png")
+    return {"topdown": "topdown.png", "side": "side.png"}
+
+
+def _plot_sounded(
+    steps: Sequence[Mapping[str, Any]], p: np.ndarray, title: str, path: Path
+) -> None:
+    """Distance along the path against height, with what the sounders read at each step."""
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))])
+    z = p[: len(steps), 2]
+    top = np.array([np.nan if v.get("d_top_m") is None else v["d_top_m"] for v in steps])
+    bottom = np.array([np.nan if v.get("d_bottom_m") is None else v["d_bottom_m"] for v in steps])
+    fig = Figure(figsize=(11, 4))
+    ax = fig.subplots()
+    ceiling, floor = z + top, z - bottom
+    known = np.concatenate([ceiling[np.isfinite(ceiling)], floor[np.isfinite(floor)], p[:, 2]])
+    lo, hi = known.min() - 1.0, known.max() + 1.0
+    at = s[: len(steps)]
+    ax.fill_between(at, ceiling, hi, color="0.55", step="mid", label="rock the sounders read")
+    ax.fill_between(at, lo, floor, color="0.55", step="mid")
+    ax.plot(s, p[:, 2], color="tab:blue", lw=2, marker=".", zorder=3, label="path")
+    ax.plot(0, p[0, 2], marker="o", color="tab:green", ms=9, zorder=5, label="start")
+    ax.set(xlim=(0, max(s[-1], 1.0)), ylim=(lo, hi), xlabel="distance along the path (m)")
+    ax.set(ylabel="z (m)", title=f"{title} · ceiling and floor as the sounders read them")
+    ax.legend(loc="upper right", fontsize=8, ncols=3)
+    fig.savefig(path, dpi=110, bbox_inches="tight")
