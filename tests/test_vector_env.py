@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 import cavenav  # noqa: F401 - registers the environments
-from cavenav.vector_env import CaveNavVectorEnv
+from cavenav.env import CaveNavEnv
+from cavenav.vector_env import CaveNavVectorEnv, batched_infos
 
 LEARNER = "cavenav/CaveNav-vector-v0"
 SMALL = (32, 24)
@@ -31,8 +32,9 @@ def test_make_vec_gives_the_native_batched_environment_by_its_vector_entry_point
 def test_it_flies_exactly_as_single_environments_given_the_same_seeds_and_actions(
     cave_seed: int | None,
 ) -> None:
-    """Random actions for 20 steps, episodes cut at 6 steps so that every environment
-    ends and is reset (collisions too, at random), in its own cave or all in one."""
+    """20 steps, episodes cut at 6 steps so that every environment ends and is reset;
+    the first environment strafes right into the wall (collisions), the others fly at
+    random; in a cave each or all in one (their rays then cast together)."""
     n, options = 4, {"resolution": SMALL, "cave_seed": cave_seed, "max_episode_steps": 6}
     vector = gym.make_vec(LEARNER, num_envs=n, vectorization_mode="vector_entry_point",
                           **options)  # fmt: skip
@@ -41,29 +43,69 @@ def test_it_flies_exactly_as_single_environments_given_the_same_seeds_and_action
     for i, env in enumerate(singles):
         alone, _ = env.reset(seed=7 + i)
         assert all(np.array_equal(batched[key][i], alone[key]) for key in alone)
-    rng, ended, endings = np.random.default_rng(0), [False] * n, 0
+    rng, ended, endings, collisions = np.random.default_rng(0), [False] * n, 0, 0
     for _ in range(20):
         actions = rng.uniform(-1, 1, size=(n, 4)).astype(np.float32)
+        actions[0] = (0.0, 1.0, 0.0, 0.0)  # strafe right 1 m, into the wall
         batched, rewards, terminated, truncated, infos = vector.step(actions)
+        collisions += int(infos["collision"][infos["_collision"]].sum())
         for i, env in enumerate(singles):
             if ended[i]:  # next-step autoreset, as Gymnasium's vector environments do it
                 alone, reward, stop, cut = env.reset()[0], 0.0, False, False
             else:
-                alone, reward, stop, cut, _ = env.step(actions[i])
+                alone, reward, stop, cut, info = env.step(actions[i])
+                for key in ("clearance_m", "progress_m", "collision", "collision_pose"):
+                    assert infos[key][i] == info[key], key
             assert all(np.array_equal(batched[key][i], alone[key]) for key in alone)
             assert (rewards[i], terminated[i], truncated[i]) == (reward, stop, cut)
             ended[i] = stop or cut
             endings += ended[i]
-    assert endings >= n  # every environment was reset at least once
+    assert endings >= n and collisions >= 2  # every one was reset; the wall was met
     caves = len(vector.unwrapped.caves)
     assert caves == (1 if cave_seed == 0 else n)  # the caves flown now, no more
     vector.close()
 
 
-def test_a_collision_beside_a_step_without_one_batches_its_pose() -> None:
-    """``collision_pose`` is a dict in one info and None in another: kept as objects."""
+@pytest.mark.parametrize("order", [(0, 1), (1, 0)], ids=["none first", "dict first"])
+def test_infos_of_mixed_kinds_batch_whatever_order_they_come_in(order: tuple[int, int]) -> None:
+    """``collision_pose`` is a dict or None, ``current_m_s`` a float or None: Gymnasium's
+    own batching takes the kind of the first and fails (or misreads) on the other."""
+    infos = [
+        {"collision_pose": None, "current_m_s": None, "steps": 3, "pose": {"x": 1.0}},
+        {"collision_pose": {"x": 2.0}, "current_m_s": 0.25, "steps": 4, "pose": {"x": 2.5}},
+    ]
+    batched = batched_infos([infos[i] for i in order])
+    assert [batched["collision_pose"][order.index(i)] for i in (0, 1)] == [None, {"x": 2.0}]
+    assert [batched["current_m_s"][order.index(i)] for i in (0, 1)] == [None, 0.25]
+    assert batched["steps"].dtype == np.int64 and batched["pose"]["x"].dtype == np.float64
+    assert batched["_collision_pose"].all() and batched["pose"]["_x"].all()
+    partial = batched_infos([None, {"progress_m": 1.5}])
+    assert list(partial["_progress_m"]) == [False, True] and partial["progress_m"][1] == 1.5
+
+
+def test_a_reset_mask_resets_only_those_it_marks_and_a_bad_one_is_refused() -> None:
     vector = CaveNavVectorEnv(2, resolution=SMALL, action_format="vector")
-    infos = vector._add_info({}, {"collision_pose": None, "progress_m": 1.0}, 0)
-    infos = vector._add_info(infos, {"collision_pose": {"x": 1.0}, "progress_m": 2.0}, 1)
-    assert list(infos["collision_pose"]) == [None, {"x": 1.0}]
-    assert infos["_collision_pose"].all() and list(infos["progress_m"]) == [1.0, 2.0]
+    first, _ = vector.reset(seed=0)
+    vector.step(np.array([[1.0, 0.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0]], np.float32))
+    moved, _ = vector.reset(seed=5, options={"reset_mask": np.array([False, True])})
+    assert not np.array_equal(moved["rgb"][0], first["rgb"][0])  # left where it flew to
+    alone = CaveNavEnv(resolution=SMALL, action_format="vector").reset(seed=6)[0]
+    assert np.array_equal(moved["rgb"][1], alone["rgb"])  # reset with seed 5 + 1
+    for bad in (np.array([False, False]), np.array([True]), [True, False]):
+        with pytest.raises(ValueError, match="reset_mask"):
+            vector.reset(options={"reset_mask": bad})
+    vector.close()
+    assert vector.caves == {}  # closed: the caves let go
+
+
+def test_a_step_budget_must_be_a_positive_number_of_steps() -> None:
+    with pytest.raises(ValueError, match="max_episode_steps"):
+        CaveNavVectorEnv(2, max_episode_steps=0)
+
+
+def test_text_actions_fly_batched_too() -> None:
+    vector = gym.make_vec("cavenav/CaveNav-v0", num_envs=2, resolution=SMALL)
+    vector.reset(seed=0)
+    _, _, _, _, infos = vector.step(("forward 0.5 m", "turn left 15 deg"))
+    assert list(infos["action"]) == ["forward 0.5 m", "turn left 15 deg"]
+    vector.close()

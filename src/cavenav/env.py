@@ -237,7 +237,7 @@ class Move:
     energy_wh: float
     seconds: float  # the move's duration through the water
     drift: Drift | None
-    started: float  # perf_counter at the step's start
+    physics_ms: float  # how long the move and its checks took
 
 
 @dataclass(frozen=True)
@@ -513,8 +513,9 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
             drift: Drift | None = Drift.of(start, command, moved)
         else:
             drift = _drift(self.motion, start, command, moved)
+        physics_ms = 1e3 * (time.perf_counter() - started)
         return Move(command, invalid, moved if hit else None, terms, step_wh, passage.seconds,
-                    drift, started)  # fmt: skip
+                    drift, physics_ms)  # fmt: skip
 
     def sensor_rays(self) -> np.ndarray:
         """The rays the sensors cast where the vehicle is now (`SensorRig.rays`)."""
@@ -522,10 +523,11 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
         return self._world.rig.rays(self.pose)
 
     def end_step(
-        self, move: Move, cast: Mapping[str, np.ndarray] | None = None
+        self, move: Move, cast: Mapping[str, np.ndarray] | None = None, cast_ms: float = 0.0
     ) -> tuple[dict[str, np.ndarray], float, bool, bool, dict[str, Any]]:
         """The second half of `step`: what the sensors see after ``move``; ``cast``: what
-        casting `sensor_rays` gave, when the caller cast them (None casts here)."""
+        casting `sensor_rays` gave, when the caller cast them (None casts here), and
+        ``cast_ms`` this environment's share of that cast's time, counted as sensing."""
         assert self._world is not None and self.pose is not None
         sensed = time.perf_counter()
         observation = self._world.rig.observe(
@@ -534,9 +536,8 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
         self.observation = replace(
             observation, previous_action=move.command, energy_left_wh=self._energy_left_wh
         )
-        self._timings = Timings(
-            physics_ms=1e3 * (sensed - move.started), sense_ms=1e3 * (time.perf_counter() - sensed)
-        )
+        sense_ms = cast_ms + 1e3 * (time.perf_counter() - sensed)
+        self._timings = Timings(physics_ms=move.physics_ms, sense_ms=sense_ms)
         info = self._info(move.command, move.invalid, move.collision_pose)
         info["reward_terms"] = move.terms
         info.update(step_energy_wh=move.energy_wh, move_s=move.seconds)

@@ -5,9 +5,9 @@ vectorization_mode="vector_entry_point", resolution=(84, 84))`` returns a
 `CaveNavVectorEnv`, and ``cavenav/CaveNav-vector-v0`` its learner's version.
 
 Each sub-environment is a `CaveNavEnv` and flies exactly as it would alone: with the same
-seeds and actions, the same observations, rewards and endings as N environments under
-`gymnasium.vector.SyncVectorEnv` (a test holds it to that, bit for bit). What is shared
-is what sharing makes cheaper:
+seeds and actions, the same observations, rewards, endings and infos as N single
+environments stepped as `gymnasium.vector.SyncVectorEnv` steps them (a test holds it to
+that, bit for bit). What is shared is what sharing makes cheaper:
 
 - environments in the same cave share its ray caster (one BVH in memory, built once),
   and a cave no environment flies any more is let go at the next reset;
@@ -18,12 +18,15 @@ is what sharing makes cheaper:
 Physics, collisions and shading stay per environment. Autoreset is Gymnasium's default
 (``NEXT_STEP``): the step after an episode ends resets that environment and returns its
 first observation with reward 0. Episodes are cut at ``max_episode_steps`` (the
-registration's 150), as `gymnasium.wrappers.TimeLimit` cuts a single environment's.
+registration's 150), as `gymnasium.wrappers.TimeLimit` cuts a single environment's. The
+infos are batched by `batched_infos`, which Gymnasium's own batching cannot replace here
+(its docstring says why).
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+import time
+from collections.abc import Callable, Mapping, Sequence
 from copy import deepcopy
 from typing import Any
 
@@ -33,15 +36,13 @@ from gymnasium.vector.utils import batch_space, concatenate, create_empty_array,
 
 from cavenav.env import CaveNavEnv, Move, learner_env
 
-__all__ = ["CaveNavVectorEnv", "learner_vector_env"]
-
-SOMETIMES_A_DICT = ("collision_pose",)  # `CaveNavEnv` info keys that are a dict or None
+__all__ = ["CaveNavVectorEnv", "batched_infos", "learner_vector_env"]
 
 
 class CaveNavVectorEnv(VectorEnv):
     """``num_envs`` `CaveNavEnv` made by ``make(**options)``, stepped together."""
 
-    metadata = {"autoreset_mode": AutoresetMode.NEXT_STEP, "render_modes": []}
+    metadata = {"autoreset_mode": AutoresetMode.NEXT_STEP, **CaveNavEnv.metadata}
 
     def __init__(
         self,
@@ -53,15 +54,23 @@ class CaveNavVectorEnv(VectorEnv):
     ):
         """
         Args:
-            max_episode_steps: truncate an episode after this many steps; None never.
+            max_episode_steps: truncate an episode after this many steps; None never
+                (`gymnasium.make_vec` gives the registration's 150).
             make: builds each sub-environment from ``options`` (`CaveNavEnv`'s keywords).
         """
         if num_envs < 1:
             raise ValueError(f"num_envs must be at least 1, got {num_envs}")
+        if max_episode_steps is not None and not (
+            isinstance(max_episode_steps, int) and max_episode_steps > 0
+        ):
+            raise ValueError(
+                f"max_episode_steps must be a positive int or None: {max_episode_steps}"
+            )
         self.caves: dict[Any, Any] = {}  # shared by the sub-environments (CaveNavEnv.caves)
         self.envs = [make(**options, caves=self.caves) for _ in range(num_envs)]
         self.num_envs, self.max_episode_steps = num_envs, max_episode_steps
         first = self.envs[0]
+        self.render_mode = first.render_mode
         self.single_observation_space = first.observation_space
         self.single_action_space = first.action_space
         self.observation_space = batch_space(self.single_observation_space, num_envs)
@@ -70,11 +79,20 @@ class CaveNavVectorEnv(VectorEnv):
         self._elapsed = np.zeros(num_envs, np.int64)
         self._autoreset = np.zeros(num_envs, bool)
 
+    @property
+    def np_random(self) -> tuple[np.random.Generator, ...]:
+        """The sub-environments' generators, as `SyncVectorEnv` gives them."""
+        return tuple(env.np_random for env in self.envs)
+
+    @property
+    def np_random_seed(self) -> tuple[int, ...]:
+        return tuple(env.np_random_seed for env in self.envs)
+
     def reset(
         self, *, seed: int | Sequence[int | None] | None = None, options: dict | None = None
     ) -> tuple[Any, dict[str, Any]]:
         """Reset every sub-environment, seeded ``seed + i`` (as `SyncVectorEnv` seeds them),
-        or those ``options["reset_mask"]`` marks."""
+        or those ``options["reset_mask"]`` marks (a bool array, one per environment)."""
         if seed is None or isinstance(seed, int):
             seeds = [None if seed is None else seed + i for i in range(self.num_envs)]
         else:
@@ -82,18 +100,17 @@ class CaveNavVectorEnv(VectorEnv):
             if len(seeds) != self.num_envs:
                 raise ValueError(f"{len(seeds)} seeds for {self.num_envs} environments")
         options = dict(options or {})
-        mask = np.asarray(options.pop("reset_mask", np.ones(self.num_envs, bool)))
-        observations, infos = [], {}
+        mask = _reset_mask(options.pop("reset_mask", None), self.num_envs)
+        observations, infos = [], [None] * self.num_envs
         for i, env in enumerate(self.envs):
             if mask[i]:
-                observation, info = env.reset(seed=seeds[i], options=options or None)
+                observation, infos[i] = env.reset(seed=seeds[i], options=options or None)
                 self._elapsed[i], self._autoreset[i] = 0, False
-                infos = self._add_info(infos, info, i)
             else:
                 observation = env._observation_dict()
             observations.append(observation)
         self._let_go_of_unflown_caves()
-        return self._batched(observations), infos
+        return self._batched(observations), batched_infos(infos)
 
     def step(self, actions: Any) -> tuple[Any, np.ndarray, np.ndarray, np.ndarray, dict]:  # noqa: ANN401
         """Step every sub-environment; one that ended last step is reset instead."""
@@ -107,43 +124,47 @@ class CaveNavVectorEnv(VectorEnv):
                 results[i] = (observation, 0.0, False, False, info)
             else:
                 moves[i] = env.begin_step(action)
-        for i, cast in self._cast_together(list(moves)):
-            results[i] = self.envs[i].end_step(moves[i], cast)
+        for i, cast, cast_ms in self._cast_together(list(moves)):
+            results[i] = self.envs[i].end_step(moves[i], cast, cast_ms)
             self._elapsed[i] += 1
         if any(self._autoreset):
             self._let_go_of_unflown_caves()
         return self._gathered(results)
 
-    def _cast_together(self, stepped: list[int]) -> list[tuple[int, dict[str, np.ndarray]]]:
+    def _cast_together(self, stepped: list[int]) -> list[tuple[int, dict[str, np.ndarray], float]]:
         """Cast the sensor rays of the environments ``stepped``, all those in one cave in
-        one call; what each environment's own rays gave."""
+        one call; what each environment's own rays gave, and its share of the cast's
+        time (ms, by rays)."""
         by_cave: dict[int, list[int]] = {}
         for i in stepped:
             by_cave.setdefault(id(self.envs[i].caster), []).append(i)
         casts = []
         for members in by_cave.values():
             rays = [self.envs[i].sensor_rays() for i in members]
+            started = time.perf_counter()
             cast = self.envs[members[0]].caster.cast_raw_rays(np.concatenate(rays))
+            per_ray_ms = 1e3 * (time.perf_counter() - started) / len(cast["t_hit"])
             start = 0
             for i, own in zip(members, rays, strict=True):
                 end = start + len(own)
-                casts.append((i, {key: value[start:end] for key, value in cast.items()}))
+                part = {key: value[start:end] for key, value in cast.items()}
+                casts.append((i, part, per_ray_ms * len(own)))
                 start = end
         return casts
 
     def _gathered(self, results: list[Any]) -> tuple[Any, np.ndarray, np.ndarray, np.ndarray, dict]:
-        observations, infos = [], {}
+        observations, infos = [], []
         rewards = np.zeros(self.num_envs, np.float64)
         terminated = np.zeros(self.num_envs, bool)
         truncated = np.zeros(self.num_envs, bool)
         for i, (observation, reward, ended, cut, info) in enumerate(results):
             observations.append(observation)
+            infos.append(info)
             rewards[i], terminated[i] = reward, ended
             limit = self.max_episode_steps
             truncated[i] = cut or (limit is not None and self._elapsed[i] >= limit)
-            infos = self._add_info(infos, info, i)
         self._autoreset = terminated | truncated
-        return self._batched(observations), rewards, terminated, truncated, infos
+        return self._batched(observations), rewards, terminated, truncated, batched_infos(infos)
 
     def _batched(self, observations: list[Any]) -> Any:  # noqa: ANN401
         space = self.single_observation_space
@@ -155,27 +176,73 @@ class CaveNavVectorEnv(VectorEnv):
         for key in set(self.caves) - flown:
             del self.caves[key]
 
-    def _add_info(self, vector_infos: dict, env_info: dict, env_num: int) -> dict:
-        """Gymnasium's batching of the infos, but for the keys whose value is a dict in
-        one environment's info and None in another's (``collision_pose``): those are kept
-        as object arrays, where Gymnasium's own recursion into the dicts fails
-        (`SyncVectorEnv` raises AttributeError at the first collision beside a step
-        without one)."""
-        sometimes = {key: env_info[key] for key in SOMETIMES_A_DICT if key in env_info}
-        rest = {key: value for key, value in env_info.items() if key not in sometimes}
-        vector_infos = super()._add_info(vector_infos, rest, env_num)
-        for key, value in sometimes.items():
-            array = vector_infos.get(key)
-            if array is None:
-                array = np.full(self.num_envs, None, dtype=object)
-            mask = vector_infos.get(f"_{key}", np.zeros(self.num_envs, bool))
-            array[env_num], mask[env_num] = value, True
-            vector_infos[key], vector_infos[f"_{key}"] = array, mask
-        return vector_infos
+    def render(self) -> tuple[np.ndarray | None, ...]:
+        """Each sub-environment's frame (``render_mode="rgb_array"``), as `SyncVectorEnv`."""
+        return tuple(env.render() for env in self.envs)
 
     def close_extras(self, **kwargs: Any) -> None:
+        """Close the sub-environments and let their caves go."""
         for env in self.envs:
             env.close()
+            env._world = None
+        self.caves.clear()
+
+
+def _reset_mask(mask: Any, count: int) -> np.ndarray:  # noqa: ANN401
+    """``options["reset_mask"]`` checked as `SyncVectorEnv` checks it; None: all."""
+    if mask is None:
+        return np.ones(count, bool)
+    if not isinstance(mask, np.ndarray) or mask.dtype != np.bool_ or mask.shape != (count,):
+        raise ValueError(f"options['reset_mask'] must be a bool numpy array of shape ({count},)")
+    if not mask.any():
+        raise ValueError("options['reset_mask'] must mark at least one environment")
+    return mask
+
+
+def batched_infos(infos: Sequence[Mapping[str, Any] | None]) -> dict[str, Any]:
+    """The sub-environments' ``infos`` (None: not reset) as Gymnasium's vector environments
+    batch them: each key an array over the environments, with a ``_key`` mask of those
+    that gave it; a key that is a dict in each info that has it, a dict of such arrays.
+
+    The array's type is chosen from every environment's value, not the first's:
+    Gymnasium's own batching takes it from the first and then fails or misreads a value
+    of another type (``collision_pose``, a dict or None, raises AttributeError in
+    `SyncVectorEnv`; a None after a float is read as NaN). Bools, ints and floats that are
+    all of one kind give arrays of it (ints and floats, floats); anything else, objects.
+    """
+    batched: dict[str, Any] = {}
+    count = len(infos)
+    keys = dict.fromkeys(key for info in infos if info for key in info)
+    for key in keys:
+        given = {i: info[key] for i, info in enumerate(infos) if info and key in info}
+        mask = np.zeros(count, bool)
+        mask[list(given)] = True
+        values = list(given.values())
+        if all(isinstance(value, Mapping) for value in values):
+            batched[key] = batched_infos([given.get(i) for i in range(count)])
+        else:
+            batched[key] = _array_of(given, count)
+        batched[f"_{key}"] = mask
+    return batched
+
+
+def _array_of(given: Mapping[int, Any], count: int) -> np.ndarray:
+    """One value per environment in the narrowest array that holds them all."""
+    kinds = {type(value) for value in given.values()}
+    dtype: Any = object
+    if kinds <= {bool, np.bool_}:
+        dtype = np.bool_
+    elif kinds and all(issubclass(kind, int | np.integer) and kind is not bool for kind in kinds):
+        dtype = np.int64
+    elif kinds and all(
+        issubclass(kind, float | int | np.floating | np.integer) and kind is not bool
+        for kind in kinds
+    ):
+        dtype = np.float64
+    array = np.zeros(count, dtype) if dtype is not object else np.full(count, None, object)
+    for i, value in given.items():
+        array[i] = value
+    return array
 
 
 def learner_vector_env(num_envs: int = 1, **options: Any) -> CaveNavVectorEnv:

@@ -336,6 +336,8 @@ def _beam_directions(cone_deg: float, rings: int = 3, per_ring: int = 8) -> np.n
 class SensorRig:
     """Renders observations of one cave; holds the precomputed rays and rock colours."""
 
+    _filled_for: Pose | None = None  # the pose `rays` last filled the ray buffer for
+
     def __init__(self, caster: RayCaster, config: SensorConfig | None = None):
         self.caster = caster
         self.config = config or SensorConfig()
@@ -437,6 +439,7 @@ class SensorRig:
         rays in one call (`cavenav.vector_env`) and gives each its part (`observe`'s
         ``cast``); the buffer is this rig's own, overwritten by its next observation."""
         self._fill(pose, *self._camera_at(pose))
+        self._filled_for = pose
         return self._rays
 
     def _camera_at(self, pose: Pose) -> tuple[np.ndarray, np.ndarray]:
@@ -445,9 +448,21 @@ class SensorRig:
             np.float32
         )
 
-    def _cast(self, pose: Pose, rot: np.ndarray, origin: np.ndarray) -> dict[str, np.ndarray]:
-        """Fill the ray buffer at ``pose`` and cast it."""
+    def _hits(
+        self,
+        pose: Pose,
+        rot: np.ndarray,
+        origin: np.ndarray,
+        cast: Mapping[str, np.ndarray] | None,
+    ) -> Mapping[str, np.ndarray]:
+        """The cast at ``pose``: ``cast``, which the caller made of `rays` at this pose just
+        now (the buffer still holds them), else the ray buffer filled and cast here."""
+        if cast is not None:
+            if pose is not self._filled_for:
+                raise ValueError("observe(cast=...) takes the cast of rays(pose) at that pose")
+            return cast
         self._fill(pose, rot, origin)
+        self._filled_for = None  # no longer what `rays` filled
         return self.caster.cast_raw_rays(self._rays)
 
     def _fill(self, pose: Pose, rot: np.ndarray, origin: np.ndarray) -> None:
@@ -468,7 +483,7 @@ class SensorRig:
         optics, camera = cfg.optics, cfg.camera
         rot, origin = self._camera_at(pose)
         n, rays = len(self._pixel_dirs), self._rays
-        raw = self._cast(pose, rot, origin) if cast is None else cast  # else cast with others
+        raw = self._hits(pose, rot, origin, cast)
         readings = self._readings(raw["t_hit"][n:])
         depth = raw["t_hit"][:n]
         lamp_tuple = self._lamps_at(origin, rot)
