@@ -225,7 +225,7 @@ def fly_vehicle(
     console.print(f"commands:   {run_dir / 'mavlink.jsonl'}", soft_wrap=True)
 
 
-def open_sensors(own: OwnSensors, size: tuple[int, int], stack: contextlib.ExitStack) -> Any:  # noqa: ANN401 - VehicleSenses
+def open_sensors(own: OwnSensors, size: tuple[int, int], stack: contextlib.ExitStack) -> Any:  # noqa: ANN401 - a VehicleSenses, imported lazily
     """Open every sensor ``own`` names (each closed by ``stack``), the slow depth model
     last; the camera's frames come at ``size`` (width, height)."""
     from cavenav.episode.on_vehicle import VehicleSenses

@@ -112,7 +112,10 @@ class CaveNavVectorEnv(VectorEnv):
         self._let_go_of_unflown_caves()
         return self._batched(observations), batched_infos(infos)
 
-    def step(self, actions: Any) -> tuple[Any, np.ndarray, np.ndarray, np.ndarray, dict]:  # noqa: ANN401
+    def step(
+        self,
+        actions: Any,  # noqa: ANN401 - the batched action space's
+    ) -> tuple[Any, np.ndarray, np.ndarray, np.ndarray, dict]:
         """Step every sub-environment; one that ended last step is reset instead."""
         results: list[Any] = [None] * self.num_envs
         moves: dict[int, Move] = {}

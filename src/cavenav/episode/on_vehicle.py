@@ -261,7 +261,8 @@ def _plotted(summary: dict[str, Any], log: _Log, where: Path) -> dict[str, str]:
     """topdown.png and side.png of the flight (`plot_flight`); none on a full disk."""
     from cavenav.episode.plots import plot_flight  # matplotlib, once the flight is over
 
-    title = f"vehicle · {summary['pilot']} · {summary['termination']} after {len(log.steps)} steps"
+    ending = f"{summary['termination']} after {len(log.steps)} steps"
+    title = f"vehicle · {summary['pilot']} · {ending}"
     try:
         return plot_flight(log.steps, title, where, summary.get("position_sigma_m") or 0.0)
     except OSError:
