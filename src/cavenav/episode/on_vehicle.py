@@ -37,7 +37,7 @@ from cavenav.env import read_action
 from cavenav.episode.metrics import path_length
 from cavenav.episode.records import EpisodeSummary, StepRecord
 from cavenav.episode.run_folder import LostStep, RunFolder
-from cavenav.errors import PilotFailure, RecordingError
+from cavenav.errors import CavenavError, PilotFailure, RecordingError
 from cavenav.pilots.base import Pilot
 from cavenav.sensors.camera import CameraIntrinsics
 from cavenav.sensors.depth import DEPTH_RANGE_M, normalise_depth
@@ -246,8 +246,8 @@ def fly_on_sensors(
     except KeyboardInterrupt:
         status = "interrupted"
         raise
-    except Exception as exc:
-        log.failure = f"{type(exc).__name__}: {exc}"
+    except Exception as exc:  # a vehicle's, camera's or sounder's error says itself
+        log.failure = str(exc) if isinstance(exc, CavenavError) else f"{type(exc).__name__}: {exc}"
         raise
     finally:
         summary = log.summary(status, motion)
