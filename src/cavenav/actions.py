@@ -22,6 +22,7 @@ from cavenav.errors import ActionError
 from cavenav.types import Action
 
 __all__ = [
+    "TWIST_KEYS",
     "ActionSpace",
     "DEFAULT_SPACE",
     "action_bounds",
@@ -130,6 +131,9 @@ def format_action(action: Action) -> str:
         word = "left" if action.yaw_deg > 0 else "right"
         parts.append(f"turn {word} {_num(abs(action.yaw_deg))} deg")
     return ", ".join(parts) if parts else "hold"
+
+
+TWIST_KEYS = ("linear_x", "linear_y", "linear_z", "angular_z")  # `to_twist`'s, in order
 
 
 def to_twist(action: Action, dt: float = 1.0) -> tuple[float, float, float, float]:

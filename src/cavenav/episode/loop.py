@@ -318,7 +318,7 @@ def _hand_over(
     try:
         folder.record(record, observation, exchanges, log.summary("running"), undo=mark)
     except LostStep as lost:
-        raise _taken_back(folder, log, lost) from lost.error
+        raise lost.taken_back(log, folder.path) from lost.error
     except KeyboardInterrupt:
         log.rewind(mark)
         raise
@@ -333,13 +333,7 @@ def _settle(folder: RunFolder, log: EpisodeLog) -> None:
     try:
         folder.flush()
     except LostStep as lost:
-        raise _taken_back(folder, log, lost) from lost.error
-
-
-def _taken_back(folder: RunFolder, log: EpisodeLog, lost: LostStep) -> RecordingError:
-    """Forget the lost step and those after it; the error to end the episode with."""
-    log.rewind(lost.undo)  # type: ignore[arg-type]
-    return RecordingError.cannot_write(f"the run folder {folder.path}", lost.error)
+        raise lost.taken_back(log, folder.path) from lost.error
 
 
 def _write(write: Callable[..., None], where: Path, *args: Any) -> None:

@@ -32,21 +32,19 @@ from typing import Any, Protocol
 import numpy as np
 
 from cavenav import __version__
-from cavenav.actions import DEFAULT_SPACE, format_action, to_twist
+from cavenav.actions import DEFAULT_SPACE, TWIST_KEYS, format_action, to_twist
 from cavenav.env import read_action
 from cavenav.episode.metrics import path_length
 from cavenav.episode.records import EpisodeSummary, StepRecord
 from cavenav.episode.run_folder import LostStep, RunFolder
-from cavenav.errors import CavenavError, PilotFailure, RecordingError
+from cavenav.errors import CavenavError, PilotFailure
 from cavenav.pilots.base import Pilot
 from cavenav.sensors.camera import CameraIntrinsics
-from cavenav.sensors.depth import DEPTH_RANGE_M, normalise_depth
+from cavenav.sensors.depth import DEPTH_RANGE_M, normalise_depth, unknown_depth
 from cavenav.shield import Shield, ShieldConfig
 from cavenav.types import Action, Decision, Observation, Pose, Usage
 
 __all__ = ["Flight", "VehicleMotion", "VehicleSenses", "fly_on_sensors"]
-
-_TWIST_KEYS = ("linear_x", "linear_y", "linear_z", "angular_z")
 
 
 class Camera(Protocol):
@@ -94,9 +92,8 @@ class VehicleSenses:
         """The observation of the first frame after the monotonic time ``after``."""
         rgb = self.camera.frame_after(after)
         d_top, d_bottom = self.sounders.read()
-        if self.depth is None:  # unknown and "touching": never read as open water
-            depth_m = np.full(rgb.shape[:2], math.nan, np.float32)
-            depth_png = np.zeros(rgb.shape[:2], np.uint8)
+        if self.depth is None:
+            depth_m, depth_png = unknown_depth(*rgb.shape[:2])
         else:
             depth_m = self.depth(rgb)
             depth_png = normalise_depth(np.nan_to_num(depth_m, nan=0.0), *DEPTH_RANGE_M)
@@ -241,7 +238,7 @@ def fly_on_sensors(
         try:
             folder.flush()
         except LostStep as lost:
-            raise _taken_back(folder, log, lost) from lost.error
+            raise lost.taken_back(log, folder.path) from lost.error
         status = "finished"
     except KeyboardInterrupt:
         status = "interrupted"
@@ -346,7 +343,7 @@ def _carry_out(
     record.update(
         action=format_action(executed),
         justification=decision.justification,
-        twist=dict(zip(_TWIST_KEYS, to_twist(executed), strict=True)),
+        twist=dict(zip(TWIST_KEYS, to_twist(executed), strict=True)),
         next_pose=pose.to_dict(),
         progress_m=round(_from_start(log.poses[0], pose), 4),
         **decision.extra,
@@ -378,13 +375,7 @@ def _hand_over(
     try:
         folder.record(record, observation, answer.exchanges, summary, undo=mark)
     except LostStep as lost:
-        raise _taken_back(folder, log, lost) from lost.error
+        raise lost.taken_back(log, folder.path) from lost.error
     except KeyboardInterrupt:
         log.rewind(mark)
         raise
-
-
-def _taken_back(folder: RunFolder, log: _Log, lost: LostStep) -> RecordingError:
-    """Forget the lost step and those after it; the error to end the flight with."""
-    log.rewind(lost.undo)  # type: ignore[arg-type]
-    return RecordingError.cannot_write(f"the run folder {folder.path}", lost.error)

@@ -17,7 +17,7 @@ from datetime import UTC, datetime
 from typing import Any
 
 from cavenav import SCENARIO_SET, __version__
-from cavenav.actions import format_action, to_twist
+from cavenav.actions import TWIST_KEYS, format_action, to_twist
 from cavenav.episode.metrics import path_length, summarise_clearance
 from cavenav.episode.records import TERMINATED, TERMINATIONS, TRUNCATED, EpisodeSummary, StepRecord
 from cavenav.errors import CavenavWarning, PilotFailure
@@ -26,8 +26,6 @@ from cavenav.world.geodesic import NoPath, shortest_path_of
 from cavenav.world.scenarios import Scenario
 
 __all__ = ["TERMINATIONS", "EpisodeLog"]
-
-_TWIST_KEYS = ("linear_x", "linear_y", "linear_z", "angular_z")
 
 
 class EpisodeLog:
@@ -121,7 +119,7 @@ class EpisodeLog:
         record.update(
             action=format_action(executed),
             justification=decision.justification,
-            twist=dict(zip(_TWIST_KEYS, twist, strict=True)),
+            twist=dict(zip(TWIST_KEYS, twist, strict=True)),
             next_pose=info["collision_pose"] or info["pose"],
             collision=info["collision"],
             progress_m=round(self.progress_m, 4),

@@ -176,6 +176,12 @@ class LostStep(Exception):
         super().__init__(f"step {step} could not be written: {error}")
         self.step, self.error, self.undo = step, error, undo
 
+    def taken_back(self, log: Any, folder: Path) -> RecordingError:  # noqa: ANN401 - any log
+        """Take this step and those after it back from ``log`` (its ``rewind`` to
+        ``undo``); the error to end the episode with."""
+        log.rewind(self.undo)
+        return RecordingError.cannot_write(f"the run folder {folder}", self.error)
+
 
 @dataclass(frozen=True)
 class _Step:

@@ -25,7 +25,7 @@ from PIL import ExifTags, Image, ImageOps, UnidentifiedImageError
 
 from cavenav.errors import CavenavError
 from cavenav.sensors.camera import CameraIntrinsics
-from cavenav.sensors.depth import DEPTH_RANGE_M, denormalise_depth
+from cavenav.sensors.depth import DEPTH_RANGE_M, denormalise_depth, unknown_depth
 from cavenav.types import Observation
 
 __all__ = ["HIGH_DETAIL_FIT", "LOW_DETAIL_FIT", "load_photo", "model_size", "shrink_depth"]
@@ -214,11 +214,10 @@ def _depth_arrays(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Depth in metres and as shown, (height, width) for ``size`` = (width, height).
 
-    Without a depth image the arrays say "unknown" (NaN) and "touching" (0): a reader
-    that ignores `has_depth` sees no free space rather than open water.
+    Without a depth image, `unknown_depth`'s.
     """
     if depth_png is None:
-        return np.full(size[::-1], math.nan, np.float32), np.zeros(size[::-1], np.uint8)
+        return unknown_depth(*size[::-1])
     return denormalise_depth(depth_png, *DEPTH_RANGE_M), depth_png
 
 

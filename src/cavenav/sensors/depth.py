@@ -60,6 +60,13 @@ def normalise_depth(
     return np.round(np.clip(norm, 0.0, 1.0) * 255.0).astype(np.uint8)
 
 
+def unknown_depth(height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
+    """The depth arrays of an observation with no depth image (`Observation.has_depth`
+    False): metres "unknown" (NaN) and the PNG "touching" (0), so that a reader that
+    ignores the flag sees no free space rather than open water."""
+    return np.full((height, width), np.nan, np.float32), np.zeros((height, width), np.uint8)
+
+
 def denormalise_depth(
     depth_png: np.ndarray, d_min: float = DEPTH_RANGE_M[0], d_max: float = DEPTH_RANGE_M[1]
 ) -> np.ndarray:
