@@ -45,6 +45,7 @@ bench: setup-test
 	$(BIN)/python benchmarks/episode.py
 	$(BIN)/python benchmarks/sweep.py
 	$(BIN)/python benchmarks/env_steps.py
+	$(BIN)/python benchmarks/big_mesh.py
 	$(BIN)/python benchmarks/mavlink_action.py
 
 # Mutation testing of the shield, the action grammar and the reply parser (not in CI).

@@ -46,6 +46,12 @@ per unit depth); a 320x240 pixel counts as beyond (within) when all four of its 
 pixels are; mixed pixels and open water (rays that leave the cave: no rock to light) are
 left out.
 
+Nothing a pixel shows is darker than the water's own veil of backscatter in front of it,
+which the lamps light from the lens on. So the frames looking beyond the reach are split
+by the veil's luma there at the frame's exposure (`veil_luma`, before the black clamp):
+where it lies below the black level, rock beyond the reach should read near black; where
+it lies above, the veil shows instead, and the frame cannot be black there.
+
 Last, on one pose per scenario: Jerlov's water types (`optics.jerlov_water`), with the
 lamps' reach in each, and turbid water's contrast as the lamps' beams narrow.
 
@@ -67,8 +73,15 @@ import numpy as np
 from cavenav.episode.gallery import passage_poses
 from cavenav.sensors.image_stats import NEAR_BLACK, FrameStats, downscale, frame_stats
 from cavenav.sensors.kernels import SHARE
-from cavenav.sensors.lighting import DEFAULT_ROCK, ROCK_PALETTE
-from cavenav.sensors.optics import CAVE_WATERS, JERLOV_KD, WATER_TYPES, Optics, black_clamp
+from cavenav.sensors.lighting import DEFAULT_ROCK, ROCK_PALETTE, backscatter_table
+from cavenav.sensors.optics import (
+    CAVE_WATERS,
+    JERLOV_KD,
+    LUMA,
+    WATER_TYPES,
+    Optics,
+    black_clamp,
+)
 from cavenav.sensors.rig import Frame, SensorConfig, SensorRig, camera_response
 from cavenav.types import Pose
 from cavenav.world.raycast import RayCaster
@@ -137,10 +150,15 @@ def metered_mean(frame: Frame, config: SensorConfig) -> np.ndarray:
     h, w = frame.radiance.shape[:2]
     rows = np.minimum(np.arange(-(-h // SHARE) + 1) * SHARE, h - 1)
     cols = np.minimum(np.arange(-(-w // SHARE) + 1) * SHARE, w - 1)
-    length = np.linalg.norm(config.camera.directions[np.ix_(rows, cols)], axis=2)
-    cos4 = 1.0 / length**4
-    lens = 1.0 - config.optics.vignetting * (1.0 - cos4)
+    lens = lens_factor(config)[np.ix_(rows, cols)]
     return (frame.radiance[np.ix_(rows, cols)] * lens[..., None]).reshape(-1, 3).mean(axis=0)
+
+
+def lens_factor(config: SensorConfig) -> np.ndarray:
+    """(H, W) the share of a pixel's light the lens passes: vignetting by the cos^4 law,
+    as `kernels._lens` takes it before the sensor."""
+    length = np.linalg.norm(config.camera.directions, axis=2)
+    return 1.0 - config.optics.vignetting * (1.0 - 1.0 / length**4)
 
 
 def lamp_reach(optics: Optics, gains: np.ndarray, gain: float, level: float = NEAR_BLACK) -> float:
@@ -170,45 +188,119 @@ BEYOND_SHARE = 0.01  # a frame looks beyond the lamps' reach when 1% of its pixe
 DARK_ENOUGH = 0.02  # issue 25: such a frame should be more than 2% near black
 
 
+@dataclass(frozen=True)
+class Exposure:
+    """How the camera exposed a frame: its white balance (3,), gain, and the lamps' reach
+    at that exposure (`lamp_reach`)."""
+
+    gains: np.ndarray
+    gain: float
+    reach: float
+
+
+def veil_luma(config: SensorConfig, exposure: Exposure) -> np.ndarray:
+    """(H, W) the luma of the water's whole veil of backscatter (integrated to the
+    table's far end, `lighting.backscatter_table`; within 0.3% of a pixel's own beyond
+    13 m) through the lens and at a frame's exposure, before the black clamp: about the
+    least a pixel beyond the lamps' reach can show, whatever lies behind it."""
+    table = backscatter_table(config.camera, config.optics)
+    rows = np.arange(config.camera.height) // table.block
+    columns = np.arange(config.camera.width) // table.block
+    veil = table.values[..., -1, :][np.ix_(rows, columns)] * lens_factor(config)[..., None]
+    return (veil * exposure.gain * exposure.gains) @ np.asarray(LUMA)
+
+
+@dataclass(frozen=True)
+class BeyondFrame:
+    """A frame looking beyond the lamps' reach: its near-black fraction, its pixels beyond
+    the reach and how many of those are near black, the median there of the veil's luma
+    (`veil_luma`) over the camera's black level, and the median range of the rock within
+    the reach (what the camera exposes for), metres."""
+
+    black: float
+    far: int
+    far_black: int
+    veil: float
+    lit_range: float
+
+
 @dataclass
 class Check:
-    """Near-black pixels among those beyond and within the lamps' reach, summed; and the
-    whole frame's near-black fraction for each frame where the passage runs beyond the
-    reach (at least `BEYOND_SHARE` of its pixels)."""
+    """Near-black pixels among those beyond and within the lamps' reach, summed; and each
+    frame where the passage runs beyond the reach (at least `BEYOND_SHARE` of its pixels)."""
 
     beyond: int = 0
     beyond_black: int = 0
     within: int = 0
     within_black: int = 0
-    frames_beyond: list[float] = field(default_factory=list)
+    frames_beyond: list[BeyondFrame] = field(default_factory=list)
 
-    def add(self, frame: Frame, small_rgb: np.ndarray, reach: float, config: SensorConfig) -> None:
+    def add(
+        self, frame: Frame, small_rgb: np.ndarray, exposure: Exposure, config: SensorConfig
+    ) -> None:
         length = np.linalg.norm(config.camera.directions, axis=2)
         distance = frame.depth_m * length  # inf where the ray leaves the cave
         rock = np.isfinite(distance)
-        far = downscale((rock & (distance > reach)).astype(np.float64)) == 1.0
-        near = downscale((rock & (distance <= reach)).astype(np.float64)) == 1.0
+        far = downscale((rock & (distance > exposure.reach)).astype(np.float64)) == 1.0
+        near = downscale((rock & (distance <= exposure.reach)).astype(np.float64)) == 1.0
         black = small_rgb.max(axis=2) < NEAR_BLACK
         self.beyond += int(far.sum())
         self.beyond_black += int((far & black).sum())
         self.within += int(near.sum())
         self.within_black += int((near & black).sum())
         if far.mean() >= BEYOND_SHARE:
-            self.frames_beyond.append(float(black.mean()))
+            veil = downscale(veil_luma(config, exposure))[far] / config.optics.black_level
+            lit = distance[rock & (distance <= exposure.reach)]
+            self.frames_beyond.append(
+                BeyondFrame(
+                    float(black.mean()), int(far.sum()), int((far & black).sum()),
+                    float(np.median(veil)), float(np.median(lit)) if lit.size else math.nan,
+                )
+            )  # fmt: skip
+
+    def print_frames(self) -> None:
+        """The frames looking beyond the reach, against the issue's aim; then split by
+        whether the water's veil lies below the black clamp there."""
+        seen = [f.black for f in self.frames_beyond]
+        if not seen:
+            return
+        print(
+            f"frames looking beyond the reach ({BEYOND_SHARE:.0%} of their pixels or more): "
+            f"{len(seen)}; their near-black fraction {min(seen):.3f}-{max(seen):.3f}, "
+            f"median {statistics.median(seen):.3f}; above the issue's {DARK_ENOUGH}: "
+            f"{sum(fraction > DARK_ENOUGH for fraction in seen)}"
+        )
+        for label, below in (("below", True), ("above", False)):
+            group = [f for f in self.frames_beyond if (f.veil < 1.0) == below]
+            if not group:
+                continue
+            far, black = sum(f.far for f in group), sum(f.far_black for f in group)
+            veils, lit = [f.veil for f in group], [f.lit_range for f in group]
+            print(
+                f"  the veil {label} the black level there ({min(veils):.2f}-{max(veils):.2f} "
+                f"of it): {len(group)} frames, {black / far:.3f} of their {far:,} pixels "
+                f"beyond the reach near black, {sum(f.black > DARK_ENOUGH for f in group)} "
+                f"frames above {DARK_ENOUGH}; the lit rock's median range {min(lit):.1f}-"
+                f"{max(lit):.1f} m"
+            )
 
 
 def sensed(
     poses: dict[str, list[Pose]], optics: Optics
-) -> Iterator[tuple[Frame, np.ndarray, float]]:
-    """Every frame at ``poses`` with ``optics``: the frame, its 320x240 copy, and the
-    lamps' reach at its exposure."""
+) -> Iterator[tuple[Frame, np.ndarray, Exposure]]:
+    """Every frame at ``poses`` with ``optics``: the frame, its 320x240 copy, and how the
+    camera exposed it."""
     config = SensorConfig(optics=optics)
     for name, where in poses.items():
         rig = SensorRig(RayCaster(load_scenario(name, seed=0).mesh), config)
         for pose in where:
             frame = rig.render(pose, radiance=True)
             gains, gain = camera_response(metered_mean(frame, config), optics)
-            yield frame, downscale(frame.rgb), lamp_reach(optics, gains, gain)
+            yield (
+                frame,
+                downscale(frame.rgb),
+                Exposure(gains, gain, lamp_reach(optics, gains, gain)),
+            )
 
 
 def measure(poses: dict[str, list[Pose]]) -> tuple[dict[str, list[FrameStats]], Check, list[float]]:
@@ -217,18 +309,18 @@ def measure(poses: dict[str, list[Pose]]) -> tuple[dict[str, list[FrameStats]], 
     check, reaches = Check(), []
     clear = SensorConfig(optics=Optics(water="clear"))
     for water in CAVE_WATERS:
-        for frame, small, reach in sensed(poses, Optics(water=water)):
+        for frame, small, exposure in sensed(poses, Optics(water=water)):
             stats[water].append(frame_stats(small))
             if water == "clear":
-                reaches.append(reach)
-                check.add(frame, small, reach, clear)
+                reaches.append(exposure.reach)
+                check.add(frame, small, exposure, clear)
     return stats, check, reaches
 
 
 def survey(poses: dict[str, list[Pose]], optics: Optics) -> tuple[list[FrameStats], list[float]]:
     """Statistics of every frame with ``optics``, and the lamps' reach in each frame."""
     frames = list(sensed(poses, optics))
-    return [frame_stats(small) for _, small, _ in frames], [reach for _, _, reach in frames]
+    return [frame_stats(small) for _, small, _ in frames], [e.reach for _, _, e in frames]
 
 
 def print_waters_and_beams(poses: dict[str, list[Pose]]) -> None:
@@ -317,14 +409,7 @@ def main() -> None:
     ):
         share = f"{black / total:.3f}" if total else "- (no such pixels)"
         print(f"near-black fraction of rock pixels {label}: {share} of {total:,} pixels")
-    seen = check.frames_beyond
-    if seen:
-        print(
-            f"frames looking beyond the reach ({BEYOND_SHARE:.0%} of their pixels or more): "
-            f"{len(seen)}; their near-black fraction {min(seen):.3f}-{max(seen):.3f}, "
-            f"median {statistics.median(seen):.3f}; above the issue's {DARK_ENOUGH}: "
-            f"{sum(fraction > DARK_ENOUGH for fraction in seen)}"
-        )
+    check.print_frames()
     print_waters_and_beams(
         {name: where[len(where) // 2 : len(where) // 2 + 1] for name, where in poses.items()}
     )

@@ -236,7 +236,7 @@ REFERENCE_DIGESTS = {
     "S1": "a7a799724534ca44",
     "S2": "47379c7c455a9679",
     "S3": "1b558098f234c83a",
-    "S4": "1b5f9a4d5699a370",
+    "S4": "bc73c8ab822815b5",
     "S5": "31f519dc81231939",
 }
 
@@ -311,6 +311,26 @@ def test_bend_deg_turns_the_second_leg_that_far_from_the_first(bend: float) -> N
         assert layout.start.forward @ first_leg == pytest.approx(1.0), "start faces the leg"
         assert abs(second_leg[0]) == pytest.approx(1.0), "the exit runs along an axis"
         assert f"{bend:g}-degree" in layout.description
+
+
+def _stations_from_the_bend(bend: float) -> list[float]:
+    """Metres along S4's passage from its bend's middle to each stalactite."""
+    layout = SCENARIOS["S4"].layout(0, Difficulty(bend_deg=bend))
+    line = layout.spec.centreline[:, :2]
+    middle = np.argmin(np.linalg.norm(line - [0.0, -30.0], axis=1))  # nearest the corner
+    nearest = [
+        np.argmin(np.linalg.norm(line - (s.x, s.y), axis=1)) for s in layout.spec.speleothems
+    ]
+    return [0.25 * float(k - middle) for k in nearest]
+
+
+def test_the_stalactites_hang_over_the_bend_however_sharp() -> None:
+    """The rounded centre line reaches the bend sooner than the two legs it replaced (by
+    6 m at 150 degrees): what is placed by the bend must come with it."""
+    right_angle = _stations_from_the_bend(90.0)
+    assert min(right_angle) < 0.0 < max(right_angle)
+    for bend in (30.0, 150.0):
+        assert _stations_from_the_bend(bend) == pytest.approx(right_angle, abs=0.5)
 
 
 def test_a_hairpin_keeps_its_closed_end_behind_the_exit_plane() -> None:

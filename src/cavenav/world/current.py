@@ -45,7 +45,7 @@ import numpy as np
 from cavenav.errors import ConfigError
 from cavenav.kinematics import apply
 from cavenav.types import Action, Cruise, Pose
-from cavenav.world.procedural import cpu_independent
+from cavenav.world.procedural import along, arc_length, cpu_independent
 from cavenav.world.raycast import RayCaster
 
 __all__ = ["Current", "CurrentField", "Passage", "carry", "cruise_seconds"]
@@ -97,10 +97,9 @@ def _frames(tangents: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def _resample(line: np.ndarray, spacing: float) -> tuple[np.ndarray, np.ndarray]:
     """Points every ``spacing`` metres along a polyline, and their arc lengths."""
-    arcs = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(line, axis=0), axis=1))])
-    s = np.linspace(0.0, arcs[-1], max(2, int(math.ceil(arcs[-1] / spacing)) + 1))
-    points = np.stack([np.interp(s, arcs, line[:, k]) for k in range(3)], axis=1)
-    return points, s
+    total = arc_length(line)[-1]
+    s = np.linspace(0.0, total, max(2, int(math.ceil(total / spacing)) + 1))
+    return along(line, s), s
 
 
 def _star_areas(

@@ -24,9 +24,12 @@ from cavenav.world.morphology import Boulder, Section, Speleothem, extent
 from cavenav.world.procedural import (
     Branch,
     PassageSpec,
+    along,
+    arc_length,
     cpu_independent,
     gaussian_smooth,
     resample,
+    rounded_corners,
 )
 
 __all__ = ["Layout", "crawl", "long", "maze", "s1", "s2", "s3", "s4", "s5"]
@@ -110,6 +113,12 @@ def _window(u: np.ndarray, start: float, end: float) -> np.ndarray:
 # Scallops 0.6-0.9 m across (and an eighth as deep): the size slow flows of a few cm/s
 # dissolve into the walls of large phreatic conduits (Curl 1974).
 SCALLOPS_M = (0.6, 0.9)
+# A sharp bend's centre line turns along an arc of this radius (`rounded_corners`):
+# within the 2.6-3.8 m half-width of the passages that turn there, so the inside of the
+# bend stays a sharp edge of rock, while the sections' frames turn by 6 degrees from one
+# 0.25 m sample to the next. At a right angle the arc leaves each leg 2.5 m before the
+# corner.
+BEND_RADIUS_M = 2.5
 
 
 def _stretch(
@@ -458,7 +467,8 @@ def s3(rng: np.random.Generator, seed: int, knobs: Mapping[str, float]) -> Layou
 
 
 def s4(rng: np.random.Generator, seed: int, knobs: Mapping[str, float]) -> Layout:
-    """S4, bend: two straight legs meeting at a sharp turn."""
+    """S4, bend: two straight legs meeting at a sharp turn, the centre line rounded by an
+    arc of `BEND_RADIUS_M`."""
     leg = 30.0
     side = 1.0 if rng.random() < 0.5 else -1.0
     bend = knobs["bend_deg"]
@@ -468,17 +478,22 @@ def s4(rng: np.random.Generator, seed: int, knobs: Mapping[str, float]) -> Layou
     tilt = math.radians(bend - 90.0)
     back = np.array([side * math.sin(tilt), math.cos(tilt), 0.0])
     # A hairpin's first leg reaches back toward the exit plane: past about 130 degrees it
-    # is shortened so that its closed end (4 m behind the start, plus a wall) stays 7 m
-    # behind that plane, and so on the 0.25 m grid, where the corner falls on a sample.
+    # is shortened, to a whole number of 0.25 m samples, so that its closed end (4 m
+    # behind the start, plus a wall) stays 7 m behind that plane.
     reach = -math.cos(math.radians(bend))
     first = leg if reach <= 0 else min(leg, math.floor(4 * ((leg - 7.0) / reach - 4.0)) / 4)
     corner = np.array([0.0, -leg, 0.0])
     corners = np.array(
         [corner + (first + 4.0) * back, corner, corner + np.array([side * (leg + 4.0), 0, 0])]
     )
-    points, s = resample(corners, 0.25)
+    line = rounded_corners(corners, BEND_RADIUS_M)
+    points, s = resample(line, 0.25)
     s = s - 4.0
-    length = first + leg
+    # The rounded line is shorter than the two legs: it passes the corner (the arc's
+    # middle) half that sooner, and reaches the exit, which stays where the legs put it
+    # (leg metres past the corner, to within a sample), all of it sooner.
+    shortening = arc_length(corners)[-1] - arc_length(line)[-1]
+    corner_at, length = first - 0.5 * shortening, first + leg - shortening
     half_w = 2.9 + 0.3 * _smooth_noise(s, 10.0, rng)
     half_h = 2.7 + 0.2 * _smooth_noise(s, 10.0, rng)
     # A tall first leg with flat walls turns into a wide one under a flat roof, with
@@ -486,14 +501,14 @@ def s4(rng: np.random.Generator, seed: int, knobs: Mapping[str, float]) -> Layou
     # the axis as the tube's were, beyond the SPEC's 2 m standoff, so that the turn stays
     # the task (a passage lower than that is a crawl, where the geometric pilot creeps).
     shapes = rng.spawn(1)[0]
-    second = _window(s, first + 3.0, length + 4.0)
+    second = _window(s, corner_at + 3.0, length + 4.0)
     silt = 0.3
     half_w = half_w + 0.6 * second
     half_h = half_h + 0.6 * (1.0 - second) + silt
     section = replace(
         Section.plain(len(s)), squareness=np.full(len(s), 0.6), sediment=np.full(len(s), silt)
     )
-    turn = first + shapes.uniform(-6.0, -2.0) + np.arange(5) * shapes.uniform(1.5, 2.5)
+    turn = corner_at + shapes.uniform(-6.0, -2.0) + np.arange(5) * shapes.uniform(1.5, 2.5)
     speleothems = _speleothems(shapes, s, points, half_w, half_h, section, turn, ["stalactite"] * 5)
     return _layout_from_profiles(
         s,
@@ -811,8 +826,9 @@ def maze(rng: np.random.Generator, seed: int, knobs: Mapping[str, float]) -> Lay
 # The long cave's plan (metres along the passage): leg A runs along -y with constrictions
 # (S1, 0-35), a rise and fall with two more (S2, from 35 on) and a frontal and a lateral
 # boulder (S3, 70-100). Two sharp 90-degree bends 16 m apart turn it around (S4), and leg
-# B winds back along +y among rocks (S5) to an exit 12 m beyond the start's closed end,
-# which keeps that end behind the exit plane. Folded so, 228 m fit a grid of about
+# B winds back along +y among rocks (S5) to an exit 12 m of passage beyond the start's
+# closed end (14 m in y: the rounded bends save 2 m), which keeps that end behind the exit
+# plane. Folded so, 228 m fit a grid of about
 # 30 x 120 x 15 m: 7 M voxels, which mesh in seconds.
 _LEG_A, _ACROSS, _PAST_START = 100.0, 16.0, 12.0
 _LONG = _LEG_A + _ACROSS + (_LEG_A + _PAST_START)
@@ -824,8 +840,12 @@ def _long_centreline(
 ) -> tuple[np.ndarray, float]:
     """(n, 3) points at stations ``u``, turning toward ``side`` (+-x), and the period of
     the rise and fall (30-34 m, one full swing of ``undulation`` metres peak to peak)."""
-    x = np.where(u <= _LEG_A, 0.0, side * np.minimum(u - _LEG_A, _ACROSS))
-    y = np.where(u <= _LEG_A, -u, np.where(u < _LEG_B, -_LEG_A, u - _LEG_B - _LEG_A))
+    past = float(u[-1]) - _LEG_B + 10.0  # leg B, long enough for every station
+    corners = np.array(
+        [[0.0, -u[0], 0.0], [0.0, -_LEG_A, 0.0], [side * _ACROSS, -_LEG_A, 0.0],
+         [side * _ACROSS, past - _LEG_A, 0.0]]
+    )  # fmt: skip
+    x, y, _ = along(rounded_corners(corners, BEND_RADIUS_M), u - u[0]).T
     x = x + 1.2 * _smooth_noise(u, 16.0, rng) * _window(u, 4.0, 62.0)
     leg_b = _window(u, _LEG_B + 6, _LONG - 8)  # straight out of the bend and to the exit
     x = x + side * 1.5 * _smooth_noise(u, 14.0, rng) * leg_b

@@ -49,10 +49,14 @@ __all__ = [
     "Boulder",
     "Branch",
     "PassageSpec",
+    "along",
+    "arc_length",
     "build_cave",
     "cache_dir",
     "cpu_independent",
     "gaussian_smooth",
+    "resample",
+    "rounded_corners",
 ]
 
 # Bump whenever the generator's output changes, so cached meshes are rebuilt.
@@ -192,10 +196,65 @@ def resample(points: np.ndarray, spacing: float) -> tuple[np.ndarray, np.ndarray
     Returns:
         ((k, 3) points, (k,) arc length of each); also used to interpolate profiles.
     """
-    seg = np.linalg.norm(np.diff(points, axis=0), axis=1)
-    s = np.concatenate([[0.0], np.cumsum(seg)])
-    s_new = np.arange(0.0, s[-1] + 1e-9, spacing)
-    return np.stack([np.interp(s_new, s, points[:, k]) for k in range(3)], axis=1), s_new
+    s_new = np.arange(0.0, arc_length(points)[-1] + 1e-9, spacing)
+    return along(points, s_new), s_new
+
+
+def arc_length(points: np.ndarray) -> np.ndarray:
+    """(k,) arc length of a polyline's (k, 3) points from its first."""
+    return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(points, axis=0), axis=1))])
+
+
+def along(points: np.ndarray, stations: np.ndarray) -> np.ndarray:
+    """(n, 3) the points of a polyline at arc lengths ``stations`` (clamped to its ends)."""
+    s = arc_length(points)
+    return np.stack([np.interp(stations, s, points[:, k]) for k in range(3)], axis=1)
+
+
+def rounded_corners(corners: np.ndarray, radius: float, chords: int = 64) -> np.ndarray:
+    """The polyline through ``corners`` with each inner corner rounded off by a circular
+    arc of ``radius`` metres, tangent to both legs.
+
+    A passage's sections are laid across its centre line, each in the frame of its own
+    sample. Where the line turns at a point, the samples on either side of the corner
+    carry frames turned by the whole angle, and the wall shows a straight seam where
+    their sections meet. Along the arc the frames turn by spacing / ``radius`` radians
+    from one sample to the next, as along a winding passage. The arc leaves each leg
+    ``radius`` x tan(turn / 2) before the corner (at a right angle, ``radius``); where a
+    leg is shorter than twice that, the arc shrinks to fit. A corner that turns straight
+    back keeps its point. Solution passages round their bends so; the inner corner,
+    within the passage's half-width of the arc, stays a sharp edge of rock.
+
+    Each arc is a rational quadratic Bezier curve (its control point the corner, its
+    weight cos(turn / 2)), which is exactly circular and needs no trigonometry; the
+    scalars are Python floats written out term by term (numpy's dot product goes through
+    BLAS, whose kernels differ by CPU, and Python's ``sum`` changed its rounding in 3.12),
+    so a seed draws the same line on every machine.
+
+    Returns:
+        the (k, 3) polyline, each arc drawn with ``chords`` chords.
+    """
+    corners = np.asarray(corners, np.float64)
+    corners = corners[np.r_[True, (np.diff(corners, axis=0) != 0.0).any(axis=1)]]  # no repeats
+    t = np.linspace(0.0, 1.0, chords + 1)[:, None]
+    out = [corners[:1]]
+    for before, corner, after in zip(corners[:-2], corners[1:-1], corners[2:], strict=True):
+        into, out_of = corner - before, after - corner
+        (ix, iy, iz), (ox, oy, oz) = into.tolist(), out_of.tolist()
+        into_length, out_length = math.hypot(ix, iy, iz), math.hypot(ox, oy, oz)
+        cos_turn = min(max((ix * ox + iy * oy + iz * oz) / (into_length * out_length), -1.0), 1.0)
+        if not -1.0 < cos_turn < 1.0:
+            out.append(corner[None])  # straight on, or straight back: no arc fits
+            continue
+        tangent_length = radius * math.sqrt((1.0 - cos_turn) / max(1.0 + cos_turn, 1e-12))
+        reach = min(tangent_length, 0.5 * into_length, 0.5 * out_length)
+        first = corner - into * (reach / into_length)
+        last = corner + out_of * (reach / out_length)
+        weight = math.sqrt(0.5 * (1.0 + cos_turn))
+        a, b, c = (1.0 - t) ** 2, 2.0 * t * (1.0 - t) * weight, t**2
+        out.append((a * first + b * corner + c * last) / (a + b + c))
+    out.append(corners[-1:])
+    return np.concatenate(out)
 
 
 def _frames(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
