@@ -21,6 +21,7 @@ from cavenav.episode.loop import EpisodeConfig, run_episode  # noqa: E402
 from cavenav.pilots.geometric import GeometricPilot  # noqa: E402
 from cavenav.sensors.rig import SensorConfig, SensorRig  # noqa: E402
 from cavenav.types import Pose  # noqa: E402
+from cavenav.world.procedural import arc_length  # noqa: E402
 from cavenav.world.raycast import RayCaster  # noqa: E402
 from cavenav.world.scenarios import Scenario  # noqa: E402
 
@@ -55,7 +56,7 @@ def passage_poses(
     inside = [p for p in flight.poses if scenario.exit_distance(p.position) > before_exit_m]
     poses = inside or flight.poses[:1]
     xyz = np.array([p.position for p in poses])
-    along = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(xyz, axis=0), axis=1))])
+    along = arc_length(xyz)
     targets = np.linspace(0.0, along[-1], count)
     picks = sorted({int(np.argmin(np.abs(along - t))) for t in targets})
     return [(poses[k], float(along[k])) for k in picks]

@@ -26,6 +26,7 @@ from matplotlib.patches import Circle
 from cavenav.episode.records import EpisodeSummary
 from cavenav.types import Pose
 from cavenav.world.mesh import CaveMesh
+from cavenav.world.procedural import along, arc_length
 from cavenav.world.raycast import RayCaster
 from cavenav.world.scenarios import ExitPortal, Scenario
 
@@ -220,7 +221,7 @@ def _plot_side(
     down = caster.first_hit(dense, np.array([0.0, 0.0, -1.0]))
     ceiling = np.where(np.isfinite(up), dense[:, 2] + up, np.nan)
     floor = np.where(np.isfinite(down), dense[:, 2] - down, np.nan)
-    s_pose = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))])
+    s_pose = arc_length(p)
     fig = Figure(figsize=(11, 4))
     ax = fig.subplots()
     lo = np.nanmin(floor) - 1.0 if np.isfinite(floor).any() else p[:, 2].min() - 3
@@ -249,10 +250,9 @@ def _densify(points: np.ndarray, spacing: float) -> tuple[np.ndarray, np.ndarray
     """Points every ``spacing`` metres along a polyline, and their arc length."""
     if len(points) < 2:
         return points.copy(), np.zeros(len(points))
-    seg = np.linalg.norm(np.diff(points, axis=0), axis=1)
-    s = np.concatenate([[0.0], np.cumsum(seg)])
+    s = arc_length(points)
     s_new = np.unique(np.concatenate([np.arange(0.0, s[-1], spacing), s]))
-    return np.stack([np.interp(s_new, s, points[:, k]) for k in range(3)], axis=1), s_new
+    return along(points, s_new), s_new
 
 
 def plot_flight(
@@ -295,7 +295,7 @@ def _plot_sounded(
     steps: Sequence[Mapping[str, Any]], p: np.ndarray, title: str, path: Path
 ) -> None:
     """Distance along the path against height, with what the sounders read at each step."""
-    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))])
+    s = arc_length(p)
     z = p[: len(steps), 2]
     top = np.array([np.nan if v.get("d_top_m") is None else v["d_top_m"] for v in steps])
     bottom = np.array([np.nan if v.get("d_bottom_m") is None else v["d_bottom_m"] for v in steps])

@@ -293,8 +293,7 @@ class _Tube:
         tangent, normal, up = _frames(pts)
         half_w = np.asarray(half_width, np.float64)
         half_h = np.asarray(half_height, np.float64)
-        along = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))])
-        return cls(pts, tangent, normal, up, half_w, half_h, cKDTree(pts), along, section)
+        return cls(pts, tangent, normal, up, half_w, half_h, cKDTree(pts), arc_length(pts), section)
 
     @property
     def size(self) -> float:
