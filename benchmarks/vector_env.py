@@ -6,10 +6,11 @@ environments stepped one after another (what `gymnasium.vector.SyncVectorEnv` do
 Both fly ``cavenav/CaveNav-vector-v0`` (random actions, episodes cut at 150 steps and
 reset as they end), from the same seeds, in the same process, one after the other; the
 first steps of each (kernels loading, caves built) are left out of the timing; both
-batch the observations as `SyncVectorEnv` does. Printed: each one's rate, the ratio, and
-the bound the ray cast sets (the environments' last rays, cast alone, a second). The
-issue's targets: 2,000 steps a second with 16 environments at 84x84 on 2 cores; at
-640x480, 1.5 times a single environment's rate.
+batch the observations as `SyncVectorEnv` does. The batched one shades its frames on as
+many threads as Numba has (``--workers``: another number), one frame to a thread.
+Printed: each one's rate, the ratio, and the bound the ray cast sets (the environments'
+last rays, cast alone, a second). The issue's targets: 2,000 steps a second with 16
+environments at 84x84 on 2 cores; at 640x480, 1.5 times a single environment's rate.
 """
 
 from __future__ import annotations
@@ -29,12 +30,12 @@ ID = "cavenav/CaveNav-vector-v0"
 
 
 def batched_rate(
-    envs: int, steps: int, resolution: tuple[int, int], warm: int
+    envs: int, steps: int, resolution: tuple[int, int], warm: int, workers: int | None
 ) -> tuple[float, float]:
     """Steps a second batched, and the bound the cast sets: the cast alone of the rays
     the environments cast at the end, a second."""
     vector = gym.make_vec(ID, num_envs=envs, vectorization_mode="vector_entry_point",
-                          resolution=resolution, cave_seed=0)  # fmt: skip
+                          resolution=resolution, cave_seed=0, workers=workers)  # fmt: skip
     vector.reset(seed=0)
     actions = np.random.default_rng(0).uniform(-1, 1, (warm + steps, envs, 4)).astype(np.float32)
     for t in range(warm):
@@ -93,9 +94,10 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=200)
     parser.add_argument("--resolution", default="84x84")
     parser.add_argument("--warm", type=int, default=5)
+    parser.add_argument("--workers", type=int, default=None, help="shading threads, batched")
     args = parser.parse_args()
     size = parse_resolution(args.resolution)
-    batched, bound = batched_rate(args.envs, args.steps, size, args.warm)
+    batched, bound = batched_rate(args.envs, args.steps, size, args.warm, args.workers)
     alone = one_by_one_rate(args.envs, args.steps, size, args.warm)
     print(f"{args.envs} environments at {size[0]}x{size[1]}, {args.steps} steps each:")
     print(f"  batched (CaveNavVectorEnv):   {batched:8.0f} steps/s")

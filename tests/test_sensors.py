@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -19,7 +22,7 @@ from cavenav.sensors.depth import (
     save_png,
     write_exr,
 )
-from cavenav.sensors.rig import SensorConfig, SensorRig
+from cavenav.sensors.rig import SensorConfig, SensorRig, grid_mean
 from cavenav.types import Pose
 from cavenav.world.collision import clearance
 from cavenav.world.mesh import make_mesh
@@ -108,6 +111,45 @@ def test_rendering_is_deterministic() -> None:
     a = rig.observe(Pose(0.3, 1, 0.2, 0.4))
     b = rig.observe(Pose(0.3, 1, 0.2, 0.4))
     assert np.array_equal(a.rgb, b.rgb) and np.array_equal(a.depth_m, b.depth_m)
+
+
+THREAD_COUNTS = """
+import numba, numpy as np, trimesh
+from cavenav.sensors.rig import SensorRig, grid_mean
+from cavenav.types import Pose
+from cavenav.world.mesh import make_mesh
+from cavenav.world.raycast import RayCaster
+
+box = trimesh.creation.box(extents=(4.0, 20.0, 4.0))
+rig = SensorRig(RayCaster(make_mesh(box.vertices, box.faces, "box-room")))
+seen = []
+for threads in (1, 2, 3):
+    numba.set_num_threads(threads)
+    frame = rig.render(Pose(0.3, 1, 0.2, 0.4), radiance=True)
+    mean = grid_mean(rig._row_sums, rig._grid.shape[1])
+    seen.append((frame.rgb, frame.depth_png, frame.radiance, mean))
+for other in seen[1:]:
+    assert all(np.array_equal(a, b) for a, b in zip(seen[0], other)), "differs"
+"""
+
+
+def test_a_frame_is_the_same_bits_on_one_two_or_three_threads() -> None:
+    """A 640x480 frame, its kernels split over 1, 2 or 3 threads (in a fresh process
+    given three, whatever this machine has): the same bits, and the same mean metered for
+    its exposure. A batched environment shades each frame on one thread, a lone one on
+    all; a sum over the threads' shares would differ in its last bits between them."""
+    subprocess.run(
+        [sys.executable, "-c", THREAD_COUNTS],
+        env={**os.environ, "NUMBA_NUM_THREADS": "3"},
+        check=True,
+        timeout=300,
+    )
+
+
+def test_the_metered_mean_is_the_exact_sum_whatever_the_order_of_the_rows() -> None:
+    rows = np.random.default_rng(0).uniform(0, 1e3, (121, 3)) * np.logspace(-8, 8, 121)[:, None]
+    assert np.array_equal(grid_mean(rows, 161), grid_mean(rows[::-1], 161))
+    assert not np.array_equal(rows.sum(axis=0), rows[::-1].sum(axis=0))  # as sums are not
 
 
 # ------------------------------------------------------------------ resolution

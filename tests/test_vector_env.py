@@ -28,16 +28,22 @@ def test_make_vec_gives_the_native_batched_environment_by_its_vector_entry_point
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("cave_seed", [None, 0], ids=["a cave each", "one cave"])
+@pytest.mark.parametrize(
+    ("cave_seed", "resolution", "workers"),
+    [(None, SMALL, 1), (0, SMALL, 2), (0, (160, 120), 2)],
+    ids=["a cave each, in turn", "one cave, two at once", "frames a lone one splits"],
+)
 def test_it_flies_exactly_as_single_environments_given_the_same_seeds_and_actions(
-    cave_seed: int | None,
+    cave_seed: int | None, resolution: tuple[int, int], workers: int
 ) -> None:
     """20 steps, episodes cut at 6 steps so that every environment ends and is reset;
     the first environment strafes right into the wall (collisions), the others fly at
-    random; in a cave each or all in one (their rays then cast together)."""
-    n, options = 4, {"resolution": SMALL, "cave_seed": cave_seed, "max_episode_steps": 6}
+    random; in a cave each or all in one (their rays then cast together); shaded one
+    after another or two at once, each on one thread, also at a size whose frames a
+    lone environment splits over every thread."""
+    n, options = 4, {"resolution": resolution, "cave_seed": cave_seed, "max_episode_steps": 6}
     vector = gym.make_vec(LEARNER, num_envs=n, vectorization_mode="vector_entry_point",
-                          **options)  # fmt: skip
+                          workers=workers, **options)  # fmt: skip
     singles = [gym.make(LEARNER, **options) for _ in range(n)]
     batched, _ = vector.reset(seed=7)
     for i, env in enumerate(singles):
@@ -98,9 +104,12 @@ def test_a_reset_mask_resets_only_those_it_marks_and_a_bad_one_is_refused() -> N
     assert vector.caves == {}  # closed: the caves let go
 
 
-def test_a_step_budget_must_be_a_positive_number_of_steps() -> None:
+def test_a_step_budget_and_a_number_of_workers_must_be_positive_whole_numbers() -> None:
     with pytest.raises(ValueError, match="max_episode_steps"):
         CaveNavVectorEnv(2, max_episode_steps=0)
+    for workers in (0, 1.5):
+        with pytest.raises(ValueError, match="workers"):
+            CaveNavVectorEnv(2, workers=workers)
 
 
 def test_text_actions_fly_batched_too() -> None:

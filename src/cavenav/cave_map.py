@@ -71,7 +71,7 @@ class Opening:
     end: tuple[float, float, float]
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _carve(
     hits: np.ndarray,  # (X, Y, Z) uint16 times a surface was seen in each cell
     passes: np.ndarray,  # (X, Y, Z) uint16 times a ray crossed each cell free

@@ -13,23 +13,31 @@ that, bit for bit). What is shared is what sharing makes cheaper:
   and a cave no environment flies any more is let go at the next reset;
 - each step casts the sensor rays of all the environments in one cave in one call
   (`CaveNavEnv.begin_step`, `sensor_rays`, `end_step`), which the ray caster spreads
-  over every core, instead of one small cast each.
+  over every core, instead of one small cast each;
+- then the environments' frames are shaded at once, one environment to a thread on as
+  many threads as Numba may use (``workers``), each frame on its thread alone: the
+  shading kernels let go of Python's lock, and a small frame shaded on one core wastes
+  none of it waiting for the others, as a small frame split over the cores does.
 
-Physics, collisions and shading stay per environment. Autoreset is Gymnasium's default
-(``NEXT_STEP``): the step after an episode ends resets that environment and returns its
-first observation with reward 0. Episodes are cut at ``max_episode_steps`` (the
-registration's 150), as `gymnasium.wrappers.TimeLimit` cuts a single environment's. The
-infos are batched by `batched_infos`, which Gymnasium's own batching cannot replace here
-(its docstring says why).
+Physics and collisions stay per environment, in turn. A frame is the same bits on any
+number of threads (the rig's kernels make sure of it), so batching changes no
+observation. Autoreset is Gymnasium's default (``NEXT_STEP``): the step after an
+episode ends resets that environment and returns its first observation with reward 0.
+Episodes are cut at ``max_episode_steps`` (the registration's 150), as
+`gymnasium.wrappers.TimeLimit` cuts a single environment's. The infos are batched by
+`batched_infos`, which Gymnasium's own batching cannot replace here (its docstring says
+why).
 """
 
 from __future__ import annotations
 
 import time
 from collections.abc import Callable, Mapping, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from copy import deepcopy
 from typing import Any
 
+import numba
 import numpy as np
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space, concatenate, create_empty_array, iterate
@@ -50,6 +58,7 @@ class CaveNavVectorEnv(VectorEnv):
         *,
         max_episode_steps: int | None = None,
         make: Callable[..., CaveNavEnv] = CaveNavEnv,
+        workers: int | None = None,
         **options: Any,
     ):
         """
@@ -57,9 +66,14 @@ class CaveNavVectorEnv(VectorEnv):
             max_episode_steps: truncate an episode after this many steps; None never
                 (`gymnasium.make_vec` gives the registration's 150).
             make: builds each sub-environment from ``options`` (`CaveNavEnv`'s keywords).
+            workers: threads that shade the environments' frames at once; None: as many
+                as Numba's threads here (the cores, or ``NUMBA_NUM_THREADS``), at most
+                one an environment; 1 shades them in turn, each on every core.
         """
         if num_envs < 1:
             raise ValueError(f"num_envs must be at least 1, got {num_envs}")
+        if workers is not None and not (isinstance(workers, int) and workers > 0):
+            raise ValueError(f"workers must be a positive int or None: {workers}")
         if max_episode_steps is not None and not (
             isinstance(max_episode_steps, int) and max_episode_steps > 0
         ):
@@ -78,6 +92,12 @@ class CaveNavVectorEnv(VectorEnv):
         self._observations = create_empty_array(self.single_observation_space, num_envs)
         self._elapsed = np.zeros(num_envs, np.int64)
         self._autoreset = np.zeros(num_envs, bool)
+        workers = min(workers or numba.get_num_threads(), num_envs)
+        self._shaders = (
+            ThreadPoolExecutor(workers, "cavenav-shade", numba.set_num_threads, (1,))
+            if workers > 1
+            else None
+        )
 
     @property
     def np_random(self) -> tuple[np.random.Generator, ...]:
@@ -127,9 +147,15 @@ class CaveNavVectorEnv(VectorEnv):
                 results[i] = (observation, 0.0, False, False, info)
             else:
                 moves[i] = env.begin_step(action)
-        for i, cast, cast_ms in self._cast_together(list(moves)):
+
+        def sense(job: tuple[int, dict[str, np.ndarray], float]) -> None:
+            i, cast, cast_ms = job
             results[i] = self.envs[i].end_step(moves[i], cast, cast_ms)
-            self._elapsed[i] += 1
+
+        jobs = self._cast_together(list(moves))
+        # list(): wait for every frame, and raise what any of them raised
+        list(map(sense, jobs) if self._shaders is None else self._shaders.map(sense, jobs))
+        self._elapsed[list(moves)] += 1
         if any(self._autoreset):
             self._let_go_of_unflown_caves()
         return self._gathered(results)
@@ -185,6 +211,8 @@ class CaveNavVectorEnv(VectorEnv):
 
     def close_extras(self, **kwargs: Any) -> None:
         """Close the sub-environments and let their caves go."""
+        if self._shaders is not None:
+            self._shaders.shutdown()
         for env in self.envs:
             env.close()
             env._world = None

@@ -26,6 +26,8 @@ from multiprocessing.connection import Connection, wait
 from pathlib import Path
 from typing import Any, TypeVar
 
+import numba
+
 from cavenav.errors import ConfigError, DependencyError, RecordingError
 from cavenav.evaluation.results import episode_row
 from cavenav.evaluation.sweep import (
@@ -83,6 +85,7 @@ class InProcess:
         stop = threading.Event()  # the sweep stopped: its folder is no longer held
 
         def fly() -> None:
+            _one_core_per_frame()
             while not stop.is_set():
                 try:
                     job = todo.get_nowait()
@@ -105,6 +108,15 @@ class InProcess:
                 done(row)
         finally:
             stop.set()
+
+
+def _one_core_per_frame() -> None:
+    """Shade this thread's frames on one thread, for a thread that flies episodes beside
+    others: their frames in flight together fill the cores without splitting each, and
+    the kernels let go of the GIL, so that each thread splitting its own over every core
+    would start one OpenMP team a thread and oversubscribe the cores. A frame is the same
+    bits on any number of threads (`cavenav.sensors.rig.grid_mean`)."""
+    numba.set_num_threads(1)
 
 
 # prctl(2) option: the signal this process gets when the thread that started it ends.
@@ -151,6 +163,8 @@ def _pool_worker(
     sending = threading.Lock()
 
     def fly() -> None:
+        if concurrency > 1:
+            _one_core_per_frame()
         while (job := jobs.get()) is not None:
             try:
                 row: Any = worker.fly(job)

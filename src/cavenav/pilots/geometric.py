@@ -59,7 +59,7 @@ _ELEVATIONS = np.arange(-18.0, 18.01, 3.0)
 _DITHER_STEPS = 6
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def free_lengths(
     points: np.ndarray,  # (n, 3) float32 surface points seen, in any frame
     directions: np.ndarray,  # (k, 3) float64 unit directions from that frame's origin

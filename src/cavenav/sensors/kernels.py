@@ -255,7 +255,7 @@ def _scattered_toward(px, py, pz, path, vx, vy, vz, lamps, hg, g, attenuation, h
             here[c] += lamp_power[k, c] * intensity * math.exp(-attenuation[c] * (d + path))
 
 
-@numba.njit(parallel=True, fastmath=_FAST, cache=True)
+@numba.njit(parallel=True, fastmath=_FAST, cache=True, nogil=True)
 def integrate_backscatter(
     dirs: np.ndarray,  # (n, 3) float32 camera-frame directions with unit z
     lamp_pos: np.ndarray,  # (k, 3) float32 camera frame
@@ -297,7 +297,7 @@ def integrate_backscatter(
             s_prev = s
 
 
-@numba.njit(parallel=True, fastmath=_FAST, cache=True)
+@numba.njit(parallel=True, fastmath=_FAST, cache=True, nogil=True)
 def integrate_silt(
     dirs: np.ndarray,  # (n, 3) float32 camera-frame directions with unit z
     lamp_pos: np.ndarray,  # (k, 3) float32 camera frame
@@ -389,7 +389,7 @@ def integrate_silt(
             s_prev = s
 
 
-@numba.njit(fastmath=_FAST, cache=True)
+@numba.njit(fastmath=_FAST, cache=True, nogil=True)
 def splat_particles(
     origin: np.ndarray,  # (3,) camera position, world
     rotation: np.ndarray,  # (3, 3) camera-to-world, columns x right, y down, z forward
@@ -705,7 +705,7 @@ def _own_light(i, row, col, cast, rays, scene, lamps, water):  # noqa: ANN001, A
     return v0 + o0, v1 + o1, v2 + o2, h0, h1, h2, lamp_return
 
 
-@numba.njit(parallel=True, fastmath=_FAST, cache=True)
+@numba.njit(parallel=True, fastmath=_FAST, cache=True, nogil=True)
 def shade_grid(
     cast: tuple,  # (t, triangle, normals, uvs) as in shade_frame
     rays: tuple,  # (directions, ray_length, origin) as in shade_frame
@@ -719,9 +719,10 @@ def shade_grid(
     grid: np.ndarray,  # (H', W', 8) float32 out, H' = ceil(H / SHARE) + 1, likewise W'
     grid_triangle: np.ndarray,  # (H', W') uint32 out: the triangle hit at each point
     halo: np.ndarray,  # (H', W', 3) float32 out: light scattered forward, per grid point
-) -> tuple[float, float, float]:
-    """Shade the pixels of every SHARE-th row and column (and the last ones) into ``grid``;
-    returns the frame's mean colour at the sensor over them.
+    row_sums: np.ndarray,  # (H', 3) float64 out: each grid row's colour at the sensor, summed
+) -> None:
+    """Shade the pixels of every SHARE-th row and column (and the last ones) into ``grid``,
+    and sum each row's colour at the sensor into ``row_sums``.
 
     Per grid point: 1 / depth (-1 where the ray escapes), the normal the rock is shaded
     with (the vertex normals smoothed across the triangle, `_smooth_normal`), the
@@ -730,15 +731,17 @@ def shade_grid(
     forward on its way, which the rig blurs (`spread_halo`) for `shade_frame` to add.
     `shade_frame` interpolates between these wherever a pixel lies on the same smooth
     surface as the four around it. The mean, halo included, is what the camera meters
-    for its auto white balance and exposure before the frame is developed.
+    for its auto white balance and exposure before the frame is developed
+    (`grid_mean`). Rows are summed one by one, each on one thread, so that the mean
+    does not depend on how many threads shaded them.
     """
     t, triangle, normals, uvs = cast
     faces, vertex_normals = scene[0], scene[1]
     ray_length = rays[1]
     height = t.shape[0] // width
-    sum0 = sum1 = sum2 = 0.0
     for a in numba.prange(grid.shape[0]):
         row = min(a * SHARE, height - 1)
+        sum0 = sum1 = sum2 = 0.0
         for b in range(grid.shape[1]):
             col = min(b * SHARE, width - 1)
             i = row * width + col
@@ -765,8 +768,7 @@ def shade_grid(
             sum0 += (l0 + h0) * lens
             sum1 += (l1 + h1) * lens
             sum2 += (l2 + h2) * lens
-    count = grid.shape[0] * grid.shape[1]
-    return sum0 / count, sum1 / count, sum2 / count
+        row_sums[a, 0], row_sums[a, 1], row_sums[a, 2] = sum0, sum1, sum2
 
 
 SAME_FACING = 0.9  # cosine of the largest angle between normals of one smooth surface
@@ -816,7 +818,7 @@ def _finish(i, l0, l1, l2, lamp_return, hit, col, t, frame_key, depth_range, row
     row_light[col, 0], row_light[col, 1], row_light[col, 2] = l0, l1, l2
 
 
-@numba.njit(fastmath=_FAST, cache=True)
+@numba.njit(fastmath=_FAST, cache=True, nogil=True)
 def spread_halo(
     halo: np.ndarray,  # (H', W', 3) float32: forward-scattered light at the grid's points
     cell: int,  # grid points a side of the cells the blur works on
@@ -945,7 +947,7 @@ DENOISE_SIGMAS = 2.5  # neighbours within this many noise deviations of a pixel 
 LUMA_R, LUMA_G, LUMA_B = LUMA
 
 
-@numba.njit(parallel=True, fastmath=_FAST, cache=True)
+@numba.njit(parallel=True, fastmath=_FAST, cache=True, nogil=True)
 def develop_image(
     signal: np.ndarray,  # (n, 3) float32: the sensor's signal, from shade_frame
     width: int,
@@ -1025,7 +1027,7 @@ def _sigma_filter(own, width, gains, gain, noise, denoise, shift) -> None:  # no
             shift[mid + col] = strength * (total / count - y)
 
 
-@numba.njit(parallel=True, fastmath=_FAST, cache=True)
+@numba.njit(parallel=True, fastmath=_FAST, cache=True, nogil=True)
 def shade_frame(
     cast: tuple,  # (t, triangle, normals, uvs): the forward cast, see below
     rays: tuple,  # (directions, ray_length, origin), see below
@@ -1136,7 +1138,7 @@ def shade_frame(
         )
 
 
-@numba.njit(parallel=True, fastmath=_FAST, cache=True)
+@numba.njit(parallel=True, fastmath=_FAST, cache=True, nogil=True)
 def hemisphere_rays(
     centre: np.ndarray,  # (k, 3) ray origins before the offset
     normal: np.ndarray,  # (k, 3) unit: the hemisphere's pole
@@ -1162,7 +1164,7 @@ def hemisphere_rays(
             rays[i, 5] = u * az + v * bz + w * nz
 
 
-@numba.njit(parallel=True, fastmath=_FAST, cache=True)
+@numba.njit(parallel=True, fastmath=_FAST, cache=True, nogil=True)
 def gather_sky(
     rays: np.ndarray,  # (k * r, 6) float32 as from hemisphere_rays
     t: np.ndarray,  # (k * r,) float32 hit distance (unit directions)
@@ -1212,7 +1214,7 @@ def gather_sky(
         direct[f, 0], direct[f, 1], direct[f, 2] = d0 / r, d1 / r, d2 / r
 
 
-@numba.njit(parallel=True, fastmath=_FAST, cache=True)
+@numba.njit(parallel=True, fastmath=_FAST, cache=True, nogil=True)
 def bounce_light(
     hit_face: np.ndarray,  # (k, r) int64, -1 where the ray escaped
     hit_side: np.ndarray,  # (k, r) int8
@@ -1236,7 +1238,7 @@ def bounce_light(
         out[f, 0], out[f, 1], out[f, 2] = b0 / r, b1 / r, b2 / r
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def corner_sums(
     faces: np.ndarray,  # (m, 3) int vertex indices
     weighted: np.ndarray,  # (m, k) float64 per-face values times the face's weight
@@ -1255,7 +1257,7 @@ def corner_sums(
             total_weight[v] += weight[f]
 
 
-@numba.njit(parallel=True, fastmath=_FAST, cache=True)
+@numba.njit(parallel=True, fastmath=_FAST, cache=True, nogil=True)
 def fill_rays(
     pixel_dirs: np.ndarray, rotation: np.ndarray, origin: np.ndarray, rays: np.ndarray
 ) -> None:

@@ -247,13 +247,15 @@ def compress(rgb: np.ndarray, quality: int) -> np.ndarray:
     at once, on two cores (0.85 ms), with the same bits as the whole: JPEG codes blocks
     of 16 rows on their own, and the decoder's smooth upsampling of colour reaches one
     row of colour (two of pixels) across a block's edge, so each half is coded with one
-    block of the other, then dropped.
+    block of the other, then dropped. A thread whose frames are shaded on one core (a
+    batched environment's, a sweep's episodes in flight together) codes the frame whole:
+    other frames keep the other cores busy.
     """
     if quality <= 0:
         return rgb
     height = rgb.shape[0]
     seam = height // 2 // _JPEG_BLOCK * _JPEG_BLOCK
-    if seam < 2 * _JPEG_BLOCK:
+    if seam < 2 * _JPEG_BLOCK or numba.get_num_threads() == 1:
         return _jpeg_round_trip(rgb, quality)
     below = _jpeg_helper().submit(_jpeg_round_trip, rgb[seam - _JPEG_BLOCK :], quality)
     above = _jpeg_round_trip(rgb[: seam + _JPEG_BLOCK], quality)
@@ -277,6 +279,14 @@ def _jpeg_round_trip(rgb: np.ndarray, quality: int) -> np.ndarray:
         np.ascontiguousarray(rgb), quality=int(quality), colorspace="RGB", colorsubsampling="420"
     )
     return simplejpeg.decode_jpeg(coded, colorspace="RGB")
+
+
+def grid_mean(row_sums: np.ndarray, columns: int) -> np.ndarray:
+    """The mean colour (3,) over `shade_grid`'s points from its ``row_sums`` (rows, 3) of
+    ``columns`` points each, summed exactly (`math.fsum`): the same on any number of
+    threads and at any SIMD width, as a sum whose order the compiler picks is not."""
+    count = len(row_sums) * columns
+    return np.array([math.fsum(row_sums[:, c]) / count for c in range(3)])
 
 
 def camera_response(mean: np.ndarray, optics: Optics) -> tuple[np.ndarray, float]:
@@ -383,8 +393,7 @@ class SensorRig:
         self._veil_directions = veil_directions(cfg.camera, veil_block)
         self._no_silt = np.zeros((1, 1, 2, 3), np.float32)  # the kernels' "no silt"
         self._lamps = lamp_arrays(optics)
-        self._attenuation = optics.medium.attenuation
-        self._kept = optics.medium.kept_attenuation
+        self._attenuation, self._kept = optics.medium.attenuation, optics.medium.kept_attenuation
         self._bounds = caster.mesh.bounds.astype(np.float32)
         self._lut = tone_lut(1.0, optics.tone)
         # Work buffers of the shading passes, reused every frame (see kernels.shade_frame).
@@ -392,6 +401,7 @@ class SensorRig:
         self._grid = np.zeros((blocks[0] + 1, blocks[1] + 1, 8), np.float32)
         self._grid_triangle = np.empty((blocks[0] + 1, blocks[1] + 1), np.uint32)
         self._halo = np.empty((blocks[0] + 1, blocks[1] + 1, 3), np.float32)
+        self._row_sums = np.empty((blocks[0] + 1, 3), np.float64)
         self._halo_weights = halo_weights(cfg.camera.focal_px)
         self._specks = np.zeros((len(self._pixel_dirs), 3), np.float32)
         self._signal = np.empty((len(self._pixel_dirs), 3), np.float32)
@@ -484,8 +494,7 @@ class SensorRig:
         rot, origin = self._camera_at(pose)
         n, rays = len(self._pixel_dirs), self._rays
         raw = self._hits(pose, rot, origin, cast)
-        readings = self._readings(raw["t_hit"][n:])
-        depth = raw["t_hit"][:n]
+        depth, readings = raw["t_hit"][:n], self._readings(raw["t_hit"][n:])
         lamp_tuple = self._lamps_at(origin, rot)
         # Before shading: the specks need the true surfaces behind them, which a
         # degraded depth image no longer has.
@@ -502,12 +511,13 @@ class SensorRig:
             self._attenuation, self._kept, table.values, table.block, table.far, optics.sky,
             self._bounds, *self._silt_tables(silt, origin, rot),
         )  # fmt: skip
-        mean = shade_grid(
+        shade_grid(
             cast, ray_tuple, scene, lamp_tuple, water, self._specks, self._speck_blocks,
             optics.vignetting, camera.width, self._grid, self._grid_triangle, self._halo,
+            self._row_sums,
         )  # fmt: skip
         spread_halo(self._halo, HALO_CELL, self._halo_weights, self._grid)
-        gains, gain = camera_response(np.asarray(mean), optics)
+        gains, gain = camera_response(grid_mean(self._row_sums, self._grid.shape[1]), optics)
         key = _frame_key(cfg.seed if noise_seed is None else noise_seed, pose)
         sensor = (gains, gain, optics.vignetting, optics.noise, key, optics.black_level)
         depth_range = (cfg.depth_min_m, cfg.depth_max_m, optics.depth_dropout, optics.depth_noise_m)
