@@ -14,15 +14,21 @@ setup: $(STAMP)
 setup-test: $(TEST_STAMP)
 
 # Open3D's wheel links against libusb-1.0 at import time; Debian does not ship it by default.
+# Numba's OpenMP threading layer needs libgomp; without it Numba falls back to its work
+# queue, on which frames are shaded one at a time (cavenav.sensors.kernels).
 $(STAMP): pyproject.toml
-	@if ! ldconfig -p 2>/dev/null | grep -q libusb-1.0; then \
-		if [ "$$(id -u)" = "0" ]; then \
-			(apt-get install -y -q libusb-1.0-0 >/dev/null 2>&1 || \
-			 (apt-get update -q >/dev/null && apt-get install -y -q libusb-1.0-0 >/dev/null)); \
-		else \
-			echo "cavenav needs libusb-1.0 for Open3D: run 'sudo apt-get install -y libusb-1.0-0'"; exit 1; \
-		fi; \
-	fi
+	@missing=""; \
+	ldconfig -p 2>/dev/null | grep -q libusb-1.0 || missing="libusb-1.0-0"; \
+	ldconfig -p 2>/dev/null | grep -q libgomp.so.1 || missing="$$missing libgomp1"; \
+	if [ -n "$$missing" ] && [ "$$(id -u)" = "0" ]; then \
+		apt-get install -y -q $$missing >/dev/null 2>&1 || \
+		(apt-get update -q >/dev/null && apt-get install -y -q $$missing >/dev/null) || true; \
+	fi; \
+	if ! ldconfig -p 2>/dev/null | grep -q libusb-1.0; then \
+		echo "cavenav needs libusb-1.0 for Open3D: run 'sudo apt-get install -y libusb-1.0-0'"; exit 1; \
+	fi; \
+	ldconfig -p 2>/dev/null | grep -q libgomp.so.1 || \
+		echo "cavenav: no libgomp, so frames shade one at a time (sudo apt-get install -y libgomp1)"
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
 	$(BIN)/python -m pip install -q -e .

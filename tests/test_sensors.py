@@ -146,6 +146,53 @@ def test_a_frame_is_the_same_bits_on_one_two_or_three_threads() -> None:
     )
 
 
+WORK_QUEUE = """
+import threading
+import numba, numpy as np, trimesh
+from cavenav.sensors import kernels
+from cavenav.sensors.rig import SensorConfig, SensorRig
+from cavenav.types import Pose
+from cavenav.vector_env import CaveNavVectorEnv
+from cavenav.world.mesh import make_mesh
+from cavenav.world.raycast import RayCaster
+
+assert numba.threading_layer() == "workqueue" and not kernels.KERNELS_RUN_CONCURRENTLY
+box = trimesh.creation.box(extents=(4.0, 20.0, 4.0))
+
+def fly():  # a sweep's episode in flight beside others: its own tables, its own frames
+    rig = SensorRig(RayCaster(make_mesh(box.vertices, box.faces, "box-room")),
+                    SensorConfig().with_resolution(160, 120))
+    for step in range(10):
+        rig.render(Pose(0.3, 1.0 - 0.2 * step, 0.2, 0.4))
+
+threads = [threading.Thread(target=fly) for _ in range(4)]
+for thread in threads:
+    thread.start()
+for thread in threads:
+    thread.join()
+vector = CaveNavVectorEnv(4, resolution=(32, 24), action_format="vector", cave_seed=0,
+                          workers=2)
+vector.reset(seed=0)
+for _ in range(3):
+    vector.step(np.zeros((4, 4), np.float32))
+print("flown")
+"""
+
+
+def test_where_numbas_threading_layer_cannot_launch_from_many_threads_frames_take_turns():
+    """Numba's work queue (its layer where OpenMP cannot be loaded) aborts the process
+    when two threads launch parallel kernels at once, as frames shaded on several
+    threads would; there the kernels take turns, and nothing aborts."""
+    done = subprocess.run(
+        [sys.executable, "-c", WORK_QUEUE],
+        env={**os.environ, "NUMBA_THREADING_LAYER": "workqueue"},
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert done.returncode == 0 and done.stdout.strip() == "flown", done.stderr[-2000:]
+
+
 def test_the_metered_mean_is_the_exact_sum_whatever_the_order_of_the_rows() -> None:
     rows = np.random.default_rng(0).uniform(0, 1e3, (121, 3)) * np.logspace(-8, 8, 121)[:, None]
     assert np.array_equal(grid_mean(rows, 161), grid_mean(rows[::-1], 161))

@@ -15,9 +15,9 @@ that, bit for bit). What is shared is what sharing makes cheaper:
   (`CaveNavEnv.begin_step`, `sensor_rays`, `end_step`), which the ray caster spreads
   over every core, instead of one small cast each;
 - then the environments' frames are shaded at once, one environment to a thread on as
-  many threads as Numba may use (``workers``), each frame on its thread alone: the
-  shading kernels let go of Python's lock, and a small frame shaded on one core wastes
-  none of it waiting for the others, as a small frame split over the cores does.
+  many threads as Numba may use (``workers``), Numba's threads shared out between them:
+  the shading kernels let go of Python's lock, and a small frame shaded on one core
+  wastes none of it waiting for the others, as a small frame split over the cores does.
 
 Physics and collisions stay per environment, in turn. A frame is the same bits on any
 number of threads (the rig's kernels make sure of it), so batching changes no
@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Mapping, Sequence
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor, wait
 from copy import deepcopy
 from typing import Any
 
@@ -43,6 +43,7 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space, concatenate, create_empty_array, iterate
 
 from cavenav.env import CaveNavEnv, Move, learner_env
+from cavenav.sensors.kernels import KERNELS_RUN_CONCURRENTLY
 
 __all__ = ["CaveNavVectorEnv", "batched_infos", "learner_vector_env"]
 
@@ -66,9 +67,12 @@ class CaveNavVectorEnv(VectorEnv):
             max_episode_steps: truncate an episode after this many steps; None never
                 (`gymnasium.make_vec` gives the registration's 150).
             make: builds each sub-environment from ``options`` (`CaveNavEnv`'s keywords).
-            workers: threads that shade the environments' frames at once; None: as many
-                as Numba's threads here (the cores, or ``NUMBA_NUM_THREADS``), at most
-                one an environment; 1 shades them in turn, each on every core.
+            workers: threads that shade the environments' frames at once, sharing
+                Numba's threads out between them; None: as many as Numba has here (the
+                cores, or ``NUMBA_NUM_THREADS``), at most one an environment; 1 shades
+                them in turn, each as a lone environment would. Where Numba's threading
+                layer cannot launch kernels from several threads
+                (`cavenav.sensors.kernels.KERNELS_RUN_CONCURRENTLY`), always 1.
         """
         if num_envs < 1:
             raise ValueError(f"num_envs must be at least 1, got {num_envs}")
@@ -92,9 +96,12 @@ class CaveNavVectorEnv(VectorEnv):
         self._observations = create_empty_array(self.single_observation_space, num_envs)
         self._elapsed = np.zeros(num_envs, np.int64)
         self._autoreset = np.zeros(num_envs, bool)
-        workers = min(workers or numba.get_num_threads(), num_envs)
+        cores = numba.get_num_threads()
+        workers = min(workers or cores, num_envs) if KERNELS_RUN_CONCURRENTLY else 1
         self._shaders = (
-            ThreadPoolExecutor(workers, "cavenav-shade", numba.set_num_threads, (1,))
+            ThreadPoolExecutor(
+                workers, "cavenav-shade", numba.set_num_threads, (max(1, cores // workers),)
+            )
             if workers > 1
             else None
         )
@@ -153,8 +160,14 @@ class CaveNavVectorEnv(VectorEnv):
             results[i] = self.envs[i].end_step(moves[i], cast, cast_ms)
 
         jobs = self._cast_together(list(moves))
-        # list(): wait for every frame, and raise what any of them raised
-        list(map(sense, jobs) if self._shaders is None else self._shaders.map(sense, jobs))
+        if self._shaders is None:
+            for job in jobs:
+                sense(job)
+        else:  # every frame finished before a failure is raised: none is left shading
+            shading = [self._shaders.submit(sense, job) for job in jobs]
+            wait(shading)
+            for frame in shading:
+                frame.result()
         self._elapsed[list(moves)] += 1
         if any(self._autoreset):
             self._let_go_of_unflown_caves()

@@ -85,7 +85,7 @@ class InProcess:
         stop = threading.Event()  # the sweep stopped: its folder is no longer held
 
         def fly() -> None:
-            _one_core_per_frame()
+            _share_the_cores(self.concurrency)
             while not stop.is_set():
                 try:
                     job = todo.get_nowait()
@@ -110,13 +110,13 @@ class InProcess:
             stop.set()
 
 
-def _one_core_per_frame() -> None:
-    """Shade this thread's frames on one thread, for a thread that flies episodes beside
-    others: their frames in flight together fill the cores without splitting each, and
-    the kernels let go of the GIL, so that each thread splitting its own over every core
-    would start one OpenMP team a thread and oversubscribe the cores. A frame is the same
-    bits on any number of threads (`cavenav.sensors.rig.grid_mean`)."""
-    numba.set_num_threads(1)
+def _share_the_cores(threads: int) -> None:
+    """Shade this thread's frames on its share of Numba's threads, for one of ``threads``
+    threads that fly episodes at once: the kernels let go of the GIL, so frames in flight
+    together fill the cores between them, and each thread splitting its own over every
+    core would start an OpenMP team a thread and oversubscribe the cores. A frame is the
+    same bits on any number of threads (`cavenav.sensors.rig.grid_mean`)."""
+    numba.set_num_threads(max(1, numba.get_num_threads() // threads))
 
 
 # prctl(2) option: the signal this process gets when the thread that started it ends.
@@ -163,8 +163,7 @@ def _pool_worker(
     sending = threading.Lock()
 
     def fly() -> None:
-        if concurrency > 1:
-            _one_core_per_frame()
+        _share_the_cores(concurrency)
         while (job := jobs.get()) is not None:
             try:
                 row: Any = worker.fly(job)

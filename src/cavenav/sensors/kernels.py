@@ -17,8 +17,12 @@ for the same seed and pose.
 
 from __future__ import annotations
 
+import functools
 import math
 import os
+import threading
+from collections.abc import Callable
+from typing import Any
 
 # Between kernels numba's OpenMP workers must sleep, not spin: spinning, they take the
 # cores from Open3D's ray cast (its own TBB threads) that runs next. Measured on 2 cores:
@@ -31,13 +35,16 @@ import numpy as np  # noqa: E402
 from llvmlite import ir  # noqa: E402
 from numba.core import types  # noqa: E402
 from numba.extending import intrinsic  # noqa: E402
+from numba.np.ufunc import parallel as numba_parallel  # noqa: E402
 
 from cavenav.sensors.optics import LUMA, TONE_FLOOR, TONE_SHIFT  # noqa: E402
 
 # OpenMP, else numba's own work queue; never TBB, whose old system builds only warn.
 numba.config.THREADING_LAYER_PRIORITY = ["omp", "workqueue", "tbb"]  # type: ignore[attr-defined]
 
+
 __all__ = [
+    "KERNELS_RUN_CONCURRENTLY",
     "beam_profile",
     "bounce_light",
     "corner_sums",
@@ -62,6 +69,40 @@ _INV_4PI = 1.0 / (4.0 * math.pi)
 SHARE = 4  # shade_grid shades every SHARE-th pixel and row; shade_frame interpolates
 # Fast-math without "no infinities": rays that escape carry t = inf.
 _FAST = {"nsz", "arcp", "contract", "afn", "reassoc"}
+
+
+def _launches_from_many_threads() -> bool:
+    """Whether the threading layer Numba picks here lets several threads launch parallel
+    kernels at once: OpenMP does; the work queue, Numba's fallback where OpenMP cannot be
+    loaded (no libgomp, as in slim containers; macOS wheels), aborts the process."""
+    numba_parallel._launch_threads()  # picks the layer, as the first parallel kernel would
+    return numba.threading_layer() != "workqueue"
+
+
+# Whether frames may be shaded on several threads at once (see `_parallel_kernel`).
+KERNELS_RUN_CONCURRENTLY = _launches_from_many_threads()
+_LAUNCHING = threading.Lock()
+
+
+def _parallel_kernel(function: Callable[..., Any]) -> Callable[..., Any]:
+    """A kernel split over Numba's threads (``numba.prange``), compiled once and cached.
+
+    It lets go of the GIL, so that several frames are shaded at once, each on threads of
+    its own: a batched environment's, a sweep's episodes in flight. Where the layer
+    cannot take that (`KERNELS_RUN_CONCURRENTLY`), its launches take turns instead; the
+    compiled kernel is then ``__wrapped__``.
+    """
+    kernel = numba.njit(parallel=True, fastmath=_FAST, cache=True, nogil=True)(function)
+    if KERNELS_RUN_CONCURRENTLY:
+        return kernel
+
+    @functools.wraps(function)
+    def in_turn(*args: Any) -> Any:  # noqa: ANN401 - the kernel's
+        with _LAUNCHING:
+            return kernel(*args)
+
+    in_turn.__wrapped__ = kernel  # type: ignore[attr-defined]
+    return in_turn
 
 
 @numba.njit(inline="always")
@@ -255,7 +296,7 @@ def _scattered_toward(px, py, pz, path, vx, vy, vz, lamps, hg, g, attenuation, h
             here[c] += lamp_power[k, c] * intensity * math.exp(-attenuation[c] * (d + path))
 
 
-@numba.njit(parallel=True, fastmath=_FAST, cache=True, nogil=True)
+@_parallel_kernel
 def integrate_backscatter(
     dirs: np.ndarray,  # (n, 3) float32 camera-frame directions with unit z
     lamp_pos: np.ndarray,  # (k, 3) float32 camera frame
@@ -297,7 +338,7 @@ def integrate_backscatter(
             s_prev = s
 
 
-@numba.njit(parallel=True, fastmath=_FAST, cache=True, nogil=True)
+@_parallel_kernel
 def integrate_silt(
     dirs: np.ndarray,  # (n, 3) float32 camera-frame directions with unit z
     lamp_pos: np.ndarray,  # (k, 3) float32 camera frame
@@ -705,7 +746,7 @@ def _own_light(i, row, col, cast, rays, scene, lamps, water):  # noqa: ANN001, A
     return v0 + o0, v1 + o1, v2 + o2, h0, h1, h2, lamp_return
 
 
-@numba.njit(parallel=True, fastmath=_FAST, cache=True, nogil=True)
+@_parallel_kernel
 def shade_grid(
     cast: tuple,  # (t, triangle, normals, uvs) as in shade_frame
     rays: tuple,  # (directions, ray_length, origin) as in shade_frame
@@ -947,7 +988,7 @@ DENOISE_SIGMAS = 2.5  # neighbours within this many noise deviations of a pixel 
 LUMA_R, LUMA_G, LUMA_B = LUMA
 
 
-@numba.njit(parallel=True, fastmath=_FAST, cache=True, nogil=True)
+@_parallel_kernel
 def develop_image(
     signal: np.ndarray,  # (n, 3) float32: the sensor's signal, from shade_frame
     width: int,
@@ -1027,7 +1068,7 @@ def _sigma_filter(own, width, gains, gain, noise, denoise, shift) -> None:  # no
             shift[mid + col] = strength * (total / count - y)
 
 
-@numba.njit(parallel=True, fastmath=_FAST, cache=True, nogil=True)
+@_parallel_kernel
 def shade_frame(
     cast: tuple,  # (t, triangle, normals, uvs): the forward cast, see below
     rays: tuple,  # (directions, ray_length, origin), see below
@@ -1138,7 +1179,7 @@ def shade_frame(
         )
 
 
-@numba.njit(parallel=True, fastmath=_FAST, cache=True, nogil=True)
+@_parallel_kernel
 def hemisphere_rays(
     centre: np.ndarray,  # (k, 3) ray origins before the offset
     normal: np.ndarray,  # (k, 3) unit: the hemisphere's pole
@@ -1164,7 +1205,7 @@ def hemisphere_rays(
             rays[i, 5] = u * az + v * bz + w * nz
 
 
-@numba.njit(parallel=True, fastmath=_FAST, cache=True, nogil=True)
+@_parallel_kernel
 def gather_sky(
     rays: np.ndarray,  # (k * r, 6) float32 as from hemisphere_rays
     t: np.ndarray,  # (k * r,) float32 hit distance (unit directions)
@@ -1214,7 +1255,7 @@ def gather_sky(
         direct[f, 0], direct[f, 1], direct[f, 2] = d0 / r, d1 / r, d2 / r
 
 
-@numba.njit(parallel=True, fastmath=_FAST, cache=True, nogil=True)
+@_parallel_kernel
 def bounce_light(
     hit_face: np.ndarray,  # (k, r) int64, -1 where the ray escaped
     hit_side: np.ndarray,  # (k, r) int8
@@ -1257,7 +1298,7 @@ def corner_sums(
             total_weight[v] += weight[f]
 
 
-@numba.njit(parallel=True, fastmath=_FAST, cache=True, nogil=True)
+@_parallel_kernel
 def fill_rays(
     pixel_dirs: np.ndarray, rotation: np.ndarray, origin: np.ndarray, rays: np.ndarray
 ) -> None:

@@ -283,8 +283,8 @@ def _jpeg_round_trip(rgb: np.ndarray, quality: int) -> np.ndarray:
 
 def grid_mean(row_sums: np.ndarray, columns: int) -> np.ndarray:
     """The mean colour (3,) over `shade_grid`'s points from its ``row_sums`` (rows, 3) of
-    ``columns`` points each, summed exactly (`math.fsum`): the same on any number of
-    threads and at any SIMD width, as a sum whose order the compiler picks is not."""
+    ``columns`` points each, added exactly (`math.fsum`), so in no order that depends on
+    how many threads shaded the rows: a sum over each thread's share would."""
     count = len(row_sums) * columns
     return np.array([math.fsum(row_sums[:, c]) / count for c in range(3)])
 
