@@ -42,7 +42,6 @@ from cavenav.sensors.optics import LUMA, TONE_FLOOR, TONE_SHIFT  # noqa: E402
 # OpenMP, else numba's own work queue; never TBB, whose old system builds only warn.
 numba.config.THREADING_LAYER_PRIORITY = ["omp", "workqueue", "tbb"]  # type: ignore[attr-defined]
 
-
 __all__ = [
     "KERNELS_RUN_CONCURRENTLY",
     "beam_profile",
