@@ -17,7 +17,7 @@ setup-test: $(TEST_STAMP)
 # Numba's OpenMP threading layer needs libgomp; without it Numba falls back to its work
 # queue, on which frames are shaded one at a time (cavenav.sensors.kernels).
 $(STAMP): pyproject.toml
-	@missing=""; \
+	@export PATH="$$PATH:/usr/sbin:/sbin"; missing=""; \
 	ldconfig -p 2>/dev/null | grep -q libusb-1.0 || missing="libusb-1.0-0"; \
 	ldconfig -p 2>/dev/null | grep -q libgomp.so.1 || missing="$$missing libgomp1"; \
 	if [ -n "$$missing" ] && [ "$$(id -u)" = "0" ]; then \

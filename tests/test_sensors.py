@@ -156,7 +156,7 @@ from cavenav.vector_env import CaveNavVectorEnv
 from cavenav.world.mesh import make_mesh
 from cavenav.world.raycast import RayCaster
 
-assert numba.threading_layer() == "workqueue" and not kernels.KERNELS_RUN_CONCURRENTLY
+assert not kernels.KERNELS_RUN_CONCURRENTLY
 box = trimesh.creation.box(extents=(4.0, 20.0, 4.0))
 
 def fly():  # a sweep's episode in flight beside others: its own tables, its own frames
@@ -170,6 +170,7 @@ for thread in threads:
     thread.start()
 for thread in threads:
     thread.join()
+assert numba.threading_layer() == "workqueue"
 vector = CaveNavVectorEnv(4, resolution=(32, 24), action_format="vector", cave_seed=0,
                           workers=2)
 vector.reset(seed=0)
@@ -191,6 +192,28 @@ def test_where_numbas_threading_layer_cannot_launch_from_many_threads_frames_tak
         timeout=300,
     )
     assert done.returncode == 0 and done.stdout.strip() == "flown", done.stderr[-2000:]
+
+
+FORKED = """
+import os
+import numpy as np
+import cavenav.env, cavenav.evaluation.executors, cavenav.vector_env
+from cavenav.sensors import kernels
+
+pid = os.fork()
+if pid == 0:  # as Gymnasium's async vector environment's workers are made
+    rays = np.empty((100, 6), np.float32)
+    kernels.fill_rays(np.ones((100, 3), np.float32), np.eye(3, dtype=np.float32),
+                      np.zeros(3, np.float32), rays)
+    os._exit(0)
+assert os.waitpid(pid, 0)[1] == 0, "the forked child died"
+"""
+
+
+def test_a_process_forked_after_importing_cavenav_runs_the_kernels() -> None:
+    """Finding the threading layer must not start Numba's OpenMP threads: a child forked
+    after they have started is killed at its first parallel kernel."""
+    subprocess.run([sys.executable, "-c", FORKED], check=True, timeout=300)
 
 
 def test_the_metered_mean_is_the_exact_sum_whatever_the_order_of_the_rows() -> None:

@@ -37,6 +37,7 @@ from cavenav.evaluation.sweep import (
     hold_episodes,
     record_error,
 )
+from cavenav.sensors.kernels import KERNELS_RUN_CONCURRENTLY
 
 __all__ = ["InProcess", "LocalPool", "RayCluster", "deal"]
 
@@ -115,8 +116,10 @@ def _share_the_cores(threads: int) -> None:
     threads that fly episodes at once: the kernels let go of the GIL, so frames in flight
     together fill the cores between them, and each thread splitting its own over every
     core would start an OpenMP team a thread and oversubscribe the cores. A frame is the
-    same bits on any number of threads (`cavenav.sensors.rig.grid_mean`)."""
-    numba.set_num_threads(max(1, numba.get_num_threads() // threads))
+    same bits on any number of threads (`cavenav.sensors.rig.grid_mean`). Where kernels
+    take turns (`KERNELS_RUN_CONCURRENTLY`), each keeps every thread."""
+    if KERNELS_RUN_CONCURRENTLY:
+        numba.set_num_threads(max(1, numba.get_num_threads() // threads))
 
 
 # prctl(2) option: the signal this process gets when the thread that started it ends.

@@ -18,6 +18,7 @@ for the same seed and pose.
 from __future__ import annotations
 
 import functools
+import importlib
 import math
 import os
 import threading
@@ -72,15 +73,40 @@ _FAST = {"nsz", "arcp", "contract", "afn", "reassoc"}
 
 def _launches_from_many_threads() -> bool:
     """Whether the threading layer Numba picks here lets several threads launch parallel
-    kernels at once: OpenMP does; the work queue, Numba's fallback where OpenMP cannot be
-    loaded (no libgomp, as in slim containers; macOS wheels), aborts the process."""
-    numba_parallel._launch_threads()  # picks the layer, as the first parallel kernel would
-    return numba.threading_layer() != "workqueue"
+    kernels at once: OpenMP and TBB do; the work queue, Numba's fallback where OpenMP
+    cannot be loaded (no libgomp, as in slim containers; macOS wheels), aborts the
+    process.
+
+    Found as Numba will choose, without starting its threads: once OpenMP's have started,
+    a process forked from this one (Gymnasium's async vector environments, a default
+    `multiprocessing.Pool`) is killed at its first parallel kernel, and importing this
+    module must not do that.
+    """
+    if numba_parallel._is_initialized:
+        return numba.threading_layer() != "workqueue"
+    chosen = str(numba.config.THREADING_LAYER).lower()
+    if chosen == "default":
+        priority = numba.config.THREADING_LAYER_PRIORITY  # type: ignore[attr-defined]
+        chosen = next(layer for layer in priority if layer == "workqueue" or _loads(layer))
+    return chosen in ("omp", "tbb", "threadsafe", "safe")  # "forksafe" may be the queue
+
+
+def _loads(layer: str) -> bool:
+    """Whether Numba's ``layer`` ("omp" or "tbb") can be loaded here."""
+    try:
+        if layer == "tbb":
+            numba_parallel._check_tbb_version_compatible()
+        importlib.import_module(f"numba.np.ufunc.{layer}pool")
+    except ImportError:
+        return False
+    return True
 
 
 # Whether frames may be shaded on several threads at once (see `_parallel_kernel`).
 KERNELS_RUN_CONCURRENTLY = _launches_from_many_threads()
 _LAUNCHING = threading.Lock()
+# A child forked while another thread held the lock would wait on it for ever.
+os.register_at_fork(after_in_child=lambda: globals().update(_LAUNCHING=threading.Lock()))
 
 
 def _parallel_kernel(function: Callable[..., Any]) -> Callable[..., Any]:
