@@ -113,15 +113,15 @@ def test_rendering_is_deterministic() -> None:
     assert np.array_equal(a.rgb, b.rgb) and np.array_equal(a.depth_m, b.depth_m)
 
 
+ROOT = Path(__file__).resolve().parents[1]
 THREAD_COUNTS = """
-import numba, numpy as np, trimesh
+import numba, numpy as np
 from cavenav.sensors.rig import SensorRig, grid_mean
 from cavenav.types import Pose
-from cavenav.world.mesh import make_mesh
 from cavenav.world.raycast import RayCaster
+from tests.conftest import box_room
 
-box = trimesh.creation.box(extents=(4.0, 20.0, 4.0))
-rig = SensorRig(RayCaster(make_mesh(box.vertices, box.faces, "box-room")))
+rig = SensorRig(RayCaster(box_room()))
 seen = []
 for threads in (1, 2, 3):
     numba.set_num_threads(threads)
@@ -140,6 +140,7 @@ def test_a_frame_is_the_same_bits_on_one_two_or_three_threads() -> None:
     all; a sum over the threads' shares would differ in its last bits between them."""
     subprocess.run(
         [sys.executable, "-c", THREAD_COUNTS],
+        cwd=ROOT,  # where `tests` imports from
         env={**os.environ, "NUMBA_NUM_THREADS": "3"},
         check=True,
         timeout=300,
@@ -148,20 +149,18 @@ def test_a_frame_is_the_same_bits_on_one_two_or_three_threads() -> None:
 
 WORK_QUEUE = """
 import threading
-import numba, numpy as np, trimesh
+import numba, numpy as np
 from cavenav.sensors import kernels
 from cavenav.sensors.rig import SensorConfig, SensorRig
 from cavenav.types import Pose
 from cavenav.vector_env import CaveNavVectorEnv
-from cavenav.world.mesh import make_mesh
 from cavenav.world.raycast import RayCaster
+from tests.conftest import box_room
 
 assert not kernels.KERNELS_RUN_CONCURRENTLY
-box = trimesh.creation.box(extents=(4.0, 20.0, 4.0))
 
 def fly():  # a sweep's episode in flight beside others: its own tables, its own frames
-    rig = SensorRig(RayCaster(make_mesh(box.vertices, box.faces, "box-room")),
-                    SensorConfig().with_resolution(160, 120))
+    rig = SensorRig(RayCaster(box_room()), SensorConfig().with_resolution(160, 120))
     for step in range(10):
         rig.render(Pose(0.3, 1.0 - 0.2 * step, 0.2, 0.4))
 
@@ -186,6 +185,7 @@ def test_where_numbas_threading_layer_cannot_launch_from_many_threads_frames_tak
     threads would; there the kernels take turns, and nothing aborts."""
     done = subprocess.run(
         [sys.executable, "-c", WORK_QUEUE],
+        cwd=ROOT,
         env={**os.environ, "NUMBA_THREADING_LAYER": "workqueue"},
         capture_output=True,
         text=True,
