@@ -4,7 +4,7 @@ PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 # setup: cavenav and what it needs to fly (what `make demo` needs);
-# setup-test: plus pytest, transformers with torch (CPU) and Ray, for `make test`.
+# setup-test: plus pytest, transformers with torch (CPU), Ray and datasets, for `make test`.
 STAMP := $(VENV)/.installed
 TEST_STAMP := $(VENV)/.installed-test
 
@@ -37,7 +37,7 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 $(TEST_STAMP): $(STAMP)
-	$(BIN)/python -m pip install -q -e '.[test,transformers,ray]'
+	$(BIN)/python -m pip install -q -e '.[test,transformers,ray,train]'
 	touch $(TEST_STAMP)
 
 demo: setup

@@ -1,5 +1,5 @@
 """Imports flow one way: types <- world <- sensors <- reckoning <- shield, cave_map <- pilots
-<- env <- episode <- evaluation <- cli; `headway` (what "stuck" means) sits below env;
+<- env <- episode <- evaluation <- training <- cli; `headway` (what "stuck" means) sits below env;
 `files` (how every layer writes a file in place) is a leaf like types, and `energy` (what
 moves cost a BlueROV2) knows only types and errors;
 `vehicle` (the MAVLink bridge) knows only types, actions and kinematics: the environment
@@ -39,7 +39,7 @@ def modules(folder: str) -> list[Path]:
     return found
 
 
-TOP = ("cavenav.evaluation", "cavenav.cli")  # nothing below them imports these
+TOP = ("cavenav.evaluation", "cavenav.training", "cavenav.cli")  # nothing below them imports these
 
 
 @pytest.mark.parametrize(
@@ -84,7 +84,8 @@ TOP = ("cavenav.evaluation", "cavenav.cli")  # nothing below them imports these
         ("pilots", ("cavenav.world", "cavenav.env", "cavenav.episode", "cavenav.wrappers", *TOP)),
         ("env.py", ("cavenav.pilots", "cavenav.episode", "cavenav.vehicle", *TOP)),
         ("episode", ("cavenav.vehicle", *TOP)),
-        ("evaluation", ("cavenav.cli",)),
+        ("evaluation", ("cavenav.training", "cavenav.cli")),
+        ("training", ("cavenav.cli",)),
         (
             "vehicle",
             (

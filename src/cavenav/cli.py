@@ -10,6 +10,7 @@ cavenav report DIR                     the HTML report of a sweep or a run folde
 cavenav video RUN                      an MP4 of one episode
 cavenav fly --sim S4 --yes             the same pilots on an ArduSub vehicle over MAVLink
 cavenav fake-sub                       a simulated ArduSub autopilot to fly against
+cavenav dataset SWEEP --out DIR        flights as training data for a VLM (Hugging Face)
 
 The options several commands share (the VLM pilot's, the episode's, the sensors' and
 optics') are declared once in `cavenav.cli_options`; `cavenav.cli_flights` flies with a
@@ -56,6 +57,7 @@ from cavenav.cli_output import (
     print_groups,
     print_leaderboard,
 )
+from cavenav.cli_training import dataset
 from cavenav.episode.settings import FRAME_MODES, VIDEO_MODES, EpisodeSettings
 from cavenav.errors import CavenavError
 from cavenav.pilots.factory import PilotSpec, VLMOptions
@@ -66,6 +68,7 @@ app = typer.Typer(
     no_args_is_help=True,
     help="cavenav: VLM-steered navigation of an underwater vehicle through unseen caves.",
 )
+app.command()(dataset)
 
 
 ScenarioArg = Annotated[
@@ -79,6 +82,13 @@ PolicyOpt = Annotated[
     Path | None,
     typer.Option(
         help="model file the policy pilot flies (Stable-Baselines3 .zip; --resolution follows it)"
+    ),
+]
+TeacherOpt = Annotated[
+    str | None,
+    typer.Option(
+        help="a pilot (geometric, random) that decides alongside at every step, recorded "
+        "as the step's teacher label for `cavenav dataset --labels teacher` (DAgger)"
     ),
 ]
 # Placeholder defaults: `takes` puts each group's flags in their place and passes the
@@ -113,6 +123,7 @@ def run(
     ] = False,
     from_: FromOpt = None,
     policy: PolicyOpt = None,
+    teacher: TeacherOpt = None,
     settings: EpisodeSettings = FILLED_BY_TAKES,
     vlm: VLMOptions = VLM_FILLED_BY_TAKES,
     view: LiveView = VIEW_FILLED_BY_TAKES,
@@ -120,7 +131,7 @@ def run(
     """Fly one episode and write its run folder (summary, steps, frames, plots)."""
     from cavenav.episode.run_folder import new_run_dir, prepare_root
 
-    spec = _pilot_spec(pilot, vlm, from_, policy)
+    spec = _pilot_spec(pilot, vlm, from_, policy, teacher)
     if pilot == "replay":
         seed = _recorded_seed(scenario, str(from_), seed)
     flyer = spec.build(seed=seed)  # a refused pilot or recording leaves no folder behind
@@ -148,12 +159,19 @@ def _built(settings: EpisodeSettings, scenario: str, seed: int) -> Any:  # noqa:
         return settings.load(scenario, seed)
 
 
-def _pilot_spec(pilot: str, vlm: VLMOptions, from_: Path | None, policy: Path | None) -> PilotSpec:
+def _pilot_spec(
+    pilot: str,
+    vlm: VLMOptions,
+    from_: Path | None,
+    policy: Path | None,
+    teacher: str | None = None,
+) -> PilotSpec:
     return PilotSpec(
         pilot,
         vlm,
         recording=str(from_) if from_ else None,
         policy=str(policy.absolute()) if policy else None,  # as workers elsewhere find it
+        teacher=teacher,
     )
 
 
@@ -276,6 +294,7 @@ def eval_(
         str, typer.Option(help="pilot to fly: geometric, vlm, random, policy")
     ] = "geometric",
     policy: PolicyOpt = None,
+    teacher: TeacherOpt = None,
     out: Annotated[
         Path, typer.Option(help="sweep folder; re-run the same command to resume it")
     ] = Path("runs/sweep"),
@@ -306,7 +325,7 @@ def eval_(
 
     if pilot == "replay":
         raise CavenavError("a sweep flies geometric, vlm, random or policy pilots, not replay")
-    spec = _pilot_spec(pilot, vlm, None, policy)
+    spec = _pilot_spec(pilot, vlm, None, policy, teacher)
     settings = replace(_camera_for(spec, settings), shield=shield).with_frames(frames.value)
     grid = (_scenario_list(scenarios), parse_seeds(seeds))
     config = SweepConfig(*grid, spec, settings, video=video.value, trials=trials)

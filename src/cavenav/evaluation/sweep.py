@@ -263,6 +263,7 @@ class SweepConfig:
                 pilot.get("recording"),
                 pilot.get("policy"),
                 pilot.get("policy_sha256"),
+                pilot.get("teacher"),
             ),
             settings=EpisodeSettings.from_dict({**data, "episode": episode}),
             video=data.get("video", "none"),

@@ -15,11 +15,14 @@ from typing import Any
 
 from cavenav.errors import ConfigError
 from cavenav.pilots.base import Pilot
+from cavenav.pilots.prompt import PromptConfig
 from cavenav.pilots.request_images import ImageEncoding
 
 __all__ = ["PILOTS", "PilotSpec", "VLMOptions"]
 
 PILOTS = ("geometric", "vlm", "replay", "random", "policy")
+# Pilots that can fly in another's shadow (`--teacher`): those that need no settings.
+TEACHERS = ("geometric", "random")
 
 
 @dataclass(frozen=True)
@@ -68,6 +71,16 @@ class VLMOptions:
             ) from None
         return price_in, price_out
 
+    def prompt_config(self) -> PromptConfig:
+        """The prompt these options ask for (`cavenav.pilots.prompt.PromptConfig`)."""
+        return PromptConfig(
+            history=self.history,
+            system_file=Path(self.prompt_file) if self.prompt_file else None,
+            structured=self.structured,
+            map_image=self.map_image,
+            energy=self.energy_prompt,
+        )
+
     def request_images(self) -> ImageEncoding:
         """How the observations' images travel (`cavenav.pilots.request_images`).
 
@@ -91,6 +104,9 @@ class PilotSpec:
         recording: the run folder the replay pilot re-flies.
         policy: the model file the policy pilot flies (`cavenav.pilots.policy`).
         policy_sha256: that file's digest as a sweep recorded it; None to read the file's.
+        teacher: a pilot from `TEACHERS` that decides alongside at every step, its answer
+            recorded with the step (`cavenav.pilots.shadow`: DAgger's relabelling); None:
+            none.
     """
 
     name: str = "geometric"
@@ -98,6 +114,7 @@ class PilotSpec:
     recording: str | None = None
     policy: str | None = None
     policy_sha256: str | None = None
+    teacher: str | None = None
 
     def __post_init__(self) -> None:
         if self.name not in PILOTS:
@@ -110,6 +127,10 @@ class PilotSpec:
             raise ConfigError("--pilot replay needs --from RUN_DIR")
         if self.name == "policy" and self.policy is None:
             raise ConfigError("--pilot policy needs --policy MODEL.zip (a Stable-Baselines3 model)")
+        if self.teacher is not None and self.teacher not in TEACHERS:
+            raise ConfigError(
+                f"unknown teacher '{self.teacher}'; choose one of {', '.join(TEACHERS)}"
+            )
         self.vlm.prices()  # a malformed price or image setting fails now, not in a worker
         self.vlm.request_images()
 
@@ -148,14 +169,25 @@ class PilotSpec:
                 digest = hashlib.sha256(Path(self.policy).read_bytes()).hexdigest()
             if digest is not None:
                 out["policy_sha256"] = digest
+        if self.teacher is not None:  # absent otherwise, as before teachers existed
+            out["teacher"] = self.teacher
         return out
 
     def build(self, seed: int = 0, check: bool = True) -> Pilot:
-        """Make the pilot; ``seed`` seeds the random pilot's draws.
+        """Make the pilot, in the shadow of its teacher if it has one; ``seed`` seeds the
+        random pilot's draws (a random teacher's too).
 
         Args:
             check: let a model pilot verify its backend (key, server) right away.
         """
+        pilot = self._build(seed, check)
+        if self.teacher is None:
+            return pilot
+        from cavenav.pilots.shadow import ShadowedPilot
+
+        return ShadowedPilot(pilot, PilotSpec(self.teacher).build(seed))
+
+    def _build(self, seed: int, check: bool) -> Pilot:
         if self.name == "geometric":
             from cavenav.pilots.geometric import GeometricPilot
 
@@ -183,7 +215,6 @@ def _vlm_pilot(options: VLMOptions, check: bool) -> Pilot:
         TransformersBackend,
         TransformersConfig,
     )
-    from cavenav.pilots.prompt import PromptConfig
     from cavenav.pilots.vlm import VLMPilot
 
     assert options.model is not None
@@ -215,16 +246,9 @@ def _vlm_pilot(options: VLMOptions, check: bool) -> Pilot:
         raise ConfigError(f"unknown backend '{options.backend}'; use openai or transformers")
     if options.cache is not None:
         engine = CachedBackend(engine, Path(options.cache))
-    prompt = PromptConfig(
-        history=options.history,
-        system_file=Path(options.prompt_file) if options.prompt_file else None,
-        structured=options.structured,
-        map_image=options.map_image,
-        energy=options.energy_prompt,
-    )
     return VLMPilot(
         engine,
-        prompt,
+        options.prompt_config(),
         max_requeries=options.requeries,
         detail=options.detail,
         price_per_mtok=options.prices(),

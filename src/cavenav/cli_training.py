@@ -1,0 +1,84 @@
+"""The commands that turn flights into training data (`cavenav dataset`); registered on
+the command line by `cavenav.cli`."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
+
+from cavenav.cli_options import VLM, takes
+from cavenav.cli_output import console
+from cavenav.pilots.factory import VLMOptions
+
+__all__ = ["dataset"]
+
+# The VLM options that shape the requests a dataset holds (those of flights made again).
+PROMPT = VLM.only(
+    "history", "prompt_file", "structured", "map_image", "energy_prompt",
+    "image_format", "jpeg_quality", "image_size", "detail",
+)  # fmt: skip
+
+
+@takes(vlm=PROMPT)
+def dataset(
+    sources: Annotated[
+        list[Path], typer.Argument(help="sweep folders (cavenav eval) and run folders")
+    ],
+    out: Annotated[Path, typer.Option(help="the dataset folder to write (new or empty)")],
+    labels: Annotated[
+        str,
+        typer.Option(
+            help="recorded: the flying pilot's own replies; teacher: those of the teacher "
+            "that flew in its shadow (--teacher; DAgger)"
+        ),
+    ] = "recorded",
+    episodes: Annotated[
+        str | None,
+        typer.Option(
+            help="successful or all (default: successful for recorded labels, all for a teacher's)"
+        ),
+    ] = None,
+    drop_shielded: Annotated[
+        bool, typer.Option(help="leave out the steps whose action the safety shield replaced")
+    ] = True,
+    validation: Annotated[
+        float, typer.Option(help="share of the caves held out for validation (split by cave)")
+    ] = 0.1,
+    reply: Annotated[
+        str,
+        typer.Option(help="full: reasoning, then the one-pair dictionary; brief: the dictionary"),
+    ] = "full",
+    shard_rows: Annotated[int, typer.Option(help="rows in a Parquet shard")] = 1000,
+    allow_mixed: Annotated[
+        bool, typer.Option(help="accept sources flown with different settings or prompts")
+    ] = False,
+    vlm: VLMOptions = VLMOptions(),  # noqa: B008 - filled by `takes`
+) -> None:
+    """Make a Hugging Face dataset of flights: one row a decision, its request as the VLM
+    pilot sends it and the reply it should give."""
+    from cavenav.training.dataset import DatasetOptions, export_dataset
+
+    options = DatasetOptions(
+        labels=labels,
+        episodes=episodes,
+        drop_shielded=drop_shielded,
+        validation=validation,
+        reply=reply,
+        shard_rows=shard_rows,
+        allow_mixed=allow_mixed,
+        vlm=vlm,
+    )
+    columns = (TextColumn("rows"), BarColumn(), MofNCompleteColumn())
+    with Progress(*columns, console=console, transient=True) as bar:
+        task = bar.add_task("rows", total=None)
+        done = export_dataset(sources, out, options, lambda n: bar.advance(task, n))
+    rows, caves = done.rows, done.card["caves"]
+    console.print(
+        f"{rows['train']:,} train and {rows['validation']:,} validation rows from "
+        f"{done.episodes} episodes ({caves['train']} + {caves['validation']} caves), "
+        f"{done.decisions_per_s:,.0f} decisions/s"
+    )
+    console.print(f"dataset: {done.out}")

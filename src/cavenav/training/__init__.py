@@ -1,0 +1,1 @@
+"""Learning from flights: training data for vision-language pilots (`dataset`)."""

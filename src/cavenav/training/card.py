@@ -1,0 +1,101 @@
+"""The dataset card: the README.md of a `cavenav dataset` folder, from its
+cavenav_dataset.json. Its YAML header is what datasets reads (the splits' files); the
+rest is what a reader asks first: how many rows from which caves and pilots, how the
+replies were made, and the prompt a model trained on them must fly with."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+__all__ = ["dataset_card"]
+
+
+def dataset_card(data: Mapping[str, Any]) -> str:
+    """The README.md of a dataset: the YAML header datasets reads, then the facts."""
+    configs = "\n".join(
+        f"  - split: {split}\n    path: data/{split}-*" for split, n in data["rows"].items() if n
+    )
+    sources = "\n".join(
+        f"| `{s['path']}` | {s['kind']} | {s['pilot'].get('label')} | {s['episodes']} |"
+        for s in data["sources"]
+    )
+    facts = "\n".join(f"| {name} | {value} |" for name, value in _facts(data))
+    return f"""---
+configs:
+- config_name: default
+  data_files:
+{configs}
+task_categories:
+- image-text-to-text
+tags:
+- robotics
+- underwater
+- navigation
+- cavenav
+---
+# cavenav flight decisions
+
+Each row is one decision of a pilot flying an underwater vehicle through a simulated
+flooded cave (cavenav {data["cavenav_version"]}, scenario set {data["scenario_set"]}): the
+request a vision-language pilot is sent at that step (system prompt, the earlier
+observations with the actions taken after them, the current colour and depth images and
+the echo-sounder ranges) and the reply it should give.
+
+| | |
+| --- | --- |
+{facts}
+
+## Sources
+
+| folder | kind | pilot | episodes used |
+| --- | --- | --- | --- |
+{sources}
+
+## Use
+
+```python
+import datasets
+from cavenav.training.dataset import request_messages
+
+rows = datasets.load_dataset("PATH/TO/THIS/FOLDER")
+row = rows["train"].cast_column("images", datasets.List(datasets.Image(decode=False)))[0]
+messages = request_messages(row)  # the OpenAI request, byte for byte as the pilot sends it
+```
+
+`cavenav finetune PATH/TO/THIS/FOLDER --base MODEL_DIR --out DIR` trains on it. A model
+trained on these rows must fly with the prompt settings above; `cavenav_dataset.json`
+holds them and the rest of this card as data.
+"""
+
+
+_LABEL_WORDS = {
+    "recorded": "the replies the flying pilot gave",
+    "teacher": "the replies of a teacher flying in the pilot's shadow (DAgger)",
+}
+
+
+def _skipped(counts: Mapping[str, int]) -> str:
+    left = [f"{n} {why}" for why, n in counts.items() if n]
+    return "left out: " + ", ".join(left) if left else "none left out"
+
+
+def _facts(data: Mapping[str, Any]) -> list[tuple[str, str]]:
+    """The card's table: what a reader asks first."""
+    rows, caves = data["rows"], data["caves"]
+    camera = (data["settings"].get("sensors") or {}).get("camera") or {}
+    kept = "successful only" if data["successful_only"] else "all"
+    shielded = "dropped" if data["drop_shielded"] else "kept"
+    return [
+        ("rows", f"train {rows['train']:,}, validation {rows['validation']:,}"),
+        ("caves", f"train {caves['train']}, validation {caves['validation']} "
+                  "(split by cave, never by step)"),
+        ("episodes", f"{data['episodes']} ({_skipped(data['skipped_episodes'])})"),
+        ("scenarios", ", ".join(data["scenarios"])),
+        ("pilots", ", ".join(data["pilots"])),
+        ("labels", f"{data['labels']}: {_LABEL_WORDS[data['labels']]}"),
+        ("replies", data["reply"]),
+        ("episodes kept", f"{kept}; steps the shield replaced {shielded}"),
+        ("camera", f"{camera.get('width')}x{camera.get('height')}"),
+        ("prompt", ", ".join(f"{k} = {v}" for k, v in data["prompt"].items() if v is not None)),
+    ]  # fmt: skip
