@@ -5,6 +5,7 @@ never looks whole."""
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import pyarrow.parquet as pq
@@ -220,22 +221,25 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path: Path) -> None:
     for run_dir in runs:
         settings = EpisodeSettings(steps=2, save_frames=False, optics={"water": run_dir.name})
         run_episode(cave, GeometricPilot(), settings.episode_config(cave), run_dir)
-    cases = {
-        "neither a sweep folder": [str(tmp_path / "nowhere")],
-        "different settings or prompts": [*map(str, runs), "--episodes", "all"],
-        "--labels must be one of": [str(runs[0]), "--labels", "oracle"],
+    out, every = tmp_path / "out", DatasetOptions(episodes="all")
+    refused = {
+        "neither a sweep folder": ([tmp_path / "nowhere"], every),
+        "different settings or prompts": (runs, every),
     }
-    for message, arguments in cases.items():
-        done = cavenav("dataset", *arguments, "--out", str(tmp_path / "out"))
-        assert done.returncode == 2 and message in done.stderr, done.stderr
-        assert len(done.stderr.strip().splitlines()) == 1 and "Traceback" not in done.stderr
-        assert not (tmp_path / "out").exists()
-    mixed = cavenav("dataset", *map(str, runs), "--episodes", "all", "--allow-mixed",
-                    "--image-size", "64x48", "--out", str(tmp_path / "out"))  # fmt: skip
-    assert mixed.returncode == 0, mixed.stderr
-    assert "4 train and 0 validation rows from 2 episodes" in " ".join(mixed.stdout.split())
+    for message, (sources, options) in refused.items():
+        with pytest.raises(ConfigError, match=message):
+            export_dataset(sources, out, options)
+    with pytest.raises(ConfigError, match="--labels must be one of"):
+        DatasetOptions(labels="oracle")
+    assert not out.exists()
+    # On the command line: one line, exit 2, nothing written.
+    done = cavenav("dataset", *map(str, runs), "--episodes", "all", "--out", str(out))
+    assert done.returncode == 2 and "different settings or prompts" in done.stderr
+    assert len(done.stderr.strip().splitlines()) == 1 and not out.exists()
+    mixed = export_dataset(runs, out, replace(every, allow_mixed=True))
+    assert mixed.rows == {"train": 4, "validation": 0} and mixed.episodes == 2
     with pytest.raises(ConfigError, match="not an empty folder"):
-        export_dataset(runs[:1], tmp_path / "out", DatasetOptions(episodes="all"))
+        export_dataset(runs[:1], out, every)
 
 
 @pytest.mark.slow

@@ -11,6 +11,7 @@ cavenav video RUN                      an MP4 of one episode
 cavenav fly --sim S4 --yes             the same pilots on an ArduSub vehicle over MAVLink
 cavenav fake-sub                       a simulated ArduSub autopilot to fly against
 cavenav dataset SWEEP --out DIR        flights as training data for a VLM (Hugging Face)
+cavenav finetune DATA --new small      train a VLM pilot on it (or --base MODEL_DIR)
 
 The options several commands share (the VLM pilot's, the episode's, the sensors' and
 optics') are declared once in `cavenav.cli_options`; `cavenav.cli_flights` flies with a
@@ -57,7 +58,7 @@ from cavenav.cli_output import (
     print_groups,
     print_leaderboard,
 )
-from cavenav.cli_training import dataset
+from cavenav.cli_training import dataset, finetune
 from cavenav.episode.settings import FRAME_MODES, VIDEO_MODES, EpisodeSettings
 from cavenav.errors import CavenavError
 from cavenav.pilots.factory import PilotSpec, VLMOptions
@@ -69,6 +70,7 @@ app = typer.Typer(
     help="cavenav: VLM-steered navigation of an underwater vehicle through unseen caves.",
 )
 app.command()(dataset)
+app.command()(finetune)
 
 
 ScenarioArg = Annotated[
@@ -168,7 +170,7 @@ def _pilot_spec(
 ) -> PilotSpec:
     return PilotSpec(
         pilot,
-        vlm,
+        vlm.for_model(),  # a model folder cavenav finetune wrote: asked as it learned
         recording=str(from_) if from_ else None,
         policy=str(policy.absolute()) if policy else None,  # as workers elsewhere find it
         teacher=teacher,

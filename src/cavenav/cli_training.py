@@ -13,7 +13,7 @@ from cavenav.cli_options import VLM, takes
 from cavenav.cli_output import console
 from cavenav.pilots.factory import VLMOptions
 
-__all__ = ["dataset"]
+__all__ = ["dataset", "finetune"]
 
 # The VLM options that shape the requests a dataset holds (those of flights made again).
 PROMPT = VLM.only(
@@ -82,3 +82,68 @@ def dataset(
         f"{done.decisions_per_s:,.0f} decisions/s"
     )
     console.print(f"dataset: {done.out}")
+
+
+def finetune(
+    dataset: Annotated[Path, typer.Argument(help="a dataset folder (cavenav dataset)")],
+    out: Annotated[Path, typer.Option(help="the model folder to write (a stopped run resumes)")],
+    base: Annotated[
+        Path | None,
+        typer.Option(help="a local image-text-to-text model folder to start from"),
+    ] = None,
+    new: Annotated[
+        str | None,
+        typer.Option(help="build a fresh model instead: small (SmolVLM's architecture, 2.5 M)"),
+    ] = None,
+    prompt_file: Annotated[
+        Path | None,
+        typer.Option(help="a system prompt of the model's own; it flies with it from then on"),
+    ] = None,
+    epochs: Annotated[float, typer.Option(min=0.0, help="passes over the training rows")] = 1.0,
+    max_steps: Annotated[
+        int | None, typer.Option(min=1, help="optimiser steps (instead of --epochs)")
+    ] = None,
+    batch_size: Annotated[int, typer.Option(min=1, help="rows an optimiser step")] = 8,
+    learning_rate: Annotated[
+        float | None, typer.Option(help="default: 1e-3 fresh, 2e-4 LoRA, 5e-5 otherwise")
+    ] = None,
+    lora: Annotated[
+        bool | None,
+        typer.Option(help="train LoRA adapters (default: for bases over 50 M parameters)"),
+    ] = None,
+    device: Annotated[str, typer.Option(help="auto, cpu or cuda")] = "auto",
+    validation_rows: Annotated[
+        int, typer.Option(min=0, help="validation rows whose actions are scored at the end")
+    ] = 64,
+    seed: Annotated[int, typer.Option(min=0, help="a fresh model's weights, the shuffling")] = 0,
+) -> None:
+    """Fine-tune a vision-language pilot on a dataset of flights (the train extra)."""
+    from cavenav.training.finetune import FinetuneOptions
+    from cavenav.training.finetune import finetune as train
+
+    options = FinetuneOptions(
+        base=base,
+        new=new,
+        prompt_file=prompt_file,
+        epochs=epochs,
+        max_steps=max_steps,
+        batch_size=batch_size,
+        learning_rate=learning_rate,
+        lora=lora,
+        device=device,
+        validation_rows=validation_rows,
+        seed=seed,
+    )
+    done = train(dataset, out, options)
+    scores = done.validation
+    console.print(
+        f"{done.steps} steps in {done.seconds:.0f} s, loss {done.first_loss:.3f} -> "
+        f"{done.last_loss:.3f}"
+        + (
+            f"; validation: {scores['parsed']:.0%} parse, {scores['action']:.0%} whole "
+            f"actions, {scores['median_ms']} ms a decision"
+            if scores
+            else ""
+        )
+    )
+    console.print(f"model: {done.out}")

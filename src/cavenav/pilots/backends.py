@@ -48,6 +48,7 @@ __all__ = [
     "Completion",
     "OpenAIBackend",
     "TransformersBackend",
+    "local_chat",
     "request_hash",
 ]
 
@@ -538,6 +539,31 @@ class TransformersConfig:
     extra: dict[str, Any] = field(default_factory=dict)
 
 
+def local_chat(messages: list[Message]) -> tuple[list[dict[str, Any]], list[Any]]:
+    """OpenAI messages as a local model's processor takes them: (the chat, each content a
+    list of text and image parts, for its chat template; the images as RGB Pillow images,
+    in order). Training (`cavenav.training.finetune`) reads its rows through this too, so a
+    model learns from exactly what it is shown in flight."""
+    from PIL import Image
+
+    chat, images = [], []
+    for message in messages:
+        content = message["content"]
+        if isinstance(content, str):
+            chat.append({"role": message["role"], "content": [{"type": "text", "text": content}]})
+            continue
+        parts = []
+        for part in content:
+            if part["type"] == "text":
+                parts.append({"type": "text", "text": part["text"]})
+            else:
+                data = part["image_url"]["url"].split(",", 1)[1]
+                images.append(Image.open(io.BytesIO(base64.b64decode(data))).convert("RGB"))
+                parts.append({"type": "image"})
+        chat.append({"role": message["role"], "content": parts})
+    return chat, images
+
+
 class TransformersBackend:
     """`AutoProcessor` + `AutoModelForImageTextToText`, chat template with images."""
 
@@ -586,28 +612,14 @@ class TransformersBackend:
     def check(self) -> None:
         """Loading already proved the model usable."""
 
+    def count_tokens(self, text: str) -> int:
+        """How many tokens ``text`` is to this model's tokenizer."""
+        return len(self._processor.tokenizer(text, add_special_tokens=False)["input_ids"])
+
     @redacting
     def complete(self, messages: list[Message], json_schema: dict | None = None) -> Completion:
-        from PIL import Image
-
         torch = self._torch
-        chat, images = [], []
-        for message in messages:
-            content = message["content"]
-            if isinstance(content, str):
-                chat.append(
-                    {"role": message["role"], "content": [{"type": "text", "text": content}]}
-                )
-                continue
-            parts = []
-            for part in content:
-                if part["type"] == "text":
-                    parts.append({"type": "text", "text": part["text"]})
-                else:
-                    data = part["image_url"]["url"].split(",", 1)[1]
-                    images.append(Image.open(io.BytesIO(base64.b64decode(data))).convert("RGB"))
-                    parts.append({"type": "image"})
-            chat.append({"role": message["role"], "content": parts})
+        chat, images = local_chat(messages)
         prompt = self._processor.apply_chat_template(chat, add_generation_prompt=True)
         inputs = self._processor(text=prompt, images=images or None, return_tensors="pt").to(
             self.device

@@ -9,7 +9,8 @@ model client or a loaded model never has to travel between processes.
 from __future__ import annotations
 
 import hashlib
-from dataclasses import asdict, dataclass, field
+import json
+from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
@@ -21,6 +22,10 @@ from cavenav.pilots.request_images import ImageEncoding
 __all__ = ["PILOTS", "PilotSpec", "VLMOptions"]
 
 PILOTS = ("geometric", "vlm", "replay", "random", "policy")
+# In a model folder `cavenav finetune` wrote: how the model must be asked (the prompt and
+# image settings it learned with), and its own system prompt, if it has one.
+PILOT_SETTINGS = "cavenav_pilot.json"
+PROMPT_FILE = "cavenav_prompt.md"
 # Pilots that can fly in another's shadow (`--teacher`): those that need no settings.
 TEACHERS = ("geometric", "random")
 
@@ -70,6 +75,28 @@ class VLMOptions:
                 f"--price must be 'input,output' in USD per million tokens, got '{self.price}'"
             ) from None
         return price_in, price_out
+
+    def for_model(self) -> VLMOptions:
+        """These options with the prompt and image settings the model folder says it must
+        be asked with (`PILOT_SETTINGS`, written by `cavenav finetune`), its own prompt
+        file among them; unchanged for any other model.
+
+        Raises:
+            ConfigError: the folder's settings cannot be read.
+        """
+        folder = Path(self.model or "")
+        path = folder / PILOT_SETTINGS
+        if not self.model or not path.is_file():
+            return self
+        try:
+            prompt = dict(json.loads(path.read_text(encoding="utf-8"))["prompt"])
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            raise ConfigError(f"{path} cannot be read: {exc}") from None
+        known = {f.name for f in fields(VLMOptions)}
+        given = {key: value for key, value in prompt.items() if key in known}
+        if given.get("prompt_file"):
+            given["prompt_file"] = str(folder / given["prompt_file"])
+        return replace(self, **given)
 
     def prompt_config(self) -> PromptConfig:
         """The prompt these options ask for (`cavenav.pilots.prompt.PromptConfig`)."""

@@ -99,3 +99,71 @@ def _facts(data: Mapping[str, Any]) -> list[tuple[str, str]]:
         ("camera", f"{camera.get('width')}x{camera.get('height')}"),
         ("prompt", ", ".join(f"{k} = {v}" for k, v in data["prompt"].items() if v is not None)),
     ]  # fmt: skip
+
+
+def model_card(
+    about: Mapping[str, Any], dataset: Mapping[str, Any], validation: Mapping[str, Any]
+) -> str:
+    """The README.md of a `cavenav finetune` model folder: what it is, what it learned
+    from, how well it chose the validation rows' actions, and how to fly it."""
+    base = f"`{about['base']}`" if about.get("base") else f"a fresh {about['new']} model"
+    scores = (
+        "\n".join(
+            f"| {name} | {validation[key]:.1%} |" for key, name in _SCORES if key in validation
+        )
+        or "| (no validation rows) | |"
+    )
+    latency = validation.get("median_ms")
+    prompt = ", ".join(f"{k} = {v}" for k, v in dataset.get("prompt", {}).items() if v is not None)
+    return f"""---
+library_name: transformers
+pipeline_tag: image-text-to-text
+tags:
+- robotics
+- underwater
+- navigation
+- cavenav
+---
+# A cavenav pilot
+
+A vision-language model that pilots an underwater vehicle through a flooded cave, one
+move at a time, from a forward colour image, a depth image and two echo-sounder ranges
+(the cavenav method). Trained with `cavenav finetune` from {base}
+({"LoRA adapters, merged" if about["lora"] else "all weights"}) on `{about["dataset"]}`:
+{dataset["rows"]["train"]:,} decisions of {", ".join(dataset.get("pilots", []))} over
+{", ".join(dataset.get("scenarios", []))} ({dataset["labels"]} labels, {dataset["reply"]}
+replies), {about["steps"]} optimiser steps in {about["train_s"]} s, loss
+{about["first_loss"]:.3f} to {about["last_loss"]:.3f} (`training/loss.png`).
+
+## How it chose the validation caves' actions
+
+{validation.get("rows", 0)} validation decisions, asked exactly as the pilot asks it in
+flight, greedy decoding; median {latency if latency is not None else "-"} ms a decision:
+
+| | share |
+| --- | --- |
+{scores}
+
+These are agreements with the teacher on held-out caves, not flights: fly it
+(`cavenav eval`) for success rates.
+
+## Fly it
+
+```bash
+cavenav run S1 --pilot vlm --backend transformers --model PATH/TO/THIS/FOLDER
+```
+
+It must be asked as it learned ({prompt}): `cavenav_pilot.json` holds these settings
+and the VLM pilot takes them from the folder by itself
+{"(with its own system prompt, `cavenav_prompt.md`)" if about.get("prompt_file") else ""}.
+"""
+
+
+_SCORES = (
+    ("parsed", "first reply parses"),
+    ("action", "whole action string"),
+    ("forward", "forward/back"),
+    ("right", "strafe"),
+    ("up", "ascend/descend (within 0.1 m)"),
+    ("yaw_deg", "turn"),
+)

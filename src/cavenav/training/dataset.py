@@ -179,14 +179,14 @@ def _episodes_of(source: Path) -> tuple[list[_Episode], dict[str, Any]]:
     """
     if (source / "sweep.json").is_file():
         config, meta = read_sweep(source)
-        episodes = []
-        for job in plan(config):
+        jobs, episodes = plan(config), []
+        for job in jobs:
             run_dir = source / "episodes" / job.episode
             if (run_dir / "summary.json").is_file():
                 summary = read_summary(run_dir / "summary.json")
                 if summary.get("status") == "finished":
                     episodes.append(_Episode(run_dir, source, job.scenario, summary))
-        about = {"kind": "sweep", "pilot": meta["pilot"], "grid": len(plan(config))}
+        about = {"kind": "sweep", "pilot": meta["pilot"], "grid": len(jobs)}
         return episodes, about
     if (source / "summary.json").is_file():
         summary = read_summary(source / "summary.json")
