@@ -136,14 +136,12 @@ def finetune(
     )
     done = train(dataset, out, options)
     scores = done.validation
-    console.print(
-        f"{done.steps} steps in {done.seconds:.0f} s, loss {done.first_loss:.3f} -> "
-        f"{done.last_loss:.3f}"
-        + (
-            f"; validation: {scores['parsed']:.0%} parse, {scores['action']:.0%} whole "
-            f"actions, {scores['median_ms']} ms a decision"
-            if scores
-            else ""
-        )
+    chose = (
+        f"; validation: {scores['parsed']:.0%} parse, {scores['action']:.0%} whole actions, "
+        f"{scores['median_ms']} ms a decision"
+        if scores
+        else ""
     )
+    loss = f"loss {done.first_loss:.3f} -> {done.last_loss:.3f}"
+    console.print(f"{done.steps} steps in {done.seconds:.0f} s, {loss}{chose}")
     console.print(f"model: {done.out}")

@@ -150,7 +150,7 @@ These are agreements with the teacher on held-out caves, not flights: fly it
 ## Fly it
 
 ```bash
-cavenav run S1 --pilot vlm --backend transformers --model PATH/TO/THIS/FOLDER
+cavenav run S1 --pilot vlm --backend transformers --model PATH/TO/THIS/FOLDER --temperature 0
 ```
 
 It must be asked as it learned ({prompt}): `cavenav_pilot.json` holds these settings

@@ -134,15 +134,23 @@ def _device(asked: str, torch: Any) -> str:  # noqa: ANN401
     return asked
 
 
-def _dataset(folder: Path) -> tuple[Any, dict[str, Any]]:  # noqa: ANN401
-    """The dataset's splits (images as bytes) and its cavenav_dataset.json."""
+def _dataset(folder: Path, cache: Path) -> tuple[Any, dict[str, Any]]:  # noqa: ANN401
+    """The dataset's splits (images as bytes) and its cavenav_dataset.json.
+
+    datasets converts the shards into its own cache, which it keys by the files' names,
+    sizes and times, not by their folder: two datasets exported alike would share one
+    entry, and a model could train on the other's rows. The cache here is the training
+    run's own (``cache``).
+    """
     import datasets
 
     about = Path(folder) / "cavenav_dataset.json"
     if not about.is_file():
         raise ConfigError(f"{folder} is not a cavenav dataset (no cavenav_dataset.json)")
     card = json.loads(about.read_text(encoding="utf-8"))
-    splits = datasets.load_dataset(str(folder))
+    files = {split: [str(Path(folder) / name) for name in names]
+             for split, names in card["files"].items() if names}  # fmt: skip
+    splits = datasets.load_dataset("parquet", data_files=files, cache_dir=str(cache))
     raw = datasets.List(datasets.Image(decode=False))
     return {name: split.cast_column("images", raw) for name, split in splits.items()}, card
 
@@ -269,15 +277,17 @@ def finetune(dataset: Path, out: Path, options: FinetuneOptions) -> Finetuned:
     """
     torch = _torch()
     device = _device(options.device, torch)
-    splits, card = _dataset(Path(dataset))
-    if "train" not in splits:
-        raise ConfigError(f"{dataset} has no train split")
     if options.base is not None:
         _check_base(options.base)
+    if not (Path(dataset) / "cavenav_dataset.json").is_file():
+        raise ConfigError(f"{dataset} is not a cavenav dataset (no cavenav_dataset.json)")
     started = time.perf_counter()
     out = Path(out)
     try:
         out.mkdir(parents=True, exist_ok=True)
+        splits, card = _dataset(Path(dataset), out / "cache")
+        if "train" not in splits:
+            raise ConfigError(f"{dataset} has no train split")
         processor, model, lora = _model(options, out, splits["train"], device)
         system = _System(options.prompt_file, card)
         trainer = _trainer(model, processor, system, splits, options, out, device, lora)
@@ -295,7 +305,7 @@ def finetune(dataset: Path, out: Path, options: FinetuneOptions) -> Finetuned:
                        losses[-1] if losses else math.nan, validation,
                        time.perf_counter() - started)  # fmt: skip
     _write_records(out, history, result, dataset, card, options, lora)
-    for scaffolding in ("checkpoints", "base"):  # what a resumed run needed
+    for scaffolding in ("checkpoints", "base", "cache"):  # what a resumed run needed
         shutil.rmtree(out / scaffolding, ignore_errors=True)
     return result
 
