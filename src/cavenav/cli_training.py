@@ -142,6 +142,5 @@ def finetune(
         if scores
         else ""
     )
-    loss = f"loss {done.first_loss:.3f} -> {done.last_loss:.3f}"
-    console.print(f"{done.steps} steps in {done.seconds:.0f} s, {loss}{chose}")
+    console.print(f"{done.steps} steps, loss {done.first_loss:.3f} -> {done.last_loss:.3f}{chose}")
     console.print(f"model: {done.out}")
