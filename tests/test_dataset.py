@@ -251,3 +251,13 @@ def test_a_full_disk_leaves_no_shard_or_card_that_looks_whole(tmp_path: Path) ->
         with pytest.raises(RecordingError, match="No space left"):
             export_dataset([run_dir], disk / "data", options)
         assert not [p.name for p in (disk / "data").rglob("*") if p.is_file()]
+
+
+def test_a_sweeps_teacher_is_kept_in_sweep_json_and_absent_without_one() -> None:
+    taught = SweepConfig(("S1",), (0,), PilotSpec("random", teacher="geometric"))
+    assert taught.to_dict()["pilot"]["teacher"] == "geometric"
+    assert SweepConfig.from_dict(taught.to_dict()).pilot.teacher == "geometric"
+    assert "teacher" not in SweepConfig(("S1",), (0,), PilotSpec()).to_dict()["pilot"]
+    assert isinstance(taught.pilot.build(seed=3), ShadowedPilot)
+    with pytest.raises(ConfigError, match="unknown teacher 'vlm'"):
+        PilotSpec("random", teacher="vlm")
