@@ -133,13 +133,11 @@ class _Episode:
 
     Attributes:
         run_dir: its run folder.
-        source: the sweep or run folder named on the command line.
         scenario: how its cave loads: a family's name or the scenario file a sweep names.
         summary: its summary.json.
     """
 
     run_dir: Path
-    source: Path
     scenario: str
     summary: Mapping[str, Any]
 
@@ -185,13 +183,13 @@ def _episodes_of(source: Path) -> tuple[list[_Episode], dict[str, Any]]:
             if (run_dir / "summary.json").is_file():
                 summary = read_summary(run_dir / "summary.json")
                 if summary.get("status") == "finished":
-                    episodes.append(_Episode(run_dir, source, job.scenario, summary))
+                    episodes.append(_Episode(run_dir, job.scenario, summary))
         about = {"kind": "sweep", "pilot": meta["pilot"], "grid": len(jobs)}
         return episodes, about
     if (source / "summary.json").is_file():
         summary = read_summary(source / "summary.json")
         scenario = str(summary.get("scenario"))
-        finished = [_Episode(source, source, scenario, summary)]
+        finished = [_Episode(source, scenario, summary)]
         about = {"kind": "run", "pilot": {"label": summary.get("pilot")}, "grid": 1}
         return (finished if summary.get("status") == "finished" else []), about
     raise ConfigError(f"{source} is neither a sweep folder (sweep.json) nor a run folder")
