@@ -67,6 +67,8 @@ def test_a_few_training_steps_lower_the_loss(holding_model: Path) -> None:
     assert "| first reply parses | 100.0% |" in card
     assert not (holding_model / "checkpoints").exists()  # a resumed run's scaffolding, gone
     assert not (holding_model / "cache").exists()
+    with pytest.raises(ConfigError, match="holds a finished model"):
+        finetune(holding_model.parent / "data", holding_model, FinetuneOptions(new="small"))
 
 
 @pytest.mark.slow

@@ -281,8 +281,10 @@ def finetune(dataset: Path, out: Path, options: FinetuneOptions) -> Finetuned:
         _check_base(options.base)
     if not (Path(dataset) / "cavenav_dataset.json").is_file():
         raise ConfigError(f"{dataset} is not a cavenav dataset (no cavenav_dataset.json)")
-    started = time.perf_counter()
     out = Path(out)
+    if (out / "README.md").is_file():
+        raise ConfigError(f"{out} holds a finished model; give another --out")
+    started = time.perf_counter()
     try:
         out.mkdir(parents=True, exist_ok=True)
         splits, card = _dataset(Path(dataset), out / "cache")
