@@ -539,29 +539,40 @@ class TransformersConfig:
     extra: dict[str, Any] = field(default_factory=dict)
 
 
-def local_chat(messages: list[Message]) -> tuple[list[dict[str, Any]], list[Any]]:
+def local_chat(
+    messages: list[Message], image: Callable[[Mapping[str, Any]], Any] | None = None
+) -> tuple[list[dict[str, Any]], list[Any]]:
     """OpenAI messages as a local model's processor takes them: (the chat, each content a
-    list of text and image parts, for its chat template; the images as RGB Pillow images,
-    in order). Training (`cavenav.training.finetune`) reads its rows through this too, so a
-    model learns from exactly what it is shown in flight."""
-    from PIL import Image
+    list of text and image parts, for its chat template; the images, in order). Training
+    data (`cavenav.training.dataset`) and fine-tuning read requests through this too, so a
+    model learns from exactly what it is shown in flight.
 
+    Args:
+        image: what an image part becomes in the list of images; by default its picture,
+            an RGB Pillow image.
+    """
     chat, images = [], []
     for message in messages:
         content = message["content"]
         if isinstance(content, str):
             chat.append({"role": message["role"], "content": [{"type": "text", "text": content}]})
             continue
-        parts = []
+        parts: list[dict[str, Any]] = []
         for part in content:
             if part["type"] == "text":
                 parts.append({"type": "text", "text": part["text"]})
             else:
-                data = part["image_url"]["url"].split(",", 1)[1]
-                images.append(Image.open(io.BytesIO(base64.b64decode(data))).convert("RGB"))
+                images.append((image or _picture)(part))
                 parts.append({"type": "image"})
         chat.append({"role": message["role"], "content": parts})
     return chat, images
+
+
+def _picture(part: Mapping[str, Any]) -> Any:  # noqa: ANN401 - a Pillow image
+    from PIL import Image
+
+    data = base64.b64decode(part["image_url"]["url"].split(",", 1)[1])
+    return Image.open(io.BytesIO(data)).convert("RGB")
 
 
 class TransformersBackend:

@@ -8,7 +8,15 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
-__all__ = ["dataset_card"]
+__all__ = ["dataset_card", "model_card"]
+
+# The Hub's tags of both cards, closing their YAML header.
+_TAGS = """tags:
+- robotics
+- underwater
+- navigation
+- cavenav
+---"""
 
 
 def dataset_card(data: Mapping[str, Any]) -> str:
@@ -28,12 +36,7 @@ configs:
 {configs}
 task_categories:
 - image-text-to-text
-tags:
-- robotics
-- underwater
-- navigation
-- cavenav
----
+{_TAGS}
 # cavenav flight decisions
 
 Each row is one decision of a pilot flying an underwater vehicle through a simulated
@@ -118,12 +121,7 @@ def model_card(
     return f"""---
 library_name: transformers
 pipeline_tag: image-text-to-text
-tags:
-- robotics
-- underwater
-- navigation
-- cavenav
----
+{_TAGS}
 # A cavenav pilot
 
 A vision-language model that pilots an underwater vehicle through a flooded cave, one

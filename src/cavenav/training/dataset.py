@@ -12,7 +12,8 @@ DIR/
   data/train-00000-of-00002.parquet, data/validation-00000-of-00001.parquet
 
 Columns: ``messages`` (the request in the chat form processors take: each message's
-content a list of parts, an image part standing for the next of ``images``), ``images``
+content a list of parts, an image part standing for the next of ``images``; the form
+the transformers backend gives a request, `cavenav.pilots.backends.local_chat`), ``images``
 (the very bytes the request carries, PNG or JPEG), ``reply`` (the target), ``action``
 (its action string), ``teacher``, ``pilot``, ``scenario``, ``seed``, ``cave``,
 ``episode``, ``step``, ``success``, ``termination``, ``shielded``, ``detail``.
@@ -51,7 +52,7 @@ from cavenav.episode.records import read_exchanges, read_steps, read_summary
 from cavenav.episode.run_folder import write_atomic, write_json
 from cavenav.errors import ActionError, ConfigError, DependencyError, RecordingError
 from cavenav.evaluation.sweep import plan, read_sweep
-from cavenav.pilots.backends import Message
+from cavenav.pilots.backends import Message, local_chat
 from cavenav.pilots.factory import VLMOptions
 from cavenav.pilots.reply import parse_reply
 from cavenav.training.card import dataset_card
@@ -261,31 +262,6 @@ def _data_url(data: bytes) -> str:
     return f"data:image/{kind};base64," + base64.b64encode(data).decode("ascii")
 
 
-def _chat_form(
-    messages: Sequence[Mapping[str, Any]],
-    image: Any,  # noqa: ANN401 - reads a part's bytes
-) -> tuple[list[dict[str, Any]], list[bytes], str | None]:
-    """OpenAI messages as (the chat form of the ``messages`` column, the images in
-    order, the images' detail): each content a list of {"type", "text"} parts, an image
-    part {"type": "image", "text": None} standing for the next image."""
-    chat, images, detail = [], [], None
-    for message in messages:
-        content = message["content"]
-        if isinstance(content, str):
-            chat.append({"role": message["role"], "content": [{"type": "text", "text": content}]})
-            continue
-        parts = []
-        for part in content:
-            if part["type"] == "text":
-                parts.append({"type": "text", "text": part["text"]})
-            else:
-                images.append(image(part))
-                parts.append({"type": "image", "text": None})
-                detail = part.get("image_url", {}).get("detail", detail)
-        chat.append({"role": message["role"], "content": parts})
-    return chat, images, detail
-
-
 def request_messages(row: Mapping[str, Any]) -> list[Message]:
     """A row's request as the VLM pilot sends it (OpenAI chat messages, images as data
     URLs): byte for byte what the pilot sent, or would have sent, at that step.
@@ -377,7 +353,7 @@ def _rows(episode: _Episode, options: DatasetOptions, split: str) -> Iterator[di
     for step, request, (reply, action, teacher) in zip(steps, requests, labels, strict=True):
         if options.drop_shielded and step.get("shield"):
             continue
-        chat, images, detail = _chat_form(request, image)
+        chat, images = local_chat(request, image)
         yield {
             "messages": chat,
             "images": [{"bytes": data, "path": None} for data in images],
@@ -393,9 +369,18 @@ def _rows(episode: _Episode, options: DatasetOptions, split: str) -> Iterator[di
             "success": bool(summary.get("success")),
             "termination": str(summary.get("termination")),
             "shielded": bool(step.get("shield")),
-            "detail": detail,
+            "detail": _detail(request),
             "split": split,
         }
+
+
+def _detail(request: Sequence[Mapping[str, Any]]) -> str | None:
+    """The detail the request's images are sent with (`VLMOptions.detail`), if any."""
+    for message in request:
+        for part in message["content"] if isinstance(message["content"], list) else ():
+            if part["type"] == "image_url":
+                return part["image_url"].get("detail")
+    return None
 
 
 def _flown_again(
