@@ -422,12 +422,11 @@ def _model_label(
 def _datasets() -> Any:  # noqa: ANN401 - the module
     try:
         import datasets
-        import pyarrow.parquet
+        import pyarrow.parquet  # noqa: F401 - what writes the shards
     except ImportError as exc:
         raise DependencyError(
             f"cavenav dataset needs datasets ({exc}); install with: pip install 'cavenav[train]'"
         ) from None
-    del pyarrow
     return datasets
 
 
