@@ -4,7 +4,8 @@ PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 # setup: cavenav and what it needs to fly (what `make demo` needs);
-# setup-test: plus pytest, transformers with torch (CPU), Ray and datasets, for `make test`.
+# setup-test: plus pytest, transformers with torch (CPU), Ray and the train extra (datasets,
+# accelerate, peft), for `make test`.
 STAMP := $(VENV)/.installed
 TEST_STAMP := $(VENV)/.installed-test
 
