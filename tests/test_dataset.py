@@ -161,9 +161,10 @@ def test_teacher_labels_train_on_the_students_own_states(tmp_path: Path) -> None
     pilot = ShadowedPilot(RandomPilot(5), GeometricPilot())
     result = run_episode(load_scenario("S1"), pilot, QUICK, run_dir)
     flown = [step["action"] for step in result.steps]
-    with pytest.raises(ConfigError, match="no teacher label"):
+    with pytest.raises(ConfigError, match="no teacher label"):  # a model flown alone
         bare = tmp_path / "bare"
-        run_episode(load_scenario("S1"), RandomPilot(5), QUICK, bare)
+        with FakeVLM() as server:
+            run_episode(load_scenario("S1"), pilot_for(server), QUICK, bare)
         export_dataset([bare], tmp_path / "nothing", DatasetOptions(labels="teacher"))
     out = tmp_path / "data"
     export_dataset([run_dir], out, DatasetOptions(labels="teacher", validation=0))
@@ -174,6 +175,13 @@ def test_teacher_labels_train_on_the_students_own_states(tmp_path: Path) -> None
     taken = [p["text"].removeprefix("Action taken after it: ") for p in last
              if p["type"] == "text" and p["text"].startswith("Action taken")]  # fmt: skip
     assert taken == flown[-3:-1]  # the student's moves, not the teacher's
+    # DAgger's dataset: the round above and the teacher's own flight, its own teacher.
+    alone = tmp_path / "alone"
+    run_episode(load_scenario("S1", 1), GeometricPilot(), QUICK, alone)
+    both = tmp_path / "both"
+    export_dataset([run_dir, alone], both, DatasetOptions(labels="teacher", validation=0))
+    assert [row["teacher"] for row in rows_of(both)] == ["geometric"] * 8
+    assert [row["pilot"] for row in rows_of(both)] == ["random"] * 4 + ["geometric"] * 4
 
 
 @pytest.mark.slow

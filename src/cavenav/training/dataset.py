@@ -25,7 +25,8 @@ which needs no frames. Where the replies come from (``labels``): ``recorded``, t
 pilot's own (a model's raw reply, reasoning and all, for distillation; another pilot's
 action and justification as the one-pair reply, after its situation, constraints and
 choice for the geometric pilot), or ``teacher``, the answer of a teacher that flew in
-the pilot's shadow (`cavenav run/eval --teacher`; DAgger).
+the pilot's shadow (`cavenav run/eval --teacher`; DAgger), a teacher that flew alone
+being its own: DAgger's rounds and the teacher's flights make one dataset.
 
 Rows are written as they are made, a shard at a time, under names that say they are
 partial; the shards get their final names and the card is written only when every row
@@ -53,7 +54,7 @@ from cavenav.episode.run_folder import write_atomic, write_json
 from cavenav.errors import ActionError, ConfigError, DependencyError, RecordingError
 from cavenav.evaluation.sweep import plan, read_sweep
 from cavenav.pilots.backends import Message, local_chat
-from cavenav.pilots.factory import VLMOptions
+from cavenav.pilots.factory import TEACHERS, VLMOptions
 from cavenav.pilots.reply import parse_reply
 from cavenav.training.card import dataset_card
 from cavenav.training.replay import recorded_cave, recorded_config, recorded_requests
@@ -231,6 +232,14 @@ def _proposed(step: Mapping[str, Any]) -> str:
     return str(step.get("proposed") or step["action"])
 
 
+def _own_teacher(labels: str, pilot: str, steps: Sequence[Mapping[str, Any]]) -> str:
+    """The labels an episode gives: a teacher that flew alone (a pilot that can teach,
+    flown with no teacher beside it) is its own teacher, so that DAgger's rounds and the
+    teacher's own flights go into one dataset under ``--labels teacher``."""
+    alone = not any(isinstance(step.get("teacher"), Mapping) for step in steps)
+    return "recorded" if labels == "teacher" and pilot in TEACHERS and alone else labels
+
+
 def _label(step: Mapping[str, Any], labels: str, style: str, where: Path) -> tuple[str, str, str]:
     """(reply, its action, who gave it) for a step flown by a pilot without a model.
 
@@ -339,7 +348,8 @@ def _rows(episode: _Episode, options: DatasetOptions, split: str) -> Iterator[di
         labels = [_model_label(s, recorded[s["step"]][1], summary, options, episode.run_dir)
                   for s in steps]  # fmt: skip
     else:
-        labels = [_label(s, options.labels, options.reply, episode.run_dir) for s in steps]
+        labels_from = _own_teacher(options.labels, str(summary.get("pilot")), steps)
+        labels = [_label(s, labels_from, options.reply, episode.run_dir) for s in steps]
         requests = _flown_again(episode, steps, [reply for reply, _, _ in labels], options)
     pilot = str(summary.get("pilot"))
     decoded: dict[str, bytes] = {}  # an image is sent again as history: decoded once
