@@ -302,15 +302,20 @@ def request_messages(row: Mapping[str, Any]) -> list[Message]:
 # --------------------------------------------------------------------------- rows
 
 
-def _recorded_exchanges(run_dir: Path) -> dict[int, tuple[list[Message], str]]:
+def _recorded_exchanges(
+    run_dir: Path, read: dict[str, bytes]
+) -> dict[int, tuple[list[Message], str]]:
     """Each step's first request and accepted reply, from a model pilot's run folder
-    (images read back from images/ as data URLs)."""
+    (images read back from images/ as data URLs); ``read`` gains each URL's bytes, so
+    that no image is decoded again from the URL made of it."""
     by_step: dict[int, tuple[list[Message], str]] = {}
     urls: dict[str, str] = {}
 
     def url(name: str) -> str:
         if name not in urls:
-            urls[name] = _data_url((run_dir / name).read_bytes())
+            data = (run_dir / name).read_bytes()
+            urls[name] = _data_url(data)
+            read[urls[name]] = data
         return urls[name]
 
     for record in read_exchanges(run_dir / "exchanges.jsonl"):
@@ -341,8 +346,9 @@ def _rows(episode: _Episode, options: DatasetOptions, split: str) -> Iterator[di
     summary = episode.summary
     exchanges = (episode.run_dir / "exchanges.jsonl").is_file()
     requests: Iterable[list[Message]]
+    decoded: dict[str, bytes] = {}  # an image is sent again as history: decoded once
     if exchanges:  # a model pilot: its own requests, and its own replies as recorded labels
-        recorded = _recorded_exchanges(episode.run_dir)
+        recorded = _recorded_exchanges(episode.run_dir, decoded)
         steps = [s for s in steps if s["step"] in recorded]
         requests = [recorded[s["step"]][0] for s in steps]
         labels = [_model_label(s, recorded[s["step"]][1], summary, options, episode.run_dir)
@@ -352,7 +358,6 @@ def _rows(episode: _Episode, options: DatasetOptions, split: str) -> Iterator[di
         labels = [_label(s, labels_from, options.reply, episode.run_dir) for s in steps]
         requests = _flown_again(episode, steps, [reply for reply, _, _ in labels], options)
     pilot = str(summary.get("pilot"))
-    decoded: dict[str, bytes] = {}  # an image is sent again as history: decoded once
 
     def image(part: Mapping[str, Any]) -> bytes:
         url = part["image_url"]["url"]
