@@ -7,6 +7,7 @@ import fcntl
 import json
 import os
 import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -312,6 +313,27 @@ def test_compare_puts_three_pilots_side_by_side_on_one_page(tmp_path: Path) -> N
     assert priced.returncode == 0, priced.stderr
     index = (tmp_path / "geometric" / "report" / "index.html").read_text()
     assert "USD 1 / 2 per million tokens in / out" in index
+
+    # Sweeps over other caves, or another scenario set, have nothing to pair: refused,
+    # unless shown side by side without tests.
+    elsewhere = cavenav("eval", *common, "--seeds", "7", "--out", str(tmp_path / "elsewhere"))
+    assert elsewhere.returncode == 0, elsewhere.stderr
+    apart = [str(tmp_path / "geometric"), str(tmp_path / "elsewhere")]
+    refused = cavenav("compare", *apart)
+    assert refused.returncode == 2 and "completed no cave in common" in refused.stderr
+    assert "--allow-unpaired" in refused.stderr
+    shown = cavenav("compare", *apart, "--allow-unpaired", "--out", str(tmp_path / "apart"))
+    assert shown.returncode == 0, shown.stderr
+    assert "unpaired, no tests" in shown.stdout and "McNemar" not in shown.stdout
+    side_by_side = json.loads((tmp_path / "apart" / "compare.json").read_text())
+    assert side_by_side["pairs"] == [] and "no cave in common" in side_by_side["unpaired"]
+    assert "Unpaired:" in (tmp_path / "apart" / "index.html").read_text()
+    other_set = tmp_path / "other-set"
+    shutil.copytree(tmp_path / "random", other_set)
+    config = json.loads((other_set / "sweep.json").read_text())
+    (other_set / "sweep.json").write_text(json.dumps({**config, "scenario_set": "4"}))
+    refused = cavenav("compare", str(tmp_path / "geometric"), str(other_set))
+    assert refused.returncode == 2 and "different scenario sets" in refused.stderr
 
 
 @pytest.mark.parametrize(

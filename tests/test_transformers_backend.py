@@ -5,6 +5,7 @@ from __future__ import annotations
 import base64
 import io
 import json
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -79,6 +80,28 @@ def test_the_tiny_model_answers_through_the_real_backend(tiny_model: Path) -> No
     assert (prompt_ids == processor.image_token_id).sum() == 2 * 4  # 4 tokens per image
     assert len(new_ids) == completion.completion_tokens == 12
     assert completion.text == processor.decode(new_ids, skip_special_tokens=True)
+
+
+def test_a_small_model_decides_on_one_thread_of_the_thread_that_asks(tiny_model: Path) -> None:
+    import torch
+
+    backend = TransformersBackend(
+        TransformersConfig(str(tiny_model), device="cpu", max_new_tokens=2)
+    )
+    image = png_data_url(np.zeros((48, 64, 3), np.uint8))
+    messages = build_messages("fly", EncodedObservation(image, image, 2.0, 2.0), [])
+    threads = []
+
+    def episode() -> None:  # as a sweep flies it: on a thread of its own
+        backend.complete(messages)
+        threads.append(torch.get_num_threads())
+
+    before = torch.get_num_threads()
+    flying = threading.Thread(target=episode)
+    flying.start()
+    flying.join()
+    assert threads == [1]  # a parallel region costs a small model more than it saves
+    assert torch.get_num_threads() == before  # the asking thread's setting only
 
 
 @pytest.mark.slow

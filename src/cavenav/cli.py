@@ -395,6 +395,10 @@ def compare(
             help="price MODEL's recorded tokens: USD per million in, out (repeatable)",
         ),
     ] = None,
+    allow_unpaired: Annotated[
+        bool,
+        typer.Option(help="show sweeps over different caves side by side, without tests"),
+    ] = False,
 ) -> None:
     """Pilots side by side, paired by cave: success with its interval, McNemar, Wilcoxon.
 
@@ -408,9 +412,11 @@ def compare(
 
     if json_out is not None and json_out.is_dir():
         raise ConfigError(f"--json {json_out} is a folder: name the file to write")
-    read = comparison.load_sweeps(sweeps, _model_prices(price or []))
+    read = comparison.load_sweeps(sweeps, _model_prices(price or []), allow_unpaired)
     result = comparison.comparison(read)
-    if len(read) == 2:
+    if result["unpaired"]:
+        console.print(f"unpaired, no tests: {result['unpaired']}", soft_wrap=True)
+    if len(read) == 2 and not result["unpaired"]:
         a, b = read
         title = f"A = {a.label} ({a.path})   B = {b.label} ({b.path})"
         print_comparison(result["pairs"][0], title, (a.path, b.path))
@@ -418,7 +424,7 @@ def compare(
         print_leaderboard(result)
     if json_out:
         try:  # two sweeps: the pair's tests, as before; more: the whole comparison
-            write_json(json_out, result["pairs"][0] if len(read) == 2 else result)
+            write_json(json_out, result["pairs"][0] if len(result["pairs"]) == 1 else result)
         except OSError as exc:
             raise RecordingError.cannot_write(
                 f"the comparison to {json_out}", exc, " (the table above is complete)"

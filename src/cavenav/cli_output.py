@@ -203,6 +203,8 @@ def print_leaderboard(result: Mapping[str, Any]) -> None:
     for row in rows:
         table.add_row(*map(escape, row))
     _print_table(table)
+    if not result["pairs"]:
+        return
     pairs = Table(title="pairs, over the caves both completed")
     for column in ("A", "B", "caves", "A - B (95% CI)", *_side_columns(result.get("trials"))):
         pairs.add_column(column)

@@ -138,7 +138,7 @@ def finetune(
     scores = done.validation
     chose = (
         f"; validation: {scores['parsed']:.0%} parse, {scores['action']:.0%} whole actions, "
-        f"{scores['median_ms']} ms a decision"
+        f"{scores['parts']:.0%} all four parts, {scores['median_ms']} ms a decision"
         if scores
         else ""
     )

@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from cavenav.episode.run_folder import write_atomic, write_json
-from cavenav.errors import CavenavError, RecordingError
+from cavenav.errors import CavenavError, ConfigError, RecordingError
 from cavenav.evaluation.report import page_name, render_page
 from cavenav.evaluation.results import compare, group, priced
 from cavenav.evaluation.sweep import read_rows, read_sweep
@@ -81,7 +81,9 @@ class Compared:
 
 
 def load_sweeps(
-    folders: Sequence[Path], prices: Mapping[str, tuple[float, float]] | None = None
+    folders: Sequence[Path],
+    prices: Mapping[str, tuple[float, float]] | None = None,
+    allow_unpaired: bool = False,
 ) -> list[Compared]:
     """Every sweep, read from its run folders; two sweeps with one label are told apart
     by their folders' names. ``prices`` ({model: (USD in, out per million tokens)}) price
@@ -90,6 +92,8 @@ def load_sweeps(
     Raises:
         CavenavError: fewer than two sweeps, sweeps over different caves (other
             difficulty knobs), or a price for a model no sweep flew.
+        ConfigError: sweeps that cannot be paired (`unpaired_reason`), unless
+            ``allow_unpaired``.
     """
     if len(folders) < 2:
         raise CavenavError("compare needs two sweep folders or more")
@@ -114,7 +118,29 @@ def load_sweeps(
             rows = priced(rows, prices[model])
         label = label if labels.count(label) == 1 else f"{label} ({folder.name})"
         sweeps.append(Compared(folder, label, meta, rows))
+    reason = unpaired_reason(sweeps)
+    if reason and not allow_unpaired:
+        raise ConfigError(
+            f"{reason}: nothing to pair, so no test would mean anything; "
+            "--allow-unpaired shows them side by side without tests"
+        )
     return sweeps
+
+
+def unpaired_reason(sweeps: Sequence[Compared]) -> str | None:
+    """Why ``sweeps`` cannot be compared cave by cave, or None: they flew different
+    scenario sets (the same family name is another cave in each), or two of them
+    completed no cave in common (S1 against S2, seeds 0-19 against 1000-1019)."""
+    sets = {str(s.path): s.config.get("scenario_set") for s in sweeps}
+    if len(set(sets.values())) > 1:
+        listed = ", ".join(f"{v} in {k}" for k, v in sets.items())
+        return f"the sweeps flew different scenario sets ({listed})"
+    caves = [{(str(r["scenario"]), str(r["seed"])) for r in s.rows if r["outcome"] != "incomplete"}
+             for s in sweeps]  # fmt: skip
+    for (i, a), (j, b) in itertools.combinations(enumerate(caves), 2):
+        if not a & b:
+            return f"{sweeps[i].path} and {sweeps[j].path} completed no cave in common"
+    return None
 
 
 def _sweep_facts(sweep: Compared) -> dict[str, Any]:
@@ -138,16 +164,20 @@ def _sweep_facts(sweep: Compared) -> dict[str, Any]:
 
 def comparison(sweeps: Sequence[Compared]) -> dict[str, Any]:
     """compare.json: the sweeps, the leaderboard (best success first), each family's
-    standings, and every pair of sweeps' paired tests (A before B in the order given)."""
+    standings, and every pair of sweeps' paired tests (A before B in the order given);
+    sweeps that cannot be paired (`unpaired_reason`) get no tests ("pairs" empty, and
+    "unpaired" says why)."""
     scenarios = list(dict.fromkeys(str(r["scenario"]) for s in sweeps for r in s.rows))
     board = [group("all", s.label, s.rows) for s in sweeps]
     order = sorted(range(len(sweeps)), key=lambda k: -(board[k]["success_rate"] or 0.0))
+    unpaired = unpaired_reason(sweeps)
     pairs = []
-    for i, j in itertools.combinations(range(len(sweeps)), 2):
+    for i, j in [] if unpaired else itertools.combinations(range(len(sweeps)), 2):
         a, b = sweeps[i], sweeps[j]
         pairs.append({"a": a.label, "b": b.label, **compare(a.rows, b.rows)})
     trials = any(pair["trials"] for pair in pairs)
     return {
+        "unpaired": unpaired,
         "sweeps": [_sweep_facts(s) for s in sweeps],
         "leaderboard": [board[k] for k in order],
         "per_family": {

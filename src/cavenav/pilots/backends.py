@@ -575,6 +575,14 @@ def _picture(part: Mapping[str, Any]) -> Any:  # noqa: ANN401 - a Pillow image
     return Image.open(io.BytesIO(data)).convert("RGB")
 
 
+# A model this small decides on one CPU thread: its matrices are too small to share out,
+# and an OpenMP parallel region entered from any thread but the main one (a sweep flies
+# its episodes on threads) costs about 80 us to start. Measured on 2 cores with a
+# 2.5 M-parameter Idefics3 (`finetune --new small`): 65 ms a decision on the main thread
+# with 2 threads, 210 ms on a sweep's thread with 2, 62-66 ms on either with 1.
+ONE_THREAD_BELOW = 10_000_000
+
+
 class TransformersBackend:
     """`AutoProcessor` + `AutoModelForImageTextToText`, chat template with images."""
 
@@ -612,6 +620,8 @@ class TransformersBackend:
             raise ConfigError(f"cannot load the model '{config.model}': {_short(exc)}") from None
         self._model: Any = model.to(device).eval()
         self.device = device
+        size = sum(parameter.numel() for parameter in model.parameters())
+        self._one_thread = device == "cpu" and size < ONE_THREAD_BELOW
 
     @property
     def params(self) -> dict[str, Any]:
@@ -635,6 +645,8 @@ class TransformersBackend:
         inputs = self._processor(text=prompt, images=images or None, return_tensors="pt").to(
             self.device
         )
+        if self._one_thread:
+            torch.set_num_threads(1)  # in this thread only: see ONE_THREAD_BELOW
         start = time.perf_counter()
         sample = self.config.temperature > 0
         with torch.inference_mode():

@@ -160,6 +160,7 @@ and the VLM pilot takes them from the folder by itself
 _SCORES = (
     ("parsed", "first reply parses"),
     ("action", "whole action string"),
+    ("parts", "all four parts (ascend/descend within 0.1 m)"),
     ("forward", "forward/back"),
     ("right", "strafe"),
     ("up", "ascend/descend (within 0.1 m)"),

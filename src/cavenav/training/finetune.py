@@ -326,7 +326,9 @@ def _trainer(
         num_train_epochs=options.epochs,
         max_steps=options.max_steps or -1,
         learning_rate=rate,
-        warmup_steps=0,
+        # A fresh model's rate climbs from 0 over its first 5% of steps, the usual warm-up
+        # of a transformer trained from scratch (weights already trained need none).
+        warmup_steps=0.05 if options.new else 0,
         logging_steps=1 if (options.max_steps or 0) and options.max_steps <= 50 else 10,
         save_strategy="steps",
         save_steps=options.save_steps,
@@ -380,8 +382,10 @@ def score_actions(
 ) -> dict[str, Any]:
     """How often the model, asked as the pilot asks it, gives the row's action: over the
     first ``limit`` rows, the share whose first reply parses, whose whole action string
-    matches, and whose each part matches (forward, strafe and yaw exactly; the vertical
-    move within 0.1 m, being continuous); and the median milliseconds a decision took.
+    matches, whose four parts all match and whose each part matches (forward, strafe and
+    yaw exactly; the vertical move within 0.1 m, being continuous: "ascend 0.16 m" for
+    "ascend 0.15 m" fails the whole string but not the parts); and the median
+    milliseconds a decision took.
 
     Args:
         card: the rows' dataset's cavenav_dataset.json (its camera renders the model's
@@ -398,7 +402,7 @@ def score_actions(
     budget = min(options.max_tokens, 2 * longest + 8)
     backend.config = replace(backend.config, max_new_tokens=budget)
     system = _System(Path(options.prompt_file) if options.prompt_file else None, card)
-    counts = {"parsed": 0, "action": 0, "forward": 0, "right": 0, "up": 0, "yaw_deg": 0}
+    counts = dict.fromkeys(("parsed", "action", "parts", "forward", "right", "up", "yaw_deg"), 0)
     latencies = []
     for row in chosen:
         completion = backend.complete(system.messages(row))
@@ -408,11 +412,14 @@ def score_actions(
         except ActionError:
             continue
         want = parse_action(row["action"])
+        matched = {part: getattr(got.action, part) == getattr(want, part)
+                   for part in ("forward", "right", "yaw_deg")}  # fmt: skip
+        matched["up"] = abs(got.action.up - want.up) <= 0.1
         counts["parsed"] += 1
         counts["action"] += got.action == want
-        for part in ("forward", "right", "yaw_deg"):
-            counts[part] += getattr(got.action, part) == getattr(want, part)
-        counts["up"] += abs(got.action.up - want.up) <= 0.1
+        counts["parts"] += all(matched.values())
+        for part, same in matched.items():
+            counts[part] += same
     latencies.sort()
     scored = {key: round(value / len(chosen), 4) for key, value in counts.items()}
     return {
