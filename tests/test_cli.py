@@ -243,6 +243,9 @@ def test_a_sweep_flies_in_the_current_and_budget_it_was_given_and_tables_the_ene
     assert float(row["energy_wh"]) > 0 and float(row["mean_drift_m"]) > 0
     refused = cavenav("eval", *args, "--gusts", "2")
     assert refused.returncode == 2 and "--gusts" in refused.stderr
+    # A scenario file's bound holds for the flag: 1e300 m³/s would carry it through rock.
+    refused = cavenav("eval", *args, "--discharge", "1e300")
+    assert refused.returncode == 2 and "within ±10000 m³/s" in refused.stderr
 
 
 def test_every_vlm_option_is_one_flag_with_one_help_in_run_eval_and_fly() -> None:

@@ -342,6 +342,8 @@ def test_compare_puts_three_pilots_side_by_side_on_one_page(tmp_path: Path) -> N
         (["compare", "a", "b", "--price", "0.5,4"], "--price takes MODEL=IN,OUT"),
         (["compare", "a", "b", "--price", "gpt=0.5"], "--price must be 'input,output'"),
         (["report", "a", "--price", "cheap"], "--price must be 'input,output'"),
+        (["compare", "a", "b", "--price", "gpt=-1,2"], "each part is a finite number of USD"),
+        (["report", "a", "--price", "nan,2"], "each part is a finite number of USD"),
     ],
 )
 def test_a_malformed_price_is_one_line_before_any_sweep_is_read(

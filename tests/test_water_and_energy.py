@@ -160,7 +160,9 @@ def test_a_vehicle_over_mavlink_meets_its_own_water(room_scenario: Scenario) -> 
         CaveNavEnv(room_scenario, motion=Overshooting(), current=Current(1.0))
 
 
-@pytest.mark.parametrize(("discharge", "gusts"), [(math.inf, 0.2), (1.0, -0.1), (1.0, 1.5)])
+@pytest.mark.parametrize(
+    ("discharge", "gusts"), [(math.inf, 0.2), (1e300, 0.2), (-1.1e4, 0.2), (1.0, -0.1), (1.0, 1.5)]
+)
 def test_a_current_that_cannot_be_is_refused(discharge: float, gusts: float) -> None:
     with pytest.raises(ConfigError):
         Current(discharge, gusts)
@@ -178,7 +180,9 @@ def test_a_scenario_files_water_flows_unless_the_episode_says_otherwise(tmp_path
     from cavenav.episode.settings import EpisodeSettings
     from cavenav.world.scenarios import load_scenario
 
-    cave = load_scenario(water_file(tmp_path, "discharge_m3s = 2.0\ngusts = 0.1"), 0)
+    cave = load_scenario(
+        water_file(tmp_path, "discharge_m3s = 2\ngusts = 0.1"), 0
+    )  # an integer is a number
     assert cave.water == {"discharge_m3s": 2.0, "gusts": 0.1}
     assert EpisodeSettings().episode_config(cave).current == Current(2.0, 0.1)
     assert EpisodeSettings(discharge_m3s=0.0).current_for(cave).still  # --discharge 0
@@ -190,7 +194,8 @@ def test_a_scenario_files_water_flows_unless_the_episode_says_otherwise(tmp_path
 @pytest.mark.parametrize(
     ("table", "field"),
     [("discharge_m3s = 1e9", "water.discharge_m3s"), ("gusts = 2", "water.gusts"),
-     ("speed = 1", "water.speed")],
+     ("speed = 1", "water.speed"), ("discharge_m3s = true", "water.discharge_m3s"),
+     ("gusts = false", "water.gusts")],
 )  # fmt: skip
 def test_a_water_table_that_cannot_be_is_refused_by_field(tmp_path, table: str, field: str) -> None:
     from cavenav.world.scenarios import load_scenario

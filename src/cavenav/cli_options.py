@@ -24,6 +24,7 @@ from cavenav.episode.settings import EpisodeSettings
 from cavenav.pilots.factory import VLMOptions
 from cavenav.sensors.depth import EXR_COMPRESSIONS
 from cavenav.sensors.optics import WATER_TYPES
+from cavenav.world.current import MAX_DISCHARGE_M3S
 
 __all__ = [
     "CAVE_SCENE",
@@ -72,6 +73,16 @@ def finite(value: float | None) -> float | None:
     """A range's bounds let infinity through: refuse it (and NaN) by name."""
     if value is not None and not math.isfinite(value):
         raise typer.BadParameter(f"{value} is not finite; give a number")
+    return value
+
+
+def _discharge(value: float | None) -> float | None:
+    """A discharge within a scenario file's [water] bound (`MAX_DISCHARGE_M3S`): 1e300
+    m³/s would carry the vehicle through rock without a collision."""
+    if finite(value) is not None and abs(value) > MAX_DISCHARGE_M3S:
+        raise typer.BadParameter(
+            f"{value} m³/s: give a discharge within ±{MAX_DISCHARGE_M3S:g} m³/s"
+        )
     return value
 
 
@@ -461,7 +472,7 @@ SETTINGS = OptionGroup(
             "faster where the passage narrows and carries the vehicle; 0: still water; "
             "default: the cave's own (a scenario file's [water]; the families are still)",
             metavar="M3S",
-            callback=finite,
+            callback=_discharge,
         ),
         _flag(
             "gusts",

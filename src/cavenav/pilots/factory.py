@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
@@ -74,6 +75,10 @@ class VLMOptions:
             raise ConfigError(
                 f"--price must be 'input,output' in USD per million tokens, got '{self.price}'"
             ) from None
+        if not all(math.isfinite(v) and v >= 0 for v in (price_in, price_out)):
+            raise ConfigError(
+                f"--price '{self.price}': each part is a finite number of USD, 0 or more"
+            )
         return price_in, price_out
 
     def for_model(self) -> VLMOptions:

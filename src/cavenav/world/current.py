@@ -60,6 +60,11 @@ GUST_PERIODS_S = (11.0, 23.0, 41.0, 67.0)
 TIME_STEP_S = 0.25  # the carried move is integrated in steps no longer than this
 
 
+# A scenario file's [water] bound, for every other way in too (flags, gymnasium.make):
+# far above any cave's flow, far below a number that carries the vehicle through rock.
+MAX_DISCHARGE_M3S = 1e4
+
+
 @dataclass(frozen=True)
 class Current:
     """The flow a cave is given.
@@ -75,8 +80,11 @@ class Current:
     gusts: float = 0.2
 
     def __post_init__(self) -> None:
-        if not math.isfinite(self.discharge_m3s):
-            raise ConfigError(f"discharge {self.discharge_m3s}: give a finite number of m³/s")
+        if not (math.isfinite(self.discharge_m3s) and abs(self.discharge_m3s) <= MAX_DISCHARGE_M3S):
+            raise ConfigError(
+                f"discharge {self.discharge_m3s}: give a finite number of m³/s within "
+                f"±{MAX_DISCHARGE_M3S:g} (a scenario file's bound)"
+            )
         if not (math.isfinite(self.gusts) and 0.0 <= self.gusts <= 1.0):
             raise ConfigError(f"gusts {self.gusts}: give a fraction from 0 to 1")
 

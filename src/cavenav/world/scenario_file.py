@@ -169,10 +169,13 @@ class _WaterModel(BaseModel):
     """A scenario file's [water] table: the cave's flow (`cavenav.world.current.Current`)."""
 
     model_config = _STRICT
+    # strict: TOML's `true` is no number of m³/s (lax, it would fly at 1 m³/s)
     discharge_m3s: float | None = Field(
-        None, ge=-1e4, le=1e4, description="m³/s from the exit toward the start (0)"
+        None, ge=-1e4, le=1e4, strict=True, description="m³/s from the exit toward the start (0)"
     )
-    gusts: float | None = Field(None, ge=0, le=1, description="gusts, a fraction of the speed")
+    gusts: float | None = Field(
+        None, ge=0, le=1, strict=True, description="gusts, a fraction of the speed"
+    )
 
 
 class _ScenarioFileModel(BaseModel):
