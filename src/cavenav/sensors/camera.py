@@ -98,6 +98,11 @@ def camera_to_world(pose: Pose) -> np.ndarray:
     return look_frame(pose.forward, pose.right)
 
 
+# The largest side of an image, as a scenario file's [sensors] bounds it: beyond 8K video
+# (7680 x 4320); 100000x1 crashed the JPEG encoder and 30000x30000 ran out of memory.
+MAX_SIDE_PX = 8192
+
+
 def pixel_size(value: object, what: str = "resolution") -> tuple[int, int]:
     """``value`` as (width, height) in pixels: two whole numbers above 0, in any sequence.
 
@@ -106,12 +111,16 @@ def pixel_size(value: object, what: str = "resolution") -> tuple[int, int]:
     """
     pair = tuple(value) if isinstance(value, list | tuple | np.ndarray) else (value,)
     whole = all(isinstance(v, numbers.Integral) and not isinstance(v, bool) for v in pair)
-    if len(pair) != 2 or not whole or min(pair) <= 0:  # type: ignore[type-var]
+    if len(pair) != 2 or not whole or not _within(*pair):  # type: ignore[arg-type]
         raise ConfigError(
-            f"{what} {value!r}: give [width, height] as two whole numbers of pixels above 0, "
-            "e.g. [160, 120]"
+            f"{what} {value!r}: give [width, height] as two whole numbers of pixels from 1 "
+            f"to {MAX_SIDE_PX}, e.g. [160, 120]"
         )
     return int(pair[0]), int(pair[1])  # type: ignore[call-overload]
+
+
+def _within(*sides: int) -> bool:
+    return all(0 < side <= MAX_SIDE_PX for side in sides)
 
 
 def parse_resolution(text: str, what: str = "--resolution") -> tuple[int, int]:
@@ -121,9 +130,9 @@ def parse_resolution(text: str, what: str = "--resolution") -> tuple[int, int]:
         ConfigError: naming ``what`` and the text that is not WxH with positive sizes.
     """
     match = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", text)
-    if not match or min(int(match[1]), int(match[2])) <= 0:
+    if not match or not _within(int(match[1]), int(match[2])):
         raise ConfigError(
-            f"{what}: '{text}' is not a resolution; write WIDTHxHEIGHT in pixels above 0, "
-            "e.g. 160x120 or 84x84"
+            f"{what}: '{text}' is not a resolution; write WIDTHxHEIGHT in pixels from 1 to "
+            f"{MAX_SIDE_PX}, e.g. 160x120 or 84x84"
         )
     return int(match[1]), int(match[2])
