@@ -177,6 +177,7 @@ def test_a_bad_resolution_is_refused_in_one_line_before_any_work(tmp_path: Path)
         (("run", "S1", "--resolution", "160"), "--resolution: '160' is not a resolution"),
         (("render", "S1", "--resolution", "0x10"), "--resolution: '0x10' is not a resolution"),
         (("eval", "--sounder-resolution", "axb"), "--sounder-resolution: 'axb' is not a"),
+        (("run", "S1", "--resolution", "100000x1"), "'100000x1' is not a resolution"),
     ]
     for args, names_the_bad_value in cases:
         done = cavenav(*args, "--out", str(tmp_path / "out"))
@@ -184,6 +185,18 @@ def test_a_bad_resolution_is_refused_in_one_line_before_any_work(tmp_path: Path)
         assert done.stderr.startswith("error:") and done.stderr.count("\n") == 1, done.stderr
         assert names_the_bad_value in done.stderr and "WIDTHxHEIGHT" in done.stderr
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize(
+    ("flag", "value", "says"),
+    [("--gusts", "nan", "nan is not a finite number; give one from 0 to 1"),
+     ("--battery-wh", "nan", "nan is not a finite number; give one of 0.001 or more"),
+     ("--noise", "inf", "inf is not a finite number; give one of 0 or more"),
+     ("--gusts", "2", "2.0: give a number from 0 to 1")],
+)  # fmt: skip
+def test_a_number_out_of_its_range_is_named_as_it_is(flag: str, value: str, says: str) -> None:
+    done = cavenav("run", "S1", flag, value)
+    assert done.returncode == 2 and says in " ".join(done.stderr.replace("│", " ").split())
 
 
 def camera_of(run_folder_root: Path) -> tuple[list[int], list[int]]:

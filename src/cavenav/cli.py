@@ -48,6 +48,7 @@ from cavenav.cli_options import (
     ExrCompression,
     LiveView,
     OwnSensors,
+    bounded,
     finite,
     takes,
 )
@@ -508,7 +509,9 @@ def video(
     out: Annotated[
         Path | None, typer.Option(help="MP4 to write (default: RUN/episode.mp4)")
     ] = None,
-    fps: Annotated[float, typer.Option(min=0.5, max=60, help="steps per second")] = 4.0,
+    fps: Annotated[
+        float, typer.Option(callback=bounded(0.5, 60), help="steps per second, 0.5 to 60")
+    ] = 4.0,
 ) -> None:
     """Write an MP4 of an episode: RGB, depth and the top-down map, side by side."""
     from cavenav.episode.video import write_video

@@ -193,9 +193,38 @@ def takes(**groups: OptionGroup) -> Callable[[Command], Command]:
     return decorate
 
 
+def _span(low: float | None, high: float | None) -> str:
+    if low is not None and high is not None:
+        return f"from {low:g} to {high:g}"
+    return f"of {low:g} or more" if low is not None else f"of {high:g} or less"
+
+
+def bounded(
+    low: float | None, high: float | None, then: Callable[[Any], Any] | None = None
+) -> Callable[[float | None], float | None]:
+    """A callback that holds a float option within [low, high], naming NaN and infinity
+    as what they are (typer's own range check calls NaN "not <= 1"); ``then`` runs after."""
+    span = _span(low, high)
+
+    def check(value: float | None) -> float | None:
+        if value is not None:
+            if not math.isfinite(value):
+                raise typer.BadParameter(f"{value} is not a finite number; give one {span}")
+            if (low is not None and value < low) or (high is not None and value > high):
+                raise typer.BadParameter(f"{value}: give a number {span}")
+        return then(value) if then else value
+
+    return check
+
+
 def _flag(name: str, kind: Any, default: Any, text: str, *decls: str, **limits: Any) -> Flag:
     """An option of type ``kind`` (None allowed when that is its default), helped by
-    ``text``; ``decls`` and ``limits`` go to `typer.Option`."""
+    ``text``; ``decls`` and ``limits`` go to `typer.Option` (a float's min and max to
+    `bounded`)."""
+    if kind is float and ("min" in limits or "max" in limits):
+        low, high = limits.pop("min", None), limits.pop("max", None)
+        limits["callback"] = bounded(low, high, limits.get("callback"))
+        text = f"{text}; a number {_span(low, high)}"
     if isinstance(kind, type) and issubclass(kind, StrEnum) and default is not None:
         default = kind(default)
     allowed = kind if default is not None else kind | None
