@@ -297,3 +297,32 @@ def test_compare_json_that_cannot_be_written_is_one_line(
         f"error: cannot write the comparison to {under_a_file}: Not a directory "
         "(the table above is complete)\n"
     )
+
+
+def test_a_plot_cut_short_leaves_no_truncated_image_under_its_name(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from matplotlib.figure import Figure
+
+    from cavenav.files import save_figure
+
+    figure = Figure()
+    figure.add_subplot().plot([0, 1], [1, 0])
+    save_figure(figure, tmp_path / "side.png", dpi=50)
+    whole = (tmp_path / "side.png").read_bytes()
+    assert whole.startswith(b"\x89PNG")
+
+    def interrupted(self: Figure, target: Path, **options: object) -> None:
+        Path(target).write_bytes(whole[:124])  # Ctrl-C arrives half-way through
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(Figure, "savefig", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        save_figure(figure, tmp_path / "side.png", dpi=50)
+    assert (tmp_path / "side.png").read_bytes() == whole  # the last whole plot stays
+    with pytest.raises(KeyboardInterrupt):
+        save_figure(figure, tmp_path / "topdown.png")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["side.png"]  # no half, no temporary

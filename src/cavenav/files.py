@@ -11,8 +11,9 @@ import os
 import threading
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
-__all__ = ["write_then_rename"]
+__all__ = ["save_figure", "write_then_rename"]
 
 
 def write_then_rename(path: Path, write: Callable[[Path], object]) -> None:
@@ -30,3 +31,10 @@ def write_then_rename(path: Path, write: Callable[[Path], object]) -> None:
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
+
+
+def save_figure(figure: Any, path: Path, **options: Any) -> None:  # noqa: ANN401 - matplotlib's
+    """``figure.savefig`` to ``path`` through `write_then_rename`: a plot cut short (Ctrl-C,
+    a full disk) leaves no truncated image under its name. The format is the name's."""
+    path = Path(path)
+    write_then_rename(path, lambda tmp: figure.savefig(tmp, format=path.suffix[1:], **options))

@@ -18,6 +18,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from cavenav.episode.loop import EpisodeConfig, run_episode  # noqa: E402
+from cavenav.files import save_figure
 from cavenav.pilots.geometric import GeometricPilot  # noqa: E402
 from cavenav.sensors.rig import SensorConfig, SensorRig  # noqa: E402
 from cavenav.types import Pose  # noqa: E402
@@ -120,6 +121,6 @@ def write_contact_sheet(
     fig.tight_layout(pad=0.4, rect=(0, 0, 1, 1 - title_in / fig.get_figheight()))
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100)
+    save_figure(fig, path, dpi=100)
     plt.close(fig)
     return path

@@ -24,6 +24,7 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Circle
 
 from cavenav.episode.records import EpisodeSummary
+from cavenav.files import save_figure
 from cavenav.types import Pose
 from cavenav.world.mesh import CaveMesh
 from cavenav.world.procedural import along, arc_length
@@ -145,7 +146,7 @@ def _finish(fig: Figure, ax: Axes, lines, scenario: Scenario, path: Path) -> Non
     fig.colorbar(lines, ax=ax, label="clearance to nearest surface (m)", shrink=0.8)
     if scenario.mesh.name.startswith("cave_") and scenario.mesh.name.endswith(".dae"):
         fig.text(0.01, 0.01, f"mesh: {_CREDIT}", fontsize=7, color="0.4")
-    fig.savefig(path, dpi=110, bbox_inches="tight")
+    save_figure(fig, path, dpi=110, bbox_inches="tight")
 
 
 def plot_episode(
@@ -286,7 +287,7 @@ def plot_flight(
     ax.set_aspect("equal")
     ax.set(xlabel="x (m)", ylabel="y (m)", title=title)
     ax.legend(loc="upper left", fontsize=8)
-    fig.savefig(out_dir / "topdown.png", dpi=110, bbox_inches="tight")
+    save_figure(fig, out_dir / "topdown.png", dpi=110, bbox_inches="tight")
     _plot_sounded(steps, p, title, out_dir / "side.png")
     return {"topdown": "topdown.png", "side": "side.png"}
 
@@ -312,4 +313,4 @@ def _plot_sounded(
     ax.set(xlim=(0, max(s[-1], 1.0)), ylim=(lo, hi), xlabel="distance along the path (m)")
     ax.set(ylabel="z (m)", title=f"{title} · ceiling and floor as the sounders read them")
     ax.legend(loc="upper right", fontsize=8, ncols=3)
-    fig.savefig(path, dpi=110, bbox_inches="tight")
+    save_figure(fig, path, dpi=110, bbox_inches="tight")

@@ -41,6 +41,7 @@ from typing import Any
 from cavenav.actions import parse_action
 from cavenav.episode.run_folder import write_atomic, write_json
 from cavenav.errors import ActionError, ConfigError, DependencyError, RecordingError
+from cavenav.files import save_figure
 from cavenav.pilots.backends import TransformersBackend, TransformersConfig, local_chat
 from cavenav.pilots.factory import PILOT_SETTINGS, PROMPT_FILE, VLMOptions
 from cavenav.pilots.prompt import PromptConfig, render_system
@@ -477,5 +478,5 @@ def _plot_loss(history: list[dict[str, Any]], path: Path) -> None:
     axes.legend()
     axes.grid(alpha=0.3)
     figure.tight_layout()
-    figure.savefig(path)
+    save_figure(figure, path)
     plt.close(figure)
