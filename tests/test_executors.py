@@ -19,7 +19,7 @@ import pytest
 
 from cavenav.errors import ConfigError, DependencyError, RecordingError
 from cavenav.evaluation.executors import RayCluster
-from cavenav.evaluation.sweep import EpisodeJob, SweepConfig
+from cavenav.evaluation.sweep import EpisodeJob, SweepConfig, run_sweep
 
 CONFIG = SweepConfig(scenarios=("S1",), seeds=(0, 1, 2, 3), steps=6, frames="none")
 JOBS = [EpisodeJob("S1", seed) for seed in CONFIG.seeds]
@@ -152,6 +152,10 @@ def test_an_unreachable_address_fails_at_once_with_real_ray(tmp_path: Path) -> N
     assert "\n" not in str(e.value)
     assert not ray.is_initialized()
     assert not (tmp_path / "episodes").exists()  # nothing flown
+    # A sweep reaches Ray before it writes anything: no sweep.json, no empty tables.
+    with pytest.raises(ConfigError, match="cannot reach Ray"):
+        run_sweep(CONFIG, tmp_path / "sweep", RayCluster("ray://127.0.0.1:1"))
+    assert not (tmp_path / "sweep").exists()
 
 
 def test_without_ray_installed_the_error_gives_the_install_command(

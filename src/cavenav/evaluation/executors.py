@@ -302,31 +302,35 @@ class RayCluster:
     workers: int | None = None
     concurrency: int = 1
 
+    @contextlib.contextmanager
+    def opened(self) -> Iterator[None]:
+        """Ray, reached before the sweep writes anything (`run_sweep`): an address that
+        answers nothing is refused with nothing written."""
+        ray = _ray()
+        if ray.is_initialized():
+            yield
+            return
+        try:
+            ray.init(
+                address=self.address,
+                include_dashboard=False,
+                log_to_driver=False,
+                configure_logging=False,
+            )
+        except (ConnectionError, ValueError, RuntimeError) as exc:
+            raise ConfigError(f"cannot reach Ray at '{self.address}': {exc}") from None
+        try:
+            yield
+        finally:
+            ray.shutdown()
+
     def run(
         self, config: SweepConfig, folder: Path, jobs: Sequence[EpisodeJob], done: Done
     ) -> None:
         if not jobs:
             return
-        try:
-            import ray
-        except ImportError:
-            raise DependencyError("--ray-address needs Ray: pip install 'cavenav[ray]'") from None
-        started_here = not ray.is_initialized()
-        if started_here:
-            try:
-                ray.init(
-                    address=self.address,
-                    include_dashboard=False,
-                    log_to_driver=False,
-                    configure_logging=False,
-                )
-            except (ConnectionError, ValueError, RuntimeError) as exc:
-                raise ConfigError(f"cannot reach Ray at '{self.address}': {exc}") from None
-        try:
-            self._run(ray, config, Path(folder).resolve(), jobs, done)
-        finally:
-            if started_here:
-                ray.shutdown()
+        with self.opened():
+            self._run(_ray(), config, Path(folder).resolve(), jobs, done)
 
     def _run(
         self, ray: Any, config: SweepConfig, folder: Path, jobs: Sequence[EpisodeJob], done: Done
@@ -378,3 +382,11 @@ class _RayWorker:
 
     def fly(self, job: EpisodeJob) -> dict[str, Any]:
         return self.worker.fly(job)
+
+
+def _ray() -> Any:  # noqa: ANN401 - the ray module
+    try:
+        import ray
+    except ImportError:
+        raise DependencyError("--ray-address needs Ray: pip install 'cavenav[ray]'") from None
+    return ray

@@ -31,7 +31,7 @@ import time
 import traceback
 import warnings
 from collections.abc import Callable, Iterator, Mapping, Sequence
-from contextlib import contextmanager, suppress
+from contextlib import contextmanager, nullcontext, suppress
 from dataclasses import dataclass, replace
 from datetime import UTC, datetime
 from pathlib import Path
@@ -615,7 +615,8 @@ def run_sweep(
     """
     folder = Path(folder)
     check_grid(config)
-    with _only_sweep_in(folder):
+    opened = getattr(executor, "opened", nullcontext)  # Ray: reached before any write
+    with opened(), _only_sweep_in(folder):
         jobs = prepare(config, folder)
         if started:
             started(len(jobs), config.episodes)
