@@ -80,11 +80,12 @@ def test_bad_input_is_one_line_on_stderr_not_a_traceback(tmp_path: Path) -> None
         (("run", "S4", "--pilot", "oracle"), "unknown pilot 'oracle'"),
     ]
     for args, names_the_bad_value in cases:
-        done = cavenav(*args)
+        done = cavenav(*args, "--out", str(tmp_path / "new" / "runs"))
         assert done.returncode == 2
         assert "Traceback" not in done.stderr
         assert done.stderr.startswith("error:") and done.stderr.count("\n") == 1, done.stderr
         assert names_the_bad_value in done.stderr
+        assert not (tmp_path / "new").exists()  # exit 2 writes nothing, not even --out
 
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"

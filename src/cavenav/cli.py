@@ -132,7 +132,7 @@ def run(
     view: LiveView = VIEW_FILLED_BY_TAKES,
 ) -> None:
     """Fly one episode and write its run folder (summary, steps, frames, plots)."""
-    from cavenav.episode.run_folder import new_run_dir, prepare_root
+    from cavenav.episode.run_folder import new_run_dir, prepared_root
 
     spec = _pilot_spec(pilot, vlm, from_, policy, teacher)
     if pilot == "replay":
@@ -144,15 +144,17 @@ def run(
         exr_compression=exr_compression.value,
         shield=shield,
     )
-    prepare_root(out)  # a folder that cannot be written is refused before the cave is built
-    cave = _built(settings, scenario, seed)
-    config = settings.episode_config(cave)
-    console.print(
-        f"[bold]{cave.name}[/]: {cave.description or cave.mesh.name} "
-        f"({cave.mesh.triangle_count:,} triangles)"
-    )
-    run_dir = new_run_dir(out, cave.name, pilot, cave.seed)
-    fly_episode(cave, flyer, config, run_dir, view=view)
+    # A folder that cannot be written is refused before the cave is built; one made here
+    # for a cave that is refused (unknown, a start in rock) is removed again.
+    with prepared_root(out):
+        cave = _built(settings, scenario, seed)
+        config = settings.episode_config(cave)
+        console.print(
+            f"[bold]{cave.name}[/]: {cave.description or cave.mesh.name} "
+            f"({cave.mesh.triangle_count:,} triangles)"
+        )
+        run_dir = new_run_dir(out, cave.name, pilot, cave.seed)
+        fly_episode(cave, flyer, config, run_dir, view=view)
 
 
 def _built(settings: EpisodeSettings, scenario: str, seed: int) -> Any:  # noqa: ANN401

@@ -25,7 +25,7 @@ import signal
 import tempfile
 import threading
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
@@ -34,7 +34,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from cavenav.episode.records import numbered_jsonl
-from cavenav.errors import ConfigError, RecordingError
+from cavenav.errors import CavenavError, ConfigError, RecordingError
 from cavenav.files import write_then_rename
 from cavenav.redaction import redact
 from cavenav.sensors.depth import EXR_COMPRESSIONS, ExrCompression, save_png, write_exr
@@ -54,6 +54,26 @@ __all__ = [
     "write_atomic",
     "write_json",
 ]
+
+
+@contextmanager
+def prepared_root(root: str | Path) -> Iterator[Path]:
+    """`prepare_root`, for a block that may still refuse its input (an unknown
+    scenario, a start inside rock): the folders it created are removed again if the
+    block raises a `CavenavError` and leaves them empty, so exit status 2 writes nothing."""
+    root = Path(root).absolute()
+    first_new = next((p for p in [*reversed(root.parents), root] if not p.exists()), None)
+    prepare_root(root)
+    try:
+        yield root
+    except CavenavError:
+        if first_new is not None:
+            with suppress(OSError):  # not empty, or gone: left as it is
+                for folder in [root, *root.parents]:
+                    folder.rmdir()
+                    if folder == first_new:
+                        break
+        raise
 
 
 def prepare_root(root: str | Path) -> Path:
