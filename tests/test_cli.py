@@ -91,6 +91,20 @@ def test_bad_input_is_one_line_on_stderr_not_a_traceback(tmp_path: Path) -> None
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 
 
+def test_render_checks_where_its_sheet_goes_before_it_renders(tmp_path: Path) -> None:
+    (tmp_path / "a-file").write_text("")
+    cases = [
+        (tmp_path, "is a folder: name the image to write"),
+        (tmp_path / "sheet", "name an image file (.avif, "),  # it wrote sheet.png beside it
+        (tmp_path / "a-file" / "sheet.png", "a-file is a file"),
+    ]
+    for out, says in cases:
+        done = cavenav("render", "S1", "--out", str(out))
+        assert done.returncode == 2 and says in done.stderr, done.stderr
+        assert done.stderr.count("\n") == 1 and "building" not in done.stdout
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a-file"]
+
+
 @pytest.mark.slow
 def test_render_writes_a_contact_sheet_of_views_along_the_passage(tmp_path: Path) -> None:
     sheet = tmp_path / "sheet.png"

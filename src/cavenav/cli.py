@@ -225,12 +225,14 @@ def render(
     settings: EpisodeSettings = FILLED_BY_TAKES,
 ) -> None:
     """Write a contact sheet: colour and depth views from poses along the passage."""
-    from cavenav.episode.gallery import passage_poses, write_contact_sheet
+    from cavenav.episode.gallery import passage_poses, sheet_path, write_contact_sheet
 
+    if out is not None:
+        sheet_path(out)  # before the cave is built and rendered
     with console.status(f"building {scenario} (seed {seed})"):
         cave = settings.load(scenario, seed)
     sensors = settings.sensors_for(cave)
-    path = out or Path(f"render-{cave.name}-{sensors.optics.water_name}.png")
+    path = out or sheet_path(f"render-{cave.name}-{sensors.optics.water_name}.png")
     with console.status(f"finding {views} poses along {cave.name}"):
         poses = passage_poses(cave, views)
     with console.status("rendering"):

@@ -8,6 +8,8 @@ would receive beside its depth PNG.
 
 from __future__ import annotations
 
+import os
+import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -16,9 +18,11 @@ import matplotlib
 matplotlib.use("Agg")  # headless: never open a window
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+from matplotlib.backend_bases import FigureCanvasBase  # noqa: E402
 
 from cavenav.episode.loop import EpisodeConfig, run_episode  # noqa: E402
-from cavenav.files import save_figure
+from cavenav.errors import ConfigError  # noqa: E402
+from cavenav.files import save_figure  # noqa: E402
 from cavenav.pilots.geometric import GeometricPilot  # noqa: E402
 from cavenav.sensors.rig import SensorConfig, SensorRig  # noqa: E402
 from cavenav.types import Pose  # noqa: E402
@@ -72,6 +76,34 @@ def render_views(
         obs = rig.observe(pose)
         views.append(GalleryView(pose, distance, obs.rgb, obs.depth_png, obs.d_top, obs.d_bottom))
     return views
+
+
+def sheet_path(path: str | Path) -> Path:
+    """``path`` checked as a contact sheet's file before anything is rendered (that takes
+    seconds): an image name whose folder can be written, not a folder; the folder is
+    made if missing.
+
+    Raises:
+        ConfigError: a folder, a name without an image suffix, or a folder that cannot be
+            made or written (bad input, exit status 2).
+    """
+    path = Path(path)
+    if path.is_dir():
+        raise ConfigError(f"--out {path} is a folder: name the image to write, e.g. sheet.png")
+    formats = FigureCanvasBase.get_supported_filetypes()
+    if path.suffix[1:].lower() not in formats:
+        raise ConfigError(
+            f"--out {path}: name an image file ({', '.join(f'.{f}' for f in sorted(formats))})"
+        )
+    blocking = next((p for p in path.parents if p.exists() and not p.is_dir()), None)
+    if blocking is not None:
+        raise ConfigError(f"cannot write {path}: {blocking} is a file")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        os.rmdir(tempfile.mkdtemp(prefix=".probe-", dir=path.parent))
+    except OSError as exc:
+        raise ConfigError(f"cannot write {path}: {exc.strerror or exc}") from None
+    return path
 
 
 def write_contact_sheet(
