@@ -132,19 +132,26 @@ def test_a_different_configuration_is_refused_in_one_line(tmp_path: Path) -> Non
 
 
 def test_bad_input_to_a_sweep_is_refused_in_one_line_before_anything_is_written(
-    tmp_path: Path,
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     out = tmp_path / "sweep"
+    monkeypatch.setenv("CAVENAV_TEST_BAD_KEY", "sk-secret-é")
+    monkeypatch.setenv("CAVENAV_TEST_TWO_LINES", "sk-secret\nsecond")
     for args, refusal in [
         (["--scenarios", "S1,S9"], "error: unknown scenario 'S9'"),
         (["--scenarios", "S4", "--difficulty", "bend_deg=500"], "bend_deg=500 is outside"),
         (["--seeds", "0-9999999999"], "more than the 100,000 episodes a sweep flies"),
         (["--pilot", "vlm", "--model", "m", "--api-key-env", "CAVENAV_TEST_NO_KEY"],
          "no API key: set the environment variable CAVENAV_TEST_NO_KEY"),
+        (["--pilot", "vlm", "--model", "m", "--api-key-env", "CAVENAV_TEST_BAD_KEY"],
+         "the API key in CAVENAV_TEST_BAD_KEY is not a valid HTTP header value"),
+        (["--pilot", "vlm", "--model", "m", "--api-key-env", "CAVENAV_TEST_TWO_LINES"],
+         "the API key in CAVENAV_TEST_TWO_LINES is not a valid HTTP header value"),
     ]:  # fmt: skip
         refused = cavenav("eval", *args, "--out", str(out), "--workers", "1")
         assert refused.returncode == 2, refused.stderr
         assert refused.stderr.count("\n") == 1 and refusal in refused.stderr
+        assert "secret" not in refused.stderr + refused.stdout  # the key is never shown
         assert not out.exists()
 
 

@@ -292,6 +292,11 @@ class OpenAIBackend:
                 "(or point --base-url at a local server)"
             )
         register(key)  # a server may echo it back: redacted from all we hand out
+        if not all(" " <= char <= "~" for char in key):  # what an HTTP header may hold
+            raise BackendAuthError(
+                f"the API key in {config.api_key_env} is not a valid HTTP header value: it "
+                "holds a line break, a control or a non-ASCII character (set it again)"
+            )
         self._openai = openai
         self._sleep, self._clock = sleep, clock
         # The deadline of the attempt this thread is making: sweeps share one backend
