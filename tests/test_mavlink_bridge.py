@@ -208,6 +208,11 @@ def test_bad_settings_are_one_line_naming_the_field(tmp_path, text: str, message
         load_bridge_config(path)
 
 
+def test_a_config_that_is_a_folder_is_one_line(tmp_path) -> None:
+    with pytest.raises(ConfigError, match=f"^bridge config {tmp_path}: Is a directory$"):
+        load_bridge_config(tmp_path)  # it was an IsADirectoryError's traceback
+
+
 @pytest.mark.parametrize(
     "address",
     [

@@ -249,6 +249,8 @@ def load_bridge_config(path: str | Path | None = None, **overrides: Any) -> Brid
             raise ConfigError(f"bridge config not found: {path}") from None
         except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
             raise ConfigError(f"{path}: not valid TOML ({exc})") from None
+        except OSError as exc:  # a folder, unreadable
+            raise ConfigError(f"bridge config {path}: {exc.strerror or exc}") from None
     raw.update({k: v for k, v in overrides.items() if v is not None})
     try:
         config = BridgeConfig.model_validate(raw)
