@@ -193,3 +193,22 @@ def test_a_negative_sounder_reading_is_refused(server: FakeVLM, tmp_path: Path) 
     assert done.returncode == 2
     assert "d_top = -1.0 m" in done.stderr
     assert server.requests == []
+
+
+@pytest.mark.parametrize("as_depth", [False, True])
+def test_a_truncated_or_gigantic_image_is_one_line_and_nothing_is_sent(
+    server: FakeVLM, tmp_path: Path, as_depth: bool
+) -> None:
+    photo = tmp_path / "photo.png"
+    Image.fromarray(gradient(64, 48)).save(photo)
+    truncated = tmp_path / "truncated.png"
+    truncated.write_bytes(photo.read_bytes()[:60])  # OSError from getexif, uncaught
+    gigantic = tmp_path / "gigantic.png"
+    Image.new("1", (20_000, 20_000)).save(gigantic)  # 48 kB; DecompressionBombError
+    for bad, says in [(truncated, "image file is truncated"),
+                      (gigantic, "beyond Pillow's guard against decompression bombs")]:  # fmt: skip
+        done = ask(server, *((str(photo), "--depth", str(bad)) if as_depth else (str(bad),)))
+        assert done.returncode == 2, done.stderr
+        assert done.stderr.startswith(f"error: cannot read image {bad}: ")
+        assert says in done.stderr and done.stderr.count("\n") == 1
+    assert server.requests == []

@@ -91,11 +91,20 @@ def _open(path: Path) -> Image.Image:
         return Image.open(path)
     except (OSError, UnidentifiedImageError) as exc:
         raise CavenavError(f"cannot read image {path}: {exc}") from None
+    except Image.DecompressionBombError:  # Pillow's guard: its pixels would fill the memory
+        raise CavenavError(
+            f"cannot read image {path}: over {2 * Image.MAX_IMAGE_PIXELS:,} pixels, beyond "
+            "Pillow's guard against decompression bombs; shrink it first"
+        ) from None
 
 
 def _upright_size(image: Image.Image) -> tuple[tuple[int, int], int]:
     """The size as the picture is meant to be seen, and its EXIF orientation (1 = as stored)."""
-    orientation = int(image.getexif().get(ExifTags.Base.Orientation, 1) or 1)
+    try:
+        exif = image.getexif()  # reads on: a truncated file fails here
+    except (OSError, SyntaxError, ValueError) as exc:
+        raise CavenavError(f"cannot read image {image.filename}: {exc}") from None
+    orientation = int(exif.get(ExifTags.Base.Orientation, 1) or 1)
     width, height = image.size
     return ((height, width) if orientation in _QUARTER_TURNS else (width, height)), orientation
 
