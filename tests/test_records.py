@@ -326,3 +326,20 @@ def test_a_plot_cut_short_leaves_no_truncated_image_under_its_name(
     with pytest.raises(KeyboardInterrupt):
         save_figure(figure, tmp_path / "topdown.png")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["side.png"]  # no half, no temporary
+
+
+def test_only_a_regular_file_is_ever_replaced(tmp_path: Path) -> None:
+    import os
+    import stat
+
+    from cavenav.files import write_then_rename
+
+    pipe = tmp_path / "pipe"
+    os.mkfifo(pipe)  # as /dev/full: a rename would leave a regular file in its place
+    with pytest.raises(OSError, match="no regular file"):
+        write_then_rename(pipe, lambda tmp: tmp.write_text("{}"))
+    assert stat.S_ISFIFO(pipe.stat().st_mode) and sorted(tmp_path.iterdir()) == [pipe]
+    for args in (["--json", str(pipe)], ["--out", str(pipe)]):
+        done = cavenav("compare", "a", "b", *args)
+        assert done.returncode == 2 and f"cannot write {pipe}" in done.stderr, done.stderr
+    assert stat.S_ISFIFO(pipe.stat().st_mode)

@@ -22,7 +22,7 @@ from matplotlib.backend_bases import FigureCanvasBase  # noqa: E402
 
 from cavenav.episode.loop import EpisodeConfig, run_episode  # noqa: E402
 from cavenav.errors import ConfigError  # noqa: E402
-from cavenav.files import save_figure  # noqa: E402
+from cavenav.files import not_a_file_to_replace, save_figure  # noqa: E402
 from cavenav.pilots.geometric import GeometricPilot  # noqa: E402
 from cavenav.sensors.rig import SensorConfig, SensorRig  # noqa: E402
 from cavenav.types import Pose  # noqa: E402
@@ -95,9 +95,9 @@ def sheet_path(path: str | Path) -> Path:
         raise ConfigError(
             f"--out {path}: name an image file ({', '.join(f'.{f}' for f in sorted(formats))})"
         )
-    blocking = next((p for p in path.parents if p.exists() and not p.is_dir()), None)
-    if blocking is not None:
-        raise ConfigError(f"cannot write {path}: {blocking} is a file")
+    why = not_a_file_to_replace(path)
+    if why:
+        raise ConfigError(f"cannot write {path}: {why}")
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         os.rmdir(tempfile.mkdtemp(prefix=".probe-", dir=path.parent))

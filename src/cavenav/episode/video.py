@@ -48,7 +48,7 @@ from cavenav.errors import (
     DependencyError,
     RecordingError,
 )
-from cavenav.files import write_then_rename
+from cavenav.files import not_a_file_to_replace, write_then_rename
 
 if TYPE_CHECKING:
     from cavenav.world.scenarios import ExitPortal
@@ -424,14 +424,15 @@ def _output(out: Path) -> Path:
     """``out`` checked to be a file that can be made: not a folder, under no file.
 
     Raises:
-        ConfigError: ``out`` is a folder, or a file stands where a folder above it should.
+        ConfigError: ``out`` is a folder or no regular file (/dev/full), or a file
+            stands where a folder above it should.
         RecordingError: its folder cannot be made (a read-only folder).
     """
     if out.is_dir():
         raise ConfigError(f"{out} is a folder: name the MP4 to write, e.g. {out / 'episode.mp4'}")
-    above = next((folder for folder in out.parents if folder.exists()), None)
-    if above is not None and not above.is_dir():
-        raise ConfigError(f"cannot write {out}: {above} is a file, not a folder")
+    why = not_a_file_to_replace(out)
+    if why:
+        raise ConfigError(f"cannot write {out}: {why}")
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
