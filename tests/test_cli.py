@@ -91,6 +91,19 @@ def test_bad_input_is_one_line_on_stderr_not_a_traceback(tmp_path: Path) -> None
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 
 
+@pytest.mark.parametrize(
+    "args",
+    [("run", "S1", "--out", "NAME"), ("eval", "--seeds", "0", "--out", "NAME"),
+     ("run", "NAME.toml")],
+)  # fmt: skip
+def test_a_path_too_long_for_the_file_system_is_one_line(args: tuple, tmp_path: Path) -> None:
+    name = str(tmp_path / ("a" * 300))  # ENAMETOOLONG: each name at most 255 bytes
+    done = cavenav(*(arg.replace("NAME", name) for arg in args))
+    assert done.returncode == 2 and done.stderr.count("\n") == 1, done.stderr
+    assert done.stderr.startswith("error: a path is too long for the file system: ")
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_render_checks_where_its_sheet_goes_before_it_renders(tmp_path: Path) -> None:
     (tmp_path / "a-file").write_text("")
     cases = [

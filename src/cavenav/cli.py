@@ -21,6 +21,7 @@ progress bar and handles Ctrl-C; `cavenav.cli_output` prints the tables.
 from __future__ import annotations
 
 import contextlib
+import errno
 import math
 import os
 import sys
@@ -855,6 +856,15 @@ def main() -> None:
     except KeyboardInterrupt:
         errors.print("interrupted")
         sys.exit(130)
+    except OSError as exc:
+        if exc.errno != errno.ENAMETOOLONG:
+            raise
+        # A path given (--out, a scenario file) that no file system takes: bad input,
+        # met where the path is first looked at, before anything is written.
+        name = str(exc.filename or "")
+        shown = name if len(name) <= 80 else f"{name[:40]}...{name[-37:]}"
+        errors.print(f"error: a path is too long for the file system: {escape(shown)}")
+        sys.exit(2)
 
 
 def _show_warning(message: Warning | str, category: type[Warning], *_: Any, **__: Any) -> None:
