@@ -146,3 +146,45 @@ def test_a_model_that_does_not_see_a_cave_is_refused(tmp_path: Path):
     PPO("MlpPolicy", "Pendulum-v1", n_steps=16, batch_size=16).save(tmp_path / "pendulum.zip")
     with pytest.raises(ConfigError, match="a cavenav policy sees a Dict of some of rgb"):
         PolicyPilot(tmp_path / "pendulum.zip")
+
+
+class _FlatEyes(gym.Env):
+    """A policy's world where 'rgb' is a vector of ten numbers, not an image."""
+
+    observation_space = gym.spaces.Dict(
+        {"rgb": gym.spaces.Box(0, 255, (10,), np.uint8),
+         "d_top": gym.spaces.Box(0, 20, (1,), np.float32)}
+    )  # fmt: skip
+    action_space = gym.spaces.Box(-1, 1, (4,), np.float32)
+
+
+def test_a_file_that_is_no_whole_cavenav_model_is_one_line(ppo_file: Path, tmp_path: Path):
+    import zipfile
+
+    from stable_baselines3 import PPO
+
+    with zipfile.ZipFile(ppo_file) as model:
+        members = {name: model.read(name) for name in model.namelist()}
+    cases = {}
+    cases["no-model.zip"] = {"notes.txt": b"not a model"}
+    cases["no-data.zip"] = {k: v for k, v in members.items() if k != "data"}
+    PPO("MlpPolicy", "Pendulum-v1", n_steps=16, batch_size=16).save(tmp_path / "other.zip")
+    with zipfile.ZipFile(tmp_path / "other.zip") as other:  # another network's weights
+        cases["other-weights.zip"] = {**members, "policy.pth": other.read("policy.pth")}
+    for name, contents in cases.items():
+        with zipfile.ZipFile(tmp_path / name, "w") as model:
+            for member, data in contents.items():
+                model.writestr(member, data)
+    PPO("MultiInputPolicy", _FlatEyes(), n_steps=16, batch_size=16).save(tmp_path / "flat.zip")
+    refusals = [
+        ("no-model.zip", "holds no 'data' member"),
+        ("no-data.zip", "holds no 'data' member"),
+        ("other-weights.zip", "its weights do not fit its network"),
+        ("flat.zip", "sees 'rgb' as Box(0, 255, (10,), uint8), not as an image"),
+    ]
+    for name, says in refusals:  # each was a traceback (AssertionError, RuntimeError, ...)
+        with pytest.raises(ConfigError) as refused:
+            PolicyPilot(tmp_path / name)
+        message = str(refused.value)
+        assert message.startswith(f"--policy {tmp_path / name}") and says in message
+        assert "\n" not in message

@@ -81,7 +81,12 @@ def load_policy(path: Path) -> LoadedPolicy:
         data, params, _ = load_from_zip_file(path, device="cpu")
     except Exception as exc:  # a zip that is not a model fails in many ways
         raise ConfigError(f"--policy {path} is not a Stable-Baselines3 model: {exc}") from None
-    assert data is not None
+    wanted = ("observation_space", "action_space", "policy_class")
+    if not data or any(key not in data for key in wanted) or "policy" not in (params or {}):
+        raise ConfigError(
+            f"--policy {path} is not a Stable-Baselines3 model: it holds no "
+            + ("'data' member" if not data else "policy, or no observation or action space")
+        )
     observations, actions = data["observation_space"], data["action_space"]
     _check_spaces(path, observations, actions)
     kwargs = dict(data.get("policy_kwargs") or {})
@@ -89,7 +94,13 @@ def load_policy(path: Path) -> LoadedPolicy:
     if data.get("use_sde") and "use_sde" not in kwargs:  # on-policy algorithms keep it apart
         kwargs["use_sde"] = True
     policy = data["policy_class"](observations, actions, lambda _: 0.0, **kwargs)
-    policy.load_state_dict(params["policy"])
+    try:
+        policy.load_state_dict(params["policy"])
+    except RuntimeError as exc:  # weights of another network: torch lists every mismatch
+        first = str(exc).splitlines()[0].rstrip(":")
+        raise ConfigError(
+            f"--policy {path}: its weights do not fit its network ({first})"
+        ) from None
     policy.set_training_mode(False)
     seen = observations.spaces
     image = next(seen[k] for k in ("rgb", "depth", "depth_m") if k in seen)
@@ -128,8 +139,15 @@ def _check_spaces(path: Path, observations: Any, actions: Any) -> None:  # noqa:
             f"--policy {path} sees {keys or observations}; a cavenav policy sees a Dict of "
             f"some of {', '.join(KEYS)} (cavenav/CaveNav-vector-v0's observation)"
         )
-    if not any(k in keys for k in ("rgb", "depth", "depth_m")):
+    images = [k for k in ("rgb", "depth", "depth_m") if k in keys]
+    if not images:
         raise ConfigError(f"--policy {path} sees no image (it sees {', '.join(keys)})")
+    flat = [k for k in images if len(getattr(observations.spaces[k], "shape", ())) not in (2, 3)]
+    if flat:
+        raise ConfigError(
+            f"--policy {path} sees '{flat[0]}' as {observations.spaces[flat[0]]}, not as an "
+            "image (height x width, with or without channels)"
+        )
     shape, low = getattr(actions, "shape", None), getattr(actions, "low", None)
     if shape != (4,) or low is None or not np.isfinite([actions.low, actions.high]).all():
         raise ConfigError(
