@@ -91,6 +91,19 @@ def test_bad_input_is_one_line_on_stderr_not_a_traceback(tmp_path: Path) -> None
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 
 
+def test_a_rerun_recording_that_cannot_be_written_is_refused_before_anything(
+    tmp_path: Path,
+) -> None:
+    (tmp_path / "a-file").write_text("")
+    runs = tmp_path / "runs"
+    for save, says in [(tmp_path, "is a folder"), (tmp_path / "a-file" / "x.rrd", "is a file")]:
+        for command in (["run", "S1", "--out", str(runs)], ["fly", "--sim", "S1", "--yes"]):
+            done = cavenav(*command, "--rerun-save", str(save))
+            assert done.returncode == 2 and done.stderr.count("\n") == 1, done.stderr
+            assert done.stderr.startswith(f"error: cannot write the Rerun recording {save}: ")
+            assert says in done.stderr and not runs.exists()  # it was RuntimeError, late
+
+
 @pytest.mark.parametrize(
     "args",
     [("run", "S1", "--out", "NAME"), ("eval", "--seeds", "0", "--out", "NAME"),

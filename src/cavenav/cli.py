@@ -135,6 +135,7 @@ def run(
     """Fly one episode and write its run folder (summary, steps, frames, plots)."""
     from cavenav.episode.run_folder import new_run_dir, prepared_root
 
+    _check_view(view)
     spec = _pilot_spec(pilot, vlm, from_, policy, teacher)
     if pilot == "replay":
         seed = _recorded_seed(scenario, str(from_), seed)
@@ -156,6 +157,14 @@ def run(
         )
         run_dir = new_run_dir(out, cave.name, pilot, cave.seed)
         fly_episode(cave, flyer, config, run_dir, view=view)
+
+
+def _check_view(view: LiveView) -> None:
+    """A Rerun recording's file checked first, before a pilot, a cave or a vehicle."""
+    if view.rerun_save:
+        from cavenav.episode.rerun_log import check_recording_path
+
+        check_recording_path(Path(view.rerun_save))
 
 
 def _built(settings: EpisodeSettings, scenario: str, seed: int) -> Any:  # noqa: ANN401
@@ -586,6 +595,7 @@ def fly(
     sounders and depth model, or with --sim in a simulated cave."""
     from cavenav.vehicle.mavlink import load_bridge_config
 
+    _check_view(view)
     bridge = load_bridge_config(config, connect=connect, mode=mode.value if mode else None)
     if dry_run:
         _print_dry_run(bridge, action or [])

@@ -29,6 +29,7 @@ from __future__ import annotations
 import math
 import os
 import sys
+import tempfile
 import warnings
 from collections.abc import Mapping
 from pathlib import Path
@@ -37,6 +38,7 @@ from typing import Any
 import numpy as np
 
 from cavenav.errors import CavenavWarning, ConfigError, DependencyError
+from cavenav.files import not_a_file_to_replace
 from cavenav.sensors.camera import CameraIntrinsics
 from cavenav.sensors.depth import read_exr
 from cavenav.types import Observation, Pose, VehicleBody
@@ -86,16 +88,35 @@ def open_recording(name: str, *, live: bool = False, save: Path | None = None) -
     if live:
         _spawn(recording)
     sinks = [rr.GrpcSink()] if live else []
-    if save is not None:
-        try:
+    try:
+        if save is not None:
+            check_recording_path(save)
             Path(save).parent.mkdir(parents=True, exist_ok=True)
             sinks.append(rr.FileSink(str(save)))
-        except (OSError, RuntimeError) as exc:
-            raise ConfigError(
-                f"cannot write the Rerun recording {save}: {_first_line(exc)}"
-            ) from None
-    recording.set_sinks(*sinks)
+        recording.set_sinks(*sinks)  # opens the file: a full disk or a folder fails here
+    except (OSError, RuntimeError) as exc:
+        raise ConfigError(f"cannot write the Rerun recording {save}: {_first_line(exc)}") from None
     return recording
+
+
+def check_recording_path(save: Path) -> None:
+    """``save`` checked able to take an .rrd file before anything is opened or written
+    (a live view connects, a vehicle is armed): not a folder, nor a device, and the
+    nearest folder above it that exists is writable. Nothing is created.
+
+    Raises:
+        ConfigError: it cannot take the recording.
+    """
+    save = Path(save).absolute()
+    why = not_a_file_to_replace(save)
+    if why is None:
+        above = next(folder for folder in save.parents if folder.exists())
+        try:
+            os.rmdir(tempfile.mkdtemp(prefix=".probe-", dir=above))
+        except OSError as exc:
+            why = f"{above}: {exc.strerror or exc}"
+    if why:
+        raise ConfigError(f"cannot write the Rerun recording {save}: {why}")
 
 
 def _first_line(error: BaseException) -> str:
