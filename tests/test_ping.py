@@ -63,6 +63,15 @@ def test_nothing_answering_at_the_address_is_a_vehicle_error() -> None:
         silent.close()
 
 
+def test_nothing_listening_at_the_address_is_a_vehicle_error() -> None:
+    closed = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    closed.bind(("127.0.0.1", 0))
+    port = closed.getsockname()[1]
+    closed.close()  # the port refuses: ConnectionRefusedError, raised from inside brping
+    with pytest.raises(VehicleError, match=f"^sounder udp:127.0.0.1:{port}: Connection refused$"):
+        PingSounder(PingAddress(kind="udp", where="127.0.0.1", number=port))
+
+
 def test_a_failed_second_sounder_closes_the_first_again() -> None:
     silent = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     silent.bind(("127.0.0.1", 0))

@@ -88,7 +88,11 @@ class PingSounder:
                     device.connect_serial(address.where, address.number)
         except Exception as exc:  # brping raises bare Exceptions
             raise VehicleError(f"sounder {address}: cannot open it ({exc})") from None
-        if not device.initialize():
+        try:
+            answered = device.initialize()
+        except OSError as exc:  # UDP: nothing listens there (ICMP port unreachable)
+            raise VehicleError(f"sounder {address}: {exc.strerror or exc}") from None
+        if not answered:
             raise VehicleError(f"sounder {address}: no answer to the ping protocol")
         self.device = device
 
