@@ -38,7 +38,7 @@ cavenav eval --scenarios S1,S2,S3,S4,S5 --seeds 20-29 --pilot vlm --backend tran
 
 # 4. Both sets of states, labelled by the teacher, train the model that ships.
 [ -f "$work/data1/README.md" ] ||
-  cavenav dataset "$work/teacher" "$work/round1" --labels teacher --allow-mixed \
+  cavenav dataset "$work/teacher" "$work/round1" --labels teacher \
     --out "$work/data1" "${request[@]}"
 [ -f "$out/README.md" ] ||
   cavenav finetune "$work/data1" --out "$out" --new small --prompt-file "$prompt" --epochs 4

@@ -182,6 +182,14 @@ def test_teacher_labels_train_on_the_students_own_states(tmp_path: Path) -> None
     export_dataset([run_dir, alone], both, DatasetOptions(labels="teacher", validation=0))
     assert [row["teacher"] for row in rows_of(both)] == ["geometric"] * 8
     assert [row["pilot"] for row in rows_of(both)] == ["random"] * 4 + ["geometric"] * 4
+    # A model's round, its requests as recorded, goes with the teacher's flight too: that
+    # flight had no prompt, and is asked again with the dataset's.
+    student = tmp_path / "student"
+    with FakeVLM() as server:
+        shadowed = ShadowedPilot(pilot_for(server), GeometricPilot())
+        run_episode(load_scenario("S1"), shadowed, QUICK, student)
+    rounds = DatasetOptions(labels="teacher", validation=0)
+    assert export_dataset([student, alone], tmp_path / "rounds", rounds).episodes == 2
 
 
 @pytest.mark.slow

@@ -6,6 +6,7 @@ replies were made, and the prompt a model trained on them must fly with."""
 from __future__ import annotations
 
 from collections.abc import Mapping
+from pathlib import Path
 from typing import Any
 
 __all__ = ["dataset_card", "model_card"]
@@ -117,7 +118,11 @@ def model_card(
         or "| (no validation rows) | |"
     )
     latency = validation.get("median_ms")
-    prompt = ", ".join(f"{k} = {v}" for k, v in dataset.get("prompt", {}).items() if v is not None)
+    prompt = ", ".join(
+        f"{k} = {Path(v).name if k == 'prompt_file' else v}"  # the name, not this machine's path
+        for k, v in dataset.get("prompt", {}).items()
+        if v is not None
+    )
     return f"""---
 library_name: transformers
 pipeline_tag: image-text-to-text

@@ -150,8 +150,7 @@ class _Episode:
     @property
     def settings(self) -> str:
         """What must agree across the sources: the sensors, rules, body, water and shield
-        the episode flew with (its seeds and step budget may differ), and the system
-        prompt of a model pilot's requests."""
+        the episode flew with (its seeds and step budget may differ)."""
         config = dict(self.summary.get("config") or {})
         for per_episode in ("seed", "max_steps", "plots", "save_frames", "save_exr",
                             "exr_compression"):  # fmt: skip
@@ -160,15 +159,22 @@ class _Episode:
         sensors.pop("seed", None)  # a trial's noise
         config["sensors"] = sensors
         config["scenario_set"] = self.summary.get("scenario_set")
-        exchanges = self.run_dir / "exchanges.jsonl"
-        if exchanges.is_file():
-            with open(exchanges, encoding="utf-8") as lines:
-                first = json.loads(next(lines, "{}") or "{}")
-            config["system_prompt"] = next(
-                (m.get("content") for m in first.get("messages", []) if m.get("role") == "system"),
-                None,
-            )
         return json.dumps(config, sort_keys=True)
+
+    @property
+    def system_prompt(self) -> str | None:
+        """The system prompt of a model pilot's requests; None for a run flown again,
+        whose requests take the dataset's own prompt (a teacher's sweep was flown with
+        none, so it agrees with any DAgger round)."""
+        exchanges = self.run_dir / "exchanges.jsonl"
+        if not exchanges.is_file():
+            return None
+        with open(exchanges, encoding="utf-8") as lines:
+            first = json.loads(next(lines, "{}") or "{}")
+        return next(
+            (m.get("content") for m in first.get("messages", []) if m.get("role") == "system"),
+            None,
+        )
 
 
 def _episodes_of(source: Path) -> tuple[list[_Episode], dict[str, Any]]:
@@ -562,15 +568,20 @@ def _gather(
             + ", ".join(f"{k} {v}" for k, v in skipped.items())
             + " (--episodes all keeps unsuccessful ones)"
         )
-    settings = {}
+    settings: dict[str, _Episode] = {}
+    prompts: dict[str, _Episode] = {}
     for episode in episodes:
         settings.setdefault(episode.settings, episode)
-    if len(settings) > 1 and not options.allow_mixed:
-        first, other = list(settings.values())[:2]
-        raise ConfigError(
-            f"{first.run_dir} and {other.run_dir} were flown with different settings or "
-            "prompts; export them apart, or pass --allow-mixed"
-        )
+        prompt = episode.system_prompt
+        if prompt is not None:
+            prompts.setdefault(prompt, episode)
+    for differing in (settings, prompts):
+        if len(differing) > 1 and not options.allow_mixed:
+            first, other = list(differing.values())[:2]
+            raise ConfigError(
+                f"{first.run_dir} and {other.run_dir} were flown with different settings or "
+                "prompts; export them apart, or pass --allow-mixed"
+            )
     return episodes, about, skipped
 
 
