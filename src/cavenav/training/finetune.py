@@ -345,13 +345,18 @@ def _trainer(
         model=model,
         args=arguments,
         train_dataset=splits["train"],
-        eval_dataset=_first(splits.get("validation"), EVAL_ROWS),
+        eval_dataset=_spread(splits.get("validation"), EVAL_ROWS),
         data_collator=_Collator(processor, system),
     )
 
 
-def _first(rows: Any, count: int) -> Any:  # noqa: ANN401 - a datasets.Dataset or None
-    return None if rows is None else rows.select(range(min(count, len(rows))))
+def _spread(rows: Any, count: int) -> Any:  # noqa: ANN401 - a datasets.Dataset or None
+    """``count`` rows evenly spaced over ``rows``: rows come cave by cave, episode by
+    episode, so the first 64 would all be one cave's (and its start)."""
+    if rows is None:
+        return None
+    step = max(1, len(rows) // max(count, 1))
+    return rows.select(range(0, len(rows), step)[:count])
 
 
 def _save(
@@ -381,12 +386,12 @@ def score_actions(
     card: Mapping[str, Any],
     device: str = "cpu",  # noqa: ANN401
 ) -> dict[str, Any]:
-    """How often the model, asked as the pilot asks it, gives the row's action: over the
-    first ``limit`` rows, the share whose first reply parses, whose whole action string
-    matches, whose four parts all match and whose each part matches (forward, strafe and
-    yaw exactly; the vertical move within 0.1 m, being continuous: "ascend 0.16 m" for
-    "ascend 0.15 m" fails the whole string but not the parts); and the median
-    milliseconds a decision took.
+    """How often the model, asked as the pilot asks it, gives the row's action: over
+    ``limit`` rows spread evenly over ``rows``, the share whose first reply parses, whose
+    whole action string matches, whose four parts all match and whose each part matches
+    (forward, strafe and yaw exactly; the vertical move within 0.1 m, being continuous:
+    "ascend 0.16 m" for "ascend 0.15 m" fails the whole string but not the parts); and
+    the median milliseconds a decision took.
 
     Args:
         card: the rows' dataset's cavenav_dataset.json (its camera renders the model's
@@ -396,7 +401,7 @@ def score_actions(
         return {}
     model_dir = Path(model_dir)
     options = VLMOptions(model=str(model_dir), backend="transformers").for_model()
-    chosen = _first(rows, limit)
+    chosen = _spread(rows, limit)
     backend = TransformersBackend(TransformersConfig(str(model_dir), device=device))
     # A reply twice as long as the longest target is wrong however it ends: stop there.
     longest = max(backend.count_tokens(row["reply"]) for row in chosen)
