@@ -424,11 +424,11 @@ def compare(
     from cavenav.episode.run_folder import write_json
     from cavenav.errors import ConfigError, RecordingError
     from cavenav.evaluation import comparison
-    from cavenav.files import not_a_file_to_replace
+    from cavenav.files import cannot_write
 
     if json_out is not None and json_out.is_dir():
         raise ConfigError(f"--json {json_out} is a folder: name the file to write")
-    why = json_out and not_a_file_to_replace(json_out)
+    why = json_out and cannot_write(json_out)
     if why:
         raise ConfigError(f"cannot write {json_out}: {why}")
     if out is not None and out.exists() and not out.is_dir():

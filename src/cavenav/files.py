@@ -9,12 +9,13 @@ from __future__ import annotations
 
 import errno
 import os
+import tempfile
 import threading
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-__all__ = ["not_a_file_to_replace", "save_figure", "write_then_rename"]
+__all__ = ["cannot_write", "not_a_file_to_replace", "save_figure", "write_then_rename"]
 
 
 def write_then_rename(path: Path, write: Callable[[Path], object]) -> None:
@@ -58,3 +59,18 @@ def not_a_file_to_replace(path: Path) -> str | None:
     if above is not None and not above.is_dir():
         return f"{above} is a file, not a folder"
     return None
+
+
+def cannot_write(path: Path) -> str | None:
+    """Why a file cannot be written at ``path``, or None, found before any work and
+    without creating anything: `not_a_file_to_replace`, or the nearest folder above it
+    that exists cannot be written (read-only)."""
+    path = Path(path).absolute()
+    why = not_a_file_to_replace(path)
+    if why is None:
+        above = next(folder for folder in path.parents if folder.exists())
+        try:
+            os.rmdir(tempfile.mkdtemp(prefix=".probe-", dir=above))  # what access() cannot tell
+        except OSError as exc:
+            why = f"{above}: {exc.strerror or exc}"
+    return why

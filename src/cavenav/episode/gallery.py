@@ -8,8 +8,6 @@ would receive beside its depth PNG.
 
 from __future__ import annotations
 
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -22,7 +20,7 @@ from matplotlib.backend_bases import FigureCanvasBase  # noqa: E402
 
 from cavenav.episode.loop import EpisodeConfig, run_episode  # noqa: E402
 from cavenav.errors import ConfigError  # noqa: E402
-from cavenav.files import not_a_file_to_replace, save_figure  # noqa: E402
+from cavenav.files import cannot_write, save_figure  # noqa: E402
 from cavenav.pilots.geometric import GeometricPilot  # noqa: E402
 from cavenav.sensors.rig import SensorConfig, SensorRig  # noqa: E402
 from cavenav.types import Pose  # noqa: E402
@@ -79,9 +77,8 @@ def render_views(
 
 
 def sheet_path(path: str | Path) -> Path:
-    """``path`` checked as a contact sheet's file before anything is rendered (that takes
-    seconds): an image name whose folder can be written, not a folder; the folder is
-    made if missing.
+    """``path`` checked as a contact sheet's file before anything is built or rendered
+    (that takes seconds): an image's name, where a file can be written (`cannot_write`).
 
     Raises:
         ConfigError: a folder, a name without an image suffix, or a folder that cannot be
@@ -95,14 +92,9 @@ def sheet_path(path: str | Path) -> Path:
         raise ConfigError(
             f"--out {path}: name an image file ({', '.join(f'.{f}' for f in sorted(formats))})"
         )
-    why = not_a_file_to_replace(path)
+    why = cannot_write(path)
     if why:
         raise ConfigError(f"cannot write {path}: {why}")
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        os.rmdir(tempfile.mkdtemp(prefix=".probe-", dir=path.parent))
-    except OSError as exc:
-        raise ConfigError(f"cannot write {path}: {exc.strerror or exc}") from None
     return path
 
 

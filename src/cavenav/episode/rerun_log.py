@@ -29,7 +29,6 @@ from __future__ import annotations
 import math
 import os
 import sys
-import tempfile
 import warnings
 from collections.abc import Mapping
 from pathlib import Path
@@ -38,7 +37,7 @@ from typing import Any
 import numpy as np
 
 from cavenav.errors import CavenavWarning, ConfigError, DependencyError
-from cavenav.files import not_a_file_to_replace
+from cavenav.files import cannot_write
 from cavenav.sensors.camera import CameraIntrinsics
 from cavenav.sensors.depth import read_exr
 from cavenav.types import Observation, Pose, VehicleBody
@@ -107,14 +106,7 @@ def check_recording_path(save: Path) -> None:
     Raises:
         ConfigError: it cannot take the recording.
     """
-    save = Path(save).absolute()
-    why = not_a_file_to_replace(save)
-    if why is None:
-        above = next(folder for folder in save.parents if folder.exists())
-        try:
-            os.rmdir(tempfile.mkdtemp(prefix=".probe-", dir=above))
-        except OSError as exc:
-            why = f"{above}: {exc.strerror or exc}"
+    why = cannot_write(save)
     if why:
         raise ConfigError(f"cannot write the Rerun recording {save}: {why}")
 
