@@ -292,10 +292,9 @@ def test_compare_json_that_cannot_be_written_is_one_line(
     assert folder.stderr == f"error: --json {tmp_path} is a folder: name the file to write\n"
     under_a_file = tmp_path / "a-file" / "c.json"
     done = cavenav("compare", str(a), str(b), "--json", str(under_a_file))
-    assert done.returncode == 1 and "pairs" in done.stdout  # the table was shown
+    assert done.returncode == 2 and done.stdout == ""  # found before the sweeps are read
     assert done.stderr == (
-        f"error: cannot write the comparison to {under_a_file}: Not a directory "
-        "(the table above is complete)\n"
+        f"error: cannot write {under_a_file}: {tmp_path / 'a-file'} is a file, not a folder\n"
     )
 
 

@@ -422,17 +422,10 @@ def compare(
     JSON behind it (DIR/compare.json) and the leaderboard as Markdown and LaTeX.
     """
     from cavenav.episode.run_folder import write_json
-    from cavenav.errors import ConfigError, RecordingError
+    from cavenav.errors import RecordingError
     from cavenav.evaluation import comparison
-    from cavenav.files import cannot_write
 
-    if json_out is not None and json_out.is_dir():
-        raise ConfigError(f"--json {json_out} is a folder: name the file to write")
-    why = json_out and cannot_write(json_out)
-    if why:
-        raise ConfigError(f"cannot write {json_out}: {why}")
-    if out is not None and out.exists() and not out.is_dir():
-        raise ConfigError(f"cannot write {out}: it is no folder")
+    _check_compare_outputs(json_out, out)
     read = comparison.load_sweeps(sweeps, _model_prices(price or []), allow_unpaired)
     result = comparison.comparison(read)
     if result["unpaired"]:
@@ -456,6 +449,20 @@ def compare(
         for table in (comparison.markdown_table(result), comparison.latex_table(result)):
             console.print(table, markup=False, highlight=False, soft_wrap=True)
         console.print(f"comparison page: [bold]{out / 'index.html'}[/]", soft_wrap=True)
+
+
+def _check_compare_outputs(json_out: Path | None, out: Path | None) -> None:
+    """--json and --out checked before any sweep is read: a file and a folder."""
+    from cavenav.errors import ConfigError
+    from cavenav.files import cannot_write
+
+    if json_out is not None and json_out.is_dir():
+        raise ConfigError(f"--json {json_out} is a folder: name the file to write")
+    why = json_out and cannot_write(json_out)
+    if why:
+        raise ConfigError(f"cannot write {json_out}: {why}")
+    if out is not None and out.exists() and not out.is_dir():
+        raise ConfigError(f"cannot write {out}: it is no folder")
 
 
 def _model_prices(given: list[str]) -> dict[str, tuple[float, float]]:
