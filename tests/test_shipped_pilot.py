@@ -30,7 +30,7 @@ def test_the_shipped_model_is_small_and_keeps_its_prompt_and_card() -> None:
 def test_a_fresh_clone_flies_the_shipped_model(tmp_path: Path) -> None:
     pytest.importorskip("torch")
     done = cavenav("run", "S1", "--pilot", "vlm", "--backend", "transformers", "--model",
-                   str(MODEL), "--temperature", "0", "--steps", "3", "--frames", "none",
+                   str(MODEL), "--temperature", "0", "--steps", "3", "--no-frames",
                    "--out", str(tmp_path))  # fmt: skip
     assert done.returncode == 0, done.stderr
     (run,) = tmp_path.iterdir()
