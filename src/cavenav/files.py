@@ -23,10 +23,11 @@ def write_then_rename(path: Path, write: Callable[[Path], object]) -> None:
 
     Only a regular file is ever replaced: a device, a pipe or a folder at ``path`` is an
     OSError (the rename would put a file where ``/dev/full`` was). A failed write (a full
-    disk, Ctrl-C) removes its temporary. The temporary is named
-    after the writing process and thread, so writers filling one cache at once (a sweep's
-    workers) never write into each other's. ``write`` gets the temporary's path, whose
-    suffix is ``.tmp``: give libraries that add their own suffix an open file instead.
+    disk, Ctrl-C) removes its temporary. The temporary is named after the writing process
+    and thread, so writers filling one cache at once (a sweep's workers) never write into
+    each other's. ``write`` gets the temporary's path, whose suffix is ``.tmp``: give
+    libraries that add their own suffix an open file instead (or a format, as
+    `save_figure` does).
     """
     if path.exists() and not path.is_file():  # a rename would put a file in its place
         raise OSError(errno.EEXIST, "it is no regular file, so it is not replaced", str(path))
