@@ -334,7 +334,8 @@ def test_compare_puts_three_pilots_side_by_side_on_one_page(tmp_path: Path) -> N
     assert "unpaired, no tests" in shown.stdout and "McNemar" not in shown.stdout
     side_by_side = json.loads((tmp_path / "apart" / "compare.json").read_text())
     assert side_by_side["pairs"] == [] and "no cave in common" in side_by_side["unpaired"]
-    assert "Unpaired:" in (tmp_path / "apart" / "index.html").read_text()
+    page = (tmp_path / "apart" / "index.html").read_text()
+    assert "Unpaired:" in page and "<h2>Pairs</h2>" not in page
     other_set = tmp_path / "other-set"
     shutil.copytree(tmp_path / "random", other_set)
     config = json.loads((other_set / "sweep.json").read_text())
