@@ -15,7 +15,13 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-__all__ = ["cannot_write", "not_a_file_to_replace", "save_figure", "write_then_rename"]
+__all__ = [
+    "cannot_write",
+    "not_a_file_to_replace",
+    "probe_writable",
+    "save_figure",
+    "write_then_rename",
+]
 
 
 def write_then_rename(path: Path, write: Callable[[Path], object]) -> None:
@@ -71,7 +77,13 @@ def cannot_write(path: Path) -> str | None:
     if why is None:
         above = next(folder for folder in path.parents if folder.exists())
         try:
-            os.rmdir(tempfile.mkdtemp(prefix=".probe-", dir=above))  # what access() cannot tell
+            probe_writable(above)
         except OSError as exc:
             why = f"{above}: {exc.strerror or exc}"
     return why
+
+
+def probe_writable(folder: Path) -> None:
+    """Make and remove an entry in ``folder``: what access() cannot tell (a read-only
+    mount, root's rights, ACLs) shows as the OSError a real write would meet."""
+    os.rmdir(tempfile.mkdtemp(prefix=".probe-", dir=folder))

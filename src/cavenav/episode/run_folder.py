@@ -22,7 +22,6 @@ import os
 import queue
 import re
 import signal
-import tempfile
 import threading
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from contextlib import contextmanager, suppress
@@ -35,7 +34,7 @@ import numpy as np
 
 from cavenav.episode.records import numbered_jsonl
 from cavenav.errors import CavenavError, ConfigError, RecordingError
-from cavenav.files import write_then_rename
+from cavenav.files import probe_writable, write_then_rename
 from cavenav.redaction import redact
 from cavenav.sensors.depth import EXR_COMPRESSIONS, ExrCompression, save_png, write_exr
 from cavenav.types import Observation
@@ -88,7 +87,7 @@ def prepare_root(root: str | Path) -> Path:
         raise ConfigError(f"cannot write run folders into {root}: it is a file")
     try:
         root.mkdir(parents=True, exist_ok=True)
-        os.rmdir(tempfile.mkdtemp(prefix=".probe-", dir=root))  # what access() cannot tell
+        probe_writable(root)
     except OSError as exc:
         raise ConfigError(f"cannot write run folders into {root}: {exc.strerror or exc}") from None
     return root
