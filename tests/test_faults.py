@@ -355,19 +355,29 @@ def test_the_command_line_says_the_disk_is_full_in_one_line_and_exits_1(
 
 
 @pytest.mark.slow
-def test_ctrl_c_while_the_plots_are_drawn_leaves_a_finished_record(tmp_path: Path) -> None:
+@pytest.mark.parametrize(
+    ("slow_part", "flight", "left_out"),
+    [
+        ("cavenav.episode.plots.plot_episode", ["--steps", "2"], "plots"),
+        # The last step is written; the shortest path for SPL is being found.
+        ("cavenav.world.geodesic.shortest_path", [], "SPL and plots"),
+    ],
+)
+def test_ctrl_c_after_the_last_step_leaves_a_finished_record_and_exits_130(
+    tmp_path: Path, slow_part: str, flight: list[str], left_out: str
+) -> None:
+    module, _, name = slow_part.rpartition(".")
     script = (
-        "import sys, time\n"
-        "import cavenav.episode.plots as plots\n"
+        "import sys, time, importlib\n"
         "def slow(*a, **k):\n"
-        "    print('PLOTTING', flush=True)\n"
+        "    print('SLOW PART', flush=True)\n"
         "    time.sleep(60)\n"
-        "plots.plot_episode = slow\n"
+        f"setattr(importlib.import_module({module!r}), {name!r}, slow)\n"
         "from cavenav.cli import main\n"
         "sys.argv = ['cavenav', *sys.argv[1:]]\n"
         "main()\n"
     )
-    args = ["run", "S1", "--steps", "2", "--no-frames", "--out", str(tmp_path)]
+    args = ["run", "S1", *flight, "--no-frames", "--out", str(tmp_path)]
     process = subprocess.Popen(
         [sys.executable, "-c", script, *args],
         stdout=subprocess.PIPE,
@@ -377,18 +387,20 @@ def test_ctrl_c_while_the_plots_are_drawn_leaves_a_finished_record(tmp_path: Pat
     )
     assert process.stdout is not None
     for line in process.stdout:
-        if "PLOTTING" in line:
+        if "SLOW PART" in line:
             break
     process.send_signal(signal.SIGINT)
     _, stderr = process.communicate(timeout=60)
     assert process.returncode == 130
     (run_dir,) = tmp_path.iterdir()
     assert stderr.strip() == (
-        f"interrupted while drawing the plots: the episode's record is whole in {run_dir}"
+        f"interrupted after the episode ended: its record is whole in {run_dir}, without {left_out}"
     )
     summary = json.loads((run_dir / "summary.json").read_text())
-    assert summary["status"] == "finished" and summary["steps"] == 2
+    steps = (run_dir / "steps.jsonl").read_text().splitlines()
+    assert summary["status"] == "finished" and summary["steps"] == len(steps) > 0
     assert "plots" not in summary
+    assert ("spl" in summary) == ("SPL" not in left_out)
 
 
 @pytest.mark.slow

@@ -108,17 +108,24 @@ def _bar() -> tuple[ProgressColumn, ...]:
 
 
 def _interrupted(run_dir: Path) -> str:
-    """What Ctrl-C left: a partial record, or a whole episode without its plots."""
+    """What Ctrl-C left: a partial record, or a whole episode without its SPL or plots."""
     from cavenav.episode.records import load_summary
     from cavenav.errors import RecordError
 
     try:
-        status = load_summary(run_dir / "summary.json").status
+        summary = load_summary(run_dir / "summary.json")
     except RecordError:  # none yet, or cut short
-        status = None
-    if status == "finished":
-        return f"interrupted while drawing the plots: the episode's record is whole in {run_dir}"
-    return f"interrupted: the partial record is in {run_dir}"
+        summary = None
+    if summary is None or summary.status != "finished":
+        return f"interrupted: the partial record is in {run_dir}"
+    missing = " and ".join(
+        name
+        for name, left_out in (("SPL", summary.spl is None), ("plots", not summary.plots))
+        if left_out
+    )
+    return f"interrupted after the episode ended: its record is whole in {run_dir}" + (
+        f", without {missing}" if missing else ""
+    )
 
 
 def _remove_if_empty(folder: Path) -> None:

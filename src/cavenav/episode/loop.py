@@ -202,16 +202,32 @@ def run_episode(
         )
         raise
     finally:
-        summary = log.summary(status)
+        summary, cut_short = _final_summary(log, status)
         if folder:
             caster = env.get_wrapper_attr("caster")
-            folder.finish(summary, log, caster, plots=config.plots and status == "finished")
+            plots = config.plots and status == "finished" and not cut_short
+            folder.finish(summary, log, caster, plots=plots)
         env.close()
         for watcher in watchers:
             watcher.close()
+        if cut_short:
+            raise KeyboardInterrupt
     return EpisodeResult(
         summary, log.poses, log.clearances, log.steps, folder.path if folder else None
     )
+
+
+def _final_summary(log: EpisodeLog, status: str) -> tuple[dict[str, Any], bool]:
+    """The summary the episode ends with, and whether Ctrl-C cut it short.
+
+    Finding a finished episode's shortest path for SPL can take seconds in a new cave:
+    Ctrl-C then leaves the whole episode finished without its SPL (and without plots),
+    rather than no final summary at all.
+    """
+    try:
+        return log.summary(status), False
+    except KeyboardInterrupt:
+        return log.summary(status, spl=False), True
 
 
 def _telling(

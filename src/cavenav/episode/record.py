@@ -170,12 +170,14 @@ class EpisodeLog:
         """Note why the episode stopped without an ending (status "crashed")."""
         self.failure, self.failure_cause = error, None
 
-    def summary(self, status: str) -> dict[str, Any]:
+    def summary(self, status: str, *, spl: bool = True) -> dict[str, Any]:
         """summary.json as written (`summary_record` as its file holds it)."""
-        return self.summary_record(status).to_dict()
+        return self.summary_record(status, spl=spl).to_dict()
 
-    def summary_record(self, status: str) -> EpisodeSummary:
-        """The episode's summary: ``status`` is running, finished, interrupted or crashed."""
+    def summary_record(self, status: str, *, spl: bool = True) -> EpisodeSummary:
+        """The episode's summary: ``status`` is running, finished, interrupted or crashed;
+        ``spl`` False leaves SPL out of a finished one (its shortest path can take seconds
+        to find in a new cave)."""
         end, flown = self.poses[-1].position, path_length(self.poses)
         interventions = sum(1 for s in self.steps if s.get("shield"))
         return EpisodeSummary.model_validate(
@@ -196,7 +198,7 @@ class EpisodeLog:
                 "path_length_m": round(flown, 4),
                 "progress_m": round(self.progress_m, 4),
                 "passage_length_m": round(self.scenario.passage_length_m, 4),
-                **self._spl(status, flown),
+                **(self._spl(status, flown) if spl else {}),
                 **summarise_clearance(self.clearances, self.rules.standoff_m),
                 "final_pose": self.poses[-1].to_dict(),
                 "collision_pose": self.collision_pose,
