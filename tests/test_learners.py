@@ -139,3 +139,71 @@ def test_the_training_example_trains_saves_and_plots_within_its_budget(tmp_path:
     assert header == "r,l,t,exit,collision"
     flown = json.loads((tmp_path / "evaluation.json").read_text())["ppo_cavenav"]
     assert flown["caves"] == 1 and 0.0 <= flown["exit_share"] <= 1.0
+
+
+def _sb3_vec_env(options: dict, n: int):  # noqa: ANN202 - SB3's VecEnv, imported here
+    """The batched environment with ``options`` as SB3's VecEnv (`SB3VecEnv`)."""
+    from cavenav.training.sb3_vec_env import SB3VecEnv
+
+    return SB3VecEnv(
+        gym.make_vec(VECTOR_ID, num_envs=n, vectorization_mode="vector_entry_point", **options)
+    )
+
+
+@pytest.mark.slow
+def test_sb3_vec_env_flies_as_dummy_vec_env_over_single_environments() -> None:
+    """Same seeds and actions: the same observations, rewards, ends, last observations and
+    step-limit marks; environment 0 strafes into the wall (ended by collisions), the
+    others fly at random and are cut at 5 steps."""
+    vec_env = pytest.importorskip("stable_baselines3.common.vec_env")
+    n, options = 3, {"resolution": (32, 24), "cave_seed": 0, "max_episode_steps": 5}
+    batched = _sb3_vec_env(options, n)
+    singles = vec_env.DummyVecEnv([lambda: gym.make(VECTOR_ID, **options)] * n)
+    for venv in (batched, singles):
+        venv.seed(7)
+    observations, expected = batched.reset(), singles.reset()
+    assert all(np.array_equal(observations[key], expected[key]) for key in expected)
+    rng, collided, cut = np.random.default_rng(0), 0, 0
+    for _ in range(14):
+        actions = rng.uniform(-1, 1, size=(n, 4)).astype(np.float32)
+        actions[0] = (0.0, 1.0, 0.0, 0.0)
+        got, want = batched.step(actions), singles.step(actions)
+        assert all(np.array_equal(got[0][key], want[0][key]) for key in want[0])
+        assert np.array_equal(got[1], want[1]) and got[1].dtype == want[1].dtype
+        assert np.array_equal(got[2], want[2])
+        for info, alone in zip(got[3], want[3], strict=True):
+            last, want_last = (
+                info.pop("terminal_observation", None),
+                alone.pop("terminal_observation", None),
+            )
+            assert info == alone  # infos one by one, as the single environments gave them
+            if want_last is not None:
+                assert all(np.array_equal(last[key], want_last[key]) for key in want_last)
+                collided += bool(info["collision"])
+                cut += bool(info["TimeLimit.truncated"])
+    assert collided >= 2 and cut >= 2  # both kinds of ending were met, and reset
+    assert batched.get_attr("render_mode") == [None] * n
+    assert batched.env_is_wrapped(vec_env.VecMonitor) == [False] * n
+    batched.close()
+
+
+@pytest.mark.slow
+def test_ppo_trains_on_the_batched_environment_through_sb3_vec_env() -> None:
+    sb3 = pytest.importorskip("stable_baselines3")
+    from stable_baselines3.common.vec_env import VecMonitor
+
+    from cavenav.training.sb3_vec_env import SB3VecEnv
+
+    venv = gym.make_vec(VECTOR_ID, num_envs=4, vectorization_mode="vector_entry_point",
+                        cave_seed=0, max_episode_steps=8)  # fmt: skip
+    seen = gym.wrappers.vector.FilterObservation(venv, ["rgb", "depth", "d_top", "d_bottom"])
+    env = VecMonitor(SB3VecEnv(seen), info_keywords=("exit", "collision"))
+    model = sb3.PPO("MultiInputPolicy", env, n_steps=16, batch_size=32, seed=0, device="cpu")
+    before = [p.detach().clone() for p in model.policy.parameters()]
+    model.learn(total_timesteps=128)
+    assert model.num_timesteps == 128
+    assert len(model.ep_info_buffer) >= 4  # episodes ended, were counted and reset
+    assert {"r", "l", "exit", "collision"} <= model.ep_info_buffer[0].keys()
+    changed = [not p.equal(b) for p, b in zip(model.policy.parameters(), before, strict=True)]
+    assert all(changed)  # every layer learned something
+    env.close()

@@ -45,7 +45,7 @@ from gymnasium.vector.utils import batch_space, concatenate, create_empty_array,
 from cavenav.env import CaveNavEnv, Move, learner_env
 from cavenav.sensors.kernels import KERNELS_RUN_CONCURRENTLY
 
-__all__ = ["CaveNavVectorEnv", "batched_infos", "learner_vector_env"]
+__all__ = ["CaveNavVectorEnv", "batched_infos", "learner_vector_env", "unbatched_infos"]
 
 
 class CaveNavVectorEnv(VectorEnv):
@@ -268,6 +268,22 @@ def batched_infos(infos: Sequence[Mapping[str, Any] | None]) -> dict[str, Any]:
             batched[key] = _array_of(given, count)
         batched[f"_{key}"] = mask
     return batched
+
+
+def unbatched_infos(batched: Mapping[str, Any], count: int) -> list[dict[str, Any]]:
+    """The inverse of `batched_infos`: one info dict per environment, holding the keys its
+    ``_key`` masks mark, numpy scalars as plain Python values (what a learner that takes
+    a list of infos, as Stable-Baselines3 does, expects)."""
+    infos: list[dict[str, Any]] = [{} for _ in range(count)]
+    for key, values in batched.items():
+        mask = batched.get(f"_{key}")
+        if mask is None:  # a mask itself
+            continue
+        per_env = unbatched_infos(values, count) if isinstance(values, Mapping) else values
+        for i in np.flatnonzero(mask):
+            value = per_env[i]
+            infos[i][key] = value.item() if isinstance(value, np.generic) else value
+    return infos
 
 
 def _array_of(given: Mapping[int, Any], count: int) -> np.ndarray:
