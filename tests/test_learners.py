@@ -207,3 +207,20 @@ def test_ppo_trains_on_the_batched_environment_through_sb3_vec_env() -> None:
     changed = [not p.equal(b) for p, b in zip(model.policy.parameters(), before, strict=True)]
     assert all(changed)  # every layer learned something
     env.close()
+
+
+def test_sb3_vec_env_refuses_a_same_step_autoreset_and_names_the_extra_it_needs(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    pytest.importorskip("stable_baselines3")
+    from cavenav.training.sb3_vec_env import SB3VecEnv
+
+    same_step = gym.vector.SyncVectorEnv(
+        [lambda: gym.make("CartPole-v1")], autoreset_mode=gym.vector.AutoresetMode.SAME_STEP
+    )
+    with pytest.raises(ValueError, match="autoreset_mode NEXT_STEP"):
+        SB3VecEnv(same_step)
+    monkeypatch.setitem(sys.modules, "stable_baselines3.common.vec_env", None)
+    monkeypatch.delitem(sys.modules, "cavenav.training.sb3_vec_env")
+    with pytest.raises(ImportError, match=r"pip install 'cavenav\[learn\]'"):
+        import cavenav.training.sb3_vec_env  # noqa: F401
