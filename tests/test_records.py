@@ -342,3 +342,15 @@ def test_only_a_regular_file_is_ever_replaced(tmp_path: Path) -> None:
         done = cavenav("compare", "a", "b", *args)
         assert done.returncode == 2 and f"cannot write {pipe}" in done.stderr, done.stderr
     assert stat.S_ISFIFO(pipe.stat().st_mode)
+    for record, page in (("summary.json", "report.html"), ("sweep.json", "report/index.html")):
+        folder = tmp_path / record.removesuffix(".json")
+        (folder / page).parent.mkdir(parents=True)
+        (folder / record).write_text("{}")  # refused before the record is read
+        os.mkfifo(folder / page)
+        done = cavenav("report", str(folder))
+        assert done.returncode == 2, done.stderr
+        assert done.stderr.strip() == (
+            f"error: cannot write the report: {folder / page} is no regular file (a device, "
+            "a pipe or a socket)"
+        )
+        assert stat.S_ISFIFO((folder / page).stat().st_mode)

@@ -36,7 +36,7 @@ def write_then_rename(path: Path, write: Callable[[Path], object]) -> None:
     `save_figure` does).
     """
     if path.exists() and not path.is_file():  # a rename would put a file in its place
-        raise OSError(errno.EEXIST, "it is no regular file, so it is not replaced", str(path))
+        raise OSError(errno.EEXIST, f"{path} is no regular file, so it is not replaced", str(path))
     tmp = path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}.tmp")
     try:
         write(tmp)

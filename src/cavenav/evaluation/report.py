@@ -33,10 +33,17 @@ from cavenav.episode.records import (
     read_sweep_file,
 )
 from cavenav.episode.run_folder import write_atomic
-from cavenav.errors import CavenavError, DependencyError, RecordError, RecordingError
+from cavenav.errors import (
+    CavenavError,
+    ConfigError,
+    DependencyError,
+    RecordError,
+    RecordingError,
+)
 from cavenav.evaluation.results import aggregate, cave_rates, priced
 from cavenav.evaluation.results import outcome as episode_outcome
 from cavenav.evaluation.sweep import read_rows
+from cavenav.files import not_a_file_to_replace
 
 __all__ = ["RunRecord", "SweepRecord", "read_run", "read_sweep_record", "write_report"]
 
@@ -755,14 +762,18 @@ def write_report(
             every page is written whole or not at all.
     """
     folder = Path(folder)
+    sweep = (folder / "sweep.json").is_file()
+    if not sweep and not (folder / "summary.json").is_file():
+        raise CavenavError(
+            f"{folder} is neither a sweep folder (no sweep.json) nor a run folder "
+            "(no summary.json): give the folder `cavenav eval` or `cavenav run` wrote"
+        )
+    page = folder / "report" / "index.html" if sweep else folder / "report.html"
+    if why := not_a_file_to_replace(page):  # a device there would be replaced by a file
+        raise ConfigError(f"cannot write the report: {why}")
     try:
-        if (folder / "sweep.json").is_file():
+        if sweep:
             return _write_sweep_report(folder, rows, prices)
-        if (folder / "summary.json").is_file():
-            return _write_episode_page(read_run(folder), folder / "report.html")
+        return _write_episode_page(read_run(folder), page)
     except OSError as exc:
         raise RecordingError.cannot_write(f"the report in {folder}", exc) from None
-    raise CavenavError(
-        f"{folder} is neither a sweep folder (no sweep.json) nor a run folder "
-        "(no summary.json): give the folder `cavenav eval` or `cavenav run` wrote"
-    )
