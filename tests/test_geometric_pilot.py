@@ -15,6 +15,7 @@ from cavenav.actions import DEFAULT_SPACE, format_action, parse_action
 from cavenav.episode.loop import EpisodeConfig, run_episode
 from cavenav.pilots.base import Pilot
 from cavenav.pilots.geometric import GeometricPilot, GeometricPilotConfig
+from cavenav.sensors.depth import normalise_depth
 from cavenav.sensors.rig import SensorRig
 from cavenav.shield import Hazard, Shield, Surroundings, crawlway_move, move_hazard
 from cavenav.types import Action, Observation, Pose, VehicleBody
@@ -41,6 +42,15 @@ def test_open_water_ahead_means_full_speed() -> None:
     decision = GeometricPilot().decide(synthetic(np.inf))
     assert decision.action.forward == 1.0
     assert decision.action.yaw_deg == 0.0
+
+
+@pytest.mark.filterwarnings("error")  # no mean of an empty slice either
+@pytest.mark.parametrize(("width", "height"), [(8192, 10), (10, 8192), (1, 1)])
+def test_any_image_a_camera_may_give_is_read_even_a_wide_flat_one(width: int, height: int) -> None:
+    depth = np.full((height, width), np.inf, np.float32)
+    wide = replace(synthetic(np.inf), depth_m=depth, depth_png=normalise_depth(depth),
+                   rgb=np.zeros((height, width, 3), np.uint8))  # fmt: skip
+    assert GeometricPilot().decide(wide).action.forward == 1.0
 
 
 def test_answers_in_the_vlm_form() -> None:

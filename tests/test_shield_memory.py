@@ -135,6 +135,8 @@ def test_a_stride_or_column_count_below_1_is_refused_when_the_memory_is_built(
         (84, 84, {"stride": 1}, 1),
         (84, 84, {"columns": 1}, 84),  # one column: the whole width in one block
         (640, 480, {"columns": 1, "stride": 16}, 16),
+        (8192, 10, {}, 10),  # never more than the height: a wide, flat image keeps a row
+        (640, 4, {"stride": 16}, 4),
     ],
 )
 def test_the_memory_reads_every_nth_pixel_as_set_or_about_64_columns(

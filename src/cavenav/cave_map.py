@@ -146,7 +146,9 @@ class CaveMap:
         self.travelled_m += float(np.linalg.norm(self.position - before))
 
     def _carve(self, obs: Observation) -> None:
-        s = sampling_stride(obs.depth_png.shape[1], None, self.config.columns)
+        s = sampling_stride(
+            obs.depth_png.shape[1], None, self.config.columns, obs.depth_png.shape[0]
+        )
         # One ray through the middle of every s x s block, carved as far as it reaches.
         seen = DepthSamples.of(obs, s, first=s // 2, dtype=np.float64)
         reach = np.minimum(seen.depth, self.config.max_range_m).astype(np.float64)

@@ -43,10 +43,11 @@ __all__ = [
 ]
 
 
-def sampling_stride(width: int, stride: int | None, columns: int) -> int:
+def sampling_stride(width: int, stride: int | None, columns: int, height: int | None = None) -> int:
     """Every how many pixels a depth image ``width`` wide is read: ``stride``, or, when
     None, as many as keep about ``columns`` of its columns (so that readers tuned at
-    640x480 read an 84x84 image whole rather than a handful of its pixels).
+    640x480 read an 84x84 image whole rather than a handful of its pixels); never more
+    than its ``height``, so that a wide, flat image (8192x10) keeps a row.
 
     Raises:
         ConfigError: a stride or a column count below 1.
@@ -56,7 +57,8 @@ def sampling_stride(width: int, stride: int | None, columns: int) -> int:
             f"stride {stride} and columns {columns}: give a stride of at least 1 (or None) "
             "and at least 1 column"
         )
-    return stride if stride is not None else max(1, width // columns)
+    chosen = stride if stride is not None else max(1, width // columns)
+    return chosen if height is None else max(1, min(chosen, height))
 
 
 @dataclass(frozen=True)

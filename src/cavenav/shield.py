@@ -198,7 +198,7 @@ class DepthMemory:
 
     def _frame(self, obs: Observation) -> SeenFrame:
         h, w = obs.depth_png.shape
-        s = sampling_stride(w, self.stride, self.columns)
+        s = sampling_stride(w, self.stride, self.columns, h)
         focal = 0.5 * w / math.tan(math.radians(obs.hfov_deg) / 2)
         # Surface points at every s-th pixel, as the geometric pilot has always kept them.
         points = np.empty((0, 3), np.float32)

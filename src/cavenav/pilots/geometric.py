@@ -347,9 +347,8 @@ class GeometricPilot:
     def _measure(self, obs: Observation, state: _State) -> _Scene:
         """What the remembered surfaces and the current depth image say (`_Scene`)."""
         cfg = self.config
-        seen = DepthSamples.of(
-            obs, sampling_stride(obs.depth_png.shape[1], cfg.stride, cfg.columns)
-        )
+        height, width = obs.depth_png.shape
+        seen = DepthSamples.of(obs, sampling_stride(width, cfg.stride, cfg.columns, height))
         around = Surroundings.of(
             obs, self.memory, cfg.body, cfg.margins, cfg.rules.no_forward_within_m
         )
@@ -362,7 +361,7 @@ class GeometricPilot:
         # ahead of a descent or a climb is not mistaken for a side wall.
         elevation = openings[0].elevation if openings else 0.0
         walls = _walls(self.memory.cloud, elevation, cfg, obs.hfov_deg / 2, obs.depth_range[1])
-        third = seen.depth.shape[1] // 3
+        third = max(1, seen.depth.shape[1] // 3)  # an image 1 or 2 samples wide: both sides
         return _Scene(
             free=free,
             tight_free=tight_free,
