@@ -5,7 +5,8 @@ depth image and both echo sounders (``depth_m``, metres, is left out: it is the 
 image again at full precision). Stable-Baselines3's ``MultiInputPolicy`` gives each image
 its own CNN (NatureCNN) and joins them with the sounders; the actions are four numbers
 that the environment snaps to the admissible moves. The policy flies ``--caves`` training
-caves of the family at once (cave seeds drawn below `cavenav.env.TRAINING_SEEDS`; the
+caves of the family at once, or of several families in turn (``--scenario S1,S2,S3``)
+(cave seeds drawn below `cavenav.env.TRAINING_SEEDS`; the
 held-out seeds, 1000 and up, are for evaluation), one environment each: building a cave
 and its lighting takes seconds, so a fresh cave at every reset would leave no time to
 learn. The reward is `cavenav.env.LEARNER_REWARD`: metres made good, minus 0.5 a step
@@ -61,7 +62,9 @@ def seen(scenario: str, cave_seed: int) -> gym.Env:
     return gym.wrappers.RescaleAction(env, np.float32(-1.0), np.float32(1.0))
 
 
-def train(scenario: str, caves: int, minutes: float, steps: int, seed: int, out: Path) -> None:
+def train(
+    families: list[str], caves: int, minutes: float, steps: int, seed: int, out: Path
+) -> None:
     import torch
     from stable_baselines3 import PPO
     from stable_baselines3.common.callbacks import BaseCallback
@@ -92,7 +95,8 @@ def train(scenario: str, caves: int, minutes: float, steps: int, seed: int, out:
 
     out.mkdir(parents=True, exist_ok=True)
     seeds = np.random.default_rng(seed).choice(cavenav.env.TRAINING_SEEDS, caves, replace=False)
-    envs = DummyVecEnv([lambda k=int(k): make_env(scenario, k, out) for k in seeds])
+    flown = [(families[i % len(families)], int(k)) for i, k in enumerate(seeds)]  # in turn
+    envs = DummyVecEnv([lambda f=f, k=k: make_env(f, k, out) for f, k in flown])
     budget = Budget(60.0 * minutes)
     deadline = budget.deadline  # the schedule is saved with the model: it holds no env
 
@@ -169,10 +173,11 @@ def plot(out: Path, window: int = WINDOW) -> None:
     fig.savefig(out / "curve.png", dpi=100)
 
 
-def evaluate(out: Path, scenario: str, seeds: range) -> dict[str, dict[str, float]]:
+def evaluate(out: Path, families: list[str], seeds: range) -> dict[str, dict[str, float]]:
     """Fly the last policy and the best (``best.zip``, when a window was complete), each
-    deterministically once in each held-out cave of ``seeds``; writes and returns, per
-    policy, the share that reached the exit, that collided, and the mean metres made good."""
+    deterministically once in each held-out cave of ``seeds`` of each family; writes and
+    returns, per policy, the share that reached the exit, that collided, and the mean
+    metres made good."""
     from stable_baselines3 import PPO
 
     result = {}
@@ -182,8 +187,9 @@ def evaluate(out: Path, scenario: str, seeds: range) -> dict[str, dict[str, floa
         model = PPO.load(out / name, device="cpu")
         exits = collisions = 0
         made_good = []
-        for seed in seeds:
-            env = seen(scenario, seed)
+        flown = [(family, seed) for family in families for seed in seeds]
+        for family, seed in flown:
+            env = seen(family, seed)
             obs, info = env.reset(seed=seed)
             done = False
             while not done:
@@ -194,9 +200,9 @@ def evaluate(out: Path, scenario: str, seeds: range) -> dict[str, dict[str, floa
             collisions += info["collision"]
             made_good.append(info["progress_m"])
         result[name] = {
-            "caves": len(seeds),
-            "exit_share": exits / len(seeds),
-            "collision_share": collisions / len(seeds),
+            "caves": len(flown),
+            "exit_share": exits / len(flown),
+            "collision_share": collisions / len(flown),
             "mean_progress_m": float(np.mean(made_good)),
         }
     (out / "evaluation.json").write_text(json.dumps(result, indent=2) + "\n")
@@ -207,7 +213,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    parser.add_argument("--scenario", default="S1", help="the family to train on")
+    parser.add_argument(
+        "--scenario", default="S1", help="the family to train on, or several: S1,S2,S3,S4,S5"
+    )
     parser.add_argument("--caves", type=int, default=8, help="training caves flown at once")
     parser.add_argument("--minutes", type=float, default=60.0, help="wall-time budget")
     parser.add_argument("--steps", type=int, default=10_000_000, help="most steps to take")
@@ -218,12 +226,13 @@ def main() -> None:
     )
     args = parser.parse_args()
     started = time.monotonic()
-    train(args.scenario, args.caves, args.minutes, args.steps, args.seed, args.out)
+    families = args.scenario.split(",")
+    train(families, args.caves, args.minutes, args.steps, args.seed, args.out)
     spent = (time.monotonic() - started) / 60
     print(f"trained for {spent:.1f} min; the model, its log and curve are in {args.out}")
     if args.evaluate:
         held_out = range(cavenav.env.TRAINING_SEEDS, cavenav.env.TRAINING_SEEDS + args.evaluate)
-        print(json.dumps(evaluate(args.out, args.scenario, held_out)))
+        print(json.dumps(evaluate(args.out, families, held_out)))
 
 
 if __name__ == "__main__":
