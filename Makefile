@@ -44,7 +44,8 @@ $(TEST_STAMP): $(STAMP)
 demo: setup
 	$(BIN)/cavenav run S4 --pilot geometric
 
-test: setup-test
+# The checks first (a minute), then the suite.
+test: lint
 	$(BIN)/python -m pytest -q
 
 bench: setup-test
@@ -60,8 +61,11 @@ mutate: setup-test
 	$(BIN)/python -m pip install -q mutmut==3.8.1
 	$(BIN)/python benchmarks/mutation.py
 
+# Lint, format and type checks: CI runs them on every clean clone, through `make test`.
 lint: setup-test
-	$(BIN)/ruff check src tests benchmarks
+	$(BIN)/ruff check src tests benchmarks examples
+	$(BIN)/ruff format --check src tests benchmarks examples
+	$(BIN)/mypy
 
 clean:
 	rm -rf $(VENV) runs .mutation

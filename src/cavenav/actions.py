@@ -231,7 +231,7 @@ def _words(clause: str) -> set[str]:
     return set(re.findall(r"[a-z]+", clause))
 
 
-def parse_action(text: str, space: ActionSpace = DEFAULT_SPACE) -> Action:
+def parse_action(text: object, space: ActionSpace = DEFAULT_SPACE) -> Action:
     """Parse an action string into an admissible Action.
 
     Args:

@@ -283,9 +283,9 @@ def ask(
 
 
 # What a sweep keeps of each step's images (`cavenav.episode.settings.FRAME_MODES`).
-FramesMode = StrEnum("FramesMode", {name: name for name in FRAME_MODES})
+FramesMode = StrEnum("FramesMode", {name: name for name in FRAME_MODES})  # type: ignore[misc]
 # Which episodes of a sweep get a video (`cavenav.episode.settings.VIDEO_MODES`).
-VideoMode = StrEnum("VideoMode", {name: name for name in VIDEO_MODES})
+VideoMode = StrEnum("VideoMode", {name: name for name in VIDEO_MODES})  # type: ignore[misc]
 VideoOpt = Annotated[
     VideoMode, typer.Option(help="episode.mp4 for none, failures or all episodes, as each ends")
 ]
@@ -753,7 +753,7 @@ def fake_sub(
     settings = FakeSubConfig(
         address=connect,
         noise=noise,
-        current_ned_mps=drift,  # type: ignore[arg-type]
+        current_ned_mps=drift,
         start_ned=(0.0, 0.0, depth),
         position_estimate=position,
         pilot_timeout_s=pilot_timeout,

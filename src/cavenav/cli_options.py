@@ -16,7 +16,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, replace
 from enum import StrEnum
 from pathlib import Path
-from typing import Annotated, Any, TypeVar
+from typing import Annotated, Any, Literal, TypeVar
 
 import typer
 
@@ -55,7 +55,7 @@ class Sounder(StrEnum):
 
 
 # Depth EXR compressions, all lossless (measured in `cavenav.sensors.depth`).
-ExrCompression = StrEnum("ExrCompression", {name: name for name in EXR_COMPRESSIONS})
+ExrCompression = StrEnum("ExrCompression", {name: name for name in EXR_COMPRESSIONS})  # type: ignore[misc]
 
 
 class Backend(StrEnum):
@@ -66,7 +66,7 @@ class Backend(StrEnum):
 
 
 # Water presets, named as `cavenav.sensors.optics.WATER_TYPES` names them.
-WaterType = StrEnum("WaterType", {name: name for name in WATER_TYPES})
+WaterType = StrEnum("WaterType", {name: name for name in WATER_TYPES})  # type: ignore[misc]
 
 
 def finite(value: float | None) -> float | None:
@@ -79,7 +79,7 @@ def finite(value: float | None) -> float | None:
 def _discharge(value: float | None) -> float | None:
     """A discharge within a scenario file's [water] bound (`MAX_DISCHARGE_M3S`): 1e300
     m³/s would carry the vehicle through rock without a collision."""
-    if finite(value) is not None and abs(value) > MAX_DISCHARGE_M3S:
+    if (value := finite(value)) is not None and abs(value) > MAX_DISCHARGE_M3S:
         raise typer.BadParameter(
             f"{value} m³/s: give a discharge within ±{MAX_DISCHARGE_M3S:g} m³/s"
         )
@@ -292,22 +292,18 @@ VLM = OptionGroup(
 _SETTINGS = EpisodeSettings()
 
 
-def _sizes(**given: str | None) -> dict[str, tuple[int, int]]:
-    """The pixel counts given, parsed, each by its flag's name."""
+def _size(given: str | None, flag: str) -> tuple[int, int] | None:
+    """The pixel count a flag gave, parsed (None when not given)."""
     from cavenav.sensors.camera import parse_resolution
 
-    return {
-        key: parse_resolution(text, f"--{key.replace('_', '-')}")
-        for key, text in given.items()
-        if text is not None
-    }
+    return None if given is None else parse_resolution(given, flag)
 
 
 def episode_settings(
     *,
     steps: int | None = _SETTINGS.steps,
     stuck_after: int | None = _SETTINGS.stuck_after,
-    sounder: str = _SETTINGS.sounder,
+    sounder: Literal["camera", "beam"] = _SETTINGS.sounder,
     depth_max: float = _SETTINGS.depth_max_m,
     water: str | None = None,
     light_power: float | None = None,
@@ -328,9 +324,8 @@ def episode_settings(
     gusts: float | None = _SETTINGS.gusts,
     battery_wh: float | None = _SETTINGS.battery_wh,
 ) -> EpisodeSettings:
-    """`EpisodeSettings` from the episode, sensor and optics flags, one keyword each (so a
-    flag renamed in `SETTINGS` alone fails when a command is declared); frames and
-    shield, which each command words its own way, stay the defaults.
+    """`EpisodeSettings` from the episode, sensor and optics flags, one keyword each (so a flag
+    renamed in `SETTINGS` alone fails when a command is declared); frames and shield stay.
 
     Raises:
         ConfigError: a bad pixel count or difficulty knob, refused before any work.
@@ -357,7 +352,8 @@ def episode_settings(
         sounder=sounder,
         depth_max_m=depth_max,
         optics={key: value for key, value in optics.items() if value is not None},
-        **_sizes(resolution=resolution, sounder_resolution=sounder_resolution),
+        resolution=_size(resolution, "--resolution"),
+        sounder_resolution=_size(sounder_resolution, "--sounder-resolution"),
         difficulty=parse_difficulty(difficulty or []).to_dict(),
         discharge_m3s=discharge,
         gusts=gusts,

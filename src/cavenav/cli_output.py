@@ -110,7 +110,7 @@ def _summary_rows(s: EpisodeSummary) -> list[tuple[str, Any]]:
     if s.mean_drift_m is not None:  # flown on a vehicle (cavenav fly) or in a current
         rows.append(("drift from command", f"{s.mean_drift_m:.3f} m mean, "
                      f"{s.max_drift_m:.3f} m max, {s.max_drift_deg:.1f} deg max"))  # fmt: skip
-    if s.mean_drift_m is not None and s.mean_current_m_s is None:  # a vehicle
+    if s.mean_drift_m is not None and s.mean_current_m_s is None and s.mean_physics_ms:  # a vehicle
         rows.append(("action on the vehicle", f"{s.mean_physics_ms / 1e3:.2f} s mean"))
     if s.failure:
         rows.append(("failure", s.failure))

@@ -377,7 +377,7 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
         self.cruise, self.power = Cruise(), _power(self.sensors, self.body)
         self._default_scenario, self._default_cave_seed = scenario, cave_seed
         self._world, self._caves = None, caves
-        self.observation_space, self.action_space = _spaces(self.sensors, action_format, space)
+        self.observation_space, self.action_space = _spaces(self.sensors, action_format, space)  # type: ignore[assignment]
         self.pose, self.observation = None, None
         self._timings, self._clearance, self._progress = Timings(0.0), math.inf, 0.0
         self._steps = self._noise_seed = 0

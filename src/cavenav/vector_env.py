@@ -106,13 +106,14 @@ class CaveNavVectorEnv(VectorEnv):
             else None
         )
 
-    @property
-    def np_random(self) -> tuple[np.random.Generator, ...]:
+    # Per environment, as SyncVectorEnv has them: VectorEnv types them as one.
+    @property  # type: ignore[misc]
+    def np_random(self) -> tuple[np.random.Generator, ...]:  # type: ignore[override]
         """The sub-environments' generators, as `SyncVectorEnv` gives them."""
         return tuple(env.np_random for env in self.envs)
 
     @property
-    def np_random_seed(self) -> tuple[int, ...]:
+    def np_random_seed(self) -> tuple[int, ...]:  # type: ignore[override]
         return tuple(env.np_random_seed for env in self.envs)
 
     def reset(
@@ -128,7 +129,7 @@ class CaveNavVectorEnv(VectorEnv):
                 raise ValueError(f"{len(seeds)} seeds for {self.num_envs} environments")
         options = dict(options or {})
         mask = _reset_mask(options.pop("reset_mask", None), self.num_envs)
-        observations, infos = [], [None] * self.num_envs
+        observations, infos = [], [None] * self.num_envs  # type: list[Any], list[dict | None]
         for i, env in enumerate(self.envs):
             if mask[i]:
                 observation, infos[i] = env.reset(seed=seeds[i], options=options or None)
@@ -210,7 +211,7 @@ class CaveNavVectorEnv(VectorEnv):
 
     def _batched(self, observations: list[Any]) -> Any:  # noqa: ANN401
         space = self.single_observation_space
-        return deepcopy(concatenate(space, observations, self._observations))
+        return deepcopy(concatenate(space, observations, self._observations))  # type: ignore[arg-type]
 
     def _let_go_of_unflown_caves(self) -> None:
         """Forget the caves no sub-environment flies any more (their BVHs with them)."""
@@ -218,7 +219,7 @@ class CaveNavVectorEnv(VectorEnv):
         for key in set(self.caves) - flown:
             del self.caves[key]
 
-    def render(self) -> tuple[np.ndarray | None, ...]:
+    def render(self) -> tuple[np.ndarray | None, ...]:  # type: ignore[override]
         """Each sub-environment's frame (``render_mode="rgb_array"``), as `SyncVectorEnv`."""
         return tuple(env.render() for env in self.envs)
 

@@ -9,7 +9,7 @@ vehicle. Both drive the environment through Gymnasium's API alone: `reset`, `ste
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, SupportsFloat
 
 import gymnasium as gym
 import numpy as np
@@ -58,7 +58,9 @@ class SafetyShield(gym.Wrapper):
         self.shield.observe(info["observation"])
         return obs, {**info, "shield": None}
 
-    def step(self, action: str | np.ndarray | Action) -> tuple[Any, float, bool, bool, dict]:
+    def step(
+        self, action: str | np.ndarray | Action
+    ) -> tuple[Any, SupportsFloat, bool, bool, dict]:
         proposed, invalid = read_action(action, self._space, self._action_format)
         verdict = None if invalid else self.shield.judge(proposed)
         if verdict is not None:
@@ -93,7 +95,7 @@ class StuckLimit(gym.Wrapper):
         self._without_headway = 0
         return obs, {**info, "stuck": False}
 
-    def step(self, action: Any) -> tuple[Any, float, bool, bool, dict]:  # noqa: ANN401
+    def step(self, action: Any) -> tuple[Any, SupportsFloat, bool, bool, dict]:  # noqa: ANN401
         obs, reward, terminated, truncated, info = self.env.step(action)
         if self._headway is None:
             raise gym.error.ResetNeeded("StuckLimit: call reset before step")

@@ -62,10 +62,20 @@ class Sounders(Protocol):
 class VehicleMotion(Protocol):
     """A vehicle that carries out actions and says where it is (`ArduSubMotion`)."""
 
-    position: str  # "reported" or "reckoned"
-    position_sigma_m: float | None
-    depth_source: str | None  # where a reckoned depth comes from; None: the position
-    flown: Action  # the last move's action as flown (cut at the depth limits)
+    @property
+    def position(self) -> str:
+        """ "reported" or "reckoned"."""
+
+    @property
+    def position_sigma_m(self) -> float | None: ...
+
+    @property
+    def depth_source(self) -> str | None:
+        """Where a reckoned depth comes from; None: the position."""
+
+    @property
+    def flown(self) -> Action:
+        """The last move's action as flown (cut at the depth limits)."""
 
     def start(self, pose: Pose) -> Pose: ...
 

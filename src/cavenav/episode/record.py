@@ -162,8 +162,8 @@ class EpisodeLog:
     def rewind(self, mark: tuple) -> None:
         """Forget what was logged since ``mark``: the summary then agrees with the folder."""
         lengths, self.termination, self.failure, self.collision_pose, self.progress_m = mark
-        for items, length in zip((self.poses, self.clearances, self.steps, self.usage), lengths,
-                                 strict=True):  # fmt: skip
+        kept: tuple[list[Any], ...] = (self.poses, self.clearances, self.steps, self.usage)
+        for items, length in zip(kept, lengths, strict=True):
             del items[length:]
 
     def crashed(self, error: str) -> None:

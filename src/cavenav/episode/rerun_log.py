@@ -30,7 +30,7 @@ import math
 import os
 import sys
 import warnings
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -328,7 +328,7 @@ def log_run_folder(
     recording: Any,  # noqa: ANN401
     run_dir: Path,
     summary: Mapping[str, Any],
-    steps: list[Mapping[str, Any]],
+    steps: Sequence[Mapping[str, Any]],
     scenario: Scenario | None,
 ) -> None:
     """A recorded episode: its cave (when known), and every step's pose, the frames the

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Literal
 
 from cavenav.energy import checked_budget
 from cavenav.errors import ConfigError
@@ -68,7 +68,7 @@ class EpisodeSettings:
     save_frames: bool = True
     save_exr: bool = True
     exr_compression: str = "none"
-    sounder: str = "camera"
+    sounder: Literal["camera", "beam"] = "camera"
     depth_max_m: float = DEPTH_RANGE_M[1]
     optics: Mapping[str, Any] = field(default_factory=dict)
     resolution: tuple[int, int] | None = None

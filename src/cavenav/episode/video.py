@@ -176,7 +176,7 @@ def _viridis(values: np.ndarray) -> list[tuple[int, int, int]]:
     from matplotlib import colormaps
 
     rgba = colormaps[_CMAP](np.clip(values / _CLEARANCE_MAX_M, 0.0, 1.0))
-    return [tuple(int(255 * c) for c in colour[:3]) for colour in rgba]
+    return [(int(255 * r), int(255 * g), int(255 * b)) for r, g, b, _ in rgba]
 
 
 def _map_frame(

@@ -114,7 +114,7 @@ def load_sweeps(
     sweeps = []
     for (folder, _, meta), label, model in zip(read, labels, models, strict=True):
         rows = read_rows(folder, write=False)
-        if model in prices:
+        if model is not None and model in prices:
             rows = priced(rows, prices[model])
         label = label if labels.count(label) == 1 else f"{label} ({folder.name})"
         sweeps.append(Compared(folder, label, meta, rows))

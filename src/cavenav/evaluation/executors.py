@@ -24,7 +24,7 @@ from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from multiprocessing.connection import Connection, wait
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, TypeVar, cast
 
 import numba
 
@@ -254,9 +254,10 @@ class LocalPool:
         try:
             feed()
             while any(flying.values()):
-                for conn in wait([c for c in flying if flying[c]], timeout=1.0):
+                ready = wait([c for c in flying if flying[c]], timeout=1.0)
+                for conn in cast("list[Connection]", ready):  # the connections given
                     try:
-                        episode, row = conn.recv()  # type: ignore[union-attr]
+                        episode, row = conn.recv()
                     except (EOFError, OSError):
                         self._bury(processes[conn], flying.pop(conn), folder, done)
                         continue

@@ -67,7 +67,7 @@ class WandbLog:
                     dir=str(self.folder),
                     config=self.config,
                     job_type="sweep",
-                    mode=os.environ.get("WANDB_MODE", "offline"),
+                    mode=os.environ.get("WANDB_MODE", "offline"),  # type: ignore[arg-type]
                     settings=self._wandb.Settings(silent=True),
                 )
             except Exception as exc:  # noqa: BLE001 - wandb's own errors, of many kinds

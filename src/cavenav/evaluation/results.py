@@ -170,11 +170,12 @@ def _step(step: StepRecord | Mapping[str, Any]) -> StepRecord:
 def _made_headway(steps: Sequence[StepRecord]) -> list[bool]:
     """Whether each step that flew an action made headway, as `StuckLimit` counts it:
     from where the first one started, at the progress the first one reached."""
-    moves = [s for s in steps if s.action and s.pose and s.progress_m is not None]
+    moves = [(s, s.progress_m) for s in steps if s.action and s.pose and s.progress_m is not None]
     if not moves:
         return []
-    headway = Headway(moves[0].progress_m, _position(moves[0].pose))
-    return [headway.advance(s.progress_m, _position(s.next_pose or s.pose)) for s in moves]
+    first, progress = moves[0]
+    headway = Headway(progress, _position(first.pose))
+    return [headway.advance(made, _position(s.next_pose or s.pose)) for s, made in moves]
 
 
 def _position(pose: Any) -> tuple[float, float, float]:  # noqa: ANN401 - a recorded pose
@@ -283,11 +284,11 @@ def priced(rows: Sequence[Mapping[str, Any]], prices: tuple[float, float]) -> li
     price_in, price_out = prices
     out = []
     for row in rows:
-        tokens = row.get("prompt_tokens"), row.get("completion_tokens")
-        if any(t in (None, "") for t in tokens):
+        tokens_in, tokens_out = row.get("prompt_tokens"), row.get("completion_tokens")
+        if tokens_in in (None, "") or tokens_out in (None, ""):
             out.append(dict(row))
             continue
-        cost = (float(tokens[0]) * price_in + float(tokens[1]) * price_out) / 1e6
+        cost = (float(tokens_in) * price_in + float(tokens_out) * price_out) / 1e6
         out.append({**row, "cost_usd": round(cost, 6)})
     return out
 
@@ -550,7 +551,7 @@ def paired_difference_ci(
     if n == 0:
         return None
     margins = (both + only_a) * (only_b + neither) * (both + only_b) * (only_a + neither)
-    association = both * neither - only_a * only_b
+    association: float = both * neither - only_a * only_b
     if association > n / 2:
         association -= n / 2
     elif association >= 0:
@@ -603,8 +604,8 @@ PAIRED_MEASURES = ("min_clearance_m", "steps", "tokens", "cost_usd")
 
 def _measure(row: Mapping[str, Any], name: str) -> float | None:
     if name == "tokens":
-        counts = [row.get("prompt_tokens"), row.get("completion_tokens")]
-        counts = [float(c) for c in counts if c not in (None, "")]
+        given = [row.get("prompt_tokens"), row.get("completion_tokens")]
+        counts = [float(c) for c in given if c not in (None, "")]
         return sum(counts) if counts else None
     value = row.get(name)
     return None if value in (None, "") else float(value)

@@ -300,7 +300,7 @@ class EpisodeJob:
     def pilot_seed(self) -> int:
         """Seeds the random pilot: the cave's seed for the first trial, then a draw of its
         own for each other (from the cave's seed and the trial, so it repeats)."""
-        if (self.trial or 1) == 1:
+        if self.trial is None or self.trial == 1:
             return self.seed
         return int(np.random.SeedSequence([self.seed, self.trial]).generate_state(1)[0])
 

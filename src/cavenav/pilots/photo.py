@@ -93,7 +93,7 @@ def _open(path: Path) -> Image.Image:
         raise CavenavError(f"cannot read image {path}: {exc}") from None
     except Image.DecompressionBombError:  # Pillow's guard: its pixels would fill the memory
         raise CavenavError(
-            f"cannot read image {path}: over {2 * Image.MAX_IMAGE_PIXELS:,} pixels, beyond "
+            f"cannot read image {path}: over {2 * (Image.MAX_IMAGE_PIXELS or 0):,} pixels, beyond "
             "Pillow's guard against decompression bombs; shrink it first"
         ) from None
 
@@ -103,7 +103,8 @@ def _upright_size(image: Image.Image) -> tuple[tuple[int, int], int]:
     try:
         exif = image.getexif()  # reads on: a truncated file fails here
     except (OSError, SyntaxError, ValueError) as exc:
-        raise CavenavError(f"cannot read image {image.filename}: {exc}") from None
+        where = getattr(image, "filename", "")  # the file an image was opened from
+        raise CavenavError(f"cannot read image {where}: {exc}") from None
     orientation = int(exif.get(ExifTags.Base.Orientation, 1) or 1)
     width, height = image.size
     return ((height, width) if orientation in _QUARTER_TURNS else (width, height)), orientation

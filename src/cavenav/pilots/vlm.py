@@ -196,7 +196,9 @@ class VLMPilot:
         self.name = f"vlm:{backend.model}"
         # Rendered once now so a broken template fails before the first step, then for
         # each new camera (depth range, field of view) the observations come from.
-        self._system = {None: render_system(self.prompt)}
+        self._system: dict[tuple[tuple[float, float], float] | None, str] = {
+            None: render_system(self.prompt)
+        }
         self._history: deque[EncodedObservation] = deque(maxlen=max(self.prompt.history, 0) or None)
         if self.prompt.history == 0:
             self._history = deque(maxlen=0)

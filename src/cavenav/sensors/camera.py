@@ -111,12 +111,12 @@ def pixel_size(value: object, what: str = "resolution") -> tuple[int, int]:
     """
     pair = tuple(value) if isinstance(value, list | tuple | np.ndarray) else (value,)
     whole = all(isinstance(v, numbers.Integral) and not isinstance(v, bool) for v in pair)
-    if len(pair) != 2 or not whole or not _within(*pair):  # type: ignore[arg-type]
+    if len(pair) != 2 or not whole or not _within(*pair):
         raise ConfigError(
             f"{what} {value!r}: give [width, height] as two whole numbers of pixels from 1 "
             f"to {MAX_SIDE_PX}, e.g. [160, 120]"
         )
-    return int(pair[0]), int(pair[1])  # type: ignore[call-overload]
+    return int(pair[0]), int(pair[1])
 
 
 def _within(*sides: int) -> bool:

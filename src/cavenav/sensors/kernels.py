@@ -84,7 +84,7 @@ def _launches_from_many_threads() -> bool:
     """
     if numba_parallel._is_initialized:
         return numba.threading_layer() != "workqueue"
-    chosen = str(numba.config.THREADING_LAYER).lower()
+    chosen = str(numba.config.THREADING_LAYER).lower()  # type: ignore[attr-defined]
     if chosen == "default":
         priority = numba.config.THREADING_LAYER_PRIORITY  # type: ignore[attr-defined]
         chosen = next(layer for layer in priority if layer == "workqueue" or _loads(layer))
@@ -126,7 +126,7 @@ def _parallel_kernel(function: Callable[..., Any]) -> Callable[..., Any]:
         with _LAUNCHING:
             return kernel(*args)
 
-    in_turn.__wrapped__ = kernel  # type: ignore[attr-defined]
+    in_turn.__wrapped__ = kernel
     return in_turn
 
 

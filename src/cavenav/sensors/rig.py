@@ -500,7 +500,7 @@ class SensorRig:
         # degraded depth image no longer has.
         particles = self._splat_specks(origin, rot, lamp_tuple, depth)
         hit = (raw["primitive_ids"], raw["primitive_normals"], raw["primitive_uvs"])
-        cast = (depth, *(part[:n] for part in hit))
+        surfaces = (depth, *(part[:n] for part in hit))
         ray_tuple = (rays[:n, 3:], self._ray_length, origin)
         scene = (
             self._faces, self._vertex_normals, self._surface, self._surface_at, self._grain,
@@ -512,7 +512,7 @@ class SensorRig:
             self._bounds, *self._silt_tables(silt, origin, rot),
         )  # fmt: skip
         shade_grid(
-            cast, ray_tuple, scene, lamp_tuple, water, self._specks, self._speck_blocks,
+            surfaces, ray_tuple, scene, lamp_tuple, water, self._specks, self._speck_blocks,
             optics.vignetting, camera.width, self._grid, self._grid_triangle, self._halo,
             self._row_sums,
         )  # fmt: skip
@@ -524,7 +524,7 @@ class SensorRig:
         light = np.empty((n if radiance else 0, 3), np.float32)
         rgb, depth_png = np.empty((n, 3), np.uint8), np.empty(n, np.uint8)
         shade_frame(
-            cast, ray_tuple, scene, lamp_tuple, water, self._grid, self._grid_triangle,
+            surfaces, ray_tuple, scene, lamp_tuple, water, self._grid, self._grid_triangle,
             self._halo, self._specks, self._speck_blocks,
             sensor, depth_range, camera.width, light, self._signal, depth_png,
         )  # fmt: skip
@@ -579,7 +579,7 @@ class SensorRig:
         optics, camera = self.config.optics, self.config.camera
         if not (optics.particles > 0 and self._lamps.power.any()):
             return 0
-        return splat_particles(
+        return splat_particles(  # type: ignore[call-arg]  # a numba kernel: typed at its call
             origin, rot, *lamp_tuple, self._attenuation, optics.particles, self.config.seed,
             PARTICLE_REACH_M, camera.focal_px, camera.width, camera.height, depth,
             self._specks, self._speck_blocks,

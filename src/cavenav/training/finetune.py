@@ -244,7 +244,7 @@ def _model(options: FinetuneOptions, out: Path, train: Any, device: str) -> tupl
         if not (base / "config.json").is_file():
             build_small_vlm(base, _texts(train), NEW_MODELS[str(options.new)], options.seed)
     processor = AutoProcessor.from_pretrained(base)
-    model = AutoModelForImageTextToText.from_pretrained(base).to(device)
+    model = AutoModelForImageTextToText.from_pretrained(base).to(device)  # type: ignore[arg-type]
     size = sum(p.numel() for p in model.parameters())
     lora = options.lora if options.lora is not None else size > LORA_ABOVE
     if lora:

@@ -63,7 +63,11 @@ class SB3VecEnv(VecEnv):
         seeds = None if all(seed is None for seed in self._seeds) else list(self._seeds)
         if any(options != self._options[0] for options in self._options):
             raise ValueError("SB3VecEnv resets every environment with the same options")
-        observations, infos = self.venv.reset(seed=seeds, options=self._options[0] or None)
+        # One seed each, as SyncVectorEnv and CaveNavVectorEnv take them (typed as one int).
+        observations, infos = self.venv.reset(
+            seed=seeds,  # type: ignore[arg-type]
+            options=self._options[0] or None,
+        )
         self.reset_infos = unbatched_infos(infos, self.num_envs)
         self._reset_seeds()
         self._reset_options()
@@ -82,8 +86,8 @@ class SB3VecEnv(VecEnv):
             info["TimeLimit.truncated"] = bool(truncated[i] and not terminated[i])
         if dones.any():
             last = list(iterate(self.venv.observation_space, observations))
-            for i in np.flatnonzero(dones):
-                infos[i]["terminal_observation"] = last[i]
+            for ended in np.flatnonzero(dones):
+                infos[ended]["terminal_observation"] = last[ended]
             observations, reset = self.venv.reset(options={"reset_mask": dones})
             for i, info in enumerate(unbatched_infos(reset, self.num_envs)):
                 if dones[i]:
@@ -94,7 +98,8 @@ class SB3VecEnv(VecEnv):
         self.venv.close()
 
     def get_images(self) -> Sequence[np.ndarray | None]:
-        return list(self.venv.render() or [None] * self.num_envs)
+        frames = self.venv.render()  # each environment's, with render_mode="rgb_array"
+        return [None] * self.num_envs if frames is None else [f for f in frames]  # type: ignore[misc]
 
     def get_attr(self, attr_name: str, indices: Any = None) -> list[Any]:  # noqa: ANN401
         return [getattr(env, attr_name) for env in self._envs(indices)]
@@ -119,5 +124,5 @@ class SB3VecEnv(VecEnv):
 
     def _envs(self, indices: Any) -> list[Any]:  # noqa: ANN401 - SB3's VecEnvIndices
         """The sub-environments ``indices`` names (as `DummyVecEnv` reads them)."""
-        envs = self.venv.unwrapped.envs
+        envs = getattr(self.venv.unwrapped, "envs")  # noqa: B009 - not on every VectorEnv
         return [envs[i] for i in self._get_indices(indices)]

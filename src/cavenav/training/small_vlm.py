@@ -87,7 +87,7 @@ def build_small_vlm(
         "num_hidden_layers": size.layers,
         "num_attention_heads": size.heads,
     }
-    config = Idefics3Config(
+    config = Idefics3Config(  # type: ignore[call-arg]  # pad_token_id: read by PretrainedConfig
         vision_config={**tower, "image_size": size.image_px, "patch_size": 16},
         text_config={
             **tower,

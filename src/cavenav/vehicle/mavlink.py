@@ -907,6 +907,7 @@ class ArduSubMotion:
                 )
             else:
                 source = self._depth_source
+                assert source is not None  # chosen when the first pose was reckoned
                 link.wait_for(
                     f"no ATTITUDE and {source} after the action",
                     lambda t: min(t.attitude_at, t.depths[source][1]) >= ended,

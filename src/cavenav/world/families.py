@@ -250,7 +250,7 @@ def _breakdown(
     half_w: np.ndarray,
     half_h: np.ndarray,
     section: Section,
-    stations: Sequence[float],
+    stations: Sequence[float] | np.ndarray,
     below: float,
 ) -> list[Boulder]:
     """Angular blocks 0.8-2.0 m across fallen on a chamber's floor (``section``'s, flatter

@@ -211,11 +211,11 @@ def shortest_path(
     goals = np.flatnonzero(_past(scenario.exits, free_centres) & np.isfinite(distances))
     if not len(goals):
         raise NoPath(f"{scenario.name}: no free path ({voxel:.2f} m voxels) reaches an exit")
-    node, route = int(goals[np.argmin(distances[goals])]), []
+    node, backwards = int(goals[np.argmin(distances[goals])]), []
     while node >= 0:
-        route.append(free_centres[node])
+        backwards.append(free_centres[node])
         node = int(previous[node])
-    route = np.vstack([start, *route[::-1]])
+    route = np.vstack([start, *backwards[::-1]])
     points = _to_exit_plane(_taut(caster, route, radius_m, voxel / 4), scenario.exits)
     length = float(np.linalg.norm(np.diff(points, axis=0), axis=1).sum())
     return Geodesic(round(length, 4), points, voxel)

@@ -339,7 +339,7 @@ class _Tube:
                 value, floor = self.section.field(
                     i, a, b, c, self.half_width[i], self.half_height[i], self.along[i] + c
                 )
-                if j == 0:
+                if j == 0 and sediment is not None:
                     sediment[near] = floor
             phi[near] = np.minimum(phi[near], value.astype(np.float32))
         return phi, sediment
@@ -478,7 +478,7 @@ def _generate(spec: PassageSpec, name: str) -> CaveMesh:
         for tube in tubes[1:]:
             value = np.minimum(value, tube.field(grid, reach)[0])
         phi[idx[:, 0], idx[:, 1], idx[:, 2]] = value
-        if floor is not None:
+        if floor is not None and sediment is not None:
             sediment[idx[:, 0], idx[:, 1], idx[:, 2]] = floor
 
     rng = np.random.default_rng(spec.seed)

@@ -306,7 +306,7 @@ class Difficulty:
     def updated(self, other: Difficulty) -> Difficulty:
         """This difficulty with every knob that ``other`` sets taken from ``other``: a
         scenario file's knobs overridden from the command line."""
-        return replace(self, **other.to_dict())
+        return replace(self, **other.to_dict())  # type: ignore[arg-type]  # each knob its own
 
     @property
     def tag(self) -> str:
