@@ -44,9 +44,10 @@ $(TEST_STAMP): $(STAMP)
 demo: setup
 	$(BIN)/cavenav run S4 --pilot geometric
 
-# The checks first (a minute), then the suite.
+# The checks first (a minute), then the suite on two workers, a test file to each in turn
+# (a file's module fixtures, a cave or a model, are built once).
 test: lint
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n 2 --dist loadfile
 
 bench: setup-test
 	$(BIN)/python benchmarks/sensor_step.py

@@ -64,10 +64,11 @@ class VehicleMotion(Protocol):
 
     @property
     def position(self) -> str:
-        """ "reported" or "reckoned"."""
+        """Whether the vehicle's position is "reported" or "reckoned"."""
 
     @property
-    def position_sigma_m(self) -> float | None: ...
+    def position_sigma_m(self) -> float | None:
+        """The reckoned position's horizontal uncertainty (1 sigma, m); None when reported."""
 
     @property
     def depth_source(self) -> str | None:
