@@ -16,9 +16,10 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from cavenav import kinematics
 from cavenav.errors import ConfigError, VehicleError
 from cavenav.shield import Shield
-from cavenav.types import Action, Observation
+from cavenav.types import Action, Observation, Pose
 from cavenav.vehicle.camera import CameraAddress, FakeCamera, VideoCamera
 from cavenav.vehicle.dead_reckoning import DeadReckoning
 from cavenav.vehicle.fake_sub import FakeSub, FakeSubConfig
@@ -411,3 +412,46 @@ def test_a_cameras_password_is_never_shown_or_recorded() -> None:
     address = CameraAddress.parse("rtsp://pilot:hunter2@192.168.2.2:8554/video")
     assert address.where == "rtsp://pilot:hunter2@192.168.2.2:8554/video"  # what FFmpeg opens
     assert str(address) == "rtsp://pilot:[redacted]@192.168.2.2:8554/video"
+
+
+class _StillCamera:
+    def frame_after(self, moment: float) -> np.ndarray:
+        return np.full((48, 64, 3), 90, np.uint8)
+
+
+class _Sounders:
+    def read(self) -> tuple[float, float]:
+        return 1.5, 1.5
+
+
+class _ObedientVehicle:
+    """Flies every move exactly, and says where it is."""
+
+    position, position_sigma_m, depth_source, flown = "reported", None, None, Action()
+
+    def start(self, pose: Pose) -> Pose:
+        return pose
+
+    def move(self, pose: Pose, action: Action) -> Pose:
+        self.flown = action
+        return kinematics.apply(pose, action)
+
+
+def test_ctrl_c_while_a_flights_plots_are_drawn_leaves_it_finished(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from cavenav.episode import plots
+    from cavenav.episode.on_vehicle import Flight, VehicleSenses, fly_on_sensors
+    from cavenav.pilots.geometric import GeometricPilot
+
+    def interrupted(*args: object, **kwargs: object) -> None:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(plots, "plot_flight", interrupted)
+    senses = VehicleSenses(_StillCamera(), _Sounders())
+    flight = Flight(max_steps=2, shield=False, save_frames=False)
+    with pytest.raises(KeyboardInterrupt):
+        fly_on_sensors(GeometricPilot(), senses, _ObedientVehicle(), flight, tmp_path / "run")
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert (summary["status"], summary["steps"]) == ("finished", 2)
+    assert "plots" not in summary

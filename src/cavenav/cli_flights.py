@@ -120,7 +120,10 @@ def _interrupted(run_dir: Path) -> str:
         return f"interrupted: the partial record is in {run_dir}"
     missing = " and ".join(
         name
-        for name, left_out in (("SPL", summary.spl is None), ("plots", not summary.plots))
+        for name, left_out in (
+            ("SPL", bool(summary.success) and summary.spl is None),  # a success's alone
+            ("plots", not summary.plots),
+        )
         if left_out
     )
     return f"interrupted after the episode ended: its record is whole in {run_dir}" + (

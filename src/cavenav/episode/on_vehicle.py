@@ -258,10 +258,15 @@ def fly_on_sensors(
         log.failure = str(exc) if isinstance(exc, CavenavError) else f"{type(exc).__name__}: {exc}"
         raise
     finally:
-        summary = log.summary(status, motion)
+        summary, cut_short = log.summary(status, motion), False
         if status == "finished" and log.steps:
-            summary["plots"] = _plotted(summary, log, folder.path)
+            try:
+                summary["plots"] = _plotted(summary, log, folder.path)
+            except KeyboardInterrupt:  # the flight is whole: its summary says so, no plots
+                cut_short = True
         folder.finish(summary, log, None, plots=False)  # type: ignore[arg-type]
+        if cut_short:
+            raise KeyboardInterrupt
     return summary
 
 
