@@ -21,6 +21,8 @@ if os.environ.get("CAVENAV_THREADS"):
 
 import gymnasium  # noqa: E402
 
+from cavenav.types import STEP_BUDGET  # noqa: E402
+
 __version__ = "0.1.0"
 # What the caves and the frames of a seed look like. It changes only on purpose, when the
 # geometry of the families or the image formation changes, and every summary.json,
@@ -44,7 +46,7 @@ if "cavenav/CaveNav-v0" not in gymnasium.registry:
         id="cavenav/CaveNav-v0",
         entry_point="cavenav.env:CaveNavEnv",
         vector_entry_point="cavenav.vector_env:CaveNavVectorEnv",
-        max_episode_steps=150,
+        max_episode_steps=STEP_BUDGET,
     )
 if "cavenav/CaveNav-vector-v0" not in gymnasium.registry:
     # For learners: vector actions (a policy never meets the text space by accident),
@@ -53,5 +55,5 @@ if "cavenav/CaveNav-vector-v0" not in gymnasium.registry:
         id="cavenav/CaveNav-vector-v0",
         entry_point="cavenav.env:learner_env",
         vector_entry_point="cavenav.vector_env:learner_vector_env",
-        max_episode_steps=150,
+        max_episode_steps=STEP_BUDGET,
     )

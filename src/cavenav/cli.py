@@ -65,6 +65,7 @@ from cavenav.episode.settings import FRAME_MODES, VIDEO_MODES, EpisodeSettings
 from cavenav.errors import CavenavError
 from cavenav.pilots.factory import PilotSpec, VLMOptions
 from cavenav.redaction import redact
+from cavenav.types import STEP_BUDGET
 
 app = typer.Typer(
     add_completion=False,
@@ -656,7 +657,6 @@ def _fly_own_sensors(
             "--rerun, --rerun-save and --battery-wh need --sim: a vehicle on its own "
             "sensors has no cave model to show, and reports its own battery"
         )
-    from cavenav.episode.loop import DEFAULT_STEPS
     from cavenav.episode.on_vehicle import Flight
     from cavenav.episode.run_folder import new_run_dir, prepare_root
     from cavenav.vehicle.camera import CameraAddress
@@ -684,7 +684,7 @@ def _fly_own_sensors(
         "ping_up": own.ping_up, "ping_down": own.ping_down,
         "depth_model": own.depth_model,
     }  # fmt: skip
-    flight = Flight(settings.steps or DEFAULT_STEPS, settings.shield, settings.save_frames, vehicle)
+    flight = Flight(settings.steps or STEP_BUDGET, settings.shield, settings.save_frames, vehicle)
     flyer = spec.build(seed=0)
     prepare_root(out)
     size = settings.resolution or (640, 480)

@@ -21,6 +21,7 @@ import numpy as np
 
 __all__ = [
     "DEFAULT_RULES",
+    "STEP_BUDGET",
     "Action",
     "Cruise",
     "Decision",
@@ -122,6 +123,10 @@ class Rules:
 
 
 DEFAULT_RULES = Rules()
+
+# The steps an episode gets (SPEC's budget) where nothing names another: a scenario's
+# own, --steps, or the registered environments' TimeLimit.
+STEP_BUDGET = 150
 
 
 @dataclass(frozen=True)

@@ -36,7 +36,7 @@ from cavenav.kinematics import Motion
 from cavenav.pilots.base import Pilot
 from cavenav.sensors.depth import ExrCompression
 from cavenav.sensors.rig import SensorConfig
-from cavenav.types import DEFAULT_RULES, Observation, Pose, Rules, VehicleBody
+from cavenav.types import DEFAULT_RULES, STEP_BUDGET, Observation, Pose, Rules, VehicleBody
 from cavenav.world.current import Current
 from cavenav.world.scenarios import Scenario
 from cavenav.wrappers import SafetyShield, StuckLimit
@@ -52,7 +52,7 @@ __all__ = [
     "step_budget",
 ]
 
-DEFAULT_STEPS = 150  # SPEC's budget, for a scenario that names none
+DEFAULT_STEPS = STEP_BUDGET  # the old name, kept for scripts that import it
 
 
 @dataclass(frozen=True)
@@ -134,8 +134,8 @@ class Watcher(Protocol):
 
 def step_budget(scenario: Scenario, config: EpisodeConfig) -> int:
     """The steps an episode of ``config`` gets in ``scenario``: ``config.max_steps`` when
-    set, else the scenario's own budget, else `DEFAULT_STEPS`."""
-    return config.max_steps or scenario.step_budget or DEFAULT_STEPS
+    set, else the scenario's own budget, else `cavenav.types.STEP_BUDGET`."""
+    return config.max_steps or scenario.step_budget or STEP_BUDGET
 
 
 def make_env(scenario: Scenario, config: EpisodeConfig, motion: Motion | None = None) -> gym.Env:

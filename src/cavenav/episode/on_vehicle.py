@@ -42,7 +42,7 @@ from cavenav.pilots.base import Pilot
 from cavenav.sensors.camera import CameraIntrinsics
 from cavenav.sensors.depth import DEPTH_RANGE_M, normalise_depth, unknown_depth
 from cavenav.shield import Shield, ShieldConfig
-from cavenav.types import Action, Decision, Observation, Pose, Usage
+from cavenav.types import STEP_BUDGET, Action, Decision, Observation, Pose, Usage
 
 __all__ = ["Flight", "VehicleMotion", "VehicleSenses", "fly_on_sensors"]
 
@@ -136,7 +136,7 @@ class Flight:
             model), recorded as given in summary.json.
     """
 
-    max_steps: int = 150
+    max_steps: int = STEP_BUDGET
     shield: bool = True
     save_frames: bool = True
     vehicle: Mapping[str, Any] = field(default_factory=dict)

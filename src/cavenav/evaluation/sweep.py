@@ -40,7 +40,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from cavenav import SCENARIO_SET, __version__
-from cavenav.episode.loop import DEFAULT_STEPS, EpisodeConfig, run_episode
+from cavenav.episode.loop import EpisodeConfig, run_episode
 from cavenav.episode.records import read_summary, read_sweep_file
 from cavenav.episode.run_folder import prepare_root, write_atomic, write_json
 from cavenav.episode.settings import FRAME_MODES, SENSOR_FIELDS, VIDEO_MODES, EpisodeSettings
@@ -54,6 +54,7 @@ from cavenav.errors import (
 from cavenav.evaluation.results import episode_row, outcome, read_episode, write_results
 from cavenav.pilots.base import Pilot
 from cavenav.pilots.factory import PilotSpec, VLMOptions
+from cavenav.types import STEP_BUDGET
 from cavenav.world.scenarios import (
     SCENARIOS,
     Difficulty,
@@ -252,7 +253,7 @@ class SweepConfig:
         # default, and it never ended an episode stuck.
         if "stuck_after" not in episode:
             episode["stuck_after"] = None
-            if episode["steps"] == DEFAULT_STEPS:
+            if episode["steps"] == STEP_BUDGET:
                 episode["steps"] = None
         return cls(
             scenarios=tuple(data["scenarios"]),
