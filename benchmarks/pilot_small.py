@@ -4,7 +4,7 @@ decision on 2 cores, at the model's own image size.
 
 Flies S1's held-out cave 1000 for ``--steps`` steps with the model (greedy, through the
 transformers backend, as `cavenav run` flies it) and prints, per step, the median and
-95th percentile of the model's own time (processor and generation), the pilot's whole
+95th percentile of the model's own time (its generation), the pilot's whole
 time (encoding the images and building the request too), the simulator's sensing, and
 the tokens read and written. Then the same decisions asked on a thread other than the
 main one, as a sweep asks them (`cavenav eval`: each episode flies on a thread).
@@ -42,7 +42,7 @@ def _row(name: str, values: list[float], unit: str = "ms") -> str:
 def _report(title: str, steps: list[dict]) -> None:
     asked = [s for s in steps[1:] if s.get("vlm")]  # the first decision loads the model
     print(f"{title}: {len(asked)} decisions")
-    print(_row("model (process + generate)", [1e3 * s["vlm"]["model_s"] for s in asked]))
+    print(_row("model (generation)", [1e3 * s["vlm"]["model_s"] for s in asked]))
     print(_row("pilot (request + model)", [s["timing_ms"]["pilot"] for s in asked]))
     print(_row("simulator sensing", [s["timing_ms"]["sense"] for s in asked]))
     print(_row("prompt tokens", [s["vlm"]["prompt_tokens"] for s in asked], "tok"))

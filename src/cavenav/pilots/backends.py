@@ -644,7 +644,7 @@ class TransformersBackend:
 
     @redacting
     def complete(self, messages: list[Message], json_schema: dict | None = None) -> Completion:
-        torch = self._torch
+        torch, called = self._torch, time.perf_counter()
         chat, images = local_chat(messages)
         prompt = self._processor.apply_chat_template(chat, add_generation_prompt=True)
         inputs = self._processor(text=prompt, images=images or None, return_tensors="pt").to(
@@ -663,12 +663,12 @@ class TransformersBackend:
             )
         new = out[0, inputs["input_ids"].shape[1] :]
         text = self._processor.decode(new, skip_special_tokens=True)
-        generated = time.perf_counter() - start
+        done = time.perf_counter()
         return Completion(
             text=text,
             prompt_tokens=int(inputs["input_ids"].shape[1]),
             completion_tokens=int(new.shape[0]),
-            latency_s=generated,
+            latency_s=done - called,  # the processor too
             model=self.config.model,
-            model_s=generated,
+            model_s=done - start,  # the generation
         )
