@@ -54,7 +54,7 @@ class VLMOptions:
     max_tokens: int = 1024
     detail: str | None = None
     requeries: int = 3
-    history: int = 2
+    history: int = PromptConfig.history
     prompt_file: str | None = None
     structured: bool = False
     map_image: bool = False  # a top-down picture of the pilot's map with each step
