@@ -20,6 +20,7 @@ from typing import Any
 
 import gymnasium as gym
 import numpy as np
+from vector_env import arguments  # benchmarks/vector_env.py, beside this script
 
 import cavenav  # noqa: F401 - registers the environments
 from cavenav.sensors.camera import parse_resolution
@@ -73,11 +74,7 @@ def measured(make: Callable[..., Any], args: argparse.Namespace) -> tuple[float,
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--envs", type=int, default=16)
-    parser.add_argument("--steps", type=int, default=200)
-    parser.add_argument("--resolution", default="84x84")
-    parser.add_argument("--warm", type=int, default=5)
+    parser = arguments(__doc__.split("\n\n")[0])
     parser.add_argument("--ppo", type=int, default=0, help="steps of PPO learning to time")
     args = parser.parse_args()
     fast, fast_ppo = measured(batched, args)

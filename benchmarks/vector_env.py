@@ -88,12 +88,18 @@ def cast_bound(caster: object, rays: np.ndarray, envs: int, repeats: int = 50) -
     return envs * repeats / (time.perf_counter() - started)
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def arguments(description: str) -> argparse.ArgumentParser:
+    """The options every environment-rate benchmark takes (also `sb3_vec_env.py`'s)."""
+    parser = argparse.ArgumentParser(description=description)
     parser.add_argument("--envs", type=int, default=16)
     parser.add_argument("--steps", type=int, default=200)
     parser.add_argument("--resolution", default="84x84")
     parser.add_argument("--warm", type=int, default=5)
+    return parser
+
+
+def main() -> None:
+    parser = arguments(__doc__.split("\n\n")[0])
     parser.add_argument("--workers", type=int, default=None, help="shading threads, batched")
     args = parser.parse_args()
     size = parse_resolution(args.resolution)
