@@ -39,6 +39,12 @@ from .vlm_server import FakeVLM
 QUICK = EpisodeConfig(max_steps=4, save_frames=False, plots=False)
 
 
+def patient_pilot(server: FakeVLM) -> VLMPilot:
+    """`pilot_for` that waits out a busy machine: a request timed out and sent again
+    reaches the server twice, and the requests it got no longer pair with the steps."""
+    return pilot_for(server, timeout_s=30.0)
+
+
 def rows_of(out: Path, split: str = "train") -> list[dict]:
     """Every row of a split, as pyarrow reads it (images as their bytes)."""
     return [row for path in sorted((out / "data").glob(f"{split}-*.parquet"))
@@ -54,7 +60,7 @@ def test_a_vlm_runs_rows_hold_the_very_messages_it_sent(tmp_path: Path) -> None:
     """Done when: byte for byte against exchanges.jsonl, and against what the server got."""
     run_dir = tmp_path / "run"
     with FakeVLM() as server:
-        run_episode(load_scenario("S4"), pilot_for(server), QUICK, run_dir)
+        run_episode(load_scenario("S4"), patient_pilot(server), QUICK, run_dir)
         sent = [request["messages"] for request in server.requests]
     out = tmp_path / "data"
     export_dataset([run_dir], out, DatasetOptions(episodes="all", validation=0))
@@ -164,7 +170,7 @@ def test_teacher_labels_train_on_the_students_own_states(tmp_path: Path) -> None
     with pytest.raises(ConfigError, match="no teacher label"):  # a model flown alone
         bare = tmp_path / "bare"
         with FakeVLM() as server:
-            run_episode(load_scenario("S1"), pilot_for(server), QUICK, bare)
+            run_episode(load_scenario("S1"), patient_pilot(server), QUICK, bare)
         export_dataset([bare], tmp_path / "nothing", DatasetOptions(labels="teacher"))
     out = tmp_path / "data"
     export_dataset([run_dir], out, DatasetOptions(labels="teacher", validation=0))
@@ -186,7 +192,7 @@ def test_teacher_labels_train_on_the_students_own_states(tmp_path: Path) -> None
     # flight had no prompt, and is asked again with the dataset's.
     student = tmp_path / "student"
     with FakeVLM() as server:
-        shadowed = ShadowedPilot(pilot_for(server), GeometricPilot())
+        shadowed = ShadowedPilot(patient_pilot(server), GeometricPilot())
         run_episode(load_scenario("S1"), shadowed, QUICK, student)
     rounds = DatasetOptions(labels="teacher", validation=0)
     assert export_dataset([student, alone], tmp_path / "rounds", rounds).episodes == 2
