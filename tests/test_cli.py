@@ -39,10 +39,12 @@ def printed_summary(stdout: str) -> dict[str, str]:
 
 @pytest.mark.slow
 def test_run_writes_a_run_folder_and_prints_where(tmp_path: Path) -> None:
-    done = cavenav("run", "S4", "--steps", "3", "--no-frames", "--out", str(tmp_path))
+    out = str(tmp_path)
+    done = cavenav("run", "S4", "--seed", "2", "--steps", "3", "--no-frames", "--out", out)
     assert done.returncode == 0, done.stderr
     (run_dir,) = tmp_path.iterdir()
     summary = json.loads((run_dir / "summary.json").read_text())
+    assert (summary["seed"], summary["noise_seed"], summary["pilot_seed"]) == (2, 2, None)
     assert summary["termination"] == "budget" and summary["steps"] == 3
     # The table printed is the summary written.
     shown = printed_summary(done.stdout)

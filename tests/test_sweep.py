@@ -130,6 +130,32 @@ def test_a_rerun_skips_finished_episodes_and_reflies_interrupted_ones(
     assert read_rows(out)[1]["outcome"] == "budget"
 
 
+def test_each_cave_seed_draws_its_own_noise_unless_the_noise_seed_is_held(
+    room: str, tmp_path: Path
+) -> None:
+    # A scenario file is one cave whatever the seed: only the noise can tell seeds apart.
+    def first_frames(out: Path, **fields) -> tuple[list[bytes], list[tuple]]:
+        config = SweepConfig((room,), (0, 1), steps=1, frames="png", **fields)
+        run_sweep(config, out, InProcess())
+        folders = sorted((out / "episodes").iterdir())
+        frames = [(f / "frames" / "step_0000_rgb.png").read_bytes() for f in folders]
+        summaries = [json.loads((f / "summary.json").read_text()) for f in folders]
+        return frames, [(s["seed"], s["noise_seed"], s["pilot_seed"]) for s in summaries]
+
+    frames, seeds = first_frames(tmp_path / "own")
+    assert frames[0] != frames[1] and seeds == [(None, 0, None), (None, 1, None)]
+    frames, seeds = first_frames(tmp_path / "held", noise_seed=5)
+    assert frames[0] == frames[1] and seeds == [(None, 5, None), (None, 5, None)]
+    assert json.loads((tmp_path / "held" / "sweep.json").read_text())["episode"]["noise_seed"] == 5
+
+
+def test_trials_draw_noise_of_their_own_also_when_it_is_held(room: str) -> None:
+    jobs = plan(sweep(room, seeds=(7,), trials=3))
+    assert [job.noise_seed() for job in jobs] == [job.pilot_seed for job in jobs]
+    assert jobs[0].noise_seed() == 7 and len({job.noise_seed() for job in jobs}) == 3
+    assert [job.noise_seed(held=5) for job in jobs] == [5, 6, 7]
+
+
 def test_another_configuration_in_the_same_folder_is_refused(room: str, tmp_path: Path) -> None:
     out = tmp_path / "sweep"
     run_sweep(sweep(room, seeds=(0,)), out, InProcess())
@@ -194,12 +220,16 @@ def test_a_sweep_json_written_before_episode_settings_resumes_as_the_same_sweep(
         depth_max_m=12.0,
         optics={"water": "turbid", "depth_noise_m": 0.05},
         resolution=(160, 120),
+        noise_seed=0,  # every episode's noise was drawn from seed 0 then
     )
     stamps = ("created_at", "cavenav_version", "scenario_set")
     again = {k: v for k, v in config.to_dict().items() if k not in stamps}
     assert again == {k: v for k, v in written.items() if k not in stamps}
     assert json.dumps(again) == json.dumps({k: written[k] for k in again})  # key order too
     assert len(prepare(config, out)) == 2  # the same command resumes it
+    today = replace(config.settings, noise_seed=None)  # the same command today
+    with pytest.raises(ConfigError, match="add --noise-seed 0"):
+        prepare(SweepConfig((room,), (0, 1), settings=today), out)
     with pytest.raises(ConfigError, match=r"sensors.resolution: \[160, 120\] there, null now"):
         settings = replace(config.settings, resolution=None)
         prepare(SweepConfig((room,), (0, 1), settings=settings), out)

@@ -22,7 +22,7 @@ from cavenav.pilots import request_images
 from cavenav.pilots.backends import CachedBackend, OpenAIBackend, OpenAIConfig
 from cavenav.pilots.factory import PilotSpec, VLMOptions
 from cavenav.pilots.prompt import PromptConfig
-from cavenav.pilots.replay import ReplayPilot
+from cavenav.pilots.replay import ReplayPilot, recorded_noise_seed
 from cavenav.pilots.request_images import ImageEncoding
 from cavenav.pilots.vlm import VLMPilot
 from cavenav.types import Usage
@@ -293,6 +293,24 @@ def test_energy_aware_prompting_tells_the_model_what_its_battery_has_left(
     assert told[0] == ["Battery: 2.00 Wh left."]
     spent = result.steps[0]["energy_wh"] + result.steps[1]["energy_wh"]
     assert told[2] == [f"Battery: {2.0 - spent:.2f} Wh left."]
+
+
+@pytest.mark.parametrize(
+    ("summary", "noise_seed"),
+    [
+        ({"noise_seed": 4, "config": {"seed": 4}}, 4),
+        ({"config": {"seed": 2}}, 2),  # recorded before the summary named the noise's seed
+        ({}, 0),  # recorded before the configuration was: the noise was always seed 0
+    ],
+)
+def test_a_replay_draws_the_noise_its_recording_drew(
+    tmp_path: Path, summary: dict, noise_seed: int
+) -> None:
+    (tmp_path / "summary.json").write_text(json.dumps({"scenario": "S1", "seed": 3, **summary}))
+    assert recorded_noise_seed(tmp_path) == noise_seed
+    (tmp_path / "summary.json").write_text(json.dumps({"noise_seed": "4"}))
+    with pytest.raises(ConfigError, match="field 'noise_seed' is not a whole number"):
+        recorded_noise_seed(tmp_path)
 
 
 @pytest.mark.slow

@@ -64,6 +64,7 @@ from cavenav.cli_training import dataset, finetune
 from cavenav.episode.settings import FRAME_MODES, VIDEO_MODES, EpisodeSettings
 from cavenav.errors import CavenavError
 from cavenav.pilots.factory import PilotSpec, VLMOptions
+from cavenav.pilots.replay import recorded_noise_seed, recorded_scenario
 from cavenav.redaction import redact
 from cavenav.types import STEP_BUDGET
 
@@ -112,7 +113,10 @@ def run(
     scenario: ScenarioArg,
     pilot: PilotOpt = "geometric",
     seed: Annotated[
-        int, typer.Option(min=0, help="seed of the procedural cave and of the random pilot")
+        int,
+        typer.Option(
+            min=0, help="seed of the procedural cave, the sensor noise and the random pilot"
+        ),
     ] = 0,
     out: RunsOut = Path("runs"),
     frames: FramesOpt = True,
@@ -140,6 +144,8 @@ def run(
     spec = _pilot_spec(pilot, vlm, from_, policy, teacher)
     if pilot == "replay":
         seed = _recorded_seed(scenario, str(from_), seed)
+        if settings.noise_seed is None:  # observations as the recording's were
+            settings = replace(settings, noise_seed=recorded_noise_seed(str(from_)))
     flyer = spec.build(seed=seed)  # a refused pilot or recording leaves no folder behind
     settings = replace(
         _camera_for(spec, settings),
@@ -151,7 +157,7 @@ def run(
     # for a cave that is refused (unknown, a start in rock) is removed again.
     with prepared_root(out):
         cave = _built(settings, scenario, seed)
-        config = settings.episode_config(cave)
+        config = settings.episode_config(cave, seed)
         console.print(
             f"[bold]{cave.name}[/]: {cave.description or cave.mesh.name} "
             f"({cave.mesh.triangle_count:,} triangles)"
@@ -210,8 +216,6 @@ def _camera_for(spec: PilotSpec, settings: EpisodeSettings) -> EpisodeSettings:
 def _recorded_seed(scenario: str, recording: str, seed: int) -> int:
     """The seed the replayed ``recording`` flew (``seed`` if it names none), with a note
     when it flew another scenario."""
-    from cavenav.pilots.replay import recorded_scenario
-
     recorded, recorded_seed = recorded_scenario(recording)
     if recorded.casefold() != scenario.casefold() and Path(scenario).stem not in recorded:
         console.print(f"[yellow]note:[/] the recording flew {recorded}, replaying in {scenario}")
@@ -639,7 +643,7 @@ def _fly_in_a_simulated_cave(
                       "over MAVLink meets its own water", soft_wrap=True)  # fmt: skip
         settings = replace(settings, discharge_m3s=0.0)
     run_dir = new_run_dir(out, cave.name, spec.name, cave.seed)
-    fly_vehicle(bridge, cave, flyer, settings.episode_config(cave), run_dir, confirm, view)
+    fly_vehicle(bridge, cave, flyer, settings.episode_config(cave, seed), run_dir, confirm, view)
 
 
 def _fly_own_sensors(

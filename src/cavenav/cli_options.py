@@ -323,6 +323,7 @@ def episode_settings(
     discharge: float | None = _SETTINGS.discharge_m3s,
     gusts: float | None = _SETTINGS.gusts,
     battery_wh: float | None = _SETTINGS.battery_wh,
+    noise_seed: int | None = _SETTINGS.noise_seed,
 ) -> EpisodeSettings:
     """`EpisodeSettings` from the episode, sensor and optics flags, one keyword each (so a flag
     renamed in `SETTINGS` alone fails when a command is declared); frames and shield stay.
@@ -358,6 +359,7 @@ def episode_settings(
         discharge_m3s=discharge,
         gusts=gusts,
         battery_wh=battery_wh,
+        noise_seed=noise_seed,
     )
 
 
@@ -517,6 +519,14 @@ SETTINGS = OptionGroup(
             "spent it (a BlueROV2's full pack holds 266 Wh); default: no budget",
             min=0.001,
             callback=finite,
+        ),
+        _flag(
+            "noise_seed",
+            int,
+            _SETTINGS.noise_seed,
+            "seed of the sensor noise, held apart from the cave's (default: the episode's "
+            "own seed, so another --seed draws other noise too)",
+            min=0,
         ),
     ),
     episode_settings,

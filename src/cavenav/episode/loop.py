@@ -182,7 +182,11 @@ def run_episode(
     env = make_env(scenario, config, motion)
     _, info = env.reset(seed=config.seed)  # checks the start before any folder is written
     start, clearance = info["vehicle_pose"], info["clearance_m"]
-    log = EpisodeLog(scenario, pilot.name, config.rules, config.shield, start, clearance, config)
+    # A pilot that draws (the random pilot) keeps its seed; the others have none.
+    pilot_seed = getattr(pilot, "seed", None)
+    log = EpisodeLog(
+        scenario, pilot.name, config.rules, config.shield, start, clearance, config, pilot_seed
+    )
     folder = _run_folder(run_dir, config)
     status = "crashed"
     try:

@@ -40,9 +40,13 @@ class EpisodeLog:
         start: Pose,
         start_clearance: float,
         config: Any,
+        pilot_seed: int | None = None,
     ):
+        """``config`` is the episode's `EpisodeConfig`; ``pilot_seed`` seeds the pilot's
+        own draws (None for a pilot that draws nothing)."""
         self.scenario = scenario
         self.pilot = pilot
+        self.seeds = {"noise_seed": config.seed, "pilot_seed": pilot_seed}
         self.rules = rules
         self.shielded = shielded
         self.poses = [start]
@@ -185,6 +189,7 @@ class EpisodeLog:
                 "scenario": self.scenario.name,
                 "pilot": self.pilot,
                 "seed": self.scenario.seed,
+                **self.seeds,
                 "status": status,
                 "success": self.termination == "exit",
                 "termination": self.termination,

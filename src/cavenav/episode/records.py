@@ -151,7 +151,9 @@ class EpisodeSummary(_Record):
 
     scenario: str | None = None
     pilot: str | None = None
-    seed: int | None = None
+    seed: int | None = None  # the cave's
+    noise_seed: int | None = None  # the sensor noise's; None: written before it was recorded
+    pilot_seed: int | None = None  # the pilot's own draws (the random pilot's); None: none
     status: str | None = None  # running, finished, interrupted or crashed
     success: bool | None = None
     termination: Termination | None = None

@@ -60,6 +60,9 @@ class EpisodeSettings:
             keeps the cave's own (`Scenario.water`: still, but where a scenario file's
             [water] table says otherwise).
         battery_wh: an energy budget that ends an episode as ``battery``; None: none.
+        noise_seed: seeds the sensor noise of every episode (a sweep's further trials one
+            more each); None draws it from the episode's own seed (`episode_config`), so
+            that another seed flies other noise as well as another cave.
     """
 
     steps: int | None = None
@@ -77,6 +80,7 @@ class EpisodeSettings:
     discharge_m3s: float | None = None
     gusts: float | None = None
     battery_wh: float | None = None
+    noise_seed: int | None = None
 
     def __post_init__(self) -> None:
         if self.exr_compression not in EXR_COMPRESSIONS:
@@ -94,6 +98,9 @@ class EpisodeSettings:
             Difficulty.from_dict(self.difficulty)
         self.current_for({})  # a bad value fails here, not in a worker
         checked_budget(self.battery_wh)
+        seed = self.noise_seed
+        if seed is not None and (not isinstance(seed, int) or isinstance(seed, bool) or seed < 0):
+            raise ConfigError(f"noise_seed must be a whole number of 0 or more, not {seed!r}")
 
     @property
     def flowing(self) -> bool:
@@ -142,8 +149,10 @@ class EpisodeSettings:
         base = replace(SensorConfig(), sounder=self.sounder, depth_max_m=self.depth_max_m)
         return base.for_scenario(cave.name, cave.optics, self.optics, cave.sensors, sizes)
 
-    def episode_config(self, cave: Scenario) -> EpisodeConfig:
-        """The `EpisodeConfig` of an episode in ``cave`` with these settings."""
+    def episode_config(self, cave: Scenario, seed: int = 0) -> EpisodeConfig:
+        """The `EpisodeConfig` of an episode in ``cave`` with these settings; ``seed``,
+        the episode's own (its cave's, or its trial's in a sweep), seeds the sensor noise
+        unless ``noise_seed`` holds it apart."""
         from cavenav.episode.loop import EpisodeConfig
 
         return EpisodeConfig(
@@ -156,6 +165,7 @@ class EpisodeSettings:
             sensors=self.sensors_for(cave),
             current=self.current_for(cave),
             battery_wh=self.battery_wh,
+            seed=seed if self.noise_seed is None else self.noise_seed,
         )
 
     def to_dict(self) -> dict[str, Any]:
@@ -166,6 +176,8 @@ class EpisodeSettings:
             "shield": self.shield,
             "frames": self.frames,
         }
+        if self.noise_seed != 0:  # absent: seed 0, as every sweep's was before it was set
+            episode["noise_seed"] = self.noise_seed
         if self.exr_compression != "none":  # no sweep flag sets it: absent, as before
             episode["exr_compression"] = self.exr_compression
         for key in _WATER:  # absent in still water with no budget, as before they existed
@@ -195,9 +207,9 @@ class EpisodeSettings:
         if unknown:
             raise ConfigError(f"sensors: unknown key(s) {', '.join(sorted(unknown))}")
         frames = episode.pop("frames", "all")
+        episode.setdefault("noise_seed", 0)  # see `to_dict`
         settings = cls(
-            **{k: episode[k] for k in ("steps", "stuck_after", "shield", "exr_compression", *_WATER)
-               if k in episode},
+            **{k: episode[k] for k in (*_EPISODE_KEYS, *_WATER) if k in episode},
             **sensors,
             difficulty=data.get("difficulty", {}),
         )  # fmt: skip
@@ -205,5 +217,7 @@ class EpisodeSettings:
 
 
 _DEFAULTS = EpisodeSettings()
+# The settings sweep.json keeps under "episode" always (the frames apart).
+_EPISODE_KEYS = ("steps", "stuck_after", "shield", "exr_compression", "noise_seed")
 # The settings of the water and the battery, kept in sweep.json's "episode" when set.
 _WATER = ("discharge_m3s", "gusts", "battery_wh")

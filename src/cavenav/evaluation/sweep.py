@@ -291,11 +291,11 @@ class EpisodeJob:
         trial = f"-trial{self.trial}" if self.trial is not None else ""
         return re.sub(r"[^A-Za-z0-9_.-]+", "_", f"{stem}-seed{self.seed:04d}{trial}")
 
-    @property
-    def noise_seed(self) -> int:
-        """Seeds the sensor noise: 0 for the first trial (as in a sweep of one), then one
-        more for each trial."""
-        return (self.trial or 1) - 1
+    def noise_seed(self, held: int | None = None) -> int:
+        """Seeds the sensor noise: the episode's own seed (`pilot_seed`), or with ``held``
+        (`EpisodeSettings.noise_seed`) that for the first trial and one more for each
+        other."""
+        return self.pilot_seed if held is None else held + (self.trial or 1) - 1
 
     @property
     def pilot_seed(self) -> int:
@@ -395,6 +395,16 @@ def _first_difference(old: Any, new: Any, where: str = "") -> str:
     return f"{where or 'configuration'}: {json.dumps(old)} there, {json.dumps(new)} now"
 
 
+def _resume_hint(recorded: EpisodeSettings, wanted: EpisodeSettings) -> str:
+    """The flag a sweep begun by an older cavenav needs to resume, where one does."""
+    if recorded.stuck_after is None and wanted.stuck_after:
+        return " (it was flown without stuck endings: add --stuck-after 0)"
+    if recorded.noise_seed is not None and wanted.noise_seed is None:
+        seed = recorded.noise_seed
+        return f" (its episodes drew their noise from seed {seed}: add --noise-seed {seed})"
+    return ""
+
+
 def prepare(config: SweepConfig, folder: Path) -> list[EpisodeJob]:
     """Create or reopen the sweep folder; the episodes still to fly.
 
@@ -413,11 +423,7 @@ def prepare(config: SweepConfig, folder: Path) -> list[EpisodeJob]:
         # take the values it was flown with (no stuck endings, no map image).
         recorded = {**recorded, **flown.to_dict()}
         if _identity(recorded) != _identity(wanted):
-            hint = (
-                " (it was flown without stuck endings: add --stuck-after 0)"
-                if recorded["episode"]["stuck_after"] is None and config.settings.stuck_after
-                else ""
-            )
+            hint = _resume_hint(flown.settings, config.settings)
             raise ConfigError(
                 f"{folder} holds a sweep with another configuration "
                 f"({_first_difference(_identity(recorded), _identity(wanted))}); "
@@ -486,8 +492,8 @@ class EpisodeWorker:
 
     def episode_config(self, cave: Scenario, job: EpisodeJob | None = None) -> EpisodeConfig:
         """The `EpisodeConfig` of this sweep's episode in ``cave`` (``job``: its trial's)."""
-        config = self.config.settings.episode_config(cave)
-        return replace(config, seed=job.noise_seed) if job else config
+        settings = self.config.settings
+        return settings.episode_config(cave, job.noise_seed(settings.noise_seed) if job else 0)
 
     def fly(self, job: EpisodeJob) -> dict[str, Any]:
         """Fly one episode into a fresh run folder, with its episode.mp4 where the sweep's

@@ -15,7 +15,7 @@ from cavenav.actions import parse_action
 from cavenav.errors import ConfigError, PilotFailure
 from cavenav.types import Decision, Observation
 
-__all__ = ["ReplayPilot", "recorded_scenario"]
+__all__ = ["ReplayPilot", "recorded_noise_seed", "recorded_scenario"]
 
 
 def _damaged(path: Path, why: str) -> ConfigError:
@@ -56,11 +56,11 @@ def _whole(value: Any) -> bool:
     return isinstance(value, int) and not isinstance(value, bool)
 
 
-def recorded_scenario(run_dir: str | Path) -> tuple[str, int | None]:
-    """(scenario, seed) of a recorded run, from its summary.json.
+def _summary(run_dir: str | Path) -> tuple[Path, dict[str, Any]]:
+    """A recorded run's summary.json (its path and contents).
 
     Raises:
-        ConfigError: summary.json is missing, unreadable or damaged (naming the file).
+        ConfigError: summary.json is missing, unreadable or not a JSON object.
     """
     path = Path(run_dir) / "summary.json"
     try:
@@ -71,12 +71,38 @@ def recorded_scenario(run_dir: str | Path) -> tuple[str, int | None]:
         raise _damaged(path, f"not valid JSON ({exc})") from None
     if not isinstance(summary, dict):
         raise _damaged(path, "not a JSON object")
+    return path, summary
+
+
+def recorded_scenario(run_dir: str | Path) -> tuple[str, int | None]:
+    """(scenario, seed) of a recorded run, from its summary.json.
+
+    Raises:
+        ConfigError: summary.json is missing, unreadable or damaged (naming the file).
+    """
+    path, summary = _summary(run_dir)
     scenario, seed = summary.get("scenario"), summary.get("seed")
     if not isinstance(scenario, str):
         raise _damaged(path, "field 'scenario' is not text")
     if seed is not None and not _whole(seed):
         raise _damaged(path, "field 'seed' is not a whole number")
     return scenario, seed
+
+
+def recorded_noise_seed(run_dir: str | Path) -> int:
+    """The seed of a recorded run's sensor noise: its summary's ``noise_seed``, else its
+    configuration's (a run recorded before the summary named it), else 0 (the only seed
+    the noise had before it was recorded).
+
+    Raises:
+        ConfigError: summary.json is missing, unreadable or damaged (naming the file).
+    """
+    path, summary = _summary(run_dir)
+    config = summary.get("config")
+    seed = summary.get("noise_seed", config.get("seed", 0) if isinstance(config, dict) else 0)
+    if not isinstance(seed, int) or isinstance(seed, bool):
+        raise _damaged(path, "field 'noise_seed' is not a whole number")
+    return seed
 
 
 class ReplayPilot:
