@@ -578,6 +578,20 @@ def test_fake_sub_refuses_a_malformed_address_in_one_line() -> None:
     assert re.match("error: fake sub settings: field 'address': .*'bogus'", line)
 
 
+def test_fake_sub_help_states_the_defaults_the_config_holds() -> None:
+    """The command passes only the flags given; its help repeats the config's defaults."""
+    shown = " ".join(cavenav("fake-sub", "--help", env={"COLUMNS": "400"}).stdout.split())
+    defaults = FakeSubConfig()
+    for flag, default in [
+        ("--connect", defaults.address),
+        ("--noise", f"{defaults.noise:g}"),
+        ("--depth", f"{defaults.start_ned[2]:g}"),
+        ("--pilot-timeout", f"{defaults.pilot_timeout_s:g}"),
+        ("--seed", f"{defaults.seed}"),
+    ]:
+        assert re.search(rf"{flag} [^│]*\[default: \({re.escape(default)}\)\]", shown), flag
+
+
 def test_a_serial_device_is_looked_for_when_the_fake_sub_starts() -> None:
     """Settings naming one load on any machine; starting without it is one line."""
     config = FakeSubConfig(address="/dev/no-such-serial-port")

@@ -32,7 +32,7 @@ from dataclasses import replace
 from enum import StrEnum
 from functools import partial
 from pathlib import Path
-from typing import Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 from rich.markup import escape
@@ -67,6 +67,9 @@ from cavenav.pilots.factory import PilotSpec, VLMOptions
 from cavenav.pilots.replay import recorded_noise_seed, recorded_scenario
 from cavenav.redaction import redact
 from cavenav.types import STEP_BUDGET
+
+if TYPE_CHECKING:  # pymavlink loads with it: only where the fake sub runs
+    from cavenav.vehicle.fake_sub import FakeSubState
 
 app = typer.Typer(
     add_completion=False,
@@ -723,29 +726,78 @@ def _print_dry_run(bridge: Any, actions: list[str]) -> None:  # noqa: ANN401
 @app.command("fake-sub")
 @takes(cave=CAVE_SCENE)
 def fake_sub(
+    # Flags left out keep FakeSubConfig's defaults, which their help repeats (a test checks).
     connect: Annotated[
-        str, typer.Option(help="where to send (the bridge listens there with udpin)")
-    ] = "udpout:127.0.0.1:14550",
+        str | None,
+        typer.Option(
+            help="where to send (the bridge listens there with udpin)",
+            show_default="udpout:127.0.0.1:14550",
+        ),
+    ] = None,
     noise: Annotated[
-        float, typer.Option(min=0, callback=finite, help="execution noise (relative gain error)")
-    ] = 0.0,
+        float | None,
+        typer.Option(
+            min=0, callback=finite, help="execution noise (relative gain error)", show_default="0"
+        ),
+    ] = None,
     current: Annotated[
         str, typer.Option(metavar="N,E,D", help="water current, m/s north, east, down")
     ] = "0,0,0",
-    depth: Annotated[float, typer.Option(min=0, callback=finite, help="start depth, m")] = 30.0,
+    depth: Annotated[
+        float | None,
+        typer.Option(min=0, callback=finite, help="start depth, m", show_default="5"),
+    ] = None,
     position: Annotated[
         bool, typer.Option(help="report LOCAL_POSITION_NED and allow GUIDED (a DVL)")
     ] = True,
     pilot_timeout: Annotated[
-        float, typer.Option(min=0.1, callback=finite, help="FS_PILOT_TIMEOUT, seconds")
-    ] = 3.0,
-    seed: Annotated[int, typer.Option(min=0, help="seed of the execution noise")] = 0,
+        float | None,
+        typer.Option(min=0.1, callback=finite, help="FS_PILOT_TIMEOUT, seconds", show_default="3"),
+    ] = None,
+    seed: Annotated[
+        int | None, typer.Option(min=0, help="seed of the execution noise", show_default="0")
+    ] = None,
     cave: CaveScene = CAVE_SCENE_FILLED_BY_TAKES,
 ) -> None:
     """A simulated ArduSub autopilot on MAVLink, for `cavenav fly` with no vehicle; with
     --scene, its camera and sounders too, rendered in a cave."""
-    from cavenav.vehicle.fake_sub import FakeSubConfig, FakeSubState, serve
+    from cavenav.vehicle.fake_sub import FakeSubConfig, serve
 
+    given = {
+        "address": connect,
+        "noise": noise,
+        "start_ned": None if depth is None else (0.0, 0.0, depth),
+        "pilot_timeout_s": pilot_timeout,
+        "seed": seed,
+    }
+    settings = FakeSubConfig(
+        current_ned_mps=_current_ned(current),
+        position_estimate=position,
+        **{key: value for key, value in given.items() if value is not None},
+    )
+
+    if cave.scene is not None:
+        _serve_in_a_cave(settings, EpisodeSettings(), cave, _show_fake_sub)
+        return
+    console.print(f"fake ArduSub sending to {settings.address}; Ctrl-C stops it")
+    with contextlib.suppress(KeyboardInterrupt):
+        serve(settings, on_state=_show_fake_sub)
+
+
+def _show_fake_sub(state: FakeSubState) -> None:
+    """One line of the fake autopilot's state, as it changes."""
+    console.print(
+        f"{'ARMED' if state.armed else 'disarmed':8} {state.mode_name:8} "
+        f"N {state.north:7.2f}  E {state.east:7.2f}  depth {state.down:6.2f}  "
+        f"yaw {state.yaw_deg:7.1f}  sticks {state.sticks}"
+        + ("  [red]pilot-input failsafe[/]" if state.failsafe else ""),
+        highlight=False,
+        soft_wrap=True,
+    )
+
+
+def _current_ned(current: str) -> tuple[float, ...]:
+    """``--current N,E,D``: the water's velocity, m/s north, east and down."""
     try:
         drift = tuple(float(v) for v in current.split(","))
     except ValueError:
@@ -754,32 +806,7 @@ def fake_sub(
         raise typer.BadParameter(
             f"{current!r}: give three numbers N,E,D in m/s", param_hint="--current"
         )
-    settings = FakeSubConfig(
-        address=connect,
-        noise=noise,
-        current_ned_mps=drift,
-        start_ned=(0.0, 0.0, depth),
-        position_estimate=position,
-        pilot_timeout_s=pilot_timeout,
-        seed=seed,
-    )
-
-    def show(state: FakeSubState) -> None:
-        console.print(
-            f"{'ARMED' if state.armed else 'disarmed':8} {state.mode_name:8} "
-            f"N {state.north:7.2f}  E {state.east:7.2f}  depth {state.down:6.2f}  "
-            f"yaw {state.yaw_deg:7.1f}  sticks {state.sticks}"
-            + ("  [red]pilot-input failsafe[/]" if state.failsafe else ""),
-            highlight=False,
-            soft_wrap=True,
-        )
-
-    if cave.scene is not None:
-        _serve_in_a_cave(settings, EpisodeSettings(), cave, show)
-        return
-    console.print(f"fake ArduSub sending to {connect}; Ctrl-C stops it")
-    with contextlib.suppress(KeyboardInterrupt):
-        serve(settings, on_state=show)
+    return drift
 
 
 def _serve_in_a_cave(

@@ -327,10 +327,7 @@ def episode_settings(
 ) -> EpisodeSettings:
     """`EpisodeSettings` from the episode, sensor and optics flags, one keyword each (so a flag
     renamed in `SETTINGS` alone fails when a command is declared); frames and shield stay.
-
-    Raises:
-        ConfigError: a bad pixel count or difficulty knob, refused before any work.
-    """
+    A bad pixel count or difficulty knob is a `ConfigError`, refused before any work."""
     from cavenav.world.scenarios import parse_difficulty
 
     optics = {  # the keys of `cavenav.sensors.optics.optics_from_table`

@@ -181,12 +181,7 @@ def run_episode(
     config = replace(config, max_steps=step_budget(scenario, config))  # recorded as flown
     env = make_env(scenario, config, motion)
     _, info = env.reset(seed=config.seed)  # checks the start before any folder is written
-    start, clearance = info["vehicle_pose"], info["clearance_m"]
-    # A pilot that draws (the random pilot) keeps its seed; the others have none.
-    pilot_seed = getattr(pilot, "seed", None)
-    log = EpisodeLog(
-        scenario, pilot.name, config.rules, config.shield, start, clearance, config, pilot_seed
-    )
+    log = _episode_log(scenario, pilot, config, info)
     folder = _run_folder(run_dir, config)
     status = "crashed"
     try:
@@ -218,6 +213,17 @@ def run_episode(
             raise KeyboardInterrupt
     return EpisodeResult(
         summary, log.poses, log.clearances, log.steps, folder.path if folder else None
+    )
+
+
+def _episode_log(
+    scenario: Scenario, pilot: Pilot, config: EpisodeConfig, reset_info: Mapping[str, Any]
+) -> EpisodeLog:
+    """The episode's log, begun at the start the environment's reset reports."""
+    start, clearance = reset_info["vehicle_pose"], reset_info["clearance_m"]
+    pilot_seed = getattr(pilot, "seed", None)  # a pilot that draws (random) keeps its seed
+    return EpisodeLog(
+        scenario, pilot.name, config.rules, config.shield, start, clearance, config, pilot_seed
     )
 
 

@@ -17,7 +17,9 @@ from typing import Any
 
 from cavenav.errors import ConfigError
 from cavenav.pilots.base import Pilot
+from cavenav.pilots.endpoints import OpenAIConfig, TransformersConfig
 from cavenav.pilots.prompt import PromptConfig
+from cavenav.pilots.reply import MAX_REQUERIES
 from cavenav.pilots.request_images import ImageEncoding
 
 __all__ = ["PILOTS", "PilotSpec", "VLMOptions"]
@@ -46,14 +48,14 @@ class VLMOptions:
     model: str | None = None
     backend: str = "openai"  # or "transformers"
     base_url: str | None = None
-    api_key_env: str = "OPENAI_API_KEY"
-    timeout: float = 60.0  # seconds one attempt may take, whole
-    deadline: float | None = None  # seconds a request may take, retries included
-    retries: int = 4
-    temperature: float = 0.2
-    max_tokens: int = 1024
+    api_key_env: str = OpenAIConfig.api_key_env
+    timeout: float = OpenAIConfig.timeout_s  # seconds one attempt may take, whole
+    deadline: float | None = OpenAIConfig.deadline_s  # a request's, retries included
+    retries: int = OpenAIConfig.max_retries
+    temperature: float = OpenAIConfig.temperature
+    max_tokens: int = OpenAIConfig.max_tokens
     detail: str | None = None
-    requeries: int = 3
+    requeries: int = MAX_REQUERIES
     history: int = PromptConfig.history
     prompt_file: str | None = None
     structured: bool = False
@@ -240,13 +242,7 @@ class PilotSpec:
 
 
 def _vlm_pilot(options: VLMOptions, check: bool) -> Pilot:
-    from cavenav.pilots.backends import (
-        CachedBackend,
-        OpenAIBackend,
-        OpenAIConfig,
-        TransformersBackend,
-        TransformersConfig,
-    )
+    from cavenav.pilots.backends import CachedBackend, OpenAIBackend, TransformersBackend
     from cavenav.pilots.vlm import VLMPilot
 
     assert options.model is not None
@@ -262,7 +258,7 @@ def _vlm_pilot(options: VLMOptions, check: bool) -> Pilot:
                 max_retries=options.retries,
                 temperature=options.temperature,
                 max_tokens=options.max_tokens,
-                detail=options.detail or "auto",
+                detail=options.detail or OpenAIConfig.detail,
             )
         )
     elif options.backend == "transformers":

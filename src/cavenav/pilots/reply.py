@@ -17,7 +17,11 @@ from cavenav.actions import DEFAULT_SPACE, ActionSpace, parse_action
 from cavenav.errors import ActionError
 from cavenav.types import Action
 
-__all__ = ["ParsedReply", "parse_reply"]
+__all__ = ["MAX_REQUERIES", "ParsedReply", "parse_reply"]
+
+# SPEC's N: the re-queries after unusable replies before the pilot gives up and the
+# episode ends as a pilot failure.
+MAX_REQUERIES = 3
 
 STRUCTURED_KEYS = ("situation", "constraints", "action", "justification")
 

@@ -23,7 +23,7 @@ from cavenav.cave_map import CaveMap
 from cavenav.errors import ActionError, BackendAuthError, BackendError, PilotFailure
 from cavenav.pilots.backends import Backend, Completion, Message, request_hash
 from cavenav.pilots.prompt import STRUCTURED_SCHEMA, PromptConfig, render_repair, render_system
-from cavenav.pilots.reply import parse_reply
+from cavenav.pilots.reply import MAX_REQUERIES, parse_reply
 from cavenav.pilots.request_images import PNG, ImageEncoding, data_url
 from cavenav.reckoning import executed_since
 from cavenav.types import Action, Decision, Observation, Usage
@@ -171,7 +171,7 @@ class VLMPilot:
         self,
         backend: Backend,
         prompt: PromptConfig | None = None,
-        max_requeries: int = 3,
+        max_requeries: int = MAX_REQUERIES,
         detail: str | None = None,
         price_per_mtok: tuple[float, float] | None = None,
         check: bool = True,
