@@ -47,6 +47,7 @@ from cavenav.pilots.factory import PILOT_SETTINGS, PROMPT_FILE, VLMOptions
 from cavenav.pilots.prompt import PromptConfig, render_system
 from cavenav.pilots.reply import parse_reply
 from cavenav.sensors.camera import CameraIntrinsics
+from cavenav.sensors.depth import DEPTH_RANGE_M
 from cavenav.training.dataset import request_messages
 from cavenav.training.small_vlm import SMALL, build_small_vlm
 
@@ -192,8 +193,10 @@ class _System:
         self.text: str | None = None
         if prompt_file is not None:
             sensors = card["settings"].get("sensors") or {}
-            config = PromptConfig(history=card["prompt"].get("history", 2), system_file=prompt_file)
-            depth = (sensors.get("depth_min_m", 0.0), sensors.get("depth_max_m", 20.0))
+            history = card["prompt"].get("history", PromptConfig.history)
+            config = PromptConfig(history=history, system_file=prompt_file)
+            low, high = DEPTH_RANGE_M
+            depth = (sensors.get("depth_min_m", low), sensors.get("depth_max_m", high))
             hfov = CameraIntrinsics(**sensors["camera"]).hfov_deg if "camera" in sensors else None
             self.text = render_system(config, depth, hfov)
 
