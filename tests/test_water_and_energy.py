@@ -12,7 +12,7 @@ import pytest
 from cavenav.energy import BATTERY_WH, T200, PowerModel, lamp_watts
 from cavenav.env import CaveNavEnv
 from cavenav.errors import ConfigError
-from cavenav.kinematics import apply
+from cavenav.kinematics import apply, carried
 from cavenav.pilots.prompt import PromptConfig, render_system
 from cavenav.pilots.vlm import EncodedObservation, build_messages
 from cavenav.types import Action, Cruise, Pose
@@ -261,9 +261,11 @@ def test_holding_depth_against_the_waters_rise_and_fall_costs_energy(
         RayCaster(room_scenario.mesh), ALONG_THE_CORRIDOR, Current(6.4, gusts=1.0), seed=3
     )
     move, start = Action(forward=1.0), room_scenario.start
-    still = carry(None, start, move, 10.0, Cruise())
-    flowing = carry(field, start, move, 10.0, Cruise())
-    assert flowing.reached.z == still.reached.z  # held
+    moved = apply(start, move)
+    still = carry(None, start, move, moved, 10.0, Cruise())
+    flowing = carry(field, start, move, moved, 10.0, Cruise())
+    assert still.carried_m == (0.0, 0.0) and flowing.carried_m != (0.0, 0.0)
+    assert carried(moved, flowing.carried_m).z == moved.z  # the depth is held
     vertical = flowing.through_water[:, 2]
     assert np.abs(vertical).max() > 0.01  # the thrusters push against the water's own
     model = PowerModel()

@@ -38,7 +38,7 @@ from cavenav.actions import (
 )
 from cavenav.energy import BATTERY_WH, PowerModel, checked_budget, lamp_watts
 from cavenav.errors import ActionError, ConfigError
-from cavenav.kinematics import Drift, Kinematic, Motion
+from cavenav.kinematics import Drift, Kinematic, Motion, carried
 from cavenav.sensors.camera import pixel_size
 from cavenav.sensors.rig import SensorConfig, SensorRig
 from cavenav.types import DEFAULT_RULES, Action, Cruise, Observation, Pose, Rules, VehicleBody
@@ -484,9 +484,12 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
         started = time.perf_counter()
         command, invalid = self.command(action)
         start = self.pose
-        passage = carry(self._field, start, command, self._clock_s, self.cruise)
+        # One pose update: the vehicle's move, then what the water carried it off it.
+        moved = self.motion.move(start, command)
+        passage = carry(self._field, start, command, moved, self._clock_s, self.cruise)
         flowing = self._field is not None
-        moved = passage.reached if flowing else self.motion.move(start, command)
+        if flowing:
+            moved = carried(moved, passage.carried_m)
         self._clock_s += passage.seconds
         step_wh = self.power.energy_wh(passage.dt, passage.through_water)
         self._energy_wh += step_wh

@@ -23,7 +23,7 @@ import numpy as np
 
 from cavenav.types import Action, Pose
 
-__all__ = ["Drift", "Kinematic", "Motion", "apply", "turn_deg", "wrap_angle"]
+__all__ = ["Drift", "Kinematic", "Motion", "apply", "carried", "turn_deg", "wrap_angle"]
 
 
 def wrap_angle(psi: float) -> float:
@@ -46,6 +46,12 @@ def apply(pose: Pose, action: Action) -> Pose:
         z=pose.z + action.up,
         psi=wrap_angle(psi),
     )
+
+
+def carried(pose: Pose, north_east_m: tuple[float, float]) -> Pose:
+    """``pose`` moved ``north_east_m`` (x, y) by the water, at the depth and heading the
+    vehicle holds (`cavenav.world.current.carry` works the distance out)."""
+    return Pose(pose.x + north_east_m[0], pose.y + north_east_m[1], pose.z, pose.psi)
 
 
 @dataclass(frozen=True)

@@ -43,7 +43,6 @@ from functools import cached_property
 import numpy as np
 
 from cavenav.errors import ConfigError
-from cavenav.kinematics import apply
 from cavenav.types import Action, Cruise, Pose
 from cavenav.world.procedural import along, arc_length, cpu_independent
 from cavenav.world.raycast import RayCaster
@@ -220,25 +219,31 @@ class Passage:
     """A move flown through the water.
 
     Attributes:
-        reached: where it ended.
+        carried_m: (x, y) metres the water carried the vehicle off the move; (0, 0) in
+            still water (`cavenav.kinematics.carried` adds them to the move).
         seconds: how long it took.
         dt: (k,) the integration's time steps, s.
         through_water: (k, 3) the vehicle's velocity through the water in each, body frame
             (forward, right, up), m/s: what its thrusters work against.
     """
 
-    reached: Pose
+    carried_m: tuple[float, float]
     seconds: float
     dt: np.ndarray
     through_water: np.ndarray
 
 
 def carry(
-    field: CurrentField | None, pose: Pose, action: Action, clock_s: float, cruise: Cruise
+    field: CurrentField | None,
+    pose: Pose,
+    action: Action,
+    moved: Pose,
+    clock_s: float,
+    cruise: Cruise,
 ) -> Passage:
-    """Fly ``action`` from ``pose`` starting at ``clock_s`` (module docstring); with no
-    field, or still water, the pose of SPEC section 5 exactly."""
-    commanded = apply(pose, action)
+    """Fly ``action`` from ``pose`` starting at ``clock_s`` (module docstring): ``moved``
+    is where the move alone takes the vehicle (`cavenav.kinematics.Motion.move`), along
+    which the water is met; with no field, or still water, nothing is carried."""
     turn_s, move_s = cruise_seconds(action, cruise)
     turn_k, move_k = math.ceil(turn_s / TIME_STEP_S), math.ceil(move_s / TIME_STEP_S)
     dt = np.concatenate(
@@ -248,14 +253,12 @@ def carry(
     commanded_speed = np.array([action.forward, action.right, action.up]) / max(move_s, 1e-12)
     through_water = np.where((np.arange(len(dt)) >= turn_k)[:, None], commanded_speed, 0.0)
     if field is None or field.current.still or len(dt) == 0:
-        return Passage(commanded, turn_s + move_s, dt, through_water)
-    start, delta = pose.position, commanded.position - pose.position
+        return Passage((0.0, 0.0), turn_s + move_s, dt, through_water)
+    start, delta = pose.position, moved.position - pose.position
     drift = np.zeros(3)
     for i in range(len(dt)):
         along = 0.0 if move_s == 0 else min(max((mid[i] - turn_s) / move_s, 0.0), 1.0)
         water = field.velocity(start + along * delta + drift, clock_s + mid[i])
         drift[:2] += water[:2] * dt[i]  # carried across; the depth is held
         through_water[i, 2] -= water[2]  # and held against the water's rise or fall
-    x, y = commanded.x + float(drift[0]), commanded.y + float(drift[1])
-    reached = Pose(x, y, commanded.z, commanded.psi)
-    return Passage(reached, turn_s + move_s, dt, through_water)
+    return Passage((float(drift[0]), float(drift[1])), turn_s + move_s, dt, through_water)
