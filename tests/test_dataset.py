@@ -157,6 +157,13 @@ def test_the_geometric_pilots_reply_reads_as_reasoning_then_one_pair() -> None:
     assert json.loads(full.splitlines()[-1]) == brief
     assert json.loads(target_reply("forward 1 m", why, "brief")) == brief
     assert json.loads(target_reply("hold", "too close")) == {"hold": "too close"}  # other pilots
+    terse = {"forward 1 m": "holding the passage centre"}
+    assert json.loads(target_reply("forward 1 m", why, "terse")) == terse
+    bare = why.replace(", holding the passage centre", "")  # a choice without a reason
+    assert json.loads(target_reply("forward 1 m", bare, "terse")) == {
+        "forward 1 m": "all clearances above the 2.0 m standoff"
+    }
+    assert json.loads(target_reply("hold", "too close", "terse")) == {"hold": "too close"}
 
 
 @pytest.mark.slow

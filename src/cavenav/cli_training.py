@@ -49,7 +49,10 @@ def dataset(
     ] = 0.1,
     reply: Annotated[
         str,
-        typer.Option(help="full: reasoning, then the one-pair dictionary; brief: the dictionary"),
+        typer.Option(
+            help="full: reasoning, then the one-pair dictionary; brief: the dictionary; "
+            "terse: the dictionary, its justification the choice's reason alone"
+        ),
     ] = "full",
     shard_rows: Annotated[int, typer.Option(help="rows in a Parquet shard")] = 1000,
     allow_mixed: Annotated[

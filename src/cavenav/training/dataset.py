@@ -72,7 +72,7 @@ __all__ = [
 
 LABELS = ("recorded", "teacher")
 EPISODES = ("successful", "all")
-REPLIES = ("full", "brief")
+REPLIES = ("full", "brief", "terse")
 FORMAT = 1
 # The geometric pilot's justification: "Situation: ... Constraints: ... Choice: ..."
 _GEOMETRIC = re.compile(r"Situation: (?P<situation>.*?) Constraints: (?P<constraints>.*?) "
@@ -90,8 +90,9 @@ class DatasetOptions:
             worth most where the student went wrong.
         drop_shielded: leave out the steps whose action the safety shield replaced.
         validation: the share of caves (never of steps) held out as the validation split.
-        reply: "full" (reasoning, then the one-pair dictionary) or "brief" (the
-            dictionary alone, with a short justification): for a small model, whose
+        reply: "full" (reasoning, then the one-pair dictionary), "brief" (the
+            dictionary alone, with a short justification) or "terse" (the dictionary,
+            its justification the choice's reason alone): for a small model, whose
             every token costs time on the vehicle. A model's recorded reply stays whole.
         shard_rows: rows in a Parquet shard.
         allow_mixed: accept sources flown with different settings or prompts.
@@ -215,14 +216,18 @@ def target_reply(action: str, justification: str, style: str = "full") -> str:
     and (c), then the one-pair dictionary ``{action: justification}``, its justification
     the constraints and the choice's reason ("all clearances above the 2.0 m standoff;
     holding the passage centre"); other pilots' the dictionary alone, with their whole
-    justification. "brief": the dictionary alone.
+    justification. "brief": the dictionary alone. "terse": the dictionary alone, the
+    geometric pilot's justification its reason alone ("holding the passage centre"): the
+    action comes first, so what follows it only costs time on the vehicle.
     """
     parts = _geometric_parts(justification)
     if parts is not None:  # the dictionary's justification: the constraints and the reason
         reason = parts["choice"].removeprefix(action).strip(" ,.")
-        justification = "; ".join(p for p in (parts["constraints"].rstrip("."), reason) if p)
+        constraints = parts["constraints"].rstrip(".")
+        kept = (reason or constraints,) if style == "terse" else (constraints, reason)
+        justification = "; ".join(p for p in kept if p)
     answer = json.dumps({action: justification}, ensure_ascii=False)
-    if style == "brief" or parts is None:
+    if style != "full" or parts is None:
         return answer
     return (
         f"(a) Situation: {parts['situation']}\n(b) Constraints: {parts['constraints']}\n"
