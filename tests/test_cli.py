@@ -325,7 +325,8 @@ def test_an_option_the_value_does_not_take_is_refused_when_declared() -> None:
 
     import typer
 
-    from cavenav.cli_options import VLM, Flag, OptionGroup, takes
+    from cavenav.cli.episode_flags import VLM
+    from cavenav.cli.flags import Flag, OptionGroup, takes
     from cavenav.pilots.factory import VLMOptions
 
     renamed = Flag("max_token", Annotated[int, typer.Option(help="tokens")], 1024)
@@ -345,10 +346,11 @@ def test_fly_takes_the_sensor_optics_resolution_and_difficulty_flags(
     from typer.testing import CliRunner
 
     from cavenav import cli
+    from cavenav.cli import vehicle
 
     flown = {}
     monkeypatch.setattr(
-        cli, "fly_vehicle", lambda bridge, cave, flyer, episode, *_, **__: flown.update(
+        vehicle, "fly_vehicle", lambda bridge, cave, flyer, episode, *_, **__: flown.update(
             cave=cave, episode=episode
         )
     )  # fmt: skip
@@ -377,7 +379,7 @@ def test_a_table_printed_to_a_pipe_keeps_every_cell_whole():
     import sys
 
     draw = (
-        "from rich.table import Table; from cavenav.cli_output import _print_table; "
+        "from rich.table import Table; from cavenav.cli.output import _print_table; "
         "t = Table(); [t.add_column(f'column {i}') for i in range(12)]; "
         "t.add_row(*['51%-100%'] * 12); _print_table(t)"
     )

@@ -127,7 +127,7 @@ def test_the_crawl_silts_out_by_default_and_the_setting_turns_it_off() -> None:
 
 
 def test_silt_out_is_an_optics_setting_with_a_flag() -> None:
-    from cavenav.cli_options import episode_settings
+    from cavenav.cli.episode_flags import episode_settings
     from cavenav.sensors.optics import optics_from_table
 
     assert Optics().silt_out is None  # the cave decides

@@ -38,7 +38,7 @@ class VLMOptions:
     """How to reach the model and how to prompt it (the `--...` flags of the VLM pilot).
 
     Each field is a flag of `cavenav run`, `eval` and `fly`, declared with its help in
-    `cavenav.cli_options.VLM` and defaulting to the value here; a field without a flag
+    `cavenav.cli.episode_flags.VLM` and defaulting to the value here; a field without a flag
     there fails a test.
 
     Holds the *name* of the environment variable with the API key, never the key, so it

@@ -9,8 +9,9 @@ from typing import Annotated
 import typer
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
 
-from cavenav.cli_options import VLM, takes
-from cavenav.cli_output import console
+from cavenav.cli.episode_flags import VLM
+from cavenav.cli.flags import takes
+from cavenav.cli.output import console
 from cavenav.pilots.factory import VLMOptions
 
 __all__ = ["dataset", "finetune"]
@@ -20,6 +21,15 @@ PROMPT = VLM.only(
     "history", "prompt_file", "structured", "map_image", "energy_prompt",
     "image_format", "jpeg_quality", "image_size", "detail",
 )  # fmt: skip
+
+
+ReplyOpt = Annotated[
+    str,
+    typer.Option(
+        help="full: reasoning, then the dictionary; brief: the dictionary; terse: the "
+        "dictionary, justified by the choice's reason alone"
+    ),
+]
 
 
 @takes(vlm=PROMPT)
@@ -47,13 +57,7 @@ def dataset(
     validation: Annotated[
         float, typer.Option(help="share of the caves held out for validation (split by cave)")
     ] = 0.1,
-    reply: Annotated[
-        str,
-        typer.Option(
-            help="full: reasoning, then the one-pair dictionary; brief: the dictionary; "
-            "terse: the dictionary, its justification the choice's reason alone"
-        ),
-    ] = "full",
+    reply: ReplyOpt = "full",
     shard_rows: Annotated[int, typer.Option(help="rows in a Parquet shard")] = 1000,
     allow_mixed: Annotated[
         bool, typer.Option(help="accept sources flown with different settings or prompts")

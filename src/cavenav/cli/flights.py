@@ -23,8 +23,8 @@ from rich.progress import (
     TimeRemainingColumn,
 )
 
-from cavenav.cli_options import LiveView, OwnSensors
-from cavenav.cli_output import console, errors, print_summary
+from cavenav.cli.output import console, errors, print_summary
+from cavenav.cli.vehicle_flags import LiveView, OwnSensors
 from cavenav.errors import CavenavError
 
 __all__ = ["fly_episode", "fly_on_own_sensors", "fly_sweep", "fly_vehicle", "open_sensors"]

@@ -1,0 +1,5 @@
+"""`python -m cavenav.cli`."""
+
+from cavenav.cli import main
+
+main()

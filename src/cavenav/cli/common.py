@@ -1,0 +1,110 @@
+"""What the commands share: their common arguments and the first steps of a flight."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+
+from cavenav.cli.output import console
+from cavenav.cli.vehicle_flags import CaveScene, LiveView, OwnSensors
+from cavenav.episode.settings import EpisodeSettings
+from cavenav.errors import CavenavError
+from cavenav.pilots.factory import PilotSpec, VLMOptions
+
+__all__ = [
+    "CAVE_SCENE_FILLED_BY_TAKES",
+    "FILLED_BY_TAKES",
+    "OWN_SENSORS_FILLED_BY_TAKES",
+    "VIEW_FILLED_BY_TAKES",
+    "VLM_FILLED_BY_TAKES",
+    "FramesOpt",
+    "FromOpt",
+    "PilotOpt",
+    "PolicyOpt",
+    "RunsOut",
+    "ScenarioArg",
+    "TeacherOpt",
+    "built",
+    "camera_for",
+    "check_view",
+    "pilot_spec",
+]
+
+ScenarioArg = Annotated[
+    str, typer.Argument(help="a family (S1..S5, crawl, maze, long) or a scenario .toml file")
+]
+PilotOpt = Annotated[str, typer.Option(help="pilot to fly: geometric, vlm, replay, random, policy")]
+RunsOut = Annotated[Path, typer.Option(help="folder that receives the run folder")]
+FramesOpt = Annotated[bool, typer.Option(help="save RGB, depth PNG and EXR of every step")]
+FromOpt = Annotated[Path | None, typer.Option("--from", help="run folder to replay")]
+PolicyOpt = Annotated[
+    Path | None,
+    typer.Option(
+        help="model file the policy pilot flies (Stable-Baselines3 .zip; --resolution follows it)"
+    ),
+]
+TeacherOpt = Annotated[
+    str | None,
+    typer.Option(
+        help="a pilot (geometric, random) that decides alongside at every step, recorded "
+        "as the step's teacher label for `cavenav dataset --labels teacher` (DAgger)"
+    ),
+]
+# Placeholder defaults: `takes` puts each group's flags in their place and passes the
+# value built from them (`cavenav.cli.flags`), so a command never sees these.
+FILLED_BY_TAKES, VLM_FILLED_BY_TAKES, VIEW_FILLED_BY_TAKES = (
+    EpisodeSettings(),
+    VLMOptions(),
+    LiveView(),
+)
+OWN_SENSORS_FILLED_BY_TAKES, CAVE_SCENE_FILLED_BY_TAKES = OwnSensors(), CaveScene()
+
+
+def check_view(view: LiveView) -> None:
+    """A Rerun recording's file checked first, before a pilot, a cave or a vehicle."""
+    if view.rerun_save:
+        from cavenav.episode.rerun_log import check_recording_path
+
+        check_recording_path(Path(view.rerun_save))
+
+
+def built(settings: EpisodeSettings, scenario: str, seed: int) -> Any:  # noqa: ANN401
+    """The cave ``scenario`` of ``seed``, built under a status line (a large mesh takes a
+    while)."""
+    with console.status(f"building {scenario} (seed {seed})"):
+        return settings.load(scenario, seed)
+
+
+def pilot_spec(
+    pilot: str,
+    vlm: VLMOptions,
+    from_: Path | None,
+    policy: Path | None,
+    teacher: str | None = None,
+) -> PilotSpec:
+    return PilotSpec(
+        pilot,
+        vlm.for_model(),  # a model folder cavenav finetune wrote: asked as it learned
+        recording=str(from_) if from_ else None,
+        policy=str(policy.absolute()) if policy else None,  # as workers elsewhere find it
+        teacher=teacher,
+    )
+
+
+def camera_for(spec: PilotSpec, settings: EpisodeSettings) -> EpisodeSettings:
+    """``settings`` with the camera size a pilot trained at one size needs (a policy):
+    set when --resolution was not given, refused when it names another size."""
+    size = spec.image_size()
+    if size is None or settings.resolution == size:
+        return settings
+    if settings.resolution is not None:
+        given, wanted = (f"{w}x{h}" for w, h in (settings.resolution, size))
+        raise CavenavError(
+            f"--resolution {given}: the policy {spec.policy} was trained on {wanted} images; "
+            f"leave --resolution out or give {wanted}"
+        )
+    console.print(f"[yellow]note:[/] the camera is {size[0]}x{size[1]}, as the policy saw it")
+    return replace(settings, resolution=size)
