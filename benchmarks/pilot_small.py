@@ -9,7 +9,7 @@ time (encoding the images and building the request too), the simulator's sensing
 the tokens read and written. Then the same decisions asked on a thread other than the
 main one, as a sweep asks them (`cavenav eval`: each episode flies on a thread).
 
-Run: python benchmarks/pilot_small.py [--steps N]
+Run: python benchmarks/pilot_small.py [--steps N] [--model DIR]  (DIR: the shipped model)
 """
 
 from __future__ import annotations
@@ -26,8 +26,8 @@ from cavenav.world.scenarios import load_scenario
 MODEL = Path(__file__).resolve().parents[1] / "models" / "cavenav-pilot-small"
 
 
-def _fly(steps: int) -> list[dict]:
-    options = VLMOptions(model=str(MODEL), backend="transformers", temperature=0.0)
+def _fly(steps: int, model: Path) -> list[dict]:
+    options = VLMOptions(model=str(model), backend="transformers", temperature=0.0)
     pilot = PilotSpec("vlm", options.for_model()).build()
     config = EpisodeConfig(max_steps=steps, plots=False, save_frames=False)
     return run_episode(load_scenario("S1", 1000), pilot, config, None).steps
@@ -52,10 +52,11 @@ def _report(title: str, steps: list[dict]) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--steps", type=int, default=40)
-    steps = parser.parse_args().steps
-    _report("main thread (cavenav run)", _fly(steps))
+    parser.add_argument("--model", type=Path, default=MODEL, help="a model folder")
+    args = parser.parse_args()
+    _report("main thread (cavenav run)", _fly(args.steps, args.model))
     flown: list[list[dict]] = []
-    worker = threading.Thread(target=lambda: flown.append(_fly(steps)))
+    worker = threading.Thread(target=lambda: flown.append(_fly(args.steps, args.model)))
     worker.start()
     worker.join()
     _report("a sweep's episode thread (cavenav eval)", flown[0])
