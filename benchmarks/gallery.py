@@ -1,4 +1,5 @@
-"""The README's gallery: what a pilot sees in each water, one frame per cave family.
+"""The documentation's gallery (docs/guides/camera-and-water.md, and the README's picture):
+what a pilot sees in each water, one frame per cave family.
 
 For each water preset, renders S1-S5 (seed 0, default optics but the water) from the
 pose two fifths of the way along the geometric pilot's path (`passage_poses`, as
@@ -9,7 +10,7 @@ compare them:
     python benchmarks/gallery.py --out docs/gallery --label after
 
 writes docs/gallery/after-clear.jpg, after-ocean.jpg, ... (about a minute; JPEG at
-quality 88, so the README's pictures stay small).
+quality 88, so the documentation's pictures stay small).
 """
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
 """Bad input and faults: each gets one clear line, a documented exit status, and a run
-folder that stays valid (README, "Bad input and faults")."""
+folder that stays valid (docs/guides/faults.md)."""
 
 from __future__ import annotations
 

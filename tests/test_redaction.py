@@ -1,6 +1,6 @@
 """API keys never leak: whatever a server echoes back (an error body, a proxy's page, a
 model's reply), the key and any Authorization header value are redacted from the run
-folder, the summary and everything a command prints (README, "Bad input and faults").
+folder, the summary and everything a command prints (docs/guides/faults.md).
 
 The servers are real (tests/vlm_server.py on 127.0.0.1), the commands run as a user runs
 them, and the check is on bytes: every file of the run folder, stdout and stderr.

@@ -529,7 +529,7 @@ def test_a_count_knob_takes_whole_numbers_and_the_others_real_ones(knob: str) ->
 def test_the_knob_table_in_the_docs_is_the_one_the_families_declare() -> None:
     table = difficulty_table()
     assert table in inspect.cleandoc(Difficulty.__doc__ or "")
-    assert table in (ROOT / "README.md").read_text()
+    assert table in (ROOT / "docs" / "guides" / "scenarios.md").read_text()
 
 
 FAMILY_FILE = """

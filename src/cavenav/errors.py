@@ -41,7 +41,7 @@ class CavenavError(Exception):
     """Base class of every error cavenav raises deliberately.
 
     Attributes:
-        exit_status: what the command line exits with (see the README's table): 2 for
+        exit_status: what the command line exits with (docs/guides/faults.md): 2 for
             bad input, found before anything was written.
     """
 

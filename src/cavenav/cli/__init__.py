@@ -64,7 +64,7 @@ app.command()(scenarios)
 
 
 def main() -> None:
-    """Entry point; the exit status is part of the interface (README, "Bad input and faults").
+    """Entry point; the exit status is part of the interface (docs/guides/faults.md).
 
     0: the command did its work (an episode ended at the exit, a wall or the budget).
     1: an episode ended as a pilot failure, or the run folder could not be written.

@@ -287,7 +287,7 @@ SETTINGS = OptionGroup(
             list[str],
             None,
             "a difficulty knob of the cave family, KEY=VALUE (repeat for more), "
-            "e.g. constriction_m=2.5; see the README's cave families",
+            "e.g. constriction_m=2.5; see docs/guides/scenarios.md",
         ),
         flag(
             "discharge",

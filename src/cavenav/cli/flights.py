@@ -38,8 +38,8 @@ def fly_episode(
     motion: Any = None,  # noqa: ANN401
     view: LiveView | None = None,
 ) -> None:
-    """Fly the episode with a progress bar, print its summary, and exit as the README says;
-    ``view`` shows it as it flies."""
+    """Fly the episode with a progress bar, print its summary, and exit with the status
+    docs/guides/faults.md gives; ``view`` shows it as it flies."""
     from cavenav.episode.loop import run_episode, step_budget
     from cavenav.episode.records import EpisodeSummary
 

@@ -161,7 +161,8 @@ def plot_episode(
 
     Args:
         summary: the episode's summary (title, collision pose), or its summary.json fields.
-        poses, clearances: the trajectory as recorded, one clearance per pose.
+        poses: the trajectory as recorded.
+        clearances: one clearance per pose.
     """
     summary = EpisodeSummary.model_validate(summary)
     p = np.array([pose.position for pose in poses])

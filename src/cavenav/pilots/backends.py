@@ -239,8 +239,10 @@ class OpenAIBackend:
             config: the endpoint and its limits.
             transport: how requests leave (default: the network, proxies from the
                 environment included); tests pass an `httpx2.MockTransport`.
-            sleep, clock: the waits between retries and the time deadlines are kept
-                against (seconds, monotonic), injectable so that tests need not wait.
+            sleep: the waits between retries (seconds), injectable so that tests need
+                not wait.
+            clock: the time deadlines are kept against (seconds, monotonic), injectable
+                likewise.
         """
         import openai
 

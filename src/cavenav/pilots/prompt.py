@@ -116,8 +116,9 @@ def render_system(
     """The full system prompt (mission, inputs, strategy, chain of thought, reply format).
 
     Args:
-        depth_range, hfov_deg: those of the images the prompt is sent with (the VLM
+        depth_range: the depth range of the images the prompt is sent with (the VLM
             pilot passes each observation's own).
+        hfov_deg: their horizontal field of view, likewise.
     """
     fields = config.fields(depth_range, hfov_deg)
     if config.system_file is not None:

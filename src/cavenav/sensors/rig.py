@@ -188,8 +188,8 @@ class SensorConfig:
 
         Args:
             options: the run's optics options (see `with_optics`).
-            scenario_sensors, sensor_options: the [sensors] table and the run's sizes
-                (see `with_sensors`).
+            scenario_sensors: the scenario's [sensors] table (see `with_sensors`).
+            sensor_options: the run's sizes over it (see `with_sensors`).
 
         Raises:
             ConfigError: an unknown key or a bad value, naming the scenario or "options".

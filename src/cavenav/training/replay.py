@@ -132,7 +132,8 @@ def recorded_requests(
     """The request the VLM pilot set up by ``options`` would send at each of ``steps``.
 
     Args:
-        cave, config: the cave and the configuration the episode flew.
+        cave: the cave the episode flew.
+        config: the configuration it flew with.
         steps: the recorded steps that flew an action (steps.jsonl), in order.
         replies: the reply each step's request is answered with (the target): it tells
             the pilot's history which action came next, where a step does not say.

@@ -94,8 +94,11 @@ class Section:
 
         Args:
             i: (m,) sample index of each point.
-            a, b, c: (m,) offsets across (left), up and along, metres.
-            half_width, half_height: (m,) the samples' half-sizes.
+            a: (m,) offset across (left), metres.
+            b: (m,) offset up, metres.
+            c: (m,) offset along, metres.
+            half_width: (m,) the samples' half-widths.
+            half_height: (m,) the samples' half-heights.
             along: (m,) arc length of each point along the passage (sample's plus c).
 
         Returns:

@@ -368,8 +368,8 @@ class _Range:
 def difficulty_table() -> str:
     """The knob table in Markdown: each family's default and range, '-' where it has none.
 
-    `Difficulty`'s docstring is given it at import, and the README holds a copy that a
-    test keeps equal to it.
+    `Difficulty`'s docstring is given it at import, and docs/guides/scenarios.md holds a
+    copy that a test keeps equal to it.
     """
     lines = ["| family | " + " | ".join(KNOBS) + " |", "|" + " --- |" * (len(KNOBS) + 1)]
     for name, family in SCENARIOS.items():

@@ -95,7 +95,7 @@ __all__ = ["check_scenario", "load_scenario", "load_scenario_file", "validate_st
 _STRICT = ConfigDict(extra="forbid", allow_inf_nan=False)
 # Every number is bounded by what a cave can hold, so that a typo (radius = 1e308) is
 # refused here, naming its field, instead of overflowing the plots or the ray caster later.
-# The bounds lie far beyond any real cave (README, "Bad input and faults").
+# The bounds lie far beyond any real cave (docs/guides/faults.md).
 _MAX_COORDINATE_M = 1e5  # 100 km from the origin, for positions, offsets, centre lines
 _MAX_RADIUS_M = 1e4  # a portal 10 km across: the largest known chambers are under 1 km
 _SCALE_RANGE = (1e-6, 1e3)  # metres per mesh unit: micrometres to kilometres
