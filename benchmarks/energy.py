@@ -20,6 +20,7 @@ from pathlib import Path
 
 from cavenav.actions import parse_action
 from cavenav.energy import KGF_N, PowerModel, Thruster, thrusters_w
+from cavenav.kinematics import apply
 from cavenav.types import Cruise, Pose
 from cavenav.world.current import carry
 
@@ -33,7 +34,8 @@ def flown_wh(steps: list[dict], thruster: Thruster, model: PowerModel) -> float:
         if step.get("action") is None:
             continue
         action = parse_action(step["action"])
-        passage = carry(None, Pose.from_dict(step["pose"]), action, 0.0, Cruise())
+        pose = Pose.from_dict(step["pose"])
+        passage = carry(None, pose, action, apply(pose, action), 0.0, Cruise())
         watts = thrusters_w(model.drag_n(passage.through_water), thruster)
         total += float(((watts + model.hotel_w + model.lamps_w) * passage.dt).sum())
     return total / 3600.0

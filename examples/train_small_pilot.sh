@@ -10,7 +10,8 @@
 #
 # Every step writes its own folder under WORK_DIR and is skipped when that folder is
 # complete, so an interrupted run picks up where it stopped (a sweep resumes, a fine-tune
-# resumes from its last checkpoint). On 2 CPU cores: about 20 minutes of teacher flights,
+# resumes from its last checkpoint; a WORK_DIR begun before --seed seeded the sensor noise
+# resumes its sweeps only with --noise-seed 0). On 2 CPU cores: about 20 minutes of teacher flights,
 # 10 of export, 15 + 50 of training and 10 of the first DAgger round; then 25 of the
 # second round, 5 of teacher flights, 3 of export and 17 of training.
 set -euo pipefail
@@ -51,6 +52,8 @@ cavenav eval --scenarios S1,S2,S3,S4,S5 --seeds 20-29 --pilot vlm --backend tran
 cavenav eval --scenarios S1,S2,S3,S4,S5 --seeds 30-49 --pilot vlm --backend transformers \
   --model "$work/student1" --temperature 0 --teacher geometric \
   --frames none --no-report --out "$work/round2"
+# The teacher's caves 0-9 again, as the shipped model had them (flown before --seed seeded
+# the noise, they were other flights then; now they repeat step 1's first ten caves).
 cavenav eval --scenarios S1,S2,S3,S4,S5 --seeds 0-9 --pilot geometric \
   --frames none --no-report --out "$work/teacher2"
 

@@ -173,6 +173,7 @@ def test_teacher_labels_train_on_the_students_own_states(tmp_path: Path) -> None
     run_dir = tmp_path / "run"
     pilot = ShadowedPilot(RandomPilot(5), GeometricPilot())
     result = run_episode(load_scenario("S1"), pilot, QUICK, run_dir)
+    assert result.summary["pilot_seed"] == 5  # the student's draws, recorded
     flown = [step["action"] for step in result.steps]
     with pytest.raises(ConfigError, match="no teacher label"):  # a model flown alone
         bare = tmp_path / "bare"

@@ -50,6 +50,7 @@ FAST = {
     "guided_yaw_rate_dps": 360.0,
     "pilot_timeout_s": 0.6,
     "telemetry_hz": 20.0,
+    "start_ned": (0.0, 0.0, 5.0),  # the depths below are reckoned from 5 m
 }
 # type_mask: fly to a position (velocity, acceleration and yaw rate ignored), with or
 # without the yaw.

@@ -239,7 +239,7 @@ def fake_sub(
     ] = "0,0,0",
     depth: Annotated[
         float | None,
-        typer.Option(min=0, callback=finite, help="start depth, m", show_default="5"),
+        typer.Option(min=0, callback=finite, help="start depth, m", show_default="30"),
     ] = None,
     position: Annotated[
         bool, typer.Option(help="report LOCAL_POSITION_NED and allow GUIDED (a DVL)")

@@ -28,6 +28,8 @@ class ShadowedPilot:
     def __init__(self, student: Pilot, teacher: Pilot):
         self.student, self.teacher = student, teacher
         self.name = student.name
+        # The student's own draws (a random student's), recorded as the episode's pilot seed.
+        self.seed: int | None = getattr(student, "seed", None)
 
     def reset(self) -> None:
         self.student.reset()

@@ -128,7 +128,7 @@ class FakeSubConfig(BaseModel):
     current_ned_mps: tuple[float, float, float] = (0.0, 0.0, 0.0)
     noise: float = Field(0.0, ge=0)
     seed: int = Field(0, ge=0)
-    start_ned: tuple[float, float, float] = (0.0, 0.0, 5.0)
+    start_ned: tuple[float, float, float] = (0.0, 0.0, 30.0)  # room below the 0.3 m limit
     start_yaw_deg: float = 0.0
     position_estimate: bool = True
     pilot_timeout_s: float = Field(3.0, gt=0)
