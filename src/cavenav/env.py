@@ -364,8 +364,7 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
                 default), or a vehicle (`cavenav.vehicle.mavlink.ArduSubMotion`), whose
                 reported pose is then sensed and checked; ``info`` gains the move's
                 drift from the pose the kinematics command (`Motion.drift`).
-            current: the water's flow (class docstring).
-            battery_wh: an energy budget (class docstring).
+            current: the water's flow; battery_wh: an energy budget (class docstring).
             caves: built caves and ray casters shared by environments (`cavenav.vector_env`).
         """
         _check_modes(render_mode, action_format)

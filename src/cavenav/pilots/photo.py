@@ -175,9 +175,8 @@ def load_photo(
         image: a colour photograph (PNG, JPEG, ...).
         depth: a depth image of the same view, 8-bit grey, dark near and bright far over
             `DEPTH_RANGE_M`; None when there is none (the observation then says so).
-        d_top: the upward echo-sounder range in metres; None when not measured (NaN in
-            the observation, "unknown" in the request).
-        d_bottom: the downward one, likewise.
+        d_top: the upward echo-sounder range in metres, None when not measured (NaN in
+            the observation, "unknown" in the request); d_bottom: the downward one.
         detail: the image detail the request will ask for (see `model_size`).
 
     Returns:
