@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeGuard
 
 from cavenav.actions import parse_action
 from cavenav.errors import ConfigError, PilotFailure
@@ -52,7 +52,7 @@ def _read_steps(run_dir: Path) -> list[dict[str, Any]]:
     return steps
 
 
-def _whole(value: Any) -> bool:
+def _whole(value: Any) -> TypeGuard[int]:
     return isinstance(value, int) and not isinstance(value, bool)
 
 
@@ -100,9 +100,9 @@ def recorded_noise_seed(run_dir: str | Path) -> int:
     path, summary = _summary(run_dir)
     config = summary.get("config")
     seed = summary.get("noise_seed", config.get("seed", 0) if isinstance(config, dict) else 0)
-    if not isinstance(seed, int) or isinstance(seed, bool):
-        raise _damaged(path, "field 'noise_seed' is not a whole number")
-    return seed
+    if _whole(seed):
+        return seed
+    raise _damaged(path, "field 'noise_seed' is not a whole number")
 
 
 class ReplayPilot:
