@@ -52,6 +52,19 @@ FAST = {
     "telemetry_hz": 20.0,
     "start_ned": (0.0, 0.0, 5.0),  # the depths below are reckoned from 5 m
 }
+# The tests of what the fake sub does with each message fly it kinematic: velocities and
+# turn rates reached at once, no dead bands, no buoyancy, GUIDED setting off at once. What
+# it learned from ArduSub's SITL (inertia, coasting, the dead bands, buoyancy, the late
+# position) has its own tests below, at the defaults.
+KINEMATIC = {
+    "inertia": False,
+    "stick_dead_band": 0,
+    "throttle_dead_band": 0,
+    "buoyant_rise_mps": 0.0,
+    "guided_delay_s": 0.0,
+    "guided_approach_per_s": 1e6,
+}
+FAST |= KINEMATIC
 # type_mask: fly to a position (velocity, acceleration and yaw rate ignored), with or
 # without the yaw.
 POSITION_AND_YAW = 0b1001_1111_1000
@@ -602,3 +615,97 @@ def test_a_serial_device_is_looked_for_when_the_fake_sub_starts() -> None:
 
 def test_a_config_takes_vectors_as_lists() -> None:
     assert FakeSubConfig(start_ned=[1, 2, 3]).start_ned == (1.0, 2.0, 3.0)
+
+
+# ---------------------------------------------------------------------------- the SITL's motion
+# What ArduSub 4.5.7's SITL does (issue 46), at the fake sub's defaults (KINEMATIC undone).
+SITL_MOTION = {
+    name: getattr(FakeSubConfig(), name)
+    for name in (*KINEMATIC, "max_speed_mps", "max_vertical_mps", "max_yaw_rate_dps")
+}
+
+
+def steady(link: Link, **sticks: int) -> FakeSubState:
+    """Hold ``sticks`` at 10 Hz for 2.5 s (long enough to reach a steady speed); the state
+    at the end, sticks still held."""
+    deadline = time.monotonic() + 2.5
+    while time.monotonic() < deadline:
+        link.sticks(**sticks)
+        time.sleep(0.1)
+    return link.sub.state()
+
+
+def test_stick_400_holds_the_sitls_speed_and_turn_rate(launch) -> None:
+    link = launch(**SITL_MOTION, pilot_failsafe="off")
+    link.arm()
+    assert link.set_mode(ALT_HOLD).result == MAV.MAV_RESULT_ACCEPTED
+    ahead = link.receive("LOCAL_POSITION_NED", where=lambda m: m.vx > 0.38 and m.vx < 0.40)
+    assert ahead is None  # at rest yet
+    steady(link, x=400)  # held on: this test turns the pilot-input failsafe off
+    moving = link.receive("LOCAL_POSITION_NED", where=lambda m: abs(m.vx - 0.386) < 0.01)
+    assert moving is not None and abs(moving.vy) < 1e-6
+    steady(link, r=400)
+    turning = link.receive("ATTITUDE", where=lambda m: abs(math.degrees(m.yawspeed) - 24.5) < 0.5)
+    assert turning is not None
+
+
+def test_let_go_the_vehicle_coasts_on_and_turns_on(launch) -> None:
+    """Nothing brakes it in ALT_HOLD: 0.39 m/s falls to about 0.1 in the first second and
+    a half and the vehicle is still moving after it, as on the SITL; a 24.5 deg/s turn
+    turns on by several degrees."""
+    link = launch(**SITL_MOTION, pilot_failsafe="off")
+    link.arm()
+    link.set_mode(ALT_HOLD)
+    steady(link, x=400, r=400)
+    let_go = link.sub.state()
+    link.sticks()
+    time.sleep(1.5)
+    later = link.sub.state()
+    coasted = math.dist((let_go.north, let_go.east), (later.north, later.east))
+    assert 0.2 < coasted < 0.5
+    assert link.receive("LOCAL_POSITION_NED").vx > 0.02  # still moving
+    assert 3.0 < angle_between_deg(later.yaw_deg, let_go.yaw_deg) < 15.0
+
+
+@pytest.mark.parametrize("sticks", [{"x": 90}, {"y": -90}, {"r": 90}, {"z": 620}, {"z": 380}])
+def test_small_sticks_are_swallowed_by_the_dead_bands(launch, sticks: dict[str, int]) -> None:
+    link = launch(**SITL_MOTION, pilot_failsafe="off")
+    link.arm()
+    link.set_mode(ALT_HOLD)
+    before = link.sub.state()
+    after = steady(link, **sticks)
+    moved = math.dist((before.north, before.east), (after.north, after.east))
+    assert moved < 0.01 and abs(after.down - before.down) < 0.01
+    assert angle_between_deg(before.yaw_deg, after.yaw_deg) < 0.1
+
+
+def test_disarmed_it_rises_to_float_at_the_surface(launch) -> None:
+    link = launch(**SITL_MOTION, start_ned=(0.0, 0.0, 0.3), pilot_failsafe="off")
+    rising = link.receive("LOCAL_POSITION_NED", where=lambda m: m.vz < -0.035)
+    assert rising is not None and rising.vz == pytest.approx(-0.04, abs=0.005)
+    wait_until(link.sub, lambda s: s.down <= 0.17)
+    assert holds_throughout(link.sub, lambda s: s.down == pytest.approx(0.17, abs=1e-6), 0.5)
+
+
+def test_the_position_comes_late_and_guided_waits_for_it(launch) -> None:
+    link = launch(position_after_s=1.0, pilot_failsafe="off")
+    assert link.receive("LOCAL_POSITION_NED", timeout=0.5) is None
+    refused = link.set_mode(GUIDED, text="Mode change failed: GUIDED requires position")
+    assert refused.result == MAV.MAV_RESULT_FAILED
+    assert link.receive("LOCAL_POSITION_NED", timeout=2.0) is not None
+    assert link.set_mode(GUIDED).result == MAV.MAV_RESULT_ACCEPTED
+
+
+def test_guided_sets_off_late_and_slows_into_its_target(launch) -> None:
+    faster = {"guided_speed_mps": 2.0, "guided_delay_s": 0.5, "pilot_failsafe": "off"}
+    link = launch(**SITL_MOTION | faster)
+    link.arm()
+    link.set_mode(GUIDED)
+    sent = time.monotonic()
+    link.target(MAV.MAV_FRAME_LOCAL_OFFSET_NED, POSITION_ONLY, 1.0, 0.0, 0.0)
+    state = wait_until(link.sub, lambda s: s.north > 0.01)
+    assert time.monotonic() - sent > 0.45
+    state = wait_until(link.sub, lambda s: s.north > 0.9)
+    assert link.receive("LOCAL_POSITION_NED").vx < 0.2  # slowing, 0.1 m short
+    wait_until(link.sub, lambda s: s.north == pytest.approx(1.0, abs=1e-6), timeout=10.0)
+    assert state.armed

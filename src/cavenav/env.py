@@ -97,6 +97,13 @@ def _drift(motion: Motion, pose: Pose, action: Action, reached: Pose) -> Drift |
     return Drift.of(pose, action, reached)
 
 
+def _vehicle_move(motion: Motion) -> dict[str, Any] | None:
+    """How a vehicle flew the last move (`cavenav.vehicle.control.MoveReport`): asked and
+    flown, how it ended and how far off; None for a Motion that keeps no such report."""
+    report = getattr(motion, "last_move", None)
+    return None if report is None else report.to_dict()
+
+
 def _water(motion: Motion | None, current: Current | None) -> Current:
     """The current the simulated vehicle flies in; refused with a vehicle's own motion."""
     current = current or Current()
@@ -238,6 +245,7 @@ class Move:
     seconds: float  # the move's duration through the water
     drift: Drift | None
     physics_ms: float  # how long the move and its checks took
+    vehicle: dict[str, Any] | None = None  # how a vehicle flew it (`_vehicle_move`)
 
 
 @dataclass(frozen=True)
@@ -463,7 +471,10 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
         observation = self._world.rig.observe(self.pose, 0, self._noise_seed)
         self.observation = replace(observation, energy_left_wh=self._energy_left_wh)
         self._timings = Timings(sense_ms=1e3 * (time.perf_counter() - started))
-        return self._observation_dict(), self._info(Action(), None, None)
+        info = self._info(Action(), None, None)
+        if getattr(self.motion, "start_report", None) is not None:  # a vehicle's dive
+            info["vehicle_start"] = self.motion.start_report  # type: ignore[attr-defined]
+        return self._observation_dict(), info
 
     def step(
         self, action: str | np.ndarray | Action
@@ -486,6 +497,7 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
         start = self.pose
         # One pose update: the vehicle's move, then what the water carried it off it.
         moved = self.motion.move(start, command)
+        asked, command = command, getattr(self.motion, "flown", command)  # cut at a limit
         passage = carry(self._field, start, command, moved, self._clock_s, self.cruise)
         flowing = self._field is not None
         if flowing:
@@ -515,10 +527,10 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
         if flowing:
             drift: Drift | None = Drift.of(start, command, moved)
         else:
-            drift = _drift(self.motion, start, command, moved)
+            drift = _drift(self.motion, start, asked, moved)
         physics_ms = 1e3 * (time.perf_counter() - started)
         return Move(command, invalid, moved if hit else None, terms, step_wh, passage.seconds,
-                    drift, physics_ms)  # fmt: skip
+                    drift, physics_ms, _vehicle_move(self.motion))  # fmt: skip
 
     def sensor_rays(self) -> np.ndarray:
         """The rays the sensors cast where the vehicle is now (`SensorRig.rays`)."""
@@ -546,6 +558,8 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
         info.update(step_energy_wh=move.energy_wh, move_s=move.seconds)
         if move.drift is not None:
             info.update(move.drift.to_info())
+        if move.vehicle is not None:
+            info["vehicle_move"] = move.vehicle
         reward = float(sum(move.terms.values()))
         return self._observation_dict(), reward, self._ended, False, info
 

@@ -89,6 +89,15 @@ def fly(
         list[str] | None, typer.Option(help="an action string for --dry-run (repeat for more)")
     ] = None,
     seed: Annotated[int, typer.Option(min=0, help="seed of the procedural cave")] = 0,
+    start_depth: Annotated[
+        float | None,
+        typer.Option(
+            min=0,
+            callback=finite,
+            help="dive (or rise) to this depth, m, before the first step; with --sim the "
+            "default leaves room above for the cave's highest point",
+        ),
+    ] = None,
     out: RunsOut = Path("runs"),
     frames: FramesOpt = True,
     shield: Annotated[
@@ -106,7 +115,9 @@ def fly(
     from cavenav.vehicle.mavlink import load_bridge_config
 
     check_view(view)
-    bridge = load_bridge_config(config, connect=connect, mode=mode.value if mode else None)
+    bridge = load_bridge_config(
+        config, connect=connect, mode=mode.value if mode else None, start_depth_m=start_depth
+    )
     if dry_run:
         _print_dry_run(bridge, action or [])
         return
@@ -140,8 +151,27 @@ def _fly_in_a_simulated_cave(
         console.print(f"[yellow]note:[/] {cave.name}'s [water] is not simulated: a vehicle "
                       "over MAVLink meets its own water", soft_wrap=True)  # fmt: skip
         settings = replace(settings, discharge_m3s=0.0)
+    bridge = _room_above(bridge, cave)
     run_dir = new_run_dir(out, cave.name, spec.name, cave.seed)
     fly_vehicle(bridge, cave, flyer, settings.episode_config(cave, seed), run_dir, confirm, view)
+
+
+def _room_above(bridge: Any, cave: Any) -> Any:  # noqa: ANN401 - lazy imports
+    """``bridge`` with a start depth that leaves room above for the cave's highest point
+    (as deep below the shallowest allowed depth as the cave rises above its start), where
+    none was given: from a shallower start the depth limit would cut every ascent."""
+    from cavenav.vehicle.mavlink import START_MARGIN_M
+
+    if bridge.start_depth_m is not None:
+        return bridge
+    rise = max(float(cave.mesh.bounds[1][2] - cave.start.z), 0.0)
+    depth = round(bridge.min_depth_m + rise + START_MARGIN_M, 2)
+    if depth > bridge.max_depth_m:
+        raise CavenavError(
+            f"{cave.name} rises {rise:.1f} m above its start: starting {depth:.1f} m deep is "
+            f"beyond max_depth_m ({bridge.max_depth_m:g} m); give --start-depth or a deeper limit"
+        )
+    return bridge.model_copy(update={"start_depth_m": depth})
 
 
 def _fly_own_sensors(

@@ -222,9 +222,11 @@ def _episode_log(
     """The episode's log, begun at the start the environment's reset reports."""
     start, clearance = reset_info["vehicle_pose"], reset_info["clearance_m"]
     pilot_seed = getattr(pilot, "seed", None)  # a pilot that draws (random) keeps its seed
-    return EpisodeLog(
+    log = EpisodeLog(
         scenario, pilot.name, config.rules, config.shield, start, clearance, config, pilot_seed
     )
+    log.vehicle_start = reset_info.get("vehicle_start")
+    return log
 
 
 def _final_summary(log: EpisodeLog, status: str) -> tuple[dict[str, Any], bool]:

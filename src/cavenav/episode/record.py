@@ -12,6 +12,7 @@ import os
 import platform
 import time
 import warnings
+from collections import Counter
 from dataclasses import asdict
 from datetime import UTC, datetime
 from typing import Any
@@ -58,6 +59,7 @@ class EpisodeLog:
         self.failure_cause: str | None = None
         self.collision_pose: dict[str, float] | None = None
         self.progress_m = 0.0
+        self.vehicle_start: dict[str, Any] | None = None  # how a vehicle reached its start
         self._started = time.perf_counter()
         self._meta = {
             "cavenav_version": __version__,
@@ -218,6 +220,8 @@ class EpisodeLog:
                 "mean_pilot_ms": _mean_timing(self.steps, "pilot"),
                 "usage": Usage.total(self.usage),
                 **_drift(self.steps),
+                **_move_endings(self.steps),
+                "vehicle_start": self.vehicle_start,
                 **_energy(self.steps),
                 **self._meta,
             }
@@ -259,7 +263,22 @@ def _carried_out(info: dict[str, Any]) -> dict[str, Any]:
         found["silt_g"] = info["silt_g"]
     if info.get("shield"):
         found["shield"] = info["shield"]
+    if info.get("vehicle_move") is not None:
+        found["vehicle"] = info["vehicle_move"]
     return found
+
+
+def _move_endings(steps: list[dict[str, Any]]) -> dict[str, Any]:
+    """How a vehicle's moves ended (reached, settled, timeout), counted, and how many its
+    depth limits cut; nothing when no vehicle flew."""
+    moves = [s["vehicle"] for s in steps if "vehicle" in s]
+    if not moves:
+        return {}
+    endings = Counter(m["ended"] for m in moves)
+    return {
+        "move_endings": dict(sorted(endings.items())),
+        "depth_limited_moves": sum(1 for m in moves if m["depth_limited"]),
+    }
 
 
 def _drift(steps: list[dict[str, Any]]) -> dict[str, float]:

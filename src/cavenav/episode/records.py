@@ -186,6 +186,9 @@ class EpisodeSummary(_Record):
     max_drift_m: float | None = None
     mean_drift_deg: float | None = None
     max_drift_deg: float | None = None
+    move_endings: dict[str, int] | None = None  # a vehicle's: reached, settled, timeout
+    depth_limited_moves: int | None = None  # a vehicle's moves its depth limits cut
+    vehicle_start: dict[str, Any] | None = None  # a vehicle's way to its start depth
     mean_physics_ms: float | None = None
     energy_wh: float | None = None  # the battery energy the moves used (cavenav.energy)
     moving_s: float | None = None  # how long the moves took through the water

@@ -23,10 +23,15 @@ FS_PILOT_TIMEOUT), so that a bridge that flies this fake should fly the real veh
   standard atmosphere) and LOCAL_POSITION_NED streams; without a position estimate, no
   LOCAL_POSITION_NED, as ArduSub sends none when its EKF has no horizontal position.
 
-What it simplifies: the vehicle is kinematic (velocities are reached at once, roll and pitch
-stay zero), the water has no surface and no bottom, GUIDED velocity targets and yaw rates
-are ignored, and buttons, parameters and the ground-station heartbeat failsafe are not
-emulated.
+* the motion of ArduSub's SITL, as measured against it: inertia and drag (a push coasts on
+  after the sticks go neutral; nothing brakes it in ALT_HOLD), the yaw rate and its lag,
+  the stick and throttle dead bands, buoyancy (disarmed it rises to float at the surface)
+  and a position estimate that comes late.
+
+What it simplifies: roll and pitch stay zero, the water has a surface but no bottom, GUIDED
+flies straight at its speed limit (slowing in its last metre) instead of ArduSub's
+S-curves, GUIDED velocity targets and yaw rates are ignored, and buttons, parameters and
+the ground-station heartbeat failsafe are not emulated.
 """
 
 from __future__ import annotations
@@ -69,6 +74,7 @@ MODE_NAMES = {STABILIZE: "STABILIZE", ALT_HOLD: "ALT_HOLD", GUIDED: "GUIDED", MA
 AUTOPILOT_COMPONENT = 1  # MAV_COMP_ID_AUTOPILOT1
 NEUTRAL_STICKS = (0, 0, 500, 0)  # MANUAL_CONTROL x, y, z, r with no pilot input
 GAIN_REDRAW_S = 1.0  # how long one draw of the thrusters' gain error lasts
+ARRIVED_M = 1e-3  # GUIDED: this near the goal is on it
 STREAMED = (
     MAV.MAVLINK_MSG_ID_ATTITUDE,
     MAV.MAVLINK_MSG_ID_VFR_HUD,
@@ -94,9 +100,26 @@ class FakeSubConfig(BaseModel):
             ground station, which listens with ``udpin`` as a GCS behind BlueOS does.
         system_id: this vehicle's MAVLink system id (SYSID_THISMAV).
         gcs_system_id: the only ground station whose MANUAL_CONTROL counts (SYSID_MYGCS).
-        max_speed_mps, max_vertical_mps, max_yaw_rate_dps: forward and lateral speed,
-            vertical speed and yaw rate at full stick.
+        max_speed_mps, max_vertical_mps, max_yaw_rate_dps: the forward and lateral speed,
+            the climb rate and the yaw rate the full stick holds; a stick asks for its
+            share beyond the dead band.
+        stick_dead_band: x, y and r sticks this near 0 ask for nothing (RCn_DZ through
+            JS_GAIN); throttle_dead_band the same around 500 (THR_DZ), where ALT_HOLD
+            holds the depth.
+        inertia: False reaches the velocities the sticks ask for at once, and stops at
+            once when they are let go (a kinematic vehicle, for tests of the messages).
+        drag_per_m, drag_per_s: the water's drag on the horizontal motion, quadratic
+            (per metre) and linear (per second): what the vehicle coasts on with.
+        yaw_lag_s, climb_lag_s: how quickly the yaw rate and climb rate follow the sticks.
+        buoyant_rise_mps: how fast the vehicle rises where nothing holds its depth
+            (disarmed, or in MANUAL and STABILIZE); float_depth_m: where it floats.
+        position_after_s: LOCAL_POSITION_NED only this long after the start (the SITL's
+            EKF needs 20-45 s for an origin); GUIDED is refused until then.
         guided_speed_mps, guided_yaw_rate_dps: GUIDED's speed and turn-rate limits.
+        guided_delay_s: how long GUIDED's planner takes to set off after a target.
+        guided_approach_per_s: GUIDED slows to this speed per metre (and turn rate per
+            radian) still to go.
+        depth_hold_per_s: ALT_HOLD's climb rate per metre off the depth it holds.
         current_ned_mps: a water current (north, east, down) that drifts the vehicle unless a
             controller holds against it (ALT_HOLD the depth, GUIDED everything).
         noise: relative execution noise (0 for none): a gain error on stick velocities
@@ -120,11 +143,28 @@ class FakeSubConfig(BaseModel):
     address: str = Field("udpout:127.0.0.1:14550", min_length=1)
     system_id: int = Field(1, ge=1, le=255)
     gcs_system_id: int = Field(255, ge=1, le=255)
-    max_speed_mps: float = Field(1.0, gt=0)
-    max_vertical_mps: float = Field(0.5, gt=0)
-    max_yaw_rate_dps: float = Field(90.0, gt=0)
+    # What ArduSub 4.5.7's SITL does with the BlueROV2 frame at JS_GAIN 0.5 (measured with
+    # sticks held and let go; docs/tutorials/fly-a-bluerov2.md): stick 400 holds 0.386 m/s
+    # and turns 24.5 deg/s, nothing within 100 of 0 or a throttle within 125 of 500 moves
+    # it, and let go it coasts (0.37 m/s to 0.05 in 2.5 s) and turns on about 8 deg.
+    max_speed_mps: float = Field(1.16, gt=0)
+    max_vertical_mps: float = Field(1.0, gt=0)
+    max_yaw_rate_dps: float = Field(73.5, gt=0)
+    stick_dead_band: int = Field(100, ge=0, le=999)
+    throttle_dead_band: int = Field(125, ge=0, le=499)
+    inertia: bool = True
+    drag_per_m: float = Field(6.0, ge=0)
+    drag_per_s: float = Field(0.43, ge=0)
+    yaw_lag_s: float = Field(0.25, ge=0)
+    climb_lag_s: float = Field(0.3, ge=0)
+    buoyant_rise_mps: float = Field(0.04, ge=0)
+    float_depth_m: float = Field(0.17, ge=0)
+    position_after_s: float = Field(0.0, ge=0)
     guided_speed_mps: float = Field(0.5, gt=0)
     guided_yaw_rate_dps: float = Field(45.0, gt=0)
+    guided_delay_s: float = Field(0.7, ge=0)
+    guided_approach_per_s: float = Field(1.0, gt=0)
+    depth_hold_per_s: float = Field(2.0, gt=0)
     current_ned_mps: tuple[float, float, float] = (0.0, 0.0, 0.0)
     noise: float = Field(0.0, ge=0)
     seed: int = Field(0, ge=0)
@@ -174,6 +214,16 @@ class FakeSubState:
     failsafe: bool
 
 
+def _beyond(stick: float, dead_band: float, full: float) -> float:
+    """The share of the full stick a deflection asks for beyond its dead band, signed."""
+    return math.copysign(max(abs(stick) - dead_band, 0.0) / (full - dead_band), stick)
+
+
+def _lagged(dt: float, lag_s: float) -> float:
+    """How much of the way to its target a first-order lag of ``lag_s`` goes in ``dt``."""
+    return 1.0 if lag_s <= 0.0 else 1.0 - math.exp(-dt / lag_s)
+
+
 def _next_due(due: float, period: float, now: float) -> float:
     """The next time a periodic job is due; a late loop skips ahead instead of bursting."""
     due += period
@@ -200,7 +250,11 @@ class FakeSub:
         self._conn: Any = None
         self._crash: BaseException | None = None
         self._position = np.array(self.config.start_ned, dtype=float)
-        self._velocity = np.zeros(3)
+        self._velocity = np.zeros(3)  # as reported: the position's rate of change
+        self._water_velocity = np.zeros(3)  # through the water, NED
+        self._turn_rate = 0.0  # the yaw rate the sticks have built up, rad/s
+        self._held_depth: float | None = None  # ALT_HOLD's depth, inside the dead band
+        self._goal_since = 0.0  # GUIDED: when the target came
         self._yaw = wrap_angle(math.radians(self.config.start_yaw_deg))
         self._yaw_rate = 0.0
         self._armed = False
@@ -326,7 +380,7 @@ class FakeSub:
             self._next_gain_draw = _next_due(self._next_gain_draw, GAIN_REDRAW_S, now)
         self._check_pilot_input(now)
         if dt > 0.0:
-            self._move(dt)
+            self._move(dt, now)
         if now >= self._next_heartbeat:
             if not self._heartbeat_paused:
                 self._send_heartbeat()
@@ -353,53 +407,92 @@ class FakeSub:
         if self.config.pilot_failsafe == "disarm":
             self._disarm()
 
-    def _move(self, dt: float) -> None:
-        """Integrate the pose over ``dt``. The sticks (MANUAL_CONTROL x forward, y right, r
-        clockwise in -1000..1000, z the throttle in 0..1000 around 500) command body
-        velocities except in GUIDED, where only the yaw stick counts."""
-        current = np.array(self.config.current_ned_mps)
+    def _move(self, dt: float, now: float) -> None:
+        """Integrate the pose over ``dt``: the sticks (MANUAL_CONTROL x forward, y right, r
+        clockwise in -1000..1000, z the throttle in 0..1000 around 500) drive the vehicle
+        except in GUIDED, where its planner does; the current carries it, except along
+        what a controller holds (ALT_HOLD the depth, GUIDED everything)."""
         before, yaw_before = self._position.copy(), self._yaw
-        x, y, z, r = self._sticks
-        c = self.config
-        full = (c.max_speed_mps, c.max_speed_mps, c.max_vertical_mps, c.max_yaw_rate_dps)
-        deflection = (x / 1000.0, y / 1000.0, (z - 500) / 500.0, r / 1000.0)
-        forward, right, up, yaw_dps = (float(v) for v in self._gains * full * deflection)
-        yaw_rate = math.radians(yaw_dps)
-        if not self._armed:
-            self._position = self._position + current * dt
-        elif self._mode == GUIDED:
-            self._guide(dt, yaw_rate)
+        current = np.array(self.config.current_ned_mps)
+        if self._armed and self._mode == GUIDED:
+            self._guide(dt, now)
+            current[:] = 0.0
         else:
-            north, east = body_to_ned(forward, right, self._yaw + 0.5 * yaw_rate * dt)
-            if self._mode == ALT_HOLD:  # the depth controller holds against the current
+            self._drive(dt)
+            if self._armed and self._mode == ALT_HOLD:
                 current[2] = 0.0
-            self._position = self._position + (np.array([north, east, -up]) + current) * dt
-            self._yaw = wrap_angle(self._yaw + yaw_rate * dt)
+        self._position = self._position + (self._water_velocity + current) * dt
+        if self._position[2] < self.config.float_depth_m:  # it floats: no higher
+            self._position[2] = self.config.float_depth_m
+            self._water_velocity[2] = max(self._water_velocity[2], 0.0)
         self._velocity = (self._position - before) / dt
         self._yaw_rate = wrap_angle(self._yaw - yaw_before) / dt
 
-    def _guide(self, dt: float, pilot_yaw_rate: float) -> None:
-        """GUIDED: fly straight to the goal at the speed limit and turn the shortest way to
-        the heading, holding against any current."""
-        if self._goal is not None:
+    def _drive(self, dt: float) -> None:
+        """The sticks' thrust against the water's drag, the yaw rate they ask for, and the
+        depth: held by ALT_HOLD inside the throttle's dead band, else climbing as asked,
+        with buoyancy where nothing holds it."""
+        c = self.config
+        x, y, z, r = self._sticks if self._armed else NEUTRAL_STICKS
+        gains = self._gains  # forward, right, up, yaw
+        ahead = gains[0] * c.max_speed_mps * _beyond(x, c.stick_dead_band, 1000)
+        aside = gains[1] * c.max_speed_mps * _beyond(y, c.stick_dead_band, 1000)
+        wanted = np.array(body_to_ned(ahead, aside, self._yaw))
+        turn = gains[3] * math.radians(c.max_yaw_rate_dps) * _beyond(r, c.stick_dead_band, 1000)
+        climb = self._climb(z - 500, gains[2])
+        if not c.inertia:
+            self._water_velocity[:] = (*wanted, -climb)
+            self._yaw = wrap_angle(self._yaw + turn * dt)
+            return
+        moving = self._water_velocity[:2]
+        # The thrust that would hold the wanted speed; the drag taken implicitly, stable
+        # at any step.
+        thrust = wanted * (c.drag_per_m * float(np.linalg.norm(wanted)) + c.drag_per_s)
+        resistance = c.drag_per_m * float(np.linalg.norm(moving)) + c.drag_per_s
+        self._water_velocity[:2] = (moving + thrust * dt) / (1.0 + resistance * dt)
+        self._turn_rate += (turn - self._turn_rate) * _lagged(dt, c.yaw_lag_s)
+        self._yaw = wrap_angle(self._yaw + self._turn_rate * dt)
+        self._water_velocity[2] += (-climb - self._water_velocity[2]) * _lagged(dt, c.climb_lag_s)
+
+    def _climb(self, throttle: int, gain: float) -> float:
+        """The climb rate (m/s up) the throttle asks for, or ALT_HOLD's hold of the depth
+        where it entered the dead band; buoyancy where no controller holds the depth."""
+        c = self.config
+        if not self._armed or self._mode != ALT_HOLD:
+            asked = c.max_vertical_mps * throttle / 500 if self._armed else 0.0
+            self._held_depth = None
+            return asked + c.buoyant_rise_mps
+        asked = _beyond(throttle, c.throttle_dead_band, 500)
+        if asked != 0.0:
+            self._held_depth = None
+            return gain * c.max_vertical_mps * asked
+        if self._held_depth is None:
+            self._held_depth = float(self._position[2])
+        error = float(self._position[2]) - self._held_depth
+        return max(-c.max_vertical_mps, min(c.max_vertical_mps, c.depth_hold_per_s * error))
+
+    def _guide(self, dt: float, now: float) -> None:
+        """GUIDED: after the planner's delay, fly straight to the goal at the speed limit,
+        slowing in the last metre, and turn the shortest way to the heading, slowing in the
+        last degrees; hold against any current."""
+        c = self.config
+        self._water_velocity[:] = 0.0
+        if self._goal is not None and now >= self._goal_since + c.guided_delay_s:
             offset = self._goal - self._position
             distance = float(np.linalg.norm(offset))
-            step = self.config.guided_speed_mps * dt
-            if distance <= step:  # land on the goal exactly, so that it reads as reached
-                self._position, self._goal = self._goal, None
+            speed = min(c.guided_speed_mps, c.guided_approach_per_s * distance)
+            if distance <= ARRIVED_M:  # on it, exactly, so that it reads as reached
+                self._water_velocity[:] = offset / dt
             else:
-                self._position = self._position + offset * (step / distance)
-        if pilot_yaw_rate != 0.0:
-            # The pilot's yaw stick takes the heading over (ArduSub's AUTO_YAW_HOLD).
-            self._yaw = wrap_angle(self._yaw + pilot_yaw_rate * dt)
+                self._water_velocity[:] = offset * min(speed / distance, 1.0 / dt)
+        pilot_yaw = _beyond(self._sticks[3], c.stick_dead_band, 1000)
+        if pilot_yaw != 0.0:  # the pilot's yaw stick takes the heading over (AUTO_YAW_HOLD)
+            self._yaw = wrap_angle(self._yaw + math.radians(c.max_yaw_rate_dps) * pilot_yaw * dt)
             self._goal_yaw = None
-        elif self._goal_yaw is not None:
+        elif self._goal_yaw is not None and now >= self._goal_since + c.guided_delay_s:
             error = wrap_angle(self._goal_yaw - self._yaw)
-            max_turn = math.radians(self.config.guided_yaw_rate_dps) * dt
-            if abs(error) <= max_turn:
-                self._yaw, self._goal_yaw = self._goal_yaw, None
-            else:
-                self._yaw = wrap_angle(self._yaw + math.copysign(max_turn, error))
+            rate = min(math.radians(c.guided_yaw_rate_dps), c.guided_approach_per_s * abs(error))
+            self._yaw = wrap_angle(self._yaw + math.copysign(min(rate * dt, abs(error)), error))
 
     # -- what arrives ----------------------------------------------------------------------
 
@@ -480,7 +573,7 @@ class FakeSub:
         if number not in MODE_NAMES:
             self._statustext(MAV.MAV_SEVERITY_WARNING, f"No such mode {number}")
             return MAV.MAV_RESULT_FAILED
-        if number == GUIDED and not self.config.position_estimate:
+        if number == GUIDED and not self._has_position(time.monotonic()):
             self._statustext(
                 MAV.MAV_SEVERITY_WARNING, "Mode change failed: GUIDED requires position"
             )
@@ -535,6 +628,7 @@ class FakeSub:
             turn = abs(wrap_angle(yaw - self._yaw))
             yaw = wrap_angle(yaw + noise * turn * self._target_rng.standard_normal())
         self._goal_yaw = yaw
+        self._goal_since = time.monotonic()
 
     # -- what goes out ---------------------------------------------------------------------
 
@@ -564,6 +658,10 @@ class FakeSub:
             MAV.MAV_STATE_CRITICAL if self._failsafe else status,
         )
 
+    def _has_position(self, now: float) -> bool:
+        """A position estimate, and its EKF has had time to make one."""
+        return self.config.position_estimate and now >= self._boot + self.config.position_after_s
+
     def _send(self, message_id: int, now: float) -> None:
         """Send one ATTITUDE, VFR_HUD or SCALED_PRESSURE2, or one LOCAL_POSITION_NED if
         there is a position estimate."""
@@ -578,7 +676,7 @@ class FakeSub:
         elif message_id == MAV.MAVLINK_MSG_ID_SCALED_PRESSURE2:
             pressure = SURFACE_HPA + FRESH_WATER_HPA_PER_M * float(self._position[2])
             self._conn.mav.scaled_pressure2_send(boot_ms, pressure, 0.0, 1200, 0)
-        elif self.config.position_estimate:
+        elif self._has_position(now):
             self._conn.mav.local_position_ned_send(
                 boot_ms, *(float(v) for v in self._position), *(float(v) for v in self._velocity)
             )

@@ -68,8 +68,20 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from cavenav.actions import format_action
 from cavenav.errors import ConfigError, DependencyError, VehicleError, invalid_field
-from cavenav.kinematics import Drift, turn_deg, wrap_angle
+from cavenav.kinematics import Drift, wrap_angle
 from cavenav.types import Action, Pose
+from cavenav.vehicle.control import (
+    ControlSettings,
+    Ending,
+    Goal,
+    Measured,
+    MoveReport,
+    Settling,
+    goal_of,
+    manual_sticks,
+    off_target,
+    on_target,
+)
 from cavenav.vehicle.dead_reckoning import DeadReckoning
 from cavenav.vehicle.frames import NedFrame, NedPose, body_offset, body_to_ned
 
@@ -87,6 +99,7 @@ __all__ = [
 
 ALT_HOLD, GUIDED = 2, 4  # ArduSub's custom mode numbers (ArduSub/mode.h)
 NEUTRAL = {"x": 0, "y": 0, "z": 500, "r": 0}  # MANUAL_CONTROL: z is 0..1000, 500 neutral
+FRAME_LOCAL_NED = 1  # MAV_FRAME_LOCAL_NED: from the EKF origin, as LOCAL_POSITION_NED
 FRAME_LOCAL_OFFSET_NED = 7  # MAV_FRAME_LOCAL_OFFSET_NED: NED offset from the vehicle
 # SET_POSITION_TARGET_LOCAL_NED type_mask: use x, y, z and yaw; ignore velocity (8, 16,
 # 32), acceleration (64, 128, 256) and yaw rate (2048).
@@ -97,6 +110,9 @@ POSE_TELEMETRY = ("LOCAL_POSITION_NED", "ATTITUDE")
 # Where a vehicle with no position says its depth, the preferred first.
 DEPTH_SOURCES = ("SCALED_PRESSURE2", "VFR_HUD")
 GRAVITY = 9.80665  # m/s², standard
+CONTROL_FIELDS = tuple(ControlSettings.__dataclass_fields__)
+START_MARGIN_M = 0.5  # with no start depth given, this far below the shallowest allowed
+START_CAP_S = 20.0  # going to the start depth may take 3 times the time expected and this
 
 # pymavlink's network addresses, "SCHEME:HOST:PORT", and whether each listens (a listening
 # one may take port 0, a port the system picks). Log files, websockets, multicast and Unix
@@ -196,19 +212,52 @@ class BridgeConfig(BaseModel):
     telemetry_hz: float = Field(10.0, ge=1, le=50, description="ATTITUDE and position rate")
     control_hz: float = Field(10.0, ge=1, le=50)
     stick_limit: int = Field(400, ge=50, le=1000, description="strongest stick, of 1000")
-    forward_mps: float = Field(0.4, gt=0, le=10, description="forward/back speed at stick_limit")
-    lateral_mps: float = Field(0.4, gt=0, le=10, description="sideways speed at stick_limit")
-    vertical_mps: float = Field(0.2, gt=0, le=10, description="up/down speed at stick_limit")
-    yaw_dps: float = Field(36.0, gt=0, le=720, description="turn rate at stick_limit, deg/s")
-    settle_s: float = Field(0.5, ge=0, le=10, description="neutral sticks after a manual segment")
+    # Measured on ArduSub 4.5.7's SITL (JS_GAIN 0.5): stick 400 holds 0.386 m/s ahead,
+    # 0.37 m/s sideways and turns 24.5 deg/s.
+    forward_mps: float = Field(0.38, gt=0, le=10, description="forward/back speed at stick_limit")
+    lateral_mps: float = Field(0.37, gt=0, le=10, description="sideways speed at stick_limit")
+    vertical_mps: float = Field(
+        0.5, gt=0, le=10, description="reckoned moves: climb with the throttle stick_limit/2 "
+        "beyond its dead band"
+    )  # fmt: skip
+    yaw_dps: float = Field(24.5, gt=0, le=720, description="turn rate at stick_limit, deg/s")
+    settle_s: float = Field(
+        0.5, ge=0, le=10, description="reckoned moves: neutral sticks after a segment"
+    )
+    # The closed-loop manual moves (`cavenav.vehicle.control`), tuned against the SITL.
+    cruise_mps: float = Field(0.3, gt=0, le=5, description="manual: the fastest a move flies")
+    approach_gain: float = Field(
+        0.8, gt=0, le=10, description="manual: speed wanted per metre still to go, 1/s"
+    )
+    velocity_gain: float = Field(
+        600.0, ge=0, le=10000, description="manual: stick per m/s of speed missing"
+    )
+    yaw_gain: float = Field(12.0, gt=0, le=1000, description="manual: yaw stick per degree")
+    stick_dead_band: int = Field(
+        100, ge=0, le=500, description="manual: x, y and r sticks nearer 0 do nothing"
+    )
+    throttle_dead_band: int = Field(
+        125, ge=0, le=499, description="manual: throttle sticks nearer 500 hold the depth"
+    )
+    climb_gain: float = Field(
+        300.0, gt=0, le=10000, description="manual: throttle beyond its dead band per m/s"
+    )
+    still_mps: float = Field(0.05, gt=0, le=1, description="still: slower than this")
+    still_climb_mps: float = Field(0.2, gt=0, le=2, description="still: climbing slower")
+    still_dps: float = Field(2.0, gt=0, le=90, description="still: turning slower, deg/s")
+    still_for_s: float = Field(0.5, ge=0, le=10, description="still: for this long")
     guided_mps: float = Field(
         0.5, gt=0, le=10, description="guided: the vehicle's speed (WPNAV_SPEED)"
     )
     guided_yaw_dps: float = Field(45.0, gt=0, le=720, description="guided: the vehicle's turn rate")
-    position_tolerance_m: float = Field(
-        0.1, gt=0, le=5, description="guided: target reached within"
+    guided_start_s: float = Field(
+        1.5, ge=0, le=30, description="guided: how long ArduSub's planner takes to set off"
     )
-    yaw_tolerance_deg: float = Field(3.0, gt=0, le=45, description="guided: heading reached within")
+    position_tolerance_m: float = Field(
+        0.1, gt=0, le=5, description="a move is reached within this, horizontally"
+    )
+    depth_tolerance_m: float = Field(0.1, gt=0, le=5, description="... and this, vertically")
+    yaw_tolerance_deg: float = Field(1.5, gt=0, le=45, description="... and this in heading")
     segment_cap_s: float = Field(30.0, gt=0, le=300, description="no segment lasts longer")
     reckoning_distance_error: float = Field(
         0.1, ge=0, le=1, description="dead reckoning: the speed calibration's error, a fraction"
@@ -222,6 +271,13 @@ class BridgeConfig(BaseModel):
     water_density_kg_m3: float = Field(
         1000.0, ge=950, le=1100, description="dead reckoning: fresh 1000, sea 1025"
     )
+    position_timeout_s: float = Field(
+        90.0, gt=0, le=900, description="wait this long for a position before arming"
+    )
+    start_depth_m: float | None = Field(
+        None, ge=0, description="dive (or rise) here before the first step; None: the "
+        "shallowest allowed or deeper (fly --sim: where the cave's top has room above)"
+    )  # fmt: skip
     min_depth_m: float = Field(0.3, description="no target shallower (autopilot depth)")
     max_depth_m: float = Field(100.0, description="no target deeper")
     disarm_at_end: bool = True
@@ -230,6 +286,11 @@ class BridgeConfig(BaseModel):
     @classmethod
     def _one_vehicle_address(cls, address: str) -> str:
         return check_address(address)
+
+    @property
+    def control(self) -> ControlSettings:
+        """The closed loop's settings (`cavenav.vehicle.control`)."""
+        return ControlSettings(**{name: getattr(self, name) for name in CONTROL_FIELDS})
 
 
 def load_bridge_config(path: str | Path | None = None, **overrides: Any) -> BridgeConfig:
@@ -312,7 +373,10 @@ def plan(action: Action, config: BridgeConfig) -> list[Segment]:
             move = {
                 "x": round(math.copysign(limit * share[0], forward)),
                 "y": round(math.copysign(limit * share[1], right)),
-                "z": 500 - round(math.copysign(limit / 2 * share[2], down)) if down else 500,
+                "z": 500
+                - round(math.copysign(config.throttle_dead_band + limit / 2 * share[2], down))
+                if down
+                else 500,
                 "r": 0,
             }
             segments.append(Segment("move", duration, sticks=move))
@@ -386,8 +450,10 @@ class _Telemetry:
     component: int | None = None
     peer: tuple[str, int] | None = None  # its address, where the link can tell (udpin)
     position: tuple[float, float, float] | None = None
+    velocity: tuple[float, float, float] = (0.0, 0.0, 0.0)
     position_at: float = -math.inf
     yaw: float | None = None
+    yaw_rate: float = 0.0
     attitude_at: float = -math.inf
     # Depths measured apart from a position, by source: (metres, arrival time).
     depths: dict[str, tuple[float, float]] = field(default_factory=dict)
@@ -552,8 +618,9 @@ class ArduSubLink:
                 t.mode = message.custom_mode
             elif kind == "LOCAL_POSITION_NED":
                 t.position, t.position_at = (message.x, message.y, message.z), now
+                t.velocity = (message.vx, message.vy, message.vz)
             elif kind == "ATTITUDE":
-                t.yaw, t.attitude_at = message.yaw, now
+                t.yaw, t.yaw_rate, t.attitude_at = message.yaw, message.yawspeed, now
             elif kind == "VFR_HUD" and message.alt != 0.0:  # 0: no EKF origin yet
                 t.depths["VFR_HUD"] = (-message.alt, now)
             elif kind == "SCALED_PRESSURE2":
@@ -721,6 +788,30 @@ class ArduSubLink:
             raise VehicleError("the vehicle has reported no LOCAL_POSITION_NED and ATTITUDE yet")
         return NedPose(*t.position, yaw=t.yaw)
 
+    def measured(self, depth_source: str | None = None) -> Measured:
+        """The latest reported state with its rates; a vehicle with no position
+        (``depth_source`` given) is placed at north = east = 0 at that depth."""
+        t = self.telemetry
+        if depth_source is not None:
+            if t.yaw is None:
+                raise VehicleError("the vehicle has reported no ATTITUDE yet")
+            return Measured(0.0, 0.0, self.depth(depth_source), t.yaw, yaw_rate=t.yaw_rate)
+        pose = self.pose()
+        return Measured(pose.north, pose.east, pose.down, pose.yaw, *t.velocity, t.yaw_rate)
+
+    def send_goal(self, goal: Goal) -> None:
+        """GUIDED: a position target at ``goal`` (MAV_FRAME_LOCAL_NED, absolute yaw)."""
+        self.send_target(
+            {
+                "coordinate_frame": FRAME_LOCAL_NED,
+                "type_mask": POSITION_AND_YAW,
+                "x": goal.north,
+                "y": goal.east,
+                "z": goal.down,
+                "yaw": goal.yaw,
+            }
+        )
+
     def depth(self, source: str | None = None) -> float:
         """The latest depth from ``source`` (one of `DEPTH_SOURCES`); None: the reported
         position's."""
@@ -784,6 +875,9 @@ class ArduSubMotion:
         self._reckoning: DeadReckoning | None = None  # None: the position is reported
         self._depth_source: str | None = None  # where a reckoning vehicle's depth comes from
         self.flown = Action()  # the last move's action, as cut at the depth limits
+        self.last_move: MoveReport | None = None  # how the last move went
+        self._goal: Goal | None = None  # where the last move was to end
+        self.start_report: dict[str, Any] | None = None  # how the start depth was reached
 
     @property
     def position(self) -> str:
@@ -826,6 +920,9 @@ class ArduSubMotion:
         return self._link
 
     def _connect(self) -> ArduSubLink:
+        """Connect, wait for the pose (before arming: a position can take the autopilot's
+        EKF 20-45 s), set the mode, arm after the operator's confirmation, and take the
+        vehicle to its start depth."""
         link = self._open()
         if self._ready:
             return link
@@ -836,6 +933,7 @@ class ArduSubMotion:
             config.connect_timeout_s,
         )
         link.request_telemetry()
+        self._find_position(link)
         if link.telemetry.mode != self._mode:
             link.set_mode(self._mode)
         if not link.telemetry.armed:
@@ -843,9 +941,46 @@ class ArduSubMotion:
                 raise VehicleError("the operator declined to arm the vehicle")
             link.set_armed(True)
             self._armed_here = True
-        self._find_position(link)
+        try:
+            self._go_to_start_depth(link)
+        except BaseException:
+            self._stop_moving(link)
+            raise
         self._ready = True
         return link
+
+    def _go_to_start_depth(self, link: ArduSubLink) -> None:
+        """Dive (or rise) to ``start_depth_m`` and come still there, holding the position
+        and heading; without one, to the shallowest depth the limits allow if the
+        vehicle floats above it (a fresh vehicle floats at 0.15-0.2 m)."""
+        config = self.config
+        began, now = time.monotonic(), link.measured(self._depth_source)
+        wanted = config.start_depth_m
+        if wanted is None:
+            wanted = max(now.down, config.min_depth_m + START_MARGIN_M)
+        wanted = min(max(wanted, config.min_depth_m), config.max_depth_m)
+        goal = self._goal = Goal(now.north, now.east, wanted, now.yaw)
+        expected = abs(wanted - now.down) / self._speed
+        ended = self._fly_to(link, goal, expected, cap_s=3 * expected + START_CAP_S)
+        reached = link.measured(self._depth_source).down
+        self.start_report = {
+            "from_depth_m": round(now.down, 3),
+            "start_depth_m": round(wanted, 3),
+            "depth_m": round(reached, 3),
+            "ended": ended,
+            "seconds": round(time.monotonic() - began, 2),
+        }
+        link.log.write("note", {"start": self.start_report})
+        if ended == "timeout":
+            raise VehicleError(
+                f"the vehicle did not reach its start depth {wanted:.2f} m in time: it is at "
+                f"{reached:.2f} m"
+            )
+
+    @property
+    def _speed(self) -> float:
+        """How fast a move flies: the closed loop's cruise, or the guided speed."""
+        return self.config.cruise_mps if self.config.mode == "manual" else self.config.guided_mps
 
     def _find_position(self, link: ArduSubLink) -> None:
         """Wait for the pose telemetry; without a reported position (and ``reckon``, in
@@ -856,7 +991,7 @@ class ArduSubMotion:
                 "no LOCAL_POSITION_NED and ATTITUDE (the pose needs a position estimate, "
                 "e.g. a DVL" + (")" if not self._reckon else "; manual mode reckons one)"),
                 lambda t: t.position is not None and t.yaw is not None,
-                config.connect_timeout_s,
+                config.position_timeout_s,
             )
             return
         link.wait_for(
@@ -890,37 +1025,91 @@ class ArduSubMotion:
         link, frame = self._link, self._frame
         if link is None or frame is None:
             raise VehicleError("the vehicle is not started: call start() first")
+        asked, began = action, time.monotonic()
         action = self.flown = self._within_depth_limits(link, action)
         try:
-            for segment in plan(action, self.config):
-                link.check_alive(self._mode)
-                if segment.sticks is not None:
-                    self._hold_sticks(link, segment)
-                else:
-                    self._reach(link, segment)
-            ended = time.monotonic()
             if self._reckoning is None:
-                link.wait_for(
-                    "no LOCAL_POSITION_NED after the action",
-                    lambda t: t.position_at >= ended,
-                    self.config.heartbeat_timeout_s,
-                )
+                ended, off_m, off_deg = self._fly_action(link, action)
             else:
-                source = self._depth_source
-                assert source is not None  # chosen when the first pose was reckoned
-                link.wait_for(
-                    f"no ATTITUDE and {source} after the action",
-                    lambda t: min(t.attitude_at, t.depths[source][1]) >= ended,
-                    self.config.heartbeat_timeout_s,
-                )
-                assert link.telemetry.yaw is not None
-                self._reckoning = self._reckoning.moved(
-                    action.forward, action.right, link.telemetry.yaw
-                )
+                self._fly_reckoned(link, action)
+                ended, off_m, off_deg = "settled", math.nan, math.nan  # unmeasured
         except BaseException:
             self._stop_moving(link)
             raise
+        self.last_move = MoveReport(
+            format_action(asked), format_action(action), ended,
+            round(off_m, 4), round(off_deg, 3), round(time.monotonic() - began, 2),
+        )  # fmt: skip
+        if ended != "reached":
+            link.log.write("note", {"move": self.last_move.to_dict()})
         return frame.to_world(self._ned_pose(link))
+
+    def _fly_action(self, link: ArduSubLink, action: Action) -> tuple[Ending, float, float]:
+        """Fly ``action`` on the measured pose: the turn, then the translation, each aimed
+        at one goal worked out from where the step began (`goal_of`); how it ended and
+        how far off the goal the vehicle came still."""
+        config, measured = self.config, link.measured()
+        last = self._goal
+        start = last if last is not None and on_target(last, measured, config.control) else measured
+        forward, right, down, turn = body_offset(action)
+        goal = self._goal = goal_of(start, forward, right, down, turn)
+        facing = replace(goal, north=start.north, east=start.east, down=start.down)
+        segments = plan(action, config)  # refuses a segment over segment_cap_s
+        ended = self._fly_to(link, goal, 0.0) if not segments else "reached"  # a hold
+        for number, segment in enumerate(segments):
+            aim = goal if segment.kind == "move" else facing
+            ended = self._fly_to(link, aim, segment.duration_s, number == len(segments) - 1)
+        horizontal, vertical, degrees = off_target(goal, link.measured())
+        return ended, math.hypot(horizontal, vertical), degrees
+
+    def _fly_to(
+        self, link: ArduSubLink, goal: Goal, expected_s: float, final: bool = True,
+        cap_s: float | None = None,
+    ) -> Ending:  # fmt: skip
+        """Steer to ``goal`` until it is reached (and, when ``final``, the vehicle is
+        still for ``still_for_s``): "reached"; a guided vehicle stalled short of it after
+        its planner had time is "settled"; neither within the cap is "timeout"."""
+        config, guided = self.config, self.config.mode == "guided"
+        control, began = config.control, time.monotonic()
+        cap = cap_s if cap_s is not None else min(config.segment_cap_s, 3 * expected_s + 5.0)
+        give_up_after = began + expected_s + (config.guided_start_s if guided else 0.0)
+        settling = Settling(control, config.still_for_s)
+        if guided:
+            link.send_goal(goal)  # once: a target sent again restarts ArduSub's planner
+        while True:
+            link.check_alive(self._mode)
+            now, clock = link.measured(self._depth_source), time.monotonic()
+            steady, stalled = settling.update(goal, now, clock)
+            if on_target(goal, now, control) and (steady or not final):
+                ended: Ending = "reached"
+            elif guided and stalled and clock >= give_up_after:
+                ended = "settled"
+            elif clock - began >= cap:
+                ended = "timeout"
+            else:
+                if not guided:
+                    link.set_sticks(manual_sticks(goal, now, control))
+                time.sleep(1.0 / config.control_hz)
+                continue
+            if not guided:
+                link.set_sticks(NEUTRAL)
+            return ended
+
+    def _fly_reckoned(self, link: ArduSubLink, action: Action) -> None:
+        """A vehicle with no position: timed sticks (`plan`), then dead reckoning."""
+        for segment in plan(action, self.config):
+            link.check_alive(self._mode)
+            self._hold_sticks(link, segment)
+        ended = time.monotonic()
+        source = self._depth_source
+        assert source is not None and self._reckoning is not None
+        link.wait_for(
+            f"no ATTITUDE and {source} after the action",
+            lambda t: min(t.attitude_at, t.depths[source][1]) >= ended,
+            self.config.heartbeat_timeout_s,
+        )
+        assert link.telemetry.yaw is not None
+        self._reckoning = self._reckoning.moved(action.forward, action.right, link.telemetry.yaw)
 
     def drift(self, pose: Pose, action: Action, reached: Pose) -> Drift:
         """Against the whole ``action``, even where the depth limits cut it short."""
@@ -952,38 +1141,6 @@ class ArduSubMotion:
         link.set_sticks(NEUTRAL)
         time.sleep(self.config.settle_s)
 
-    def _reach(self, link: ArduSubLink, segment: Segment) -> None:
-        assert segment.target is not None
-        start = link.pose()
-        target = target_fields(segment.target, start)
-        goal = NedPose(
-            start.north + target["x"], start.east + target["y"], start.down + target["z"],
-            target["yaw"],
-        )  # fmt: skip
-        link.send_target(target)
-        config = self.config
-        still = _Stillness(
-            config.position_tolerance_m / 5,
-            config.yaw_tolerance_deg / 5,
-            not_before=time.monotonic() + segment.duration_s,
-        )
-
-        def arrived(t: _Telemetry) -> bool:
-            if t.position is None or t.yaw is None:
-                return False
-            if time.monotonic() - t.heartbeat_at > config.heartbeat_timeout_s:
-                return True  # check_alive below says why
-            off = math.dist(t.position, (goal.north, goal.east, goal.down))
-            turn = turn_deg(t.yaw, goal.yaw)
-            on_target = off <= config.position_tolerance_m and turn <= config.yaw_tolerance_deg
-            return on_target or still.settled(t.position, t.yaw, off, turn)
-
-        cap = min(config.segment_cap_s, 3 * segment.duration_s + 5.0)
-        link.wait_for(f"the {segment.kind} target not reached", arrived, cap)
-        link.check_alive(self._mode)
-        if still.missed:
-            link.log.write("note", {"settled_off_target": segment.kind, **still.missed})
-
     def _stop_moving(self, link: ArduSubLink) -> None:
         """Neutral sticks, or in guided mode a target where the vehicle is now."""
         with suppress(VehicleError, OSError):
@@ -993,7 +1150,7 @@ class ArduSubMotion:
 
     def close(self) -> None:
         """Neutral sticks, disarm (``disarm_at_end``), close the link; safe to repeat."""
-        link, self._link, self._ready = self._link, None, False
+        link, self._link, self._ready, self._goal = self._link, None, False, None
         if link is None:
             return
         try:
@@ -1003,37 +1160,3 @@ class ArduSubMotion:
                     link.set_armed(False)
         finally:
             link.close()
-
-
-class _Stillness:
-    """Tells when a vehicle that has not reached its target has stopped trying.
-
-    A position controller can settle off its target (a current, a thruster limit, a
-    real vehicle's dead band): then the segment is over where the vehicle stopped, as
-    a diver would judge it, instead of waiting for the cap.
-    """
-
-    def __init__(self, metres: float, degrees: float, not_before: float, for_s: float = 0.5):
-        """Settled: moved less than ``metres`` and ``degrees`` for ``for_s`` seconds, and
-        not before the monotonic time ``not_before`` (a slow start is no stop)."""
-        self.metres, self.degrees, self.for_s = metres, degrees, for_s
-        self.not_before = not_before
-        self._last: tuple[tuple[float, float, float], float, float] | None = None
-        self.missed: dict[str, float] = {}
-
-    def settled(
-        self, position: tuple[float, float, float], yaw: float, off_m: float, off_deg: float
-    ) -> bool:
-        now = time.monotonic()
-        last = self._last
-        moved = last is None or (
-            math.dist(position, last[0]) > self.metres or turn_deg(yaw, last[1]) > self.degrees
-        )
-        if moved:
-            self._last = (position, yaw, now)
-            return False
-        assert last is not None
-        if now - last[2] < self.for_s or now < self.not_before:
-            return False
-        self.missed = {"off_m": round(off_m, 4), "off_deg": round(off_deg, 3)}
-        return True
