@@ -3,12 +3,12 @@
     .venv/bin/python benchmarks/mavlink_action.py      # about a minute
 
 Flies a fixed list of actions against the simulated autopilot (`cavenav fake-sub`'s
-defaults: 1 m/s, 0.5 m/s vertical, 90 deg/s at full stick, the bridge calibrated to
-them, execution noise 0.05) in `manual` and in `guided` mode, and prints for each the
-wall time of the action, the time its segments need (manual: at the calibrated stick
-rates; guided: at the vehicle's guided speed and turn rate), the difference (manual: the
-settling, 0.5 s a segment; guided: waiting for telemetry, less the end of a move within
-the 0.1 m tolerance, so it can be negative) and the drift between the pose commanded and
+defaults, which move as ArduSub's SITL does: inertia and coasting, dead bands, a turn's
+lag, a guided planner slow to set off; execution noise 0.05), the bridge at its defaults
+(closed-loop moves, tuned on the SITL), in `manual` and in `guided` mode, and prints for
+each the wall time of the action, the time its segments would take at the stick rates
+or the guided speed and turn rate, the difference (the closed loop's slow final approach
+and the wait until the vehicle is still) and the drift between the pose commanded and
 the pose reached. All from one run on one machine.
 """
 

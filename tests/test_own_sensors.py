@@ -204,11 +204,13 @@ def test_the_calibration_error_grows_with_distance_and_the_compass_error_in_quad
 
 
 def udp_sub(position: bool, depth: float = 30.0) -> tuple[FakeSub, BridgeConfig]:
+    """A fake sub at ``depth`` that does not rise while disarmed (neutrally buoyant), so
+    that depths are reckoned from where it starts."""
     port = free_udp_port()
     sub = FakeSub(
         FakeSubConfig(
             address=f"udpout:127.0.0.1:{port}", start_ned=(0.0, 0.0, depth),
-            position_estimate=position,
+            position_estimate=position, buoyant_rise_mps=0.0,
         )
     )  # fmt: skip
     return sub, BridgeConfig(connect=f"udpin:127.0.0.1:{port}", connect_timeout_s=10.0)
@@ -230,8 +232,9 @@ def test_without_a_dvl_manual_mode_reckons_the_position_and_measures_depth_and_h
             motion.close()
     # A right turn of 90 degrees, then 1 m forward: east, in the fake's north-east frame.
     assert truth.east == pytest.approx(1.0, abs=0.15) and abs(truth.north) < 0.15
-    # Depth and heading as measured; the horizontal position as commanded.
-    assert reached.z == pytest.approx(30.0 - truth.down, abs=0.02)
+    # Depth and heading as measured (the depth hold still settling, within centimetres);
+    # the horizontal position as commanded.
+    assert reached.z == pytest.approx(30.0 - truth.down, abs=0.05)
     assert math.degrees(reached.psi) == pytest.approx(-truth.yaw_deg, abs=1.0)
     assert math.hypot(reached.x, reached.y) == pytest.approx(1.0, abs=1e-6)
     assert motion.position_sigma_m == pytest.approx(math.hypot(0.1, math.radians(3.0)))
@@ -257,22 +260,26 @@ def test_without_a_dvl_a_simulated_cave_or_guided_mode_is_refused() -> None:
 @pytest.mark.slow
 def test_without_a_dvl_the_depth_is_the_bar30s_and_limits_never_add_a_move() -> None:
     """The depth from SCALED_PRESSURE2 (fresh water, standard air), kept for the flight;
-    an ascent asked for above the shallowest depth allowed is cut to none, not turned
-    into a descent the shield never judged."""
+    a vehicle floating above the shallowest depth allowed dives to it before the first
+    step, and an ascent asked for there is cut to what is left above the limit (none
+    once above it), never turned into a descent the shield never judged."""
     from cavenav.types import Pose
 
-    sub, bridge = udp_sub(position=False, depth=0.2)
-    motion = ArduSubMotion(bridge.model_copy(update={"min_depth_m": 0.3}), reckon=True)
+    sub, bridge = udp_sub(position=False, depth=0.17)
+    limited = bridge.model_copy(update={"min_depth_m": 0.3, "start_depth_m": 0.3})
+    motion = ArduSubMotion(limited, reckon=True)
     with sub:
         try:
             start = motion.start(Pose(0.0, 0.0, 0.0, 0.0))
             assert motion.depth_source == "SCALED_PRESSURE2"
+            assert motion.start_report is not None
+            before = motion.start_report["depth_m"]
+            assert before == pytest.approx(0.3, abs=0.1)
             motion.move(start, Action(up=0.5))
             flown = motion.flown
-            depth = sub.state().down
         finally:
             motion.close()
-    assert flown == Action() and depth == pytest.approx(0.2, abs=1e-6)
+    assert flown.up == pytest.approx(max(before - 0.3, 0.0), abs=0.011) and flown.up >= 0.0
 
 
 def test_the_geometric_pilot_flies_with_a_sounder_that_reads_nothing_sure() -> None:
@@ -369,7 +376,10 @@ def test_fly_without_a_simulator_flies_the_vehicles_own_sensors(
         assert (run_dir / step["frames"]["depth_exr"]).is_file()
     flown = math.hypot(truth.north, truth.east)
     assert flown > 0.05  # forward too, though slowly: the ceiling is within the standoff
-    assert summary["progress_m"] == pytest.approx(flown, abs=0.1 + 0.2 * flown)
+    # Reckoned from the moves commanded: without a DVL a move is timed sticks, and the
+    # fake sub coasts on after them as ArduSub's SITL does (a 0.1 m push carries it about
+    # 0.25 m), so the reckoning lags the truth by up to 0.15 m a step here.
+    assert summary["progress_m"] == pytest.approx(flown, abs=0.2 + 0.2 * flown)
     assert summary["position_sigma_m"] > 0
 
 

@@ -217,9 +217,10 @@ def fly_vehicle(
     try:
         listening = motion.listen()  # with udpin:HOST:0, the port the system chose
         where = f", listening on {listening[0]}:{listening[1]}" if listening else ""
+        depth = f"{bridge.start_depth_m:g} m" if bridge.start_depth_m is not None else "depth"
         console.print(
             f"[bold]{cave.name}[/] through MAVLink ({bridge.mode} mode, {bridge.connect}{where}): "
-            "waiting for the vehicle's heartbeat",
+            f"waiting for the vehicle's heartbeat and position, then to its start {depth}",
             soft_wrap=True,
             highlight=False,
         )

@@ -59,6 +59,17 @@ class FlyMode(StrEnum):
     guided = "guided"
 
 
+StartDepthOpt = Annotated[
+    float | None,
+    typer.Option(
+        min=0,
+        callback=finite,
+        help="dive (or rise) to this depth, m, before the first step; with --sim the "
+        "default leaves room above for the cave's highest point",
+    ),
+]
+
+
 @takes(settings=SETTINGS, vlm=VLM, view=LIVE_VIEW, own=OWN_SENSORS)
 def fly(
     connect: Annotated[
@@ -89,15 +100,7 @@ def fly(
         list[str] | None, typer.Option(help="an action string for --dry-run (repeat for more)")
     ] = None,
     seed: Annotated[int, typer.Option(min=0, help="seed of the procedural cave")] = 0,
-    start_depth: Annotated[
-        float | None,
-        typer.Option(
-            min=0,
-            callback=finite,
-            help="dive (or rise) to this depth, m, before the first step; with --sim the "
-            "default leaves room above for the cave's highest point",
-        ),
-    ] = None,
+    start_depth: StartDepthOpt = None,
     out: RunsOut = Path("runs"),
     frames: FramesOpt = True,
     shield: Annotated[

@@ -241,6 +241,7 @@ class StepRecord(_Record):
     move_s: float | None = None
     current_m_s: float | None = None
     shield: dict[str, Any] | None = None
+    vehicle: dict[str, Any] | None = None  # how a vehicle flew the move: asked, flown, ended
     invalid_action: str | None = None
     proposed: str | None = None
     vlm: dict[str, Any] | None = None

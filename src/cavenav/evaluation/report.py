@@ -403,7 +403,8 @@ class StepView:
 
     @property
     def marks(self) -> tuple[str, ...]:
-        """CSS classes of what happened: collision, shield, invalid, failure, requery."""
+        """CSS classes of what happened: collision, shield, invalid, failure, requery, and
+        a vehicle's move that did not reach its goal."""
         r = self.record
         marks = [
             name
@@ -413,6 +414,7 @@ class StepView:
                 ("invalid", r.invalid_action),
                 ("failure", r.failure),
                 ("requery", len(self.attempts) > 1),
+                ("vehicle", r.vehicle is not None and r.vehicle.get("ended") != "reached"),
             )
             if hit
         ]

@@ -115,6 +115,8 @@ class FakeSubConfig(BaseModel):
             (disarmed, or in MANUAL and STABILIZE); float_depth_m: where it floats.
         position_after_s: LOCAL_POSITION_NED only this long after the start (the SITL's
             EKF needs 20-45 s for an origin); GUIDED is refused until then.
+        guided_after_s: GUIDED refused until this long after the start too: ArduSub's
+            EKF reports a position some seconds before it trusts it for GUIDED.
         guided_speed_mps, guided_yaw_rate_dps: GUIDED's speed and turn-rate limits.
         guided_delay_s: how long GUIDED's planner takes to set off after a target.
         guided_approach_per_s: GUIDED slows to this speed per metre (and turn rate per
@@ -160,6 +162,7 @@ class FakeSubConfig(BaseModel):
     buoyant_rise_mps: float = Field(0.04, ge=0)
     float_depth_m: float = Field(0.17, ge=0)
     position_after_s: float = Field(0.0, ge=0)
+    guided_after_s: float = Field(0.0, ge=0)
     guided_speed_mps: float = Field(0.5, gt=0)
     guided_yaw_rate_dps: float = Field(45.0, gt=0)
     guided_delay_s: float = Field(0.7, ge=0)
@@ -573,7 +576,10 @@ class FakeSub:
         if number not in MODE_NAMES:
             self._statustext(MAV.MAV_SEVERITY_WARNING, f"No such mode {number}")
             return MAV.MAV_RESULT_FAILED
-        if number == GUIDED and not self._has_position(time.monotonic()):
+        now = time.monotonic()
+        if number == GUIDED and not (
+            self._has_position(now) and now >= self._boot + self.config.guided_after_s
+        ):
             self._statustext(
                 MAV.MAV_SEVERITY_WARNING, "Mode change failed: GUIDED requires position"
             )

@@ -1,17 +1,27 @@
 """Carry out cavenav actions on an ArduSub vehicle (a BlueROV2) over MAVLink.
 
 An action runs the way the kinematics of SPEC section 5 do: the turn first, then one
-straight translation, each a *segment*. Two ways to drive a segment, chosen by the user:
+straight translation, each a *segment*, and both aimed at one goal worked out from where
+the step began (`cavenav.vehicle.control.goal_of`), so that a turn cut short is finished
+by the move after it. Each is flown on the measured pose until the vehicle is within the
+tolerances of its goal and still, or a timeout that the move's report records
+(`cavenav.vehicle.control.MoveReport`). Two ways to drive a segment, chosen by the user:
 
-- ``manual``: ALT_HOLD mode, MANUAL_CONTROL sticks at 10 Hz. A segment holds the sticks
-  for its magnitude over a calibrated rate, then neutral sticks for ``settle_s``. Needs
-  only the depth sensor; the distance flown is as good as the calibration.
-- ``guided``: GUIDED mode, ``SET_POSITION_TARGET_LOCAL_NED``: the body offset turned
-  by the heading the vehicle reports, in ``MAV_FRAME_LOCAL_OFFSET_NED``, with an absolute
-  yaw; then wait until the reported pose is within the tolerances (or the vehicle has
-  settled). Not ``MAV_FRAME_BODY_OFFSET_NED`` with its relative yaw: ArduSub's
+- ``manual``: ALT_HOLD mode, MANUAL_CONTROL sticks at ``control_hz`` from a controller on
+  the reported position, velocity, heading and yaw rate (`cavenav.vehicle.control`):
+  ArduSub's ALT_HOLD brakes nothing horizontally, and its sticks have dead bands.
+- ``guided``: GUIDED mode, one ``SET_POSITION_TARGET_LOCAL_NED`` at the goal in
+  ``MAV_FRAME_LOCAL_NED`` with an absolute yaw, then wait. Not
+  ``MAV_FRAME_BODY_OFFSET_NED`` with its relative yaw: ArduSub's
   ``ModeGuided::guided_set_yaw_state`` picks the turn's direction as if that yaw were
-  absolute, so a relative turn can go the wrong way. Needs a position estimate (a DVL).
+  absolute, so a relative turn can go the wrong way. Sent once: sent again, a target
+  restarts ArduSub's planner. A vehicle that stops short of it (stalled) is *settled*.
+
+Before the first step the bridge waits for the pose (a position takes ArduSub's EKF
+20-45 s), then arms and dives (or rises) to the start depth, since a fresh vehicle
+floats at the surface, above the shallowest depth allowed. A vehicle with no position
+(no DVL, ``reckon``) is flown on timed sticks instead, and comes still in heading and
+depth after each.
 
 Both modes read the pose from ``LOCAL_POSITION_NED`` and ``ATTITUDE`` (requested at
 ``telemetry_hz`` with ``MAV_CMD_SET_MESSAGE_INTERVAL``, with the depth's messages below):
@@ -88,6 +98,7 @@ from cavenav.vehicle.frames import NedFrame, NedPose, body_offset, body_to_ned
 __all__ = [
     "ArduSubMotion",
     "BridgeConfig",
+    "CommandRefused",
     "Segment",
     "check_address",
     "check_device",
@@ -111,6 +122,8 @@ POSE_TELEMETRY = ("LOCAL_POSITION_NED", "ATTITUDE")
 DEPTH_SOURCES = ("SCALED_PRESSURE2", "VFR_HUD")
 GRAVITY = 9.80665  # m/s², standard
 CONTROL_FIELDS = tuple(ControlSettings.__dataclass_fields__)
+MODE_RETRY_S = 1.0  # a refused mode is asked for again this often
+GUIDED_RESENDS = 2  # a guided target sent again this often after the planner stalls
 START_MARGIN_M = 0.5  # with no start depth given, this far below the shallowest allowed
 START_CAP_S = 20.0  # going to the start depth may take 3 times the time expected and this
 
@@ -192,7 +205,9 @@ class BridgeConfig(BaseModel):
     """How the bridge talks to the vehicle; a TOML file of these keys overrides them.
 
     Rates are what the vehicle does at ``stick_limit``: calibrate them on yours (hold a
-    stick for a timed run, measure). The defaults suit `cavenav fake-sub`'s defaults.
+    stick until the speed is steady, measure). The defaults, and the closed loop's gains,
+    were measured and tuned on ArduSub 4.5.7's SITL, which `cavenav fake-sub`'s defaults
+    imitate.
     """
 
     model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
@@ -222,8 +237,9 @@ class BridgeConfig(BaseModel):
     )  # fmt: skip
     yaw_dps: float = Field(24.5, gt=0, le=720, description="turn rate at stick_limit, deg/s")
     settle_s: float = Field(
-        0.5, ge=0, le=10, description="reckoned moves: neutral sticks after a segment"
-    )
+        0.5, ge=0, le=10, description="reckoned moves: neutral sticks after a segment, "
+        "then until still"
+    )  # fmt: skip
     # The closed-loop manual moves (`cavenav.vehicle.control`), tuned against the SITL.
     cruise_mps: float = Field(0.3, gt=0, le=5, description="manual: the fastest a move flies")
     approach_gain: float = Field(
@@ -418,25 +434,33 @@ def describe(segments: list[Segment], config: BridgeConfig) -> list[str]:
         if s.sticks is not None:
             sticks = " ".join(f"{k}={v}" for k, v in s.sticks.items())
             lines.append(
-                f"{s.kind}: MANUAL_CONTROL {sticks} at {config.control_hz:g} Hz for "
-                f"{s.duration_s:.2f} s, then MANUAL_CONTROL x=0 y=0 z=500 r=0 for "
-                f"{config.settle_s:g} s"
+                f"{s.kind}: MANUAL_CONTROL at {config.control_hz:g} Hz from the measured pose "
+                f"(at first {sticks}; about {s.duration_s:.2f} s), until within "
+                f"{config.position_tolerance_m:g} m, {config.depth_tolerance_m:g} m in depth "
+                f"and {config.yaw_tolerance_deg:g} deg of the step's goal and still "
+                f"(under {config.still_mps:g} m/s and {config.still_dps:g} deg/s for "
+                f"{config.still_for_s:g} s); without a position, {s.duration_s:.2f} s of "
+                f"those sticks, then neutral"
             )
         else:
             assert s.target is not None
             t = s.target
             lines.append(
-                f"{s.kind}: SET_POSITION_TARGET_LOCAL_NED frame=MAV_FRAME_LOCAL_OFFSET_NED "
-                f"type_mask={POSITION_AND_YAW}: forward={t['forward']:g} right={t['right']:g} "
-                f"down={t['down']:g} m turned by the heading, yaw = heading "
-                f"{t['turn']:+.4f} rad (absolute), then wait until within "
-                f"{config.position_tolerance_m:g} m and {config.yaw_tolerance_deg:g} deg "
-                f"(about {s.duration_s:.2f} s at the guided speed and turn rate)"
+                f"{s.kind}: SET_POSITION_TARGET_LOCAL_NED frame=MAV_FRAME_LOCAL_NED "
+                f"type_mask={POSITION_AND_YAW}: the step's start + forward={t['forward']:g} "
+                f"right={t['right']:g} down={t['down']:g} m turned by the heading, yaw = "
+                f"heading {t['turn']:+.4f} rad (absolute), then wait until within "
+                f"{config.position_tolerance_m:g} m and {config.yaw_tolerance_deg:g} deg and "
+                f"still (about {s.duration_s:.2f} s at the guided speed and turn rate)"
             )
     return lines or ["hold: no command (neutral sticks continue)"]
 
 
 # ---------------------------------------------------------------------------- the link
+
+
+class CommandRefused(VehicleError):
+    """The vehicle answered a command with anything but MAV_RESULT_ACCEPTED."""
 
 
 @dataclass
@@ -454,6 +478,7 @@ class _Telemetry:
     position_at: float = -math.inf
     yaw: float | None = None
     yaw_rate: float = 0.0
+    climb: float = 0.0  # VFR_HUD's, m/s up
     attitude_at: float = -math.inf
     # Depths measured apart from a position, by source: (metres, arrival time).
     depths: dict[str, tuple[float, float]] = field(default_factory=dict)
@@ -621,8 +646,10 @@ class ArduSubLink:
                 t.velocity = (message.vx, message.vy, message.vz)
             elif kind == "ATTITUDE":
                 t.yaw, t.yaw_rate, t.attitude_at = message.yaw, message.yawspeed, now
-            elif kind == "VFR_HUD" and message.alt != 0.0:  # 0: no EKF origin yet
-                t.depths["VFR_HUD"] = (-message.alt, now)
+            elif kind == "VFR_HUD":
+                t.climb = message.climb  # the barometer's, with or without a position
+                if message.alt != 0.0:  # 0: no EKF origin yet
+                    t.depths["VFR_HUD"] = (-message.alt, now)
             elif kind == "SCALED_PRESSURE2":
                 pascals = 100.0 * (message.press_abs - self.config.surface_pressure_hpa)
                 t.depths[kind] = (pascals / (self.config.water_density_kg_m3 * GRAVITY), now)
@@ -743,7 +770,7 @@ class ArduSubLink:
         if result != self._mavlink.MAV_RESULT_ACCEPTED:
             entry = self._mavlink.enums["MAV_RESULT"].get(result)
             meaning = entry.name if entry else f"result {result}"
-            raise VehicleError(f"the vehicle refused {name}: {meaning}")
+            raise CommandRefused(f"the vehicle refused {name}: {meaning}")
 
     def set_mode(self, mode: int) -> None:
         flag = self._mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
@@ -795,7 +822,8 @@ class ArduSubLink:
         if depth_source is not None:
             if t.yaw is None:
                 raise VehicleError("the vehicle has reported no ATTITUDE yet")
-            return Measured(0.0, 0.0, self.depth(depth_source), t.yaw, yaw_rate=t.yaw_rate)
+            depth = self.depth(depth_source)
+            return Measured(0.0, 0.0, depth, t.yaw, v_down=-t.climb, yaw_rate=t.yaw_rate)
         pose = self.pose()
         return Measured(pose.north, pose.east, pose.down, pose.yaw, *t.velocity, t.yaw_rate)
 
@@ -934,8 +962,7 @@ class ArduSubMotion:
         )
         link.request_telemetry()
         self._find_position(link)
-        if link.telemetry.mode != self._mode:
-            link.set_mode(self._mode)
+        self._enter_mode(link)
         if not link.telemetry.armed:
             if self._confirm is not None and not self._confirm("arm the vehicle?"):
                 raise VehicleError("the operator declined to arm the vehicle")
@@ -948,6 +975,20 @@ class ArduSubMotion:
             raise
         self._ready = True
         return link
+
+    def _enter_mode(self, link: ArduSubLink) -> None:
+        """Set our mode, asking again each second while the vehicle refuses it, until
+        ``position_timeout_s``: ArduSub refuses GUIDED until its EKF trusts the position,
+        which on the SITL came seconds after the first LOCAL_POSITION_NED."""
+        deadline = time.monotonic() + self.config.position_timeout_s
+        while link.telemetry.mode != self._mode:
+            try:
+                link.set_mode(self._mode)
+            except CommandRefused as refused:
+                if time.monotonic() + MODE_RETRY_S > deadline:
+                    raise
+                link.log.write("note", {"mode": self._mode, "refused": str(refused)})
+                time.sleep(MODE_RETRY_S)
 
     def _go_to_start_depth(self, link: ArduSubLink) -> None:
         """Dive (or rise) to ``start_depth_m`` and come still there, holding the position
@@ -1025,11 +1066,11 @@ class ArduSubMotion:
         link, frame = self._link, self._frame
         if link is None or frame is None:
             raise VehicleError("the vehicle is not started: call start() first")
-        asked, began = action, time.monotonic()
-        action = self.flown = self._within_depth_limits(link, action)
+        asked, began, start = action, time.monotonic(), self._step_start(link)
+        action = self.flown = self._within_depth_limits(link, action, start.down)
         try:
             if self._reckoning is None:
-                ended, off_m, off_deg = self._fly_action(link, action)
+                ended, off_m, off_deg = self._fly_action(link, action, start)
             else:
                 self._fly_reckoned(link, action)
                 ended, off_m, off_deg = "settled", math.nan, math.nan  # unmeasured
@@ -1044,13 +1085,24 @@ class ArduSubMotion:
             link.log.write("note", {"move": self.last_move.to_dict()})
         return frame.to_world(self._ned_pose(link))
 
-    def _fly_action(self, link: ArduSubLink, action: Action) -> tuple[Ending, float, float]:
-        """Fly ``action`` on the measured pose: the turn, then the translation, each aimed
-        at one goal worked out from where the step began (`goal_of`); how it ended and
-        how far off the goal the vehicle came still."""
-        config, measured = self.config, link.measured()
-        last = self._goal
-        start = last if last is not None and on_target(last, measured, config.control) else measured
+    def _step_start(self, link: ArduSubLink) -> Goal | Measured:
+        """Where a step is reckoned from: the last step's goal, when the vehicle is within
+        the tolerances of it (so that the shortfalls they allow do not add up), else the
+        measured pose."""
+        measured, last = link.measured(self._depth_source), self._goal
+        return (
+            last
+            if last is not None and on_target(last, measured, self.config.control)
+            else measured
+        )
+
+    def _fly_action(
+        self, link: ArduSubLink, action: Action, start: Goal | Measured
+    ) -> tuple[Ending, float, float]:
+        """Fly ``action`` from ``start`` on the measured pose: the turn, then the
+        translation, each aimed at one goal (`goal_of`); how it ended and how far off the
+        goal the vehicle came still."""
+        config = self.config
         forward, right, down, turn = body_offset(action)
         goal = self._goal = goal_of(start, forward, right, down, turn)
         facing = replace(goal, north=start.north, east=start.east, down=start.down)
@@ -1067,28 +1119,33 @@ class ArduSubMotion:
         cap_s: float | None = None,
     ) -> Ending:  # fmt: skip
         """Steer to ``goal`` until it is reached (and, when ``final``, the vehicle is
-        still for ``still_for_s``): "reached"; a guided vehicle stalled short of it after
-        its planner had time is "settled"; neither within the cap is "timeout"."""
+        still for ``still_for_s``): "reached"; a guided vehicle that stalls short of it
+        after its planner had time is sent the target again, twice at most, then it has
+        "settled"; neither within the cap is "timeout"."""
         config, guided = self.config, self.config.mode == "guided"
         control, began = config.control, time.monotonic()
         cap = cap_s if cap_s is not None else min(config.segment_cap_s, 3 * expected_s + 5.0)
         give_up_after = began + expected_s + (config.guided_start_s if guided else 0.0)
-        settling = Settling(control, config.still_for_s)
+        settling, resends = Settling(control, config.still_for_s), GUIDED_RESENDS
         if guided:
-            link.send_goal(goal)  # once: a target sent again restarts ArduSub's planner
+            link.send_goal(goal)  # once a try: a target sent again restarts the planner
         while True:
             link.check_alive(self._mode)
             now, clock = link.measured(self._depth_source), time.monotonic()
             steady, stalled = settling.update(goal, now, clock)
             if on_target(goal, now, control) and (steady or not final):
                 ended: Ending = "reached"
-            elif guided and stalled and clock >= give_up_after:
+            elif guided and stalled and clock >= give_up_after and not resends:
                 ended = "settled"
             elif clock - began >= cap:
                 ended = "timeout"
             else:
                 if not guided:
                     link.set_sticks(manual_sticks(goal, now, control))
+                elif stalled and clock >= give_up_after:  # the planner stopped short: again
+                    link.send_goal(goal)
+                    settling, resends = Settling(control, config.still_for_s), resends - 1
+                    give_up_after = clock + config.guided_start_s
                 time.sleep(1.0 / config.control_hz)
                 continue
             if not guided:
@@ -1115,11 +1172,10 @@ class ArduSubMotion:
         """Against the whole ``action``, even where the depth limits cut it short."""
         return Drift.of(pose, action, reached)
 
-    def _within_depth_limits(self, link: ArduSubLink, action: Action) -> Action:
-        """``action`` with its vertical part cut so that the depth stays within limits:
-        cut, never lengthened or reversed (a vehicle already beyond a limit holds its
-        depth), so that it flies no vertical motion the shield did not judge."""
-        depth = link.depth(self._depth_source)
+    def _within_depth_limits(self, link: ArduSubLink, action: Action, depth: float) -> Action:
+        """``action`` from ``depth`` with its vertical part cut so that the depth stays
+        within limits: cut, never lengthened or reversed (a vehicle already beyond a limit
+        holds its depth), so that it flies no vertical motion the shield did not judge."""
         lowest, highest = self.config.max_depth_m, self.config.min_depth_m
         if action.up > 0:  # rising: at most to the shallowest depth allowed
             target = depth - min(action.up, max(depth - highest, 0.0))
@@ -1140,6 +1196,21 @@ class ArduSubMotion:
             link.check_alive(self._mode)
         link.set_sticks(NEUTRAL)
         time.sleep(self.config.settle_s)
+        self._come_still(link)
+
+    def _come_still(self, link: ArduSubLink) -> None:
+        """Wait until a reckoned vehicle has stopped turning and climbing, as it reports
+        (its horizontal speed it cannot tell), at most ``segment_cap_s``."""
+        config = self.config
+        settling, began = Settling(config.control, config.still_for_s), time.monotonic()
+        while time.monotonic() - began < config.segment_cap_s:
+            link.check_alive(self._mode)
+            now = link.measured(self._depth_source)
+            if settling.update(Goal(now.north, now.east, now.down, now.yaw), now, time.monotonic())[
+                0
+            ]:
+                return
+            time.sleep(1.0 / config.control_hz)
 
     def _stop_moving(self, link: ArduSubLink) -> None:
         """Neutral sticks, or in guided mode a target where the vehicle is now."""
