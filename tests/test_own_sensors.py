@@ -245,7 +245,7 @@ def test_without_a_dvl_a_simulated_cave_or_guided_mode_is_refused() -> None:
     from cavenav.types import Pose
 
     sub, bridge = udp_sub(position=False)
-    bridge = bridge.model_copy(update={"connect_timeout_s": 2.0})
+    bridge = bridge.model_copy(update={"connect_timeout_s": 2.0, "position_timeout_s": 2.0})
     with sub:
         for motion in (ArduSubMotion(bridge), ArduSubMotion(
             bridge.model_copy(update={"mode": "guided"}), reckon=True)):  # fmt: skip
