@@ -21,8 +21,9 @@ import tempfile
 import time
 from pathlib import Path
 
-from cavenav.episode.loop import EpisodeConfig, make_env, run_episode
+from cavenav.episode.loop import make_env, run_episode
 from cavenav.episode.records import read_steps, read_summary
+from cavenav.episode.settings import EpisodeConfig
 from cavenav.evaluation.executors import InProcess
 from cavenav.evaluation.sweep import SweepConfig, run_sweep
 from cavenav.pilots.factory import PilotSpec, VLMOptions

@@ -18,10 +18,10 @@ import argparse
 import json
 from pathlib import Path
 
-from cavenav.actions import parse_action
-from cavenav.energy import KGF_N, PowerModel, Thruster, thrusters_w
-from cavenav.kinematics import apply
-from cavenav.types import Cruise, Pose
+from cavenav.core.types import Cruise, Pose
+from cavenav.motion.actions import parse_action
+from cavenav.motion.energy import KGF_N, PowerModel, Thruster, thrusters_w
+from cavenav.motion.kinematics import apply
 from cavenav.world.current import carry
 
 PUBLISHED = {"12 V": Thruster(3.71 * KGF_N, 205.0), "16 V": Thruster(5.25 * KGF_N, 390.0)}

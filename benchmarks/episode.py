@@ -42,10 +42,11 @@ _STARTUP = """
 import time
 t0 = time.perf_counter()
 import cavenav.cli
-from cavenav.episode.loop import EpisodeConfig, make_env
+from cavenav.episode.loop import make_env
+from cavenav.episode.settings import EpisodeConfig
 from cavenav.pilots.geometric import GeometricPilot
 from cavenav.sensors.rig import SensorConfig, SensorRig
-from cavenav.types import VehicleBody
+from cavenav.core.types import VehicleBody
 from cavenav.world.raycast import RayCaster
 from cavenav.world.scenarios import load_scenario, validate_start
 t1 = time.perf_counter()
@@ -86,8 +87,9 @@ def _timed(phases: dict[str, list[float]], name: str, fn: Callable[..., Any]) ->
 def warm_episode(frames: bool, folder: Path) -> dict[str, list[float]]:
     """One episode in this (warm) process; each phase's milliseconds, step by step."""
     from cavenav.episode import run_folder
-    from cavenav.episode.loop import EpisodeConfig, run_episode
+    from cavenav.episode.loop import run_episode
     from cavenav.episode.run_folder import read_jsonl
+    from cavenav.episode.settings import EpisodeConfig
     from cavenav.pilots.geometric import GeometricPilot
     from cavenav.world.scenarios import load_scenario
 
@@ -116,9 +118,10 @@ def warm_episode(frames: bool, folder: Path) -> dict[str, list[float]]:
 
 def end_of_episode(folder: Path) -> tuple[float, float]:
     """Milliseconds of the plots and of the final summary, for a flown S4 episode."""
-    from cavenav.episode.loop import EpisodeConfig, run_episode
+    from cavenav.episode.loop import run_episode
     from cavenav.episode.plots import plot_episode
     from cavenav.episode.run_folder import write_json
+    from cavenav.episode.settings import EpisodeConfig
     from cavenav.pilots.geometric import GeometricPilot
     from cavenav.world.raycast import RayCaster
     from cavenav.world.scenarios import load_scenario

@@ -21,11 +21,11 @@ from pathlib import Path
 import imageio.v3 as iio
 import numpy as np
 
+from cavenav.core.types import Pose
 from cavenav.episode.gallery import passage_poses
 from cavenav.sensors.image_stats import downscale
 from cavenav.sensors.optics import CAVE_WATERS, Optics
 from cavenav.sensors.rig import SensorConfig, SensorRig
-from cavenav.types import Pose
 from cavenav.world.raycast import RayCaster
 from cavenav.world.scenarios import load_scenario
 

@@ -70,6 +70,7 @@ from dataclasses import dataclass, field, fields
 
 import numpy as np
 
+from cavenav.core.types import Pose
 from cavenav.episode.gallery import passage_poses
 from cavenav.sensors.image_stats import NEAR_BLACK, FrameStats, downscale, frame_stats
 from cavenav.sensors.kernels import SHARE
@@ -83,7 +84,6 @@ from cavenav.sensors.optics import (
     black_clamp,
 )
 from cavenav.sensors.rig import Frame, SensorConfig, SensorRig, camera_response
-from cavenav.types import Pose
 from cavenav.world.raycast import RayCaster
 from cavenav.world.scenarios import load_scenario
 

@@ -19,9 +19,9 @@ import socket
 import statistics
 import time
 
-from cavenav.actions import parse_action
-from cavenav.kinematics import apply
-from cavenav.types import Pose
+from cavenav.core.types import Pose
+from cavenav.motion.actions import parse_action
+from cavenav.motion.kinematics import apply
 from cavenav.vehicle.fake_sub import FakeSub, FakeSubConfig
 from cavenav.vehicle.mavlink import ArduSubMotion, BridgeConfig, plan
 

@@ -23,11 +23,11 @@ MUTMUT = Path(sys.executable).with_name("mutmut")
 ROOT = Path(__file__).resolve().parents[1]
 COPY = ROOT / ".mutation"
 KNOWN = ("killed", "timeout", "survived")
-# The shield's dead reckoning and back-projection live in cavenav.reckoning: counted with it.
+# The shield's dead reckoning and back-projection live in cavenav.safety.reckoning: counted with it.
 TARGETS = {
-    "cavenav.shield": 85.0,
-    "cavenav.reckoning": 85.0,
-    "cavenav.actions": 90.0,
+    "cavenav.safety.shield": 85.0,
+    "cavenav.safety.reckoning": 85.0,
+    "cavenav.motion.actions": 90.0,
     "cavenav.pilots.reply": None,
 }
 

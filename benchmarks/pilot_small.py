@@ -19,7 +19,8 @@ import statistics
 import threading
 from pathlib import Path
 
-from cavenav.episode.loop import EpisodeConfig, run_episode
+from cavenav.episode.loop import run_episode
+from cavenav.episode.settings import EpisodeConfig
 from cavenav.pilots.factory import PilotSpec, VLMOptions
 from cavenav.world.scenarios import load_scenario
 

@@ -33,7 +33,7 @@ import statistics
 import tempfile
 import time
 
-from cavenav.kinematics import apply
+from cavenav.motion.kinematics import apply
 from cavenav.pilots.geometric import GeometricPilot
 from cavenav.sensors.rig import SensorConfig, SensorRig
 from cavenav.world.collision import VehicleBody, clearance, swept_collision

@@ -35,7 +35,8 @@ import time
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 
-from cavenav.episode.loop import EpisodeConfig, run_episode
+from cavenav.episode.loop import run_episode
+from cavenav.episode.settings import EpisodeConfig
 from cavenav.evaluation.executors import InProcess, LocalPool
 from cavenav.evaluation.sweep import SweepConfig, run_sweep
 from cavenav.pilots.factory import PilotSpec, VLMOptions

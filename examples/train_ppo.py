@@ -6,10 +6,10 @@ image again at full precision). Stable-Baselines3's ``MultiInputPolicy`` gives e
 its own CNN (NatureCNN) and joins them with the sounders; the actions are four numbers
 that the environment snaps to the admissible moves. The policy flies ``--caves`` training
 caves of the family at once, or of several families in turn (``--scenario S1,S2,S3``)
-(cave seeds drawn below `cavenav.env.TRAINING_SEEDS`; the
+(cave seeds drawn below `cavenav.sim.env.TRAINING_SEEDS`; the
 held-out seeds, 1000 and up, are for evaluation), one environment each: building a cave
 and its lighting takes seconds, so a fresh cave at every reset would leave no time to
-learn. The reward is `cavenav.env.LEARNER_REWARD`: metres made good, minus 0.5 a step
+learn. The reward is `cavenav.sim.env.LEARNER_REWARD`: metres made good, minus 0.5 a step
 per metre inside the 2 m standoff, minus 10 on a collision, plus 10 at the exit.
 
 Writes to ``--out``: ``monitor-K.monitor.csv`` per cave (every episode: return, length,
@@ -34,7 +34,7 @@ from pathlib import Path
 import gymnasium as gym
 import numpy as np
 
-import cavenav.env  # registers cavenav/CaveNav-vector-v0
+import cavenav.sim.env  # registers cavenav/CaveNav-vector-v0
 
 SEEN = ("rgb", "depth", "d_top", "d_bottom")
 # The policy's first spread of each action, as a share of its largest move: 0.6 m of
@@ -94,7 +94,7 @@ def train(
                 self.model.save(out / "best")
 
     out.mkdir(parents=True, exist_ok=True)
-    seeds = np.random.default_rng(seed).choice(cavenav.env.TRAINING_SEEDS, caves, replace=False)
+    seeds = np.random.default_rng(seed).choice(cavenav.sim.env.TRAINING_SEEDS, caves, replace=False)
     flown = [(families[i % len(families)], int(k)) for i, k in enumerate(seeds)]  # in turn
     envs = DummyVecEnv([lambda f=f, k=k: make_env(f, k, out) for f, k in flown])
     budget = Budget(60.0 * minutes)
@@ -231,7 +231,9 @@ def main() -> None:
     spent = (time.monotonic() - started) / 60
     print(f"trained for {spent:.1f} min; the model, its log and curve are in {args.out}")
     if args.evaluate:
-        held_out = range(cavenav.env.TRAINING_SEEDS, cavenav.env.TRAINING_SEEDS + args.evaluate)
+        held_out = range(
+            cavenav.sim.env.TRAINING_SEEDS, cavenav.sim.env.TRAINING_SEEDS + args.evaluate
+        )
         print(json.dumps(evaluate(args.out, families, held_out)))
 
 

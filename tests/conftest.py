@@ -20,9 +20,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from cavenav.kinematics import Drift, apply
+from cavenav.core.types import Action, Observation, Pose
+from cavenav.motion.kinematics import Drift, apply
 from cavenav.sensors.depth import normalise_depth
-from cavenav.types import Action, Observation, Pose
 from cavenav.world.mesh import CaveMesh, make_mesh
 from cavenav.world.scenarios import ExitPortal, Scenario
 

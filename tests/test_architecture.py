@@ -1,13 +1,18 @@
-"""Imports flow one way: types <- world <- sensors <- reckoning <- shield, cave_map <- pilots
-<- env <- episode <- evaluation <- training <- cli; `headway` (what "stuck" means) sits below env;
-`files` (how every layer writes a file in place) is a leaf like types, and `energy` (what
-moves cost a BlueROV2) knows only types and errors;
-`vehicle` (the MAVLink bridge) knows only types, actions and kinematics: the environment
-takes it as a `Motion` without importing it."""
+"""The package's folders are its layers, and imports flow one way, up from the bottom:
+
+    core (types, errors, files)  <-  motion (actions, kinematics, energy)  <-  world
+    <-  sensors  <-  safety (shield, reckoning, cave map, headway)  <-  pilots  <-  sim
+    (the Gymnasium environments)  <-  episode  <-  evaluation  <-  training  <-  cli
+
+`vehicle` (the MAVLink bridge and its fake) knows only core and motion: the environment
+takes it as a `Motion` without importing it, and only `sim.cave_sensors`, which serves a
+cave's images to a fake vehicle, imports it. No module sits loose at the top of the package
+but its entry point, `cavenav/__init__.py`."""
 
 from __future__ import annotations
 
 import ast
+import sys
 from pathlib import Path
 
 import pytest
@@ -39,72 +44,56 @@ def modules(folder: str) -> list[Path]:
     return found
 
 
-TOP = ("cavenav.evaluation", "cavenav.training", "cavenav.cli")  # nothing below them imports these
+# What each layer may import besides itself and the package's root (`cavenav.__version__`).
+BELOW = {
+    "core": (),
+    "motion": ("core",),
+    "vehicle": ("core", "motion"),
+    "world": ("core", "motion"),
+    "sensors": ("core", "motion", "world"),
+    "safety": ("core", "motion", "sensors"),  # never the cave model: a vehicle has none
+    "pilots": ("core", "motion", "sensors", "safety"),  # nor the pilots: they sense it
+    "sim": ("core", "motion", "world", "sensors", "safety", "vehicle"),
+    "episode": ("core", "motion", "world", "sensors", "safety", "pilots", "sim"),
+    "evaluation": ("core", "motion", "world", "sensors", "safety", "pilots", "sim", "episode"),
+}
+BELOW["training"] = (*BELOW["evaluation"], "evaluation")
+BELOW["cli"] = (*BELOW["training"], "training", "vehicle")
 
 
-@pytest.mark.parametrize(
-    ("layer", "forbidden"),
-    [
-        ("types.py", ("cavenav.",)),
-        ("files.py", ("cavenav.",)),
-        ("world", ("cavenav.sensors", "cavenav.pilots", "cavenav.env", "cavenav.episode", *TOP)),
-        ("sensors", ("cavenav.pilots", "cavenav.env", "cavenav.episode", "cavenav.shield", *TOP)),
-        (
-            "reckoning.py",
-            (
-                "cavenav.world",
-                "cavenav.shield",
-                "cavenav.cave_map",
-                "cavenav.pilots",
-                "cavenav.env",
-                "cavenav.episode",
-                *TOP,
-            ),
-        ),
-        (
-            "energy.py",
-            (
-                "cavenav.world",
-                "cavenav.sensors",
-                "cavenav.pilots",
-                "cavenav.env",
-                "cavenav.episode",
-                *TOP,
-            ),
-        ),
-        (
-            "headway.py",
-            ("cavenav.pilots", "cavenav.env", "cavenav.episode", "cavenav.wrappers", *TOP),
-        ),
-        ("shield.py", ("cavenav.world", "cavenav.pilots", "cavenav.env", "cavenav.episode", *TOP)),
-        (
-            "cave_map.py",
-            ("cavenav.world", "cavenav.pilots", "cavenav.env", "cavenav.episode", *TOP),
-        ),
-        ("pilots", ("cavenav.world", "cavenav.env", "cavenav.episode", "cavenav.wrappers", *TOP)),
-        ("env.py", ("cavenav.pilots", "cavenav.episode", "cavenav.vehicle", *TOP)),
-        ("episode", ("cavenav.vehicle", *TOP)),
-        ("evaluation", ("cavenav.training", "cavenav.cli")),
-        ("training", ("cavenav.cli",)),
-        (
-            "vehicle",
-            (
-                "cavenav.world",
-                "cavenav.sensors",
-                "cavenav.shield",
-                "cavenav.pilots",
-                "cavenav.env",
-                "cavenav.episode",
-                "cavenav.wrappers",
-                *TOP,
-            ),
-        ),
-    ],
-)
-def test_a_layer_never_imports_the_layers_above_it(layer: str, forbidden: tuple[str, ...]) -> None:
+@pytest.mark.parametrize("layer", sorted(BELOW))
+def test_a_layer_imports_only_the_layers_below_it(layer: str) -> None:
+    allowed = {"cavenav", "cavenav.__version__", "cavenav.SCENARIO_SET"}
+    prefixes = tuple(f"cavenav.{name}" for name in (layer, *BELOW[layer]))
     for path in modules(layer):
-        bad = {m for m in imports_of(path) if m.startswith(forbidden)}
-        assert not bad, f"{path.name} imports {bad}"
+        bad = {m for m in imports_of(path) - allowed if not m.startswith(prefixes)}
+        assert not bad, f"{path.relative_to(SRC)} imports {bad}"
+
+
+def test_every_module_sits_in_a_layer() -> None:
+    loose = sorted(path.name for path in SRC.glob("*.py") if path.name != "__init__.py")
+    assert not loose, f"modules outside the layers: {loose}"
+    folders = {path.name for path in SRC.iterdir() if (path / "__init__.py").is_file()}
+    assert folders == set(BELOW), "a layer the import rules do not know"
+
+
+def test_the_environments_never_import_the_vehicle() -> None:
+    for name in ("env.py", "vector_env.py", "wrappers.py"):
+        bad = {m for m in imports_of(SRC / "sim" / name) if m.startswith("cavenav.vehicle")}
+        assert not bad, f"sim/{name} imports {bad}"
+
+
+def test_old_module_names_still_import_with_a_warning() -> None:
+    import importlib
+
+    from cavenav.core.moved import MOVED
+
+    assert all((SRC / (new.split(".", 1)[1].replace(".", "/") + ".py")).is_file()
+               for new in MOVED.values())  # fmt: skip
+    for old, new in MOVED.items():
+        sys.modules.pop(old, None)
+        with pytest.warns(DeprecationWarning, match=f"{old} is now {new}"):
+            assert importlib.import_module(old) is importlib.import_module(new)
 
 
 def test_no_function_outside_the_numba_kernels_is_longer_than_60_lines() -> None:
@@ -170,3 +159,11 @@ def import_circles() -> list[list[str]]:
 def test_no_two_modules_import_each_other_even_by_a_detour() -> None:
     circles = import_circles()
     assert not circles, "modules that import one another: " + "; ".join(map(", ".join, circles))
+
+
+def test_the_tests_mirror_the_layers() -> None:
+    tests = Path(__file__).resolve().parent
+    folders = {path.name for path in tests.iterdir() if (path / "__init__.py").is_file()}
+    assert folders <= set(BELOW), f"test folders that name no layer: {folders - set(BELOW)}"
+    loose = sorted(path.name for path in tests.glob("test_*.py"))
+    assert loose == ["test_architecture.py"], f"tests outside the layers' folders: {loose}"

@@ -24,8 +24,8 @@ from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 import numpy as np
 from PIL import Image
 
+from cavenav.core.types import Action, Observation
 from cavenav.pilots.geometric import GeometricPilot
-from cavenav.types import Action, Observation
 
 FAULTS = (
     "garbage", "two_keys", "out_of_set", "429", "500", "slow", "401", "html", "drip",

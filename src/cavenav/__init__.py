@@ -1,8 +1,8 @@
 """cavenav: VLM-steered navigation of an underwater vehicle through unseen caves.
 
 Importing the package registers the Gymnasium environments ``cavenav/CaveNav-v0``
-(`cavenav.env.CaveNavEnv`, 150 steps) and ``cavenav/CaveNav-vector-v0`` (the same for
-learners: `cavenav.env.learner_env`) so ``gymnasium.make`` finds them with no other
+(`cavenav.sim.env.CaveNavEnv`, 150 steps) and ``cavenav/CaveNav-vector-v0`` (the same for
+learners: `cavenav.sim.env.learner_env`) so ``gymnasium.make`` finds them with no other
 set-up.
 """
 
@@ -21,7 +21,10 @@ if os.environ.get("CAVENAV_THREADS"):
 
 import gymnasium  # noqa: E402
 
-from cavenav.types import STEP_BUDGET  # noqa: E402
+from cavenav.core import moved  # noqa: E402
+from cavenav.core.types import STEP_BUDGET  # noqa: E402
+
+moved.install()  # `import cavenav.env` and the other old names, for one release
 
 __version__ = "0.1.0"
 # What the caves and the frames of a seed look like. It changes only on purpose, when the
@@ -44,8 +47,8 @@ __all__ = ["SCENARIO_SET", "__version__"]
 if "cavenav/CaveNav-v0" not in gymnasium.registry:
     gymnasium.register(
         id="cavenav/CaveNav-v0",
-        entry_point="cavenav.env:CaveNavEnv",
-        vector_entry_point="cavenav.vector_env:CaveNavVectorEnv",
+        entry_point="cavenav.sim.env:CaveNavEnv",
+        vector_entry_point="cavenav.sim.vector_env:CaveNavVectorEnv",
         max_episode_steps=STEP_BUDGET,
     )
 if "cavenav/CaveNav-vector-v0" not in gymnasium.registry:
@@ -53,7 +56,7 @@ if "cavenav/CaveNav-vector-v0" not in gymnasium.registry:
     # 84 x 84 images and a reward that also asks for standoff and pays for the exit.
     gymnasium.register(
         id="cavenav/CaveNav-vector-v0",
-        entry_point="cavenav.env:learner_env",
-        vector_entry_point="cavenav.vector_env:learner_vector_env",
+        entry_point="cavenav.sim.env:learner_env",
+        vector_entry_point="cavenav.sim.vector_env:learner_vector_env",
         max_episode_steps=STEP_BUDGET,
     )

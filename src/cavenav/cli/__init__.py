@@ -36,8 +36,8 @@ from cavenav.cli.output import errors
 from cavenav.cli.sweeps import FramesMode, compare, eval_, report
 from cavenav.cli.training import dataset, finetune
 from cavenav.cli.vehicle import fake_sub, fly
-from cavenav.errors import CavenavError
-from cavenav.redaction import redact
+from cavenav.core.errors import CavenavError
+from cavenav.core.redaction import redact
 
 __all__ = ["FramesMode", "app", "main"]
 
@@ -99,7 +99,7 @@ def main() -> None:
 
 def _show_warning(message: Warning | str, category: type[Warning], *_: Any, **__: Any) -> None:
     """Our warnings (a mesh in centimetres, ...) as one line; others as Python prints them."""
-    from cavenav.errors import CavenavWarning
+    from cavenav.core.errors import CavenavWarning
 
     if issubclass(category, CavenavWarning):
         errors.print(f"[yellow]warning:[/] {escape(str(message))}", highlight=False)

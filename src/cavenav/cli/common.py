@@ -10,8 +10,8 @@ import typer
 
 from cavenav.cli.output import console
 from cavenav.cli.vehicle_flags import CaveScene, LiveView, OwnSensors
-from cavenav.episode.settings import EpisodeSettings
-from cavenav.errors import CavenavError
+from cavenav.core.errors import CavenavError
+from cavenav.episode.settings import EpisodeConfig
 from cavenav.pilots.factory import PilotSpec, VLMOptions
 
 __all__ = [
@@ -56,7 +56,7 @@ TeacherOpt = Annotated[
 # Placeholder defaults: `takes` puts each group's flags in their place and passes the
 # value built from them (`cavenav.cli.flags`), so a command never sees these.
 FILLED_BY_TAKES, VLM_FILLED_BY_TAKES, VIEW_FILLED_BY_TAKES = (
-    EpisodeSettings(),
+    EpisodeConfig(),
     VLMOptions(),
     LiveView(),
 )
@@ -71,7 +71,7 @@ def check_view(view: LiveView) -> None:
         check_recording_path(Path(view.rerun_save))
 
 
-def built(settings: EpisodeSettings, scenario: str, seed: int) -> Any:  # noqa: ANN401
+def built(settings: EpisodeConfig, scenario: str, seed: int) -> Any:  # noqa: ANN401
     """The cave ``scenario`` of ``seed``, built under a status line (a large mesh takes a
     while)."""
     with console.status(f"building {scenario} (seed {seed})"):
@@ -94,7 +94,7 @@ def pilot_spec(
     )
 
 
-def camera_for(spec: PilotSpec, settings: EpisodeSettings) -> EpisodeSettings:
+def camera_for(spec: PilotSpec, settings: EpisodeConfig) -> EpisodeConfig:
     """``settings`` with the camera size a pilot trained at one size needs (a policy):
     set when --resolution was not given, refused when it names another size."""
     size = spec.image_size()

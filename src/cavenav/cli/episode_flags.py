@@ -10,7 +10,7 @@ from typing import Any, Literal
 import typer
 
 from cavenav.cli.flags import Backend, Flag, OptionGroup, Sounder, WaterType, finite, flag
-from cavenav.episode.settings import EpisodeSettings
+from cavenav.episode.settings import EpisodeConfig, configured
 from cavenav.pilots.factory import VLMOptions
 from cavenav.world.current import MAX_DISCHARGE_M3S
 
@@ -91,7 +91,7 @@ VLM = OptionGroup(
     VLMOptions,
 )
 
-_SETTINGS = EpisodeSettings()
+_SETTINGS = EpisodeConfig()
 
 
 def _size(given: str | None, flag: str) -> tuple[int, int] | None:
@@ -103,10 +103,10 @@ def _size(given: str | None, flag: str) -> tuple[int, int] | None:
 
 def episode_settings(
     *,
-    steps: int | None = _SETTINGS.steps,
+    steps: int | None = _SETTINGS.max_steps,
     stuck_after: int | None = _SETTINGS.stuck_after,
-    sounder: Literal["camera", "beam"] = _SETTINGS.sounder,
-    depth_max: float = _SETTINGS.depth_max_m,
+    sounder: Literal["camera", "beam"] = _SETTINGS.sensors.sounder,
+    depth_max: float = _SETTINGS.sensors.depth_max_m,
     water: str | None = None,
     light_power: float | None = None,
     lamps: int | None = None,
@@ -125,9 +125,9 @@ def episode_settings(
     discharge: float | None = _SETTINGS.discharge_m3s,
     gusts: float | None = _SETTINGS.gusts,
     battery_wh: float | None = _SETTINGS.battery_wh,
-    noise_seed: int | None = _SETTINGS.noise_seed,
-) -> EpisodeSettings:
-    """`EpisodeSettings` from the episode, sensor and optics flags, one keyword each (so a flag
+    noise_seed: int | None = _SETTINGS.seed,
+) -> EpisodeConfig:
+    """`EpisodeConfig` from the episode, sensor and optics flags, one keyword each (so a flag
     renamed in `SETTINGS` alone fails when a command is declared); frames and shield stay.
     A bad pixel count or difficulty knob is a `ConfigError`, refused before any work."""
     from cavenav.world.scenarios import parse_difficulty
@@ -146,7 +146,7 @@ def episode_settings(
         "depth_dropout": depth_dropout,
         "depth_noise_m": depth_noise,
     }
-    return EpisodeSettings(
+    return configured(
         steps=steps,
         stuck_after=stuck_after or None,  # the flag's 0 is "never"
         sounder=sounder,
@@ -168,7 +168,7 @@ SETTINGS = OptionGroup(
         flag(
             "steps",
             int,
-            _SETTINGS.steps,
+            _SETTINGS.max_steps,
             "step budget (default: the scenario's; 150 for S1-S5)",
             min=1,
         ),
@@ -180,11 +180,11 @@ SETTINGS = OptionGroup(
             "exit or new ground); 0: never",
             min=0,
         ),
-        flag("sounder", Sounder, _SETTINGS.sounder, "echo-sounder model"),
+        flag("sounder", Sounder, _SETTINGS.sensors.sounder, "echo-sounder model"),
         flag(
             "depth_max",
             float,
-            _SETTINGS.depth_max_m,
+            _SETTINGS.sensors.depth_max_m,
             "D_max of the depth PNG, metres (above 0)",
             callback=_positive,
         ),
@@ -322,7 +322,7 @@ SETTINGS = OptionGroup(
         flag(
             "noise_seed",
             int,
-            _SETTINGS.noise_seed,
+            _SETTINGS.seed,
             "seed of the sensor noise, held apart from the cave's (default: the episode's "
             "own seed, so another --seed draws other noise too)",
             min=0,

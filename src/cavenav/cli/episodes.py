@@ -31,7 +31,7 @@ from cavenav.cli.flags import ExrCompression, bounded, takes
 from cavenav.cli.flights import fly_episode
 from cavenav.cli.output import console, errors
 from cavenav.cli.vehicle_flags import LIVE_VIEW, LiveView
-from cavenav.episode.settings import EpisodeSettings
+from cavenav.episode.settings import EpisodeConfig
 from cavenav.pilots.factory import PilotSpec, VLMOptions
 from cavenav.pilots.replay import recorded_noise_seed, recorded_scenario
 
@@ -56,12 +56,12 @@ def run(
         ),
     ] = ExrCompression["none"],
     shield: Annotated[
-        bool, typer.Option(help="safety shield between pilot and vehicle (cavenav.shield)")
+        bool, typer.Option(help="safety shield between pilot and vehicle (cavenav.safety.shield)")
     ] = False,
     from_: FromOpt = None,
     policy: PolicyOpt = None,
     teacher: TeacherOpt = None,
-    settings: EpisodeSettings = FILLED_BY_TAKES,
+    settings: EpisodeConfig = FILLED_BY_TAKES,
     vlm: VLMOptions = VLM_FILLED_BY_TAKES,
     view: LiveView = VIEW_FILLED_BY_TAKES,
 ) -> None:
@@ -72,20 +72,20 @@ def run(
     spec = pilot_spec(pilot, vlm, from_, policy, teacher)
     if pilot == "replay":
         seed = _recorded_seed(scenario, str(from_), seed)
-        if settings.noise_seed is None:  # observations as the recording's were
-            settings = replace(settings, noise_seed=recorded_noise_seed(str(from_)))
+        if settings.seed is None:  # observations as the recording's were
+            settings = replace(settings, seed=recorded_noise_seed(str(from_)))
     flyer = spec.build(seed=seed)  # a refused pilot or recording leaves no folder behind
     settings = replace(
         camera_for(spec, settings),
         save_frames=frames,
-        exr_compression=exr_compression.value,
+        exr_compression=exr_compression.value,  # type: ignore[arg-type]
         shield=shield,
     )
     # A folder that cannot be written is refused before the cave is built; one made here
     # for a cave that is refused (unknown, a start in rock) is removed again.
     with prepared_root(out):
         cave = built(settings, scenario, seed)
-        config = settings.episode_config(cave, seed)
+        config = settings.for_episode(cave, seed)
         console.print(
             f"[bold]{cave.name}[/]: {cave.description or cave.mesh.name} "
             f"({cave.mesh.triangle_count:,} triangles)"
@@ -117,7 +117,7 @@ def render(
     out: Annotated[
         Path | None, typer.Option(help="PNG to write (default: render-SCENARIO-WATER.png)")
     ] = None,
-    settings: EpisodeSettings = FILLED_BY_TAKES,
+    settings: EpisodeConfig = FILLED_BY_TAKES,
 ) -> None:
     """Write a contact sheet: colour and depth views from poses along the passage."""
     from cavenav.episode.gallery import passage_poses, sheet_path, write_contact_sheet
@@ -149,7 +149,7 @@ def ask(
     --depth the request carries no depth image and says so, and a missing --top or
     --bottom is sent as "unknown".
     """
-    from cavenav.actions import to_twist
+    from cavenav.motion.actions import to_twist
     from cavenav.pilots.photo import load_photo
 
     # The images first: a bad one is refused before the endpoint is contacted.
@@ -199,7 +199,7 @@ def _recorded_cave(summary: dict[str, Any], scenario: str | None) -> Any:  # noq
     if scenario is None and name not in SCENARIOS:
         errors.print(f"no cave shown: give the scenario file it flew with --scenario ({name})")
         return None
-    settings = EpisodeSettings(difficulty=summary.get("difficulty") or {})
+    settings = EpisodeConfig(difficulty=summary.get("difficulty") or {})
     return settings.load(str(name), int(summary.get("seed") or 0))
 
 

@@ -1,9 +1,9 @@
 """The command line's shared options, each declared once: its flag, type, help and default.
 
-A command names the value it wants (``vlm: VLMOptions``, ``settings: EpisodeSettings``)
+A command names the value it wants (``vlm: VLMOptions``, ``settings: EpisodeConfig``)
 and `takes` puts the options of that group into its signature in that value's place, so
 typer shows them, then builds the value from what was given. A group's defaults are its
-value's defaults (`VLMOptions`, `EpisodeSettings`); a flag the value does not take is an
+value's defaults (`VLMOptions`, `EpisodeConfig`); a flag the value does not take is an
 error when the command is declared, not an option silently dropped.
 """
 

@@ -25,7 +25,7 @@ from rich.progress import (
 
 from cavenav.cli.output import console, errors, print_summary
 from cavenav.cli.vehicle_flags import LiveView, OwnSensors
-from cavenav.errors import CavenavError
+from cavenav.core.errors import CavenavError
 
 __all__ = ["fly_episode", "fly_on_own_sensors", "fly_sweep", "fly_vehicle", "open_sensors"]
 
@@ -109,8 +109,8 @@ def _bar() -> tuple[ProgressColumn, ...]:
 
 def _interrupted(run_dir: Path) -> str:
     """What Ctrl-C left: a partial record, or a whole episode without its SPL or plots."""
+    from cavenav.core.errors import RecordError
     from cavenav.episode.records import load_summary
-    from cavenav.errors import RecordError
 
     try:
         summary = load_summary(run_dir / "summary.json")
@@ -144,7 +144,7 @@ def fly_sweep(
 ) -> list[dict]:
     """`run_sweep` with a progress bar; Ctrl-C or SIGTERM stop it with the tables written.
     ``on_row`` sees each episode's results row as it ends (`cavenav eval --wandb`)."""
-    from cavenav.errors import RecordingError
+    from cavenav.core.errors import RecordingError
     from cavenav.evaluation.sweep import run_sweep
 
     counts = {"done": 0, "success": 0}

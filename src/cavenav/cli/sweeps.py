@@ -23,8 +23,8 @@ from cavenav.cli.episode_flags import SETTINGS, VLM
 from cavenav.cli.flags import takes
 from cavenav.cli.flights import fly_sweep
 from cavenav.cli.output import console, print_comparison, print_groups, print_leaderboard
-from cavenav.episode.settings import FRAME_MODES, VIDEO_MODES, EpisodeSettings
-from cavenav.errors import CavenavError
+from cavenav.core.errors import CavenavError
+from cavenav.episode.settings import FRAME_MODES, VIDEO_MODES, EpisodeConfig
 from cavenav.pilots.factory import VLMOptions
 
 # What a sweep keeps of each step's images (`cavenav.episode.settings.FRAME_MODES`).
@@ -79,7 +79,7 @@ def eval_(
     video: VideoOpt = VideoMode["none"],
     trials: TrialsOpt = 1,
     wandb: WandbOpt = False,
-    settings: EpisodeSettings = FILLED_BY_TAKES,
+    settings: EpisodeConfig = FILLED_BY_TAKES,
     vlm: VLMOptions = VLM_FILLED_BY_TAKES,
 ) -> None:
     """Fly a pilot over scenarios x seeds (x trials); results.csv, aggregate.json, a report."""
@@ -166,8 +166,8 @@ def compare(
     more, a leaderboard and every pair. --out DIR writes the page (DIR/index.html), the
     JSON behind it (DIR/compare.json) and the leaderboard as Markdown and LaTeX.
     """
+    from cavenav.core.errors import RecordingError
     from cavenav.episode.run_folder import write_json
-    from cavenav.errors import RecordingError
     from cavenav.evaluation import comparison
 
     _check_compare_outputs(json_out, out)
@@ -198,8 +198,8 @@ def compare(
 
 def _check_compare_outputs(json_out: Path | None, out: Path | None) -> None:
     """--json and --out checked before any sweep is read: a file and a folder."""
-    from cavenav.errors import ConfigError
-    from cavenav.files import cannot_write
+    from cavenav.core.errors import ConfigError
+    from cavenav.core.files import cannot_write
 
     if json_out is not None and json_out.is_dir():
         raise ConfigError(f"--json {json_out} is a folder: name the file to write")

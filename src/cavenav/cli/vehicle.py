@@ -43,10 +43,9 @@ from cavenav.cli.vehicle_flags import (
     LiveView,
     OwnSensors,
 )
-from cavenav.episode.settings import EpisodeSettings
-from cavenav.errors import CavenavError
+from cavenav.core.errors import CavenavError
+from cavenav.episode.settings import EpisodeConfig
 from cavenav.pilots.factory import PilotSpec, VLMOptions
-from cavenav.types import STEP_BUDGET
 
 if TYPE_CHECKING:  # pymavlink loads with it: only where the fake sub runs
     from cavenav.vehicle.fake_sub import FakeSubState
@@ -108,7 +107,7 @@ def fly(
     ] = True,
     from_: FromOpt = None,
     policy: PolicyOpt = None,
-    settings: EpisodeSettings = FILLED_BY_TAKES,
+    settings: EpisodeConfig = FILLED_BY_TAKES,
     vlm: VLMOptions = VLM_FILLED_BY_TAKES,
     view: LiveView = VIEW_FILLED_BY_TAKES,
     own: OwnSensors = OWN_SENSORS_FILLED_BY_TAKES,
@@ -137,7 +136,7 @@ def _fly_in_a_simulated_cave(
     bridge: Any,  # noqa: ANN401
     spec: PilotSpec,
     cave_and_seed: tuple[str, int],
-    settings: EpisodeSettings,
+    settings: EpisodeConfig,
     view: LiveView,
     out: Path,
     confirm: Callable[[str], bool] | None,
@@ -156,7 +155,7 @@ def _fly_in_a_simulated_cave(
         settings = replace(settings, discharge_m3s=0.0)
     bridge = _room_above(bridge, cave)
     run_dir = new_run_dir(out, cave.name, spec.name, cave.seed)
-    fly_vehicle(bridge, cave, flyer, settings.episode_config(cave, seed), run_dir, confirm, view)
+    fly_vehicle(bridge, cave, flyer, settings.for_episode(cave, seed), run_dir, confirm, view)
 
 
 def _room_above(bridge: Any, cave: Any) -> Any:  # noqa: ANN401 - lazy imports
@@ -181,7 +180,7 @@ def _fly_own_sensors(
     bridge: Any,  # noqa: ANN401
     spec: PilotSpec,
     own: OwnSensors,
-    settings: EpisodeSettings,
+    settings: EpisodeConfig,
     view: LiveView,
     out: Path,
     confirm: Callable[[str], bool] | None,
@@ -219,15 +218,15 @@ def _fly_own_sensors(
         "ping_up": own.ping_up, "ping_down": own.ping_down,
         "depth_model": own.depth_model,
     }  # fmt: skip
-    flight = Flight(settings.steps or STEP_BUDGET, settings.shield, settings.save_frames, vehicle)
+    flight = Flight(settings, vehicle)
     flyer = spec.build(seed=0)
     prepare_root(out)
-    size = settings.resolution or (640, 480)
+    size = settings.resolution or settings.sensors.resolution
     run_dir = partial(new_run_dir, out, "vehicle", spec.name, None)
     fly_on_own_sensors(bridge, flyer, flight, (own, size), run_dir, confirm)
 
 
-def _on_a_vehicle(settings: EpisodeSettings, spec: PilotSpec) -> EpisodeSettings:
+def _on_a_vehicle(settings: EpisodeConfig, spec: PilotSpec) -> EpisodeConfig:
     """``settings`` for ``spec``'s pilot on a vehicle over MAVLink (`camera_for`); the
     vehicle meets its own water, so a simulated current is refused before connecting."""
     if settings.flowing:
@@ -239,7 +238,7 @@ def _on_a_vehicle(settings: EpisodeSettings, spec: PilotSpec) -> EpisodeSettings
 
 
 def _print_dry_run(bridge: Any, actions: list[str]) -> None:  # noqa: ANN401
-    from cavenav.actions import format_action, parse_action
+    from cavenav.motion.actions import format_action, parse_action
     from cavenav.vehicle.mavlink import describe, plan
 
     if not actions:
@@ -304,7 +303,7 @@ def fake_sub(
     )
 
     if cave.scene is not None:
-        _serve_in_a_cave(settings, EpisodeSettings(), cave, _show_fake_sub)
+        _serve_in_a_cave(settings, EpisodeConfig(), cave, _show_fake_sub)
         return
     console.print(f"fake ArduSub sending to {settings.address}; Ctrl-C stops it")
     with contextlib.suppress(KeyboardInterrupt):
@@ -338,13 +337,13 @@ def _current_ned(current: str) -> tuple[float, ...]:
 
 def _serve_in_a_cave(
     config: Any,  # noqa: ANN401 - lazy imports
-    settings: EpisodeSettings,
+    settings: EpisodeConfig,
     scene: CaveScene,
     show: Callable[[Any], None],
 ) -> None:
     """`fake-sub --scene`: the fake autopilot with its camera and sounders in a cave
-    (`cavenav.cave_sensors`), until Ctrl-C."""
-    from cavenav.cave_sensors import CaveSensors
+    (`cavenav.sim.cave_sensors`), until Ctrl-C."""
+    from cavenav.sim.cave_sensors import CaveSensors
     from cavenav.vehicle.fake_sub import FakeSub
 
     assert scene.scene is not None

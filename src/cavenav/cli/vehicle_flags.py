@@ -115,7 +115,7 @@ OWN_SENSORS = OptionGroup(
 @dataclass(frozen=True)
 class CaveScene:
     """Where `cavenav fake-sub --scene` puts the fake vehicle, and where its camera and
-    sounders answer (`cavenav.cave_sensors`)."""
+    sounders answer (`cavenav.sim.cave_sensors`)."""
 
     scene: str | None = None
     cave_seed: int = 0

@@ -18,12 +18,13 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.backend_bases import FigureCanvasBase  # noqa: E402
 
-from cavenav.episode.loop import EpisodeConfig, run_episode  # noqa: E402
-from cavenav.errors import ConfigError  # noqa: E402
-from cavenav.files import cannot_write, save_figure  # noqa: E402
+from cavenav.core.errors import ConfigError  # noqa: E402
+from cavenav.core.files import cannot_write, save_figure  # noqa: E402
+from cavenav.core.types import Pose  # noqa: E402
+from cavenav.episode.loop import run_episode  # noqa: E402
+from cavenav.episode.settings import EpisodeConfig  # noqa: E402
 from cavenav.pilots.geometric import GeometricPilot  # noqa: E402
 from cavenav.sensors.rig import SensorConfig, SensorRig  # noqa: E402
-from cavenav.types import Pose  # noqa: E402
 from cavenav.world.procedural import arc_length  # noqa: E402
 from cavenav.world.raycast import RayCaster  # noqa: E402
 from cavenav.world.scenarios import Scenario  # noqa: E402

@@ -1,6 +1,6 @@
 """The episode driver of SPEC section 1: an environment, a pilot and recorders.
 
-The step itself (sense, move, check) lives in `cavenav.env.CaveNavEnv`; this driver asks
+The step itself (sense, move, check) lives in `cavenav.sim.env.CaveNavEnv`; this driver asks
 the pilot for each action, hands it to the environment (behind the safety shield when
 asked), and lets the recorders keep what happened: the `EpisodeLog` (records and
 summary), the run folder, the progress callback. It drives the environment as any
@@ -21,25 +21,23 @@ from __future__ import annotations
 import contextlib
 import time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
 
 import gymnasium as gym
 from gymnasium.wrappers import TimeLimit
 
-from cavenav.env import CaveNavEnv, Timings
+from cavenav.core.errors import CavenavError, PilotFailure, RecordingError
+from cavenav.core.types import STEP_BUDGET, Observation, Pose
 from cavenav.episode.record import TERMINATIONS, EpisodeLog
 from cavenav.episode.run_folder import LostStep, RunFolder
-from cavenav.errors import CavenavError, PilotFailure, RecordingError
-from cavenav.kinematics import Motion
+from cavenav.episode.settings import EpisodeConfig
+from cavenav.motion.kinematics import Motion
 from cavenav.pilots.base import Pilot
-from cavenav.sensors.depth import ExrCompression
-from cavenav.sensors.rig import SensorConfig
-from cavenav.types import DEFAULT_RULES, STEP_BUDGET, Observation, Pose, Rules, VehicleBody
-from cavenav.world.current import Current
+from cavenav.sim.env import CaveNavEnv, Timings
+from cavenav.sim.wrappers import SafetyShield, StuckLimit
 from cavenav.world.scenarios import Scenario
-from cavenav.wrappers import SafetyShield, StuckLimit
 
 __all__ = [
     "DEFAULT_STEPS",
@@ -53,47 +51,6 @@ __all__ = [
 ]
 
 DEFAULT_STEPS = STEP_BUDGET  # the old name, kept for scripts that import it
-
-
-@dataclass(frozen=True)
-class EpisodeConfig:
-    """Settings of one episode.
-
-    Attributes:
-        max_steps: step budget; None gives the scenario's own (`Scenario.step_budget`:
-            SPEC's 150 for S1-S5, more for the long families), see `step_budget`.
-        rules: the strategy's distances; the standoff counts "steps below standoff".
-        save_frames: write the RGB and depth PNG of every step; sweeps can turn this off.
-        save_exr: with the frames, the depth in metres as OpenEXR (1.24 MB of the 2.05 MB
-            a step takes, uncompressed).
-        exr_compression: "none" (the fastest), "zip" (a fifth smaller) or "htj2k" (two
-            thirds smaller; OpenEXR 3.4 reads it), all lossless: `cavenav.sensors.depth`.
-        plots: draw topdown.png and side.png at the end.
-        shield: put the safety shield between the pilot and the vehicle.
-        seed: seeds the episode's sensor noise (the environment's reset seed).
-        stuck_after: end the episode as ``stuck`` after this many steps in a row without
-            headway (`cavenav.wrappers.StuckLimit`): neither 0.5 m more progress toward
-            the exit than ever before nor a 2 m cube of the cave entered for the first
-            time. 50 leaves room to explore a side passage and come back out of it; None
-            never ends an episode so.
-        current: the water's flow (`cavenav.world.current`); still by default.
-        battery_wh: an energy budget that ends the episode as ``battery`` once spent;
-            None never does (the energy is recorded either way).
-    """
-
-    max_steps: int | None = None
-    rules: Rules = DEFAULT_RULES
-    save_frames: bool = True
-    save_exr: bool = True
-    exr_compression: ExrCompression = "none"
-    plots: bool = True
-    shield: bool = False
-    seed: int = 0
-    stuck_after: int | None = 50
-    sensors: SensorConfig = field(default_factory=SensorConfig)
-    body: VehicleBody = field(default_factory=VehicleBody)
-    current: Current = field(default_factory=Current)
-    battery_wh: float | None = None
 
 
 @dataclass
@@ -134,13 +91,14 @@ class Watcher(Protocol):
 
 def step_budget(scenario: Scenario, config: EpisodeConfig) -> int:
     """The steps an episode of ``config`` gets in ``scenario``: ``config.max_steps`` when
-    set, else the scenario's own budget, else `cavenav.types.STEP_BUDGET`."""
-    return config.max_steps or scenario.step_budget or STEP_BUDGET
+    set, else the scenario's own budget, else `cavenav.core.types.STEP_BUDGET`."""
+    return config.for_episode(scenario).max_steps or STEP_BUDGET
 
 
 def make_env(scenario: Scenario, config: EpisodeConfig, motion: Motion | None = None) -> gym.Env:
-    """The environment an episode of ``config`` flies: budget, the stuck limit, then the
-    shield if asked."""
+    """The environment an episode of ``config`` flies (`EpisodeConfig.for_episode`):
+    budget, the stuck limit, then the shield if asked."""
+    config = config.for_episode(scenario)
     env: gym.Env = CaveNavEnv(
         scenario,
         sensors=config.sensors,
@@ -150,7 +108,7 @@ def make_env(scenario: Scenario, config: EpisodeConfig, motion: Motion | None = 
         current=config.current,
         battery_wh=config.battery_wh,
     )
-    env = TimeLimit(env, max_episode_steps=step_budget(scenario, config))
+    env = TimeLimit(env, max_episode_steps=config.max_steps or STEP_BUDGET)
     if config.stuck_after:
         env = StuckLimit(env, config.stuck_after)
     return SafetyShield(env) if config.shield else env
@@ -177,8 +135,7 @@ def run_episode(
     Raises:
         ScenarioError: the start pose is not inside the passage or touches a wall.
     """
-    config = config or EpisodeConfig()
-    config = replace(config, max_steps=step_budget(scenario, config))  # recorded as flown
+    config = (config or EpisodeConfig()).for_episode(scenario)  # recorded as flown
     env = make_env(scenario, config, motion)
     _, info = env.reset(seed=config.seed)  # checks the start before any folder is written
     log = _episode_log(scenario, pilot, config, info)

@@ -6,7 +6,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from cavenav.types import Pose
+from cavenav.core.types import Pose
 
 __all__ = ["path_length", "summarise_clearance"]
 

@@ -32,17 +32,18 @@ from typing import Any, Protocol
 import numpy as np
 
 from cavenav import __version__
-from cavenav.actions import DEFAULT_SPACE, TWIST_KEYS, format_action, to_twist
-from cavenav.env import read_action
+from cavenav.core.errors import CavenavError, PilotFailure
+from cavenav.core.types import STEP_BUDGET, Action, Decision, Observation, Pose, Usage
 from cavenav.episode.metrics import path_length
 from cavenav.episode.records import EpisodeSummary, StepRecord
 from cavenav.episode.run_folder import LostStep, RunFolder
-from cavenav.errors import CavenavError, PilotFailure
+from cavenav.episode.settings import EpisodeConfig
+from cavenav.motion.actions import DEFAULT_SPACE, TWIST_KEYS, format_action, to_twist
 from cavenav.pilots.base import Pilot
+from cavenav.safety.shield import Shield, ShieldConfig
 from cavenav.sensors.camera import CameraIntrinsics
 from cavenav.sensors.depth import DEPTH_RANGE_M, normalise_depth, unknown_depth
-from cavenav.shield import Shield, ShieldConfig
-from cavenav.types import STEP_BUDGET, Action, Decision, Observation, Pose, Usage
+from cavenav.sim.env import read_action
 
 __all__ = ["Flight", "VehicleMotion", "VehicleSenses", "fly_on_sensors"]
 
@@ -125,21 +126,24 @@ class VehicleSenses:
 
 @dataclass(frozen=True)
 class Flight:
-    """Settings of a flight on a vehicle's own sensors.
+    """A flight on a vehicle's own sensors: how it is flown, and what flies it.
 
     Attributes:
-        max_steps: the step budget.
-        shield: judge each action on the observations before the vehicle flies it.
-        save_frames: keep each step's colour and depth images (the EXR only with a
-            depth source).
+        config: the episode's configuration, of which a flight with no cave model uses
+            the step budget (`max_steps`), the shield (it judges each action on the
+            observations before the vehicle flies it) and ``save_frames`` (each step's
+            colour and depth images; the EXR only with a depth source).
         vehicle: what flew and how it sensed (address, mode, camera, sounders, depth
             model), recorded as given in summary.json.
     """
 
-    max_steps: int = STEP_BUDGET
-    shield: bool = True
-    save_frames: bool = True
+    config: EpisodeConfig = field(default_factory=lambda: EpisodeConfig(shield=True))
     vehicle: Mapping[str, Any] = field(default_factory=dict)
+
+    @property
+    def max_steps(self) -> int:
+        """The step budget: the configuration's, else SPEC's."""
+        return self.config.max_steps or STEP_BUDGET
 
 
 class _Log:
@@ -159,7 +163,7 @@ class _Log:
             "pid": os.getpid(),
             "started_at": datetime.now(UTC).isoformat(timespec="seconds"),
             "vehicle": {**flight.vehicle, "depth_image": depth_source},
-            "config": {"max_steps": flight.max_steps, "shield": flight.shield},
+            "config": {"max_steps": flight.max_steps, "shield": flight.config.shield},
         }
 
     def mark(self) -> tuple:
@@ -191,7 +195,7 @@ class _Log:
                 "termination": self.termination,
                 "terminated": self.termination == "pilot_failure",
                 "truncated": self.termination == "budget",
-                "shield": self.flight.shield,
+                "shield": self.flight.config.shield,
                 "shield_interventions": sum(1 for s in self.steps if s.get("shield")),
                 "invalid_actions": sum(1 for s in self.steps if s.get("invalid_action")),
                 "steps": len(self.steps),
@@ -238,9 +242,9 @@ def fly_on_sensors(
         RecordingError: a step could not be written.
     """
     start = motion.start(Pose(0.0, 0.0, 0.0, 0.0))  # the map frame: where it began
-    folder = RunFolder(run_dir, flight.save_frames, save_exr=senses.depth is not None)
+    folder = RunFolder(run_dir, flight.config.save_frames, save_exr=senses.depth is not None)
     log = _Log(pilot.name, flight, start, senses.depth is not None)
-    shield = Shield(ShieldConfig()) if flight.shield else None
+    shield = Shield(ShieldConfig()) if flight.config.shield else None
     status = "crashed"
     try:
         pilot.reset()

@@ -23,9 +23,9 @@ from matplotlib.colors import Normalize
 from matplotlib.figure import Figure
 from matplotlib.patches import Circle
 
+from cavenav.core.files import save_figure
+from cavenav.core.types import Pose
 from cavenav.episode.records import EpisodeSummary
-from cavenav.files import save_figure
-from cavenav.types import Pose
 from cavenav.world.mesh import CaveMesh
 from cavenav.world.procedural import along, arc_length
 from cavenav.world.raycast import RayCaster

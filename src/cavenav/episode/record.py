@@ -18,11 +18,11 @@ from datetime import UTC, datetime
 from typing import Any
 
 from cavenav import SCENARIO_SET, __version__
-from cavenav.actions import TWIST_KEYS, format_action, to_twist
+from cavenav.core.errors import CavenavWarning, PilotFailure
+from cavenav.core.types import Action, Decision, Observation, Pose, Rules, Usage
 from cavenav.episode.metrics import path_length, summarise_clearance
 from cavenav.episode.records import TERMINATED, TERMINATIONS, TRUNCATED, EpisodeSummary, StepRecord
-from cavenav.errors import CavenavWarning, PilotFailure
-from cavenav.types import Action, Decision, Observation, Pose, Rules, Usage
+from cavenav.motion.actions import TWIST_KEYS, format_action, to_twist
 from cavenav.world.geodesic import NoPath, shortest_path_of
 from cavenav.world.scenarios import Scenario
 

@@ -34,7 +34,7 @@ from pydantic import (
     model_validator,
 )
 
-from cavenav.errors import CavenavWarning, RecordError, invalid_field
+from cavenav.core.errors import CavenavWarning, RecordError, invalid_field
 
 __all__ = [
     "OUTCOMES",
@@ -133,7 +133,7 @@ class _Portal(_Record):
     radius: float = Field(gt=0, le=1e4)  # a scenario file's bound (cavenav.world.scenarios)
 
 
-class _EpisodeSettings(_Record):
+class _EpisodeConfig(_Record):
     max_steps: int | None = None
     plots: bool = True
 
@@ -190,7 +190,7 @@ class EpisodeSummary(_Record):
     depth_limited_moves: int | None = None  # a vehicle's moves its depth limits cut
     vehicle_start: dict[str, Any] | None = None  # a vehicle's way to its start depth
     mean_physics_ms: float | None = None
-    energy_wh: float | None = None  # the battery energy the moves used (cavenav.energy)
+    energy_wh: float | None = None  # the battery energy the moves used (cavenav.motion.energy)
     moving_s: float | None = None  # how long the moves took through the water
     mean_current_m_s: float | None = None  # the water's speed met, where it flowed
     max_current_m_s: float | None = None
@@ -207,7 +207,7 @@ class EpisodeSummary(_Record):
     start_pose: _Pose | None = None
     exits: list[_Portal] = Field(default_factory=list)
     entrances: list[dict[str, Any]] = Field(default_factory=list)
-    config: _EpisodeSettings | None = None
+    config: _EpisodeConfig | None = None
     plots: dict[str, str] = Field(default_factory=dict)
     error: str | None = None
 

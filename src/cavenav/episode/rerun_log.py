@@ -36,11 +36,11 @@ from typing import Any
 
 import numpy as np
 
-from cavenav.errors import CavenavWarning, ConfigError, DependencyError
-from cavenav.files import cannot_write
+from cavenav.core.errors import CavenavWarning, ConfigError, DependencyError
+from cavenav.core.files import cannot_write
+from cavenav.core.types import Observation, Pose, VehicleBody
 from cavenav.sensors.camera import CameraIntrinsics
 from cavenav.sensors.depth import read_exr
-from cavenav.types import Observation, Pose, VehicleBody
 from cavenav.world.scenarios import Scenario
 
 __all__ = ["ENTITIES", "RerunWatcher", "log_run_folder", "open_recording"]

@@ -32,12 +32,12 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from cavenav.core.errors import CavenavError, ConfigError, RecordingError
+from cavenav.core.files import probe_writable, write_then_rename
+from cavenav.core.redaction import redact
+from cavenav.core.types import Observation
 from cavenav.episode.records import numbered_jsonl
-from cavenav.errors import CavenavError, ConfigError, RecordingError
-from cavenav.files import probe_writable, write_then_rename
-from cavenav.redaction import redact
 from cavenav.sensors.depth import EXR_COMPRESSIONS, ExrCompression, save_png, write_exr
-from cavenav.types import Observation
 
 if TYPE_CHECKING:
     from cavenav.episode.record import EpisodeLog
@@ -150,7 +150,7 @@ def interrupts_deferred() -> Iterator[None]:
 
 def write_json(path: Path, data: Mapping[str, Any]) -> None:
     """Atomically (re)write a JSON file; inf and NaN become null, numpy values plain, API
-    keys redacted (`cavenav.redaction`)."""
+    keys redacted (`cavenav.core.redaction`)."""
     write_atomic(path, _dumps(data, indent=2) + "\n")
 
 

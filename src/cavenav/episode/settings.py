@@ -1,86 +1,108 @@
-"""What a user sets for an episode, as one JSON-able value: `EpisodeSettings`.
+"""How an episode is flown, as one frozen value: `EpisodeConfig`.
 
-`cavenav run`, `eval`, `fly` and `render` turn their flags into one `EpisodeSettings`, a
-sweep keeps one in sweep.json, and each worker asks it for the `EpisodeConfig` of the
-cave it flies: the layering of a scenario's own [optics] and [sensors] tables under the
-flags is written here once, not once per command.
+Every way of flying builds one: `cavenav run`, `eval` (a sweep keeps it in sweep.json),
+`fly` and `render` from their flags, the environment (`cavenav.episode.loop.make_env`),
+the vehicle flights (`cavenav.episode.on_vehicle`) and a script from its keywords. Each
+default is written here once.
 
-It imports the layers below it only when asked for a cave's configuration, so that the
-command line can declare its options from these defaults without loading the kernels.
+Most fields are what a user chooses before a cave is known: overrides over what the cave
+itself brings (a scenario file's [optics], [sensors] and [water] tables, a family's step
+budget). `for_episode` lays them over one cave and settles the noise seed; the episode
+driver flies, and summary.json records, that settled value.
 """
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
-from typing import TYPE_CHECKING, Any, Literal
+from typing import Any
 
-from cavenav.energy import checked_budget
-from cavenav.errors import ConfigError
-from cavenav.sensors.depth import DEPTH_RANGE_M, EXR_COMPRESSIONS
+from cavenav.core.errors import ConfigError
+from cavenav.core.types import DEFAULT_RULES, STEP_BUDGET, Rules, VehicleBody
+from cavenav.motion.energy import checked_budget
+from cavenav.sensors.config import SENSOR_KEYS, SensorConfig
+from cavenav.sensors.depth import EXR_COMPRESSIONS, ExrCompression
 from cavenav.world.current import Current
+from cavenav.world.scenario import Difficulty
+from cavenav.world.scenarios import Scenario, load_scenario
 
-if TYPE_CHECKING:
-    from cavenav.episode.loop import EpisodeConfig
-    from cavenav.sensors.rig import SensorConfig
-    from cavenav.world.scenarios import Scenario
-
-__all__ = ["FRAME_MODES", "SENSOR_FIELDS", "VIDEO_MODES", "EpisodeSettings"]
+__all__ = [
+    "FRAME_MODES",
+    "SENSOR_FIELDS",
+    "SETTLED",
+    "VIDEO_MODES",
+    "EpisodeConfig",
+    "EpisodeSettings",
+    "configured",
+]
 
 # What a sweep keeps of each step's images, as sweep.json names it: (frames, EXR).
 FRAME_MODES = {"all": (True, True), "png": (True, False), "none": (False, False)}
 # Which episodes of a sweep get an episode.mp4 (`cavenav eval --video`).
 VIDEO_MODES = ("none", "failures", "all")
-# The pixel counts, named as a scenario file's [sensors] table names them: the keys of
-# `cavenav.sensors.rig.SENSOR_KEYS`, written again here because importing the rig loads
-# its kernels (0.4 s at every command's start); tests/test_settings.py holds them equal.
-_SIZES = ("resolution", "sounder_resolution")
 # The settings sweep.json keeps under "sensors".
-SENSOR_FIELDS = ("sounder", "depth_max_m", "optics", *_SIZES)
+SENSOR_FIELDS = ("sounder", "depth_max_m", "optics", *SENSOR_KEYS)
 
 
 @dataclass(frozen=True)
-class EpisodeSettings:
-    """The settings of an episode that a user chooses, before a cave is known.
+class EpisodeConfig:
+    """How an episode is flown.
 
     Attributes:
-        steps: step budget; None gives each scenario its own (`EpisodeConfig.max_steps`).
-        stuck_after: steps without headway that end an episode as stuck; None never does.
+        max_steps: step budget; None gives the scenario's own (`Scenario.step_budget`:
+            SPEC's 150 for S1-S5, more for the long families).
+        stuck_after: end the episode as ``stuck`` after this many steps in a row without
+            headway (`cavenav.sim.wrappers.StuckLimit`): neither 0.5 m more progress toward
+            the exit than ever before nor a 2 m cube of the cave entered for the first
+            time. 50 leaves room to explore a side passage and come back out of it; None
+            never ends an episode so.
         shield: put the safety shield between the pilot and the vehicle.
-        save_frames, save_exr, exr_compression: what the run folder keeps of each step
-            (`EpisodeConfig`).
-        sounder: the echo-sounder model, "camera" or "beam" (`SensorConfig.sounder`).
-        depth_max_m: D_max of the depth PNG, metres.
+        save_frames: write the RGB and depth PNG of every step; sweeps can turn this off.
+        save_exr: with the frames, the depth in metres as OpenEXR (1.24 MB of the 2.05 MB
+            a step takes, uncompressed).
+        exr_compression: "none" (the fastest), "zip" (a fifth smaller) or "htj2k" (two
+            thirds smaller; OpenEXR 3.4 reads it), all lossless: `cavenav.sensors.depth`.
+        plots: draw topdown.png and side.png at the end.
+        seed: seeds the sensor noise (the environment's reset seed); None draws it from
+            the episode's own seed (`for_episode`), so that another cave flies other noise
+            too. `cavenav run --noise-seed` sets it.
+        sensors: the rig before the cave's tables and the overrides below: its sounder
+            model and D_max are the ``--sounder`` and ``--depth-max`` flags.
         optics: optics overrides over the scenario's [optics] table (water, light_power,
             ...; see `cavenav.sensors.optics.optics_from_table`); absent keys keep it.
         resolution, sounder_resolution: (width, height) pixels over the scenario's
             [sensors] table; None keeps it.
-        difficulty: `Difficulty` knobs of the cave family, by name.
-        discharge_m3s, gusts: the water's flow (`cavenav.world.current.Current`); None
-            keeps the cave's own (`Scenario.water`: still, but where a scenario file's
-            [water] table says otherwise).
-        battery_wh: an energy budget that ends an episode as ``battery``; None: none.
-        noise_seed: seeds the sensor noise of every episode (a sweep's further trials one
-            more each); None draws it from the episode's own seed (`episode_config`), so
-            that another seed flies other noise as well as another cave.
+        difficulty: `Difficulty` knobs of the cave family, by name (`load`).
+        current: the water's flow (`cavenav.world.current.Current`); None takes the
+            cave's own (`Scenario.water`: still, but where a scenario file's [water] table
+            says otherwise).
+        discharge_m3s, gusts: the flow's discharge and gusts over that; None keeps them.
+        battery_wh: an energy budget that ends the episode as ``battery`` once spent;
+            None never does (the energy is recorded either way).
+        rules: the strategy's distances; the standoff counts "steps below standoff".
+        body: the vehicle's size, mass and thrust (`cavenav.core.types.VehicleBody`).
     """
 
-    steps: int | None = None
+    max_steps: int | None = None
     stuck_after: int | None = 50
     shield: bool = False
     save_frames: bool = True
     save_exr: bool = True
-    exr_compression: str = "none"
-    sounder: Literal["camera", "beam"] = "camera"
-    depth_max_m: float = DEPTH_RANGE_M[1]
+    exr_compression: ExrCompression = "none"
+    plots: bool = True
+    seed: int | None = None
+    sensors: SensorConfig = field(default_factory=SensorConfig)
     optics: Mapping[str, Any] = field(default_factory=dict)
     resolution: tuple[int, int] | None = None
     sounder_resolution: tuple[int, int] | None = None
     difficulty: Mapping[str, float] = field(default_factory=dict)
+    current: Current | None = None
     discharge_m3s: float | None = None
     gusts: float | None = None
     battery_wh: float | None = None
-    noise_seed: int | None = None
+    rules: Rules = DEFAULT_RULES
+    body: VehicleBody = field(default_factory=VehicleBody)
 
     def __post_init__(self) -> None:
         if self.exr_compression not in EXR_COMPRESSIONS:
@@ -88,32 +110,34 @@ class EpisodeSettings:
                 f"EXR compression {self.exr_compression!r}: choose one of "
                 f"{', '.join(EXR_COMPRESSIONS)}"
             )
-        for name in _SIZES:  # JSON gives lists
+        for name in SENSOR_KEYS:  # JSON gives lists
             size = getattr(self, name)
             if size is not None:
                 object.__setattr__(self, name, tuple(size))
-        if self.difficulty:  # a bad knob fails here, not in a worker
-            from cavenav.world.scenarios import Difficulty
-
-            Difficulty.from_dict(self.difficulty)
+        Difficulty.from_dict(self.difficulty)  # a bad knob fails here, not in a worker
         self.current_for({})  # a bad value fails here, not in a worker
         checked_budget(self.battery_wh)
-        seed = self.noise_seed
+        seed = self.seed
         if seed is not None and (not isinstance(seed, int) or isinstance(seed, bool) or seed < 0):
-            raise ConfigError(f"noise_seed must be a whole number of 0 or more, not {seed!r}")
+            raise ConfigError(f"the noise seed must be a whole number of 0 or more, not {seed!r}")
 
     @property
     def flowing(self) -> bool:
-        """Whether these settings make the water flow, whatever the cave's own."""
-        return bool(self.discharge_m3s)
+        """Whether this configuration makes the water flow, whatever the cave's own."""
+        return bool(self.discharge_m3s) or (self.current is not None and not self.current.still)
 
     def current_for(self, cave: Scenario | Mapping[str, Any]) -> Current:
-        """The water's flow in ``cave`` (or a [water] table): these settings over its own."""
-        water = cave if isinstance(cave, Mapping) else cave.water
+        """The water's flow in ``cave`` (or a [water] table): this configuration's over its
+        own."""
+        water: Mapping[str, Any] = cave if isinstance(cave, Mapping) else cave.water
+        base = self.current or Current(
+            water.get("discharge_m3s", Current.discharge_m3s),
+            water.get("gusts", Current.gusts),
+        )
         discharge, gusts = self.discharge_m3s, self.gusts
         return Current(
-            water.get("discharge_m3s", Current.discharge_m3s) if discharge is None else discharge,
-            water.get("gusts", Current.gusts) if gusts is None else gusts,
+            base.discharge_m3s if discharge is None else discharge,
+            base.gusts if gusts is None else gusts,
         )
 
     @property
@@ -121,8 +145,8 @@ class EpisodeSettings:
         """The frames as a sweep names them: "all", "png" or "none" (`FRAME_MODES`)."""
         return "none" if not self.save_frames else "all" if self.save_exr else "png"
 
-    def with_frames(self, mode: str) -> EpisodeSettings:
-        """These settings keeping ``mode``'s images: "all", "png" or "none".
+    def with_frames(self, mode: str) -> EpisodeConfig:
+        """This configuration keeping ``mode``'s images: "all", "png" or "none".
 
         Raises:
             ConfigError: another mode.
@@ -136,67 +160,71 @@ class EpisodeSettings:
         """The cave ``scenario`` (a family or a scenario file) with ``seed`` and these
         difficulty knobs; a sweep sets each knob on the families that have it instead
         (`cavenav.evaluation.sweep.SweepConfig.difficulty_for`)."""
-        from cavenav.world.scenarios import Difficulty, load_scenario
-
         return load_scenario(scenario, seed, difficulty=Difficulty.from_dict(self.difficulty))
 
     def sensors_for(self, cave: Scenario) -> SensorConfig:
-        """The sensors in ``cave``: the defaults, the cave's [optics] and [sensors] tables,
-        then these settings over them (`SensorConfig.for_scenario`)."""
-        from cavenav.sensors.rig import SensorConfig
+        """The sensors in ``cave``: `sensors`, the cave's [optics] and [sensors] tables,
+        then these overrides over them (`SensorConfig.for_scenario`)."""
+        sizes = {key: getattr(self, key) for key in SENSOR_KEYS if getattr(self, key) is not None}
+        return self.sensors.for_scenario(cave.name, cave.optics, self.optics, cave.sensors, sizes)
 
-        sizes = {key: getattr(self, key) for key in _SIZES if getattr(self, key) is not None}
-        base = replace(SensorConfig(), sounder=self.sounder, depth_max_m=self.depth_max_m)
-        return base.for_scenario(cave.name, cave.optics, self.optics, cave.sensors, sizes)
-
-    def episode_config(self, cave: Scenario, seed: int = 0) -> EpisodeConfig:
-        """The `EpisodeConfig` of an episode in ``cave`` with these settings; ``seed``,
-        the episode's own (its cave's, or its trial's in a sweep), seeds the sensor noise
-        unless ``noise_seed`` holds it apart."""
-        from cavenav.episode.loop import EpisodeConfig
-
-        return EpisodeConfig(
-            max_steps=self.steps,
-            stuck_after=self.stuck_after,
-            save_frames=self.save_frames,
-            save_exr=self.save_exr,
-            exr_compression=self.exr_compression,  # type: ignore[arg-type]
-            shield=self.shield,
+    def for_episode(self, cave: Scenario, seed: int | None = None) -> EpisodeConfig:
+        """This configuration as an episode in ``cave`` flies it, every value settled: the
+        step budget, the sensors (`sensors_for`), the flow (`current_for`) and the noise
+        seed, which ``seed`` (the episode's own: its cave's, or its trial's in a sweep;
+        None: the cave's) gives unless `seed` holds it apart. The overrides stay, as
+        asked, and are in `sensors` and `current` too (`SETTLED`): settling twice changes
+        nothing."""
+        own_seed = (cave.seed or 0) if seed is None else seed
+        return replace(
+            self,
+            max_steps=self.max_steps or cave.step_budget or STEP_BUDGET,
+            seed=own_seed if self.seed is None else self.seed,
             sensors=self.sensors_for(cave),
             current=self.current_for(cave),
-            battery_wh=self.battery_wh,
-            seed=seed if self.noise_seed is None else self.noise_seed,
         )
 
     def to_dict(self) -> dict[str, Any]:
-        """JSON-able, laid out as sweep.json's "episode", "difficulty" and "sensors"."""
+        """JSON-able, laid out as sweep.json's "episode", "difficulty" and "sensors".
+
+        It keeps what a sweep sets: a configuration with another rule set, body, flow or
+        rig than the flags give is refused, rather than resumed as another.
+
+        Raises:
+            ConfigError: a field sweep.json cannot keep, set.
+        """
+        unkept = [name for name in _UNKEPT if getattr(self, name) != getattr(_DEFAULTS, name)]
+        if self.sensors != _rig(self.sensors.sounder, self.sensors.depth_max_m):
+            unkept.append("sensors")
+        if unkept:
+            raise ConfigError(f"a sweep cannot keep {', '.join(unkept)}; leave them unset")
         episode: dict[str, Any] = {
-            "steps": self.steps,
+            "steps": self.max_steps,
             "stuck_after": self.stuck_after,
             "shield": self.shield,
             "frames": self.frames,
         }
-        if self.noise_seed != 0:  # absent: seed 0, as every sweep's was before it was set
-            episode["noise_seed"] = self.noise_seed
+        if self.seed != 0:  # absent: seed 0, as every sweep's was before it was set
+            episode["noise_seed"] = self.seed
         if self.exr_compression != "none":  # no sweep flag sets it: absent, as before
             episode["exr_compression"] = self.exr_compression
         for key in _WATER:  # absent in still water with no budget, as before they existed
             if getattr(self, key) != getattr(_DEFAULTS, key):
                 episode[key] = getattr(self, key)
         sensors: dict[str, Any] = {
-            "sounder": self.sounder,
-            "depth_max_m": self.depth_max_m,
+            "sounder": self.sensors.sounder,
+            "depth_max_m": self.sensors.depth_max_m,
             "optics": dict(self.optics),
         }
-        for key in _SIZES:
+        for key in SENSOR_KEYS:
             if getattr(self, key) is not None:
                 sensors[key] = list(getattr(self, key))
         return {"episode": episode, "difficulty": dict(self.difficulty), "sensors": sensors}
 
     @classmethod
-    def from_dict(cls, data: Mapping[str, Any]) -> EpisodeSettings:
-        """The settings `to_dict` wrote; absent keys keep their defaults (a sweep.json
-        written before they existed).
+    def from_dict(cls, data: Mapping[str, Any]) -> EpisodeConfig:
+        """The configuration `to_dict` wrote; absent keys keep their defaults (a
+        sweep.json written before they existed).
 
         Raises:
             ConfigError: an unknown key or a bad value.
@@ -208,16 +236,59 @@ class EpisodeSettings:
             raise ConfigError(f"sensors: unknown key(s) {', '.join(sorted(unknown))}")
         frames = episode.pop("frames", "all")
         episode.setdefault("noise_seed", 0)  # see `to_dict`
-        settings = cls(
+        return configured(
             **{k: episode[k] for k in (*_EPISODE_KEYS, *_WATER) if k in episode},
             **sensors,
             difficulty=data.get("difficulty", {}),
-        )  # fmt: skip
-        return settings.with_frames(frames)
+        ).with_frames(frames)
 
 
-_DEFAULTS = EpisodeSettings()
-# The settings sweep.json keeps under "episode" always (the frames apart).
+def _rig(sounder: str, depth_max_m: float) -> SensorConfig:
+    """The rig the ``--sounder`` and ``--depth-max`` flags set."""
+    return replace(_DEFAULT_RIG, sounder=sounder, depth_max_m=depth_max_m)  # type: ignore[arg-type]
+
+
+# The overrides `EpisodeConfig.for_episode` lays into the sensors and the flow.
+SETTLED = ("optics", *SENSOR_KEYS, "discharge_m3s", "gusts")
+# The names the settings had before there was one configuration, and their names now;
+# "sounder" and "depth_max_m" are fields of `EpisodeConfig.sensors`.
+RENAMED = {"steps": "max_steps", "noise_seed": "seed"}
+_RIG_FIELDS = ("sounder", "depth_max_m")
+
+
+def configured(base: EpisodeConfig | None = None, **settings: Any) -> EpisodeConfig:
+    """``base`` (the defaults when None) with ``settings`` set, by their names here or by
+    the names sweep.json, the flags and `EpisodeSettings` give them: ``steps``,
+    ``noise_seed``, ``sounder`` and ``depth_max_m``.
+
+    Raises:
+        TypeError: a name that is none of these.
+    """
+    base = base or EpisodeConfig()
+    rig = {name: settings.pop(name) for name in _RIG_FIELDS if name in settings}
+    known = {RENAMED.get(name, name): value for name, value in settings.items()}
+    if rig:
+        known["sensors"] = replace(known.get("sensors", base.sensors), **rig)
+    return replace(base, **known)
+
+
+def EpisodeSettings(**settings: Any) -> EpisodeConfig:  # noqa: N802 - the old class's name
+    """Deprecated: `EpisodeConfig` is the one episode configuration now; this builds one
+    from the old keywords (`configured`)."""
+    warnings.warn(
+        "EpisodeSettings is now EpisodeConfig (steps -> max_steps, noise_seed -> seed, "
+        "sounder and depth_max_m -> sensors); EpisodeSettings goes in a later release",
+        DeprecationWarning,
+        stacklevel=2,
+    )
+    return configured(**settings)
+
+
+_DEFAULTS = EpisodeConfig()
+_DEFAULT_RIG = SensorConfig()
+# The settings sweep.json keeps under "episode" always (the frames apart), by its names.
 _EPISODE_KEYS = ("steps", "stuck_after", "shield", "exr_compression", "noise_seed")
 # The settings of the water and the battery, kept in sweep.json's "episode" when set.
 _WATER = ("discharge_m3s", "gusts", "battery_wh")
+# What sweep.json has no place for.
+_UNKEPT = ("plots", "current", "rules", "body")

@@ -13,7 +13,7 @@ The map background is drawn once with matplotlib; each frame only draws the vehi
 its path into a copy of it, through the axes' data-to-pixel mapping taken once, so a
 150-step episode encodes in seconds. Frames are H.264 (yuv420p), through the ffmpeg that
 imageio-ffmpeg ships, into a temporary beside the MP4 that is renamed into place once
-whole (`cavenav.files.write_then_rename`) and only if ffmpeg ended well: a full disk
+whole (`cavenav.core.files.write_then_rename`) and only if ffmpeg ended well: a full disk
 leaves no part of a video.
 
 A frame image that is missing or cannot be read (cut short, not an image) is shown as a
@@ -40,15 +40,15 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
-from cavenav.episode.records import EpisodeSummary, StepRecord, load_steps, load_summary
-from cavenav.errors import (
+from cavenav.core.errors import (
     CavenavError,
     CavenavWarning,
     ConfigError,
     DependencyError,
     RecordingError,
 )
-from cavenav.files import not_a_file_to_replace, write_then_rename
+from cavenav.core.files import not_a_file_to_replace, write_then_rename
+from cavenav.episode.records import EpisodeSummary, StepRecord, load_steps, load_summary
 
 if TYPE_CHECKING:
     from cavenav.world.scenarios import ExitPortal

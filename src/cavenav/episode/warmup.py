@@ -13,11 +13,11 @@ import time
 import numpy as np
 import trimesh
 
+from cavenav.core.types import Pose
 from cavenav.pilots.geometric import GeometricPilot
 from cavenav.sensors.lighting import surface_table
 from cavenav.sensors.optics import Optics
 from cavenav.sensors.rig import SensorConfig, SensorRig
-from cavenav.types import Pose
 from cavenav.world.mesh import make_mesh
 from cavenav.world.raycast import RayCaster
 from cavenav.world.silt import Puff, SiltCloud

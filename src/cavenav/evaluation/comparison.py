@@ -19,8 +19,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from cavenav.core.errors import CavenavError, ConfigError, RecordingError
 from cavenav.episode.run_folder import write_atomic, write_json
-from cavenav.errors import CavenavError, ConfigError, RecordingError
 from cavenav.evaluation.report import page_name, render_page
 from cavenav.evaluation.results import compare, group, priced
 from cavenav.evaluation.sweep import read_rows, read_sweep

@@ -28,7 +28,7 @@ from typing import Any, TypeVar, cast
 
 import numba
 
-from cavenav.errors import ConfigError, DependencyError, RecordingError
+from cavenav.core.errors import ConfigError, DependencyError, RecordingError
 from cavenav.evaluation.results import episode_row
 from cavenav.evaluation.sweep import (
     EpisodeJob,

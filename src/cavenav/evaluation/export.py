@@ -18,7 +18,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from cavenav.errors import ConfigError, DependencyError
+from cavenav.core.errors import ConfigError, DependencyError
 from cavenav.evaluation.results import COLUMNS, group
 
 __all__ = ["EPISODE_METRICS", "WandbLog", "require_wandb"]

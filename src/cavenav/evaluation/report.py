@@ -23,6 +23,14 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import quote
 
+from cavenav.core.errors import (
+    CavenavError,
+    ConfigError,
+    DependencyError,
+    RecordError,
+    RecordingError,
+)
+from cavenav.core.files import not_a_file_to_replace
 from cavenav.episode.records import (
     OUTCOMES,
     EpisodeSummary,
@@ -33,17 +41,9 @@ from cavenav.episode.records import (
     read_sweep_file,
 )
 from cavenav.episode.run_folder import write_atomic
-from cavenav.errors import (
-    CavenavError,
-    ConfigError,
-    DependencyError,
-    RecordError,
-    RecordingError,
-)
 from cavenav.evaluation.results import aggregate, cave_rates, priced
 from cavenav.evaluation.results import outcome as episode_outcome
 from cavenav.evaluation.sweep import read_rows
-from cavenav.files import not_a_file_to_replace
 
 __all__ = ["RunRecord", "SweepRecord", "read_run", "read_sweep_record", "write_report"]
 

@@ -11,7 +11,7 @@ Outcomes (the failure taxonomy, one per episode):
     exited_entrance  it left the cave through its entrance, the way it came in
     battery        its moves spent the energy budget (`cavenav eval --battery-wh`)
     budget         out of steps while still making headway: one of the last `WINDOW`
-                   steps made headway as `cavenav.headway` counts it (too slow, not lost)
+                   steps made headway as `cavenav.safety.headway` counts it (too slow, not lost)
     stuck          ended by the driver for want of headway (termination ``stuck``, by
                    that same count), or out of steps without headway over the last
                    `WINDOW` steps, having barely moved during them
@@ -39,6 +39,8 @@ from typing import Any
 import numpy as np
 from scipy.stats import binomtest, norm, wilcoxon
 
+from cavenav.core.errors import CavenavWarning, RecordError
+from cavenav.core.types import model_time_percentiles
 from cavenav.episode.records import (
     OUTCOMES,
     TERMINATIONS,
@@ -49,9 +51,7 @@ from cavenav.episode.records import (
     load_summary,
 )
 from cavenav.episode.run_folder import write_atomic, write_json
-from cavenav.errors import CavenavWarning, RecordError
-from cavenav.headway import Headway
-from cavenav.types import model_time_percentiles
+from cavenav.safety.headway import Headway
 
 __all__ = [
     "COLUMNS",

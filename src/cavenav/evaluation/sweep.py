@@ -32,7 +32,7 @@ import traceback
 import warnings
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager, nullcontext, suppress
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any, Protocol
@@ -40,21 +40,27 @@ from typing import Any, Protocol
 import numpy as np
 
 from cavenav import SCENARIO_SET, __version__
-from cavenav.episode.loop import EpisodeConfig, run_episode
-from cavenav.episode.records import read_summary, read_sweep_file
-from cavenav.episode.run_folder import prepare_root, write_atomic, write_json
-from cavenav.episode.settings import FRAME_MODES, SENSOR_FIELDS, VIDEO_MODES, EpisodeSettings
-from cavenav.errors import (
+from cavenav.core.errors import (
     CavenavError,
     CavenavWarning,
     ConfigError,
     RecordError,
     RecordingError,
 )
+from cavenav.core.types import STEP_BUDGET
+from cavenav.episode.loop import run_episode
+from cavenav.episode.records import read_summary, read_sweep_file
+from cavenav.episode.run_folder import prepare_root, write_atomic, write_json
+from cavenav.episode.settings import (
+    FRAME_MODES,
+    SENSOR_FIELDS,
+    VIDEO_MODES,
+    EpisodeConfig,
+    configured,
+)
 from cavenav.evaluation.results import episode_row, outcome, read_episode, write_results
 from cavenav.pilots.base import Pilot
 from cavenav.pilots.factory import PilotSpec, VLMOptions
-from cavenav.types import STEP_BUDGET
 from cavenav.world.scenarios import (
     SCENARIOS,
     Difficulty,
@@ -118,7 +124,7 @@ class SweepConfig:
     scenarios: tuple[str, ...]
     seeds: tuple[int, ...]
     pilot: PilotSpec
-    settings: EpisodeSettings
+    settings: EpisodeConfig
     video: str = "none"
     trials: int = 1
 
@@ -127,12 +133,12 @@ class SweepConfig:
         scenarios: Sequence[str],
         seeds: Sequence[int],
         pilot: PilotSpec | None = None,
-        settings: EpisodeSettings | None = None,
+        settings: EpisodeConfig | None = None,
         **fields: Any,
     ) -> None:
-        """``fields`` are `EpisodeSettings` fields set over ``settings``, ``frames``, a
+        """``fields`` are `EpisodeConfig` fields set over ``settings``, ``frames``, a
         `FRAMES` mode, and ``sensors``, a mapping laid out as sweep.json's "sensors" (the
-        keyword scripts passed before `EpisodeSettings` existed):
+        keyword scripts passed before `EpisodeConfig` existed):
         ``SweepConfig(("S1",), (0,), steps=6, frames="none")``.
 
         Raises:
@@ -148,7 +154,7 @@ class SweepConfig:
         unknown = set(sensors) - set(SENSOR_FIELDS)
         if unknown:
             raise ConfigError(f"sensors: unknown key(s) {', '.join(sorted(unknown))}")
-        settings = replace(settings or EpisodeSettings(), **sensors, **fields)
+        settings = configured(settings, **sensors, **fields)
         object.__setattr__(self, "scenarios", tuple(scenarios))
         object.__setattr__(self, "seeds", tuple(seeds))
         object.__setattr__(self, "pilot", pilot or PilotSpec())
@@ -187,12 +193,12 @@ class SweepConfig:
         return len(self.scenarios) * len(self.seeds) * self.trials
 
     # The settings under the names a SweepConfig gave them before it held an
-    # `EpisodeSettings`, read-only, for the scripts that read them.
+    # `EpisodeConfig`, read-only, for the scripts that read them.
 
     @property
     def steps(self) -> int | None:
         """Step budget; None gives each scenario its own."""
-        return self.settings.steps
+        return self.settings.max_steps
 
     @property
     def stuck_after(self) -> int | None:
@@ -266,7 +272,7 @@ class SweepConfig:
                 pilot.get("policy_sha256"),
                 pilot.get("teacher"),
             ),
-            settings=EpisodeSettings.from_dict({**data, "episode": episode}),
+            settings=EpisodeConfig.from_dict({**data, "episode": episode}),
             video=data.get("video", "none"),
             trials=data.get("trials", 1),
         )
@@ -293,7 +299,7 @@ class EpisodeJob:
 
     def noise_seed(self, held: int | None = None) -> int:
         """Seeds the sensor noise: the episode's own seed (`pilot_seed`), or with ``held``
-        (`EpisodeSettings.noise_seed`) that for the first trial and one more for each
+        (`EpisodeConfig.seed`) that for the first trial and one more for each
         other."""
         return self.pilot_seed if held is None else held + (self.trial or 1) - 1
 
@@ -395,12 +401,12 @@ def _first_difference(old: Any, new: Any, where: str = "") -> str:
     return f"{where or 'configuration'}: {json.dumps(old)} there, {json.dumps(new)} now"
 
 
-def _resume_hint(recorded: EpisodeSettings, wanted: EpisodeSettings) -> str:
+def _resume_hint(recorded: EpisodeConfig, wanted: EpisodeConfig) -> str:
     """The flag a sweep begun by an older cavenav needs to resume, where one does."""
     if recorded.stuck_after is None and wanted.stuck_after:
         return " (it was flown without stuck endings: add --stuck-after 0)"
-    if recorded.noise_seed is not None and wanted.noise_seed is None:
-        seed = recorded.noise_seed
+    if recorded.seed is not None and wanted.seed is None:
+        seed = recorded.seed
         return f" (its episodes drew their noise from seed {seed}: add --noise-seed {seed})"
     return ""
 
@@ -493,7 +499,7 @@ class EpisodeWorker:
     def episode_config(self, cave: Scenario, job: EpisodeJob | None = None) -> EpisodeConfig:
         """The `EpisodeConfig` of this sweep's episode in ``cave`` (``job``: its trial's)."""
         settings = self.config.settings
-        return settings.episode_config(cave, job.noise_seed(settings.noise_seed) if job else 0)
+        return settings.for_episode(cave, job.noise_seed(settings.seed) if job else 0)
 
     def fly(self, job: EpisodeJob) -> dict[str, Any]:
         """Fly one episode into a fresh run folder, with its episode.mp4 where the sweep's

@@ -4,7 +4,7 @@ local transformers model, with bounded retries, token accounting and an optional
 Messages use the OpenAI chat format with images as PNG data URLs, so one request
 recorded in a run folder means the same thing to every backend. What a backend hands out
 (replies, errors, the bodies they carry) never holds an API key, whatever the server
-echoed: each public method is `redacting` (`cavenav.redaction`).
+echoed: each public method is `redacting` (`cavenav.core.redaction`).
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 import httpx2
 
-from cavenav.errors import (
+from cavenav.core.errors import (
     BackendAuthError,
     BackendError,
     BackendTimeout,
@@ -36,9 +36,9 @@ from cavenav.errors import (
     DependencyError,
     RateLimited,
 )
-from cavenav.files import write_then_rename
+from cavenav.core.files import write_then_rename
+from cavenav.core.redaction import redacting, register
 from cavenav.pilots.endpoints import OpenAIConfig, TransformersConfig
-from cavenav.redaction import redacting, register
 
 if TYPE_CHECKING:
     import openai

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from typing import Protocol, runtime_checkable
 
-from cavenav.types import Decision, Observation
+from cavenav.core.types import Decision, Observation
 
 __all__ = ["Pilot"]
 

@@ -15,7 +15,7 @@ from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
-from cavenav.errors import ConfigError
+from cavenav.core.errors import ConfigError
 from cavenav.pilots.base import Pilot
 from cavenav.pilots.endpoints import OpenAIConfig, TransformersConfig
 from cavenav.pilots.prompt import PromptConfig

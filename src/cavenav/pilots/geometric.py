@@ -12,7 +12,7 @@ the prompt's strategy (SPEC section 3), so it is the yardstick a VLM pilot must 
    flown with small steps and centring shifts).
 2. Steer toward the middle of the farthest-reaching bearings (the passage's continuation)
    that lead somewhere new: the pilot's map of what it saw and where it flew
-   (`cavenav.cave_map`, placed by dead reckoning) tells a new direction from the way back.
+   (`cavenav.safety.cave_map`, placed by dead reckoning) tells a new direction from the way back.
 3. When nothing new is in view, turn toward an unexplored opening the map remembers;
    failing that, search by turning in place one way (never back and forth) through a full
    circle; only then is it a dead end, and the pilot backs out along the way it came,
@@ -23,9 +23,9 @@ the prompt's strategy (SPEC section 3), so it is the yardstick a VLM pilot must 
 5. Cap forward motion by the standoff rules: none within 1.5 m of an obstacle ahead,
    0.1-0.2 m (with a turn or a shift) below the 2.0 m standoff, otherwise 0.5-1.0 m.
 6. Shrink the move until it is safe by the safety shield's own judgement of a move
-   (`cavenav.shield.move_hazard`, from the same memory of recent depth images that
+   (`cavenav.safety.shield.move_hazard`, from the same memory of recent depth images that
    ``--shield`` judges any pilot with, the same `Margins` and the same choice of them,
-   `cavenav.shield.crawlway_move`): its half-diagonal plus a margin from every surface
+   `cavenav.safety.shield.crawlway_move`): its half-diagonal plus a margin from every surface
    seen (already nearer, at most 5 cm nearer; in a crawlway, the reach of its corners
    plus a thin margin), clear of the ceiling and floor the sounders read, and into no
    space it has not seen free. A sideways shift toward a side never seen is made only
@@ -42,11 +42,18 @@ import numba
 import numpy as np
 from scipy import ndimage
 
-from cavenav.actions import DEFAULT_SPACE, ActionSpace, format_action
-from cavenav.cave_map import CaveMap, Opening
-from cavenav.reckoning import DepthSamples, executed_since, sampling_stride
-from cavenav.shield import DepthMemory, Hazard, Margins, Surroundings, crawlway_move, move_hazard
-from cavenav.types import DEFAULT_RULES, Action, Decision, Observation, Rules, VehicleBody
+from cavenav.core.types import DEFAULT_RULES, Action, Decision, Observation, Rules, VehicleBody
+from cavenav.motion.actions import DEFAULT_SPACE, ActionSpace, format_action
+from cavenav.safety.cave_map import CaveMap, Opening
+from cavenav.safety.reckoning import DepthSamples, executed_since, sampling_stride
+from cavenav.safety.shield import (
+    DepthMemory,
+    Hazard,
+    Margins,
+    Surroundings,
+    crawlway_move,
+    move_hazard,
+)
 
 __all__ = ["GeometricPilot", "GeometricPilotConfig"]
 
@@ -96,14 +103,14 @@ class GeometricPilotConfig:
 
     Attributes:
         rules: standoff, no-forward distance and the forward step inside the standoff.
-        margins: the safety shield's margins (`cavenav.shield.Margins`), one definition
+        margins: the safety shield's margins (`cavenav.safety.shield.Margins`), one definition
             for both. ``open_m`` (0.3 m) widens the corridor tested along a bearing
             beyond the body's section (its half-diagonal across, 0.21 m), room for rough
             walls, and is kept beyond the body's half-diagonal from every surface;
             ``crawlway_m`` (0.1 m) is the thinner margin of a crawlway: the view is read
             with it where no corridor of the open margin leads anywhere new or a surface
             is nearer than the open margin allows, and moves keep it where the shield
-            would judge them by it (`cavenav.shield.crawlway_move`).
+            would judge them by it (`cavenav.safety.shield.crawlway_move`).
         open_range_m: a bearing free this far counts as the passage's continuation.
         stride: use every n-th pixel of the depth image; None follows the image's
             width to keep about `columns` of them: 5 at 640x480 (128x96 points), 2 at

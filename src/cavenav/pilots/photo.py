@@ -23,10 +23,10 @@ from pathlib import Path
 import numpy as np
 from PIL import ExifTags, Image, ImageOps, UnidentifiedImageError
 
-from cavenav.errors import CavenavError
+from cavenav.core.errors import CavenavError
+from cavenav.core.types import Observation
 from cavenav.sensors.camera import CameraIntrinsics
 from cavenav.sensors.depth import DEPTH_RANGE_M, denormalise_depth, unknown_depth
-from cavenav.types import Observation
 
 __all__ = ["HIGH_DETAIL_FIT", "LOW_DETAIL_FIT", "load_photo", "model_size", "shrink_depth"]
 

@@ -7,10 +7,10 @@ any algorithm whose policy maps the environment's observation to a vector action
 
 The policy sees what it saw in training: the keys of ``cavenav/CaveNav-vector-v0``'s
 observation that its model names (any of rgb, depth, depth_m, d_top, d_bottom), built
-from the `Observation` exactly as `cavenav.env.CaveNavEnv` builds them, at the camera
+from the `Observation` exactly as `cavenav.sim.env.CaveNavEnv` builds them, at the camera
 size it was trained at (the command line sets ``--resolution`` to it). Its action is
 taken deterministically (the mean, not a draw) and snapped to the admissible moves by
-`cavenav.actions.snap_action`, as the environment does. A policy whose action box is not
+`cavenav.motion.actions.snap_action`, as the environment does. A policy whose action box is not
 the environment's (``[-1, 1]``, as ``gymnasium.wrappers.RescaleAction`` trains it) is
 read as that box mapped linearly onto the environment's.
 
@@ -28,13 +28,19 @@ from typing import Any
 
 import numpy as np
 
-from cavenav.actions import DEFAULT_SPACE, ActionSpace, action_bounds, format_action, snap_action
-from cavenav.errors import ConfigError, DependencyError, PilotFailure
-from cavenav.types import Decision, Observation
+from cavenav.core.errors import ConfigError, DependencyError, PilotFailure
+from cavenav.core.types import Decision, Observation
+from cavenav.motion.actions import (
+    DEFAULT_SPACE,
+    ActionSpace,
+    action_bounds,
+    format_action,
+    snap_action,
+)
 
 __all__ = ["LoadedPolicy", "PolicyPilot", "load_policy", "policy_label"]
 
-# The observation keys a policy may see (`cavenav.env.CaveNavEnv.observation_space`).
+# The observation keys a policy may see (`cavenav.sim.env.CaveNavEnv.observation_space`).
 KEYS = ("rgb", "depth", "depth_m", "d_top", "d_bottom")
 
 

@@ -13,12 +13,12 @@ from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
 
-from cavenav.actions import DEFAULT_SPACE, ActionSpace
-from cavenav.energy import PowerModel
-from cavenav.errors import ConfigError
+from cavenav.core.errors import ConfigError
+from cavenav.core.types import DEFAULT_RULES, Cruise, Rules
+from cavenav.motion.actions import DEFAULT_SPACE, ActionSpace
+from cavenav.motion.energy import PowerModel
 from cavenav.sensors.camera import CameraIntrinsics
 from cavenav.sensors.depth import DEPTH_RANGE_M
-from cavenav.types import DEFAULT_RULES, Cruise, Rules
 
 __all__ = ["STRUCTURED_SCHEMA", "PromptConfig", "render_repair", "render_system"]
 
@@ -34,10 +34,10 @@ class PromptConfig:
         system_file: a user's own system-prompt template instead of the packaged one.
         structured: ask for a JSON object with fixed keys (for servers with JSON schemas).
         map_image: send a top-down picture of the pilot's map with each current
-            observation (`cavenav.cave_map`), and explain it in the system prompt.
+            observation (`cavenav.safety.cave_map`), and explain it in the system prompt.
         map_span_m: how many metres across that picture is.
         energy: tell the model what its battery has left with each current observation,
-            and what moves cost (`cavenav.energy`): energy-aware prompting.
+            and what moves cost (`cavenav.motion.energy`): energy-aware prompting.
     """
 
     space: ActionSpace = field(default_factory=lambda: DEFAULT_SPACE)

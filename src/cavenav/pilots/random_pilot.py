@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from cavenav.actions import DEFAULT_SPACE, ActionSpace, format_action
-from cavenav.types import Action, Decision, Observation
+from cavenav.core.types import Action, Decision, Observation
+from cavenav.motion.actions import DEFAULT_SPACE, ActionSpace, format_action
 
 __all__ = ["RandomPilot"]
 

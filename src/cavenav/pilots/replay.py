@@ -11,9 +11,9 @@ import json
 from pathlib import Path
 from typing import Any, TypeGuard
 
-from cavenav.actions import parse_action
-from cavenav.errors import ConfigError, PilotFailure
-from cavenav.types import Decision, Observation
+from cavenav.core.errors import ConfigError, PilotFailure
+from cavenav.core.types import Decision, Observation
+from cavenav.motion.actions import parse_action
 
 __all__ = ["ReplayPilot", "recorded_noise_seed", "recorded_scenario"]
 

@@ -13,9 +13,9 @@ import ast
 import json
 from dataclasses import dataclass
 
-from cavenav.actions import DEFAULT_SPACE, ActionSpace, parse_action
-from cavenav.errors import ActionError
-from cavenav.types import Action
+from cavenav.core.errors import ActionError
+from cavenav.core.types import Action
+from cavenav.motion.actions import DEFAULT_SPACE, ActionSpace, parse_action
 
 __all__ = ["MAX_REQUERIES", "ParsedReply", "parse_reply"]
 

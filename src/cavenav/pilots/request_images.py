@@ -25,7 +25,7 @@ from typing import Literal
 import numpy as np
 from PIL import Image
 
-from cavenav.errors import ConfigError
+from cavenav.core.errors import ConfigError
 
 __all__ = ["IMAGE_FORMATS", "ImageEncoding", "data_url", "sent_as"]
 

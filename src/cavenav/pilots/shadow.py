@@ -16,8 +16,8 @@ from __future__ import annotations
 
 from dataclasses import replace
 
+from cavenav.core.types import Decision, Observation
 from cavenav.pilots.base import Pilot
-from cavenav.types import Decision, Observation
 
 __all__ = ["ShadowedPilot"]
 

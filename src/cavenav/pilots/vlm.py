@@ -18,15 +18,15 @@ from typing import Any
 
 import numpy as np
 
-from cavenav.actions import format_action
-from cavenav.cave_map import CaveMap
-from cavenav.errors import ActionError, BackendAuthError, BackendError, PilotFailure
+from cavenav.core.errors import ActionError, BackendAuthError, BackendError, PilotFailure
+from cavenav.core.types import Action, Decision, Observation, Usage
+from cavenav.motion.actions import format_action
 from cavenav.pilots.backends import Backend, Completion, Message, request_hash
 from cavenav.pilots.prompt import STRUCTURED_SCHEMA, PromptConfig, render_repair, render_system
 from cavenav.pilots.reply import MAX_REQUERIES, parse_reply
 from cavenav.pilots.request_images import PNG, ImageEncoding, data_url
-from cavenav.reckoning import executed_since
-from cavenav.types import Action, Decision, Observation, Usage
+from cavenav.safety.cave_map import CaveMap
+from cavenav.safety.reckoning import executed_since
 
 __all__ = ["EncodedObservation", "Exchange", "VLMPilot", "build_messages", "png_data_url"]
 

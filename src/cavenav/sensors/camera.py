@@ -15,8 +15,8 @@ from functools import cached_property
 
 import numpy as np
 
-from cavenav.errors import ConfigError
-from cavenav.types import Pose
+from cavenav.core.errors import ConfigError
+from cavenav.core.types import Pose
 
 __all__ = [
     "CameraIntrinsics",

@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 from scipy.ndimage import gaussian_filter
 
-from cavenav.files import write_then_rename
+from cavenav.core.files import write_then_rename
 from cavenav.sensors import kernels
 from cavenav.sensors import optics as optics_model
 from cavenav.sensors.camera import CameraIntrinsics

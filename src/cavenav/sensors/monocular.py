@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from cavenav.errors import ConfigError, DependencyError
+from cavenav.core.errors import ConfigError, DependencyError
 
 __all__ = ["MonocularDepth"]
 

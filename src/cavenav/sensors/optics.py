@@ -38,7 +38,7 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
-from cavenav.errors import ConfigError
+from cavenav.core.errors import ConfigError
 
 __all__ = [
     "BLUEROV2_LAMPS",

@@ -49,9 +49,10 @@ from pathlib import Path
 from typing import Any
 
 from cavenav import SCENARIO_SET, __version__
+from cavenav.core.errors import ActionError, ConfigError, DependencyError, RecordingError
 from cavenav.episode.records import read_exchanges, read_steps, read_summary
 from cavenav.episode.run_folder import write_atomic, write_json
-from cavenav.errors import ActionError, ConfigError, DependencyError, RecordingError
+from cavenav.episode.settings import SETTLED
 from cavenav.evaluation.sweep import plan, read_sweep
 from cavenav.pilots.backends import Message, local_chat
 from cavenav.pilots.factory import TEACHERS, VLMOptions
@@ -154,8 +155,8 @@ class _Episode:
         the episode flew with (its seeds and step budget may differ)."""
         config = dict(self.summary.get("config") or {})
         for per_episode in ("seed", "max_steps", "plots", "save_frames", "save_exr",
-                            "exr_compression"):  # fmt: skip
-            config.pop(per_episode, None)
+                            "exr_compression", "difficulty", *SETTLED):  # fmt: skip
+            config.pop(per_episode, None)  # the settled ones are in "sensors" and "current"
         sensors = dict(config.get("sensors") or {})
         sensors.pop("seed", None)  # a trial's noise
         config["sensors"] = sensors

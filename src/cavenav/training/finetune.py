@@ -38,10 +38,10 @@ from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
-from cavenav.actions import parse_action
+from cavenav.core.errors import ActionError, ConfigError, DependencyError, RecordingError
+from cavenav.core.files import save_figure
 from cavenav.episode.run_folder import write_atomic, write_json
-from cavenav.errors import ActionError, ConfigError, DependencyError, RecordingError
-from cavenav.files import save_figure
+from cavenav.motion.actions import parse_action
 from cavenav.pilots.backends import TransformersBackend, TransformersConfig, local_chat
 from cavenav.pilots.factory import PILOT_SETTINGS, PROMPT_FILE, VLMOptions
 from cavenav.pilots.prompt import PromptConfig, render_system

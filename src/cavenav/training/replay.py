@@ -27,8 +27,9 @@ from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, replace
 from typing import Any
 
-from cavenav.episode.loop import EpisodeConfig, make_env
-from cavenav.errors import CavenavError, ConfigError, PilotFailure
+from cavenav.core.errors import CavenavError, ConfigError, PilotFailure
+from cavenav.episode.loop import make_env
+from cavenav.episode.settings import EpisodeConfig
 from cavenav.pilots.backends import Completion, Message
 from cavenav.pilots.factory import VLMOptions
 from cavenav.pilots.vlm import VLMPilot

@@ -3,7 +3,7 @@ own `VecEnv`.
 
 SB3 refuses Gymnasium's vector environments: it has a `VecEnv` of its own, and its
 `DummyVecEnv` over single environments steps them one after another, each casting its
-own rays. `SB3VecEnv` hands SB3 `cavenav.vector_env.CaveNavVectorEnv` (or any Gymnasium
+own rays. `SB3VecEnv` hands SB3 `cavenav.sim.vector_env.CaveNavVectorEnv` (or any Gymnasium
 vector environment that takes ``options["reset_mask"]``) as it is, so that a learner
 gets the batched rate::
 
@@ -29,7 +29,7 @@ import numpy as np
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import iterate
 
-from cavenav.vector_env import unbatched_infos
+from cavenav.sim.vector_env import unbatched_infos
 
 try:
     from stable_baselines3.common.env_util import is_wrapped

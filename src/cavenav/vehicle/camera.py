@@ -35,8 +35,8 @@ from urllib.parse import urlsplit, urlunsplit
 
 import numpy as np
 
-from cavenav.errors import ConfigError, DependencyError, VehicleError
-from cavenav.redaction import REDACTED
+from cavenav.core.errors import ConfigError, DependencyError, VehicleError
+from cavenav.core.redaction import REDACTED
 
 __all__ = ["CameraAddress", "FakeCamera", "VideoCamera"]
 

@@ -35,7 +35,7 @@ import math
 from dataclasses import asdict, dataclass
 from typing import Literal
 
-from cavenav.kinematics import turn_deg, wrap_angle
+from cavenav.motion.kinematics import turn_deg, wrap_angle
 from cavenav.vehicle.frames import body_to_ned
 
 __all__ = [

@@ -47,8 +47,8 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 from pymavlink import mavutil
 
-from cavenav.errors import ConfigError, VehicleError, invalid_field
-from cavenav.kinematics import wrap_angle
+from cavenav.core.errors import ConfigError, VehicleError, invalid_field
+from cavenav.motion.kinematics import wrap_angle
 from cavenav.vehicle.frames import body_to_ned
 from cavenav.vehicle.mavlink import check_address, check_device
 

@@ -11,7 +11,7 @@ autopilot reports then *is* the scenario's start pose. Without rotation the axes
 (a proper rotation: psi = 0 heads north; a right turn, psi < 0, heads east), and the
 pairing adds a turn about the vertical and a shift so that the start matches, whatever
 origin and compass heading the autopilot has. Body-frame commands need no pairing: a
-`cavenav.types.Action` (forward, right, up, left turn) is (x, y, -z, -yaw) in ArduSub's
+`cavenav.core.types.Action` (forward, right, up, left turn) is (x, y, -z, -yaw) in ArduSub's
 ``MAV_FRAME_BODY_OFFSET_NED`` and in MANUAL_CONTROL's stick axes.
 """
 
@@ -20,8 +20,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from cavenav.kinematics import wrap_angle
-from cavenav.types import Action, Pose
+from cavenav.core.types import Action, Pose
+from cavenav.motion.kinematics import wrap_angle
 
 __all__ = ["NedFrame", "NedPose", "body_offset", "body_to_ned"]
 

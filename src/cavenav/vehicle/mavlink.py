@@ -54,7 +54,7 @@ sticks (manual) or a hold at the current pose (guided) on any exception and on C
 arming only after the operator confirms (a flag waives it in simulation), and at the end
 disarming only a vehicle the bridge armed; every message sent and received goes to the
 command log as JSON lines. The forward-clearance rule is the safety shield's
-(`cavenav.wrappers.SafetyShield`), which `cavenav fly` puts in front of the pilot.
+(`cavenav.sim.wrappers.SafetyShield`), which `cavenav fly` puts in front of the pilot.
 """
 
 from __future__ import annotations
@@ -76,10 +76,10 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
-from cavenav.actions import format_action
-from cavenav.errors import ConfigError, DependencyError, VehicleError, invalid_field
-from cavenav.kinematics import Drift, wrap_angle
-from cavenav.types import Action, Pose
+from cavenav.core.errors import ConfigError, DependencyError, VehicleError, invalid_field
+from cavenav.core.types import Action, Pose
+from cavenav.motion.actions import format_action
+from cavenav.motion.kinematics import Drift, wrap_angle
 from cavenav.vehicle.control import (
     ControlSettings,
     Ending,
@@ -868,7 +868,7 @@ class ArduSubLink:
 
 
 class ArduSubMotion:
-    """The `cavenav.kinematics.Motion` of a real (or simulated) ArduSub vehicle.
+    """The `cavenav.motion.kinematics.Motion` of a real (or simulated) ArduSub vehicle.
 
     `start` connects, sets the mode, arms after the operator's confirmation and pairs
     the reported pose with the scenario's start (`NedFrame`); `move` flies one action

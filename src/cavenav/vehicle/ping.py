@@ -28,7 +28,7 @@ from typing import Any
 import brping
 from brping import definitions
 
-from cavenav.errors import ConfigError, VehicleError
+from cavenav.core.errors import ConfigError, VehicleError
 
 __all__ = ["FakePing1D", "PingAddress", "PingSounder", "PingSounders"]
 

@@ -18,7 +18,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-from cavenav.errors import ConfigError, VehicleError
+from cavenav.core.errors import ConfigError, VehicleError
 
 __all__ = ["ARDUSUB_ENV", "ardusub_binary", "ardusub_sitl"]
 

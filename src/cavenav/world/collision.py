@@ -13,7 +13,7 @@ import math
 
 import numpy as np
 
-from cavenav.types import Pose, VehicleBody  # the body is a plain value shared by every layer
+from cavenav.core.types import Pose, VehicleBody  # the body is a plain value shared by every layer
 from cavenav.world.raycast import RayCaster
 
 __all__ = ["VehicleBody", "clearance", "swept_collision"]

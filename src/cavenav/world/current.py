@@ -25,12 +25,12 @@ into a siphon.
 
 **How the water carries the vehicle** (`carry`). A BlueROV2 without a DVL cannot hold its
 position, so the current carries it: the move is flown through the water at the
-vehicle's cruise speed (`cavenav.types.Cruise`): first the turn, then the straight move
+vehicle's cruise speed (`cavenav.core.types.Cruise`): first the turn, then the straight move
 of SPEC section 5. For the move's duration the water adds its own horizontal velocity. A
 BlueROV2 does hold its depth (pressure sensor) and heading (compass), so it does not go
 up or down with the water and does not turn with it. Its thrusters work against the water's
 vertical speed instead, and the energy model counts that work
-(`cavenav.energy`). The time the pilot takes to decide is not flown: the water waits
+(`cavenav.motion.energy`). The time the pilot takes to decide is not flown: the water waits
 while the model thinks, as the SPEC's step-then-wait loop does.
 """
 
@@ -42,8 +42,8 @@ from functools import cached_property
 
 import numpy as np
 
-from cavenav.errors import ConfigError
-from cavenav.types import Action, Cruise, Pose
+from cavenav.core.errors import ConfigError
+from cavenav.core.types import Action, Cruise, Pose
 from cavenav.world.procedural import along, arc_length, cpu_independent
 from cavenav.world.raycast import RayCaster
 
@@ -220,7 +220,7 @@ class Passage:
 
     Attributes:
         carried_m: (x, y) metres the water carried the vehicle off the move; (0, 0) in
-            still water (`cavenav.kinematics.carried` adds them to the move).
+            still water (`cavenav.motion.kinematics.carried` adds them to the move).
         seconds: how long it took.
         dt: (k,) the integration's time steps, s.
         through_water: (k, 3) the vehicle's velocity through the water in each, body frame
@@ -242,7 +242,7 @@ def carry(
     cruise: Cruise,
 ) -> Passage:
     """Fly ``action`` from ``pose`` starting at ``clock_s`` (module docstring): ``moved``
-    is where the move alone takes the vehicle (`cavenav.kinematics.Motion.move`), along
+    is where the move alone takes the vehicle (`cavenav.motion.kinematics.Motion.move`), along
     which the water is met; with no field, or still water, nothing is carried."""
     turn_s, move_s = cruise_seconds(action, cruise)
     turn_k, move_k = math.ceil(turn_s / TIME_STEP_S), math.ceil(move_s / TIME_STEP_S)

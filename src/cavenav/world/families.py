@@ -18,8 +18,8 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy.spatial import cKDTree
 
-from cavenav.errors import ScenarioError
-from cavenav.types import Pose
+from cavenav.core.errors import ScenarioError
+from cavenav.core.types import Pose
 from cavenav.world.morphology import Boulder, Section, Speleothem, extent
 from cavenav.world.procedural import (
     Branch,

@@ -21,8 +21,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cavenav.errors import CavenavError
-from cavenav.types import VehicleBody
+from cavenav.core.errors import CavenavError
+from cavenav.core.types import VehicleBody
 from cavenav.world.raycast import RayCaster
 from cavenav.world.scenario import ExitPortal, Scenario
 

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cavenav.errors import MeshError
+from cavenav.core.errors import MeshError
 
 __all__ = [
     "MESH_SUFFIXES",

@@ -39,8 +39,8 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
-from cavenav.errors import CavenavWarning, MeshError
-from cavenav.files import write_then_rename
+from cavenav.core.errors import CavenavWarning, MeshError
+from cavenav.core.files import write_then_rename
 from cavenav.world.mesh import CaveMesh, make_mesh
 from cavenav.world.morphology import Boulder, Section, Speleothem, carve_scallops
 

@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from cavenav.errors import DependencyError
+from cavenav.core.errors import DependencyError
 from cavenav.world.mesh import CaveMesh
 
 __all__ = ["RayCaster"]

@@ -29,8 +29,8 @@ from typing import Any
 
 import numpy as np
 
-from cavenav.errors import ConfigError, ScenarioError
-from cavenav.types import Pose
+from cavenav.core.errors import ConfigError, ScenarioError
+from cavenav.core.types import Pose
 from cavenav.world import families
 from cavenav.world.families import Layout
 from cavenav.world.mesh import CaveMesh
@@ -176,7 +176,7 @@ HELD_OUT_SEEDS = range(1000, 2000)
 """Cave seeds of the test split, which nobody tunes on.
 
 Seeds 0-999 are for development: tuning prompts, pilots and thresholds, and training (the
-Gymnasium environment draws its caves below ``cavenav.env.TRAINING_SEEDS``, which is 1000
+Gymnasium environment draws its caves below ``cavenav.sim.env.TRAINING_SEEDS``, which is 1000
 for this reason). The numbers a report states come from seeds of this range, so they
 measure caves no choice was fitted to. The split is the same for every family and every
 difficulty: S1 at seed 1234 is held out however hard it is made.

@@ -74,8 +74,8 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 from pydantic_core import InitErrorDetails
 
-from cavenav.errors import ConfigError, MeshError, ScenarioError, invalid_field
-from cavenav.types import Pose
+from cavenav.core.errors import ConfigError, MeshError, ScenarioError, invalid_field
+from cavenav.core.types import Pose
 from cavenav.world.collision import VehicleBody
 from cavenav.world.mesh import CaveMesh, join_meshes, load_mesh, place_mesh, sphere_directions
 from cavenav.world.raycast import RayCaster

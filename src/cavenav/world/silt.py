@@ -35,7 +35,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from cavenav.types import Action, Pose
+from cavenav.core.types import Action, Pose
 
 __all__ = [
     "EXTINCTION_M2_PER_G",

@@ -13,8 +13,8 @@ import warnings
 
 import numpy as np
 
-from cavenav.errors import CavenavWarning
-from cavenav.types import VehicleBody
+from cavenav.core.errors import CavenavWarning
+from cavenav.core.types import VehicleBody
 from cavenav.world.mesh import CaveMesh, sphere_directions
 from cavenav.world.raycast import RayCaster
 

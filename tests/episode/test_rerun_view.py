@@ -1,0 +1,90 @@
+"""A live 3D view of an episode in Rerun, and any recorded episode replayed into one."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import pytest
+
+from cavenav.episode.rerun_log import ENTITIES
+from tests.conftest import cavenav
+
+rerun_chunk = pytest.importorskip("rerun.chunk", reason="the Rerun view needs rerun-sdk")
+
+
+def entity_rows(rrd: Path) -> dict[str, int]:
+    """Each entity in an .rrd file, read back with Rerun's own reader, and its rows."""
+    rows: dict[str, int] = {}
+    for chunk in rerun_chunk.RrdReader(rrd).stream().collect().stream():
+        rows[chunk.entity_path] = rows.get(chunk.entity_path, 0) + chunk.num_rows
+    return rows
+
+
+FLOWN = ["S4", "--steps", "4", "--resolution", "80x60"]
+
+
+@pytest.mark.slow
+def test_a_run_saves_every_entity_of_the_live_view_step_by_step(tmp_path: Path) -> None:
+    rrd = tmp_path / "view" / "s4.rrd"
+    done = cavenav("run", *FLOWN, "--out", str(tmp_path / "runs"), "--rerun-save", str(rrd))
+    assert done.returncode == 0, done.stderr
+    rows = entity_rows(rrd)
+    assert {f"/{name}" for name in ENTITIES} <= rows.keys()  # the geometric pilot has a map
+    assert rows["/cave"] == rows["/cave/ceiling"] == 1  # static
+    assert rows["/pilot/action"] == 4 and rows["/pilot/map"] == 4  # one a decision
+    assert rows["/vehicle"] == rows["/vehicle/camera/rgb"] == 5  # the start, then each step
+
+
+@pytest.mark.slow
+def test_view_replays_a_run_folder_with_its_cave_frames_and_decisions(tmp_path: Path) -> None:
+    done = cavenav("run", *FLOWN, "--out", str(tmp_path / "runs"))
+    assert done.returncode == 0, done.stderr
+    (run_dir,) = (tmp_path / "runs").iterdir()
+    rrd = tmp_path / "replay.rrd"
+    viewed = cavenav("view", str(run_dir), "--save", str(rrd))
+    assert viewed.returncode == 0, viewed.stderr
+    rows = entity_rows(rrd)
+    assert {"/cave", "/cave/exits", "/path", "/vehicle", "/vehicle/sounders"} <= rows.keys()
+    assert rows["/vehicle/camera/rgb"] == rows["/vehicle/camera/depth"] == 4  # the frames kept
+    assert rows["/pilot/action"] == 4
+    steps = (run_dir / "steps.jsonl").read_text().splitlines()
+    assert rows["/vehicle"] == len(steps) + 1  # and where the last step left it
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["termination"] == "budget"
+
+
+def test_a_live_view_with_no_display_is_refused_before_anything_is_flown(tmp_path: Path) -> None:
+    headless = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
+    done = cavenav(
+        "run", *FLOWN, "--out", str(tmp_path), "--rerun", env={**headless, "COLUMNS": "240"}
+    )
+    assert done.returncode == 2
+    assert done.stderr.strip().splitlines() == [
+        "error: the Rerun viewer needs a display (DISPLAY is not set): save the recording to "
+        "a file (--rerun-save, or --save with cavenav view) and open it with `rerun FILE` "
+        "where there is one"
+    ]
+    assert list(tmp_path.iterdir()) == []  # no empty run folder left behind
+
+
+def test_a_recording_that_cannot_be_written_is_refused_before_anything_is_flown(
+    tmp_path: Path,
+) -> None:
+    blocked = tmp_path / "a-file"
+    blocked.write_text("")
+    runs = tmp_path / "runs"
+    done = cavenav("run", *FLOWN, "--out", str(runs), "--rerun-save", str(blocked / "s4.rrd"))
+    assert done.returncode == 2 and len(done.stderr.strip().splitlines()) == 1
+    assert done.stderr.startswith(f"error: cannot write the Rerun recording {blocked / 's4.rrd'}")
+    assert not runs.exists() or list(runs.iterdir()) == []
+
+
+def test_view_of_a_folder_that_is_not_a_run_says_so_in_one_line(tmp_path: Path) -> None:
+    done = cavenav("view", str(tmp_path), "--save", str(tmp_path / "x.rrd"))
+    assert done.returncode == 2
+    assert (
+        done.stderr.strip()
+        == f"error: {tmp_path / 'summary.json'}: cannot be read (No such file or directory)"
+    )
