@@ -9,7 +9,7 @@ import math
 import signal
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import click
 import typer
@@ -26,6 +26,9 @@ from rich.progress import (
 from cavenav.cli.output import console, errors, print_summary
 from cavenav.cli.vehicle_flags import LiveView, OwnSensors
 from cavenav.core.errors import CavenavError
+
+if TYPE_CHECKING:
+    from cavenav.evaluation.results import ResultRow
 
 __all__ = ["fly_episode", "fly_on_own_sensors", "fly_sweep", "fly_vehicle", "open_sensors"]
 
@@ -140,8 +143,8 @@ def fly_sweep(
     config: Any,  # noqa: ANN401
     out: Path,
     executor: Any,  # noqa: ANN401
-    on_row: Callable[[dict], None] | None = None,
-) -> list[dict]:
+    on_row: Callable[[ResultRow], None] | None = None,
+) -> list[ResultRow]:
     """`run_sweep` with a progress bar; Ctrl-C or SIGTERM stop it with the tables written.
     ``on_row`` sees each episode's results row as it ends (`cavenav eval --wandb`)."""
     from cavenav.core.errors import RecordingError
@@ -156,7 +159,7 @@ def fly_sweep(
                 progress.console.print(f"resuming {out}: {grid - left} of {grid} episodes done")
             progress.update(task, total=left)
 
-        def done(row: dict) -> None:
+        def done(row: ResultRow) -> None:
             counts["done"] += 1
             counts["success"] += row.get("outcome") == "success"
             status = f"{counts['success']}/{counts['done']} succeeded  last: {row['episode']} "

@@ -6,7 +6,7 @@ the records as written.
 from __future__ import annotations
 
 import os
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -17,6 +17,7 @@ from rich.table import Table
 
 if TYPE_CHECKING:
     from cavenav.episode.records import EpisodeSummary
+    from cavenav.evaluation.results import ResultRow
 
 __all__ = [
     "console",
@@ -117,7 +118,7 @@ def _summary_rows(s: EpisodeSummary) -> list[tuple[str, Any]]:
     return rows
 
 
-def print_groups(rows: list[dict]) -> None:
+def print_groups(rows: Sequence[ResultRow]) -> None:
     """A sweep's results, one line per scenario (`cavenav.evaluation.results.aggregate`)."""
     from cavenav.evaluation.results import aggregate
 

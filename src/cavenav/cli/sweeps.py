@@ -7,7 +7,7 @@ import os
 from dataclasses import replace
 from enum import StrEnum
 from pathlib import Path
-from typing import Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
@@ -26,6 +26,9 @@ from cavenav.cli.output import console, print_comparison, print_groups, print_le
 from cavenav.core.errors import CavenavError
 from cavenav.episode.settings import FRAME_MODES, VIDEO_MODES, EpisodeConfig
 from cavenav.pilots.factory import VLMOptions
+
+if TYPE_CHECKING:
+    from cavenav.evaluation.results import ResultRow
 
 # What a sweep keeps of each step's images (`cavenav.episode.settings.FRAME_MODES`).
 FramesMode = StrEnum("FramesMode", {name: name for name in FRAME_MODES})  # type: ignore[misc]
@@ -102,7 +105,7 @@ def eval_(
     _sweep_flown(out, rows, report, log)
 
 
-def _sweep_flown(out: Path, rows: list[dict], report: bool, log: Any) -> None:  # noqa: ANN401
+def _sweep_flown(out: Path, rows: list[ResultRow], report: bool, log: Any) -> None:  # noqa: ANN401
     """The tables, the paths, the report and the W&B run's last entries of a sweep."""
     if log:
         log.finish(rows)

@@ -22,7 +22,7 @@ from typing import Any
 from cavenav.core.errors import CavenavError, ConfigError, RecordingError
 from cavenav.episode.run_folder import write_atomic, write_json
 from cavenav.evaluation.report import page_name, render_page
-from cavenav.evaluation.results import compare, group, priced
+from cavenav.evaluation.results import ResultRow, compare, group, priced
 from cavenav.evaluation.sweep import read_rows, read_sweep
 
 __all__ = [
@@ -77,7 +77,7 @@ class Compared:
     path: Path
     label: str
     config: Mapping[str, Any]
-    rows: list[dict[str, Any]]
+    rows: list[ResultRow]
 
 
 def load_sweeps(

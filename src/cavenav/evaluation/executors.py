@@ -29,7 +29,7 @@ from typing import Any, TypeVar, cast
 import numba
 
 from cavenav.core.errors import ConfigError, DependencyError, RecordingError
-from cavenav.evaluation.results import episode_row
+from cavenav.evaluation.results import ResultRow, episode_row
 from cavenav.evaluation.sweep import (
     EpisodeJob,
     EpisodeWorker,
@@ -41,7 +41,7 @@ from cavenav.sensors.kernels import KERNELS_RUN_CONCURRENTLY
 
 __all__ = ["InProcess", "LocalPool", "RayCluster", "deal"]
 
-Done = Callable[[dict[str, Any]], None]
+Done = Callable[[ResultRow], None]
 Worker = TypeVar("Worker")
 
 
@@ -381,7 +381,7 @@ class _RayWorker:
     def __init__(self, config: SweepConfig, folder: str):
         self.worker = EpisodeWorker(config, Path(folder))
 
-    def fly(self, job: EpisodeJob) -> dict[str, Any]:
+    def fly(self, job: EpisodeJob) -> ResultRow:
         return self.worker.fly(job)
 
 

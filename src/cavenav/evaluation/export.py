@@ -16,10 +16,10 @@ import importlib.util
 import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 from cavenav.core.errors import ConfigError, DependencyError
-from cavenav.evaluation.results import COLUMNS, group
+from cavenav.evaluation.results import COLUMNS, ResultRow, group
 
 __all__ = ["EPISODE_METRICS", "WandbLog", "require_wandb"]
 
@@ -74,12 +74,12 @@ class WandbLog:
                 raise ConfigError(f"--wandb: Weights & Biases did not start: {exc}") from None
         return self._run
 
-    def episode(self, row: Mapping[str, Any]) -> None:
+    def episode(self, row: ResultRow) -> None:
         """Log one finished episode's results row (and its video, where there is one)."""
         logged: dict[str, Any] = {
-            f"episode/{key}": float(row[key])
+            f"episode/{key}": float(value)
             for key in EPISODE_METRICS
-            if row.get(key) not in (None, "")
+            if (value := cast(Mapping[str, Any], row).get(key)) not in (None, "")
         }
         logged.update({"episode/id": row["episode"], "episode/outcome": row["outcome"]})
         video = self.folder / str(row.get("run_dir") or "") / "episode.mp4"
@@ -87,7 +87,7 @@ class WandbLog:
             logged["episode/video"] = self._wandb.Video(str(video), format="mp4")
         self.run.log(logged)
 
-    def finish(self, rows: Sequence[Mapping[str, Any]]) -> None:
+    def finish(self, rows: Sequence[ResultRow]) -> None:
         """Log the results table and the sweep's totals, and close the run."""
         table = self._wandb.Table(
             columns=list(COLUMNS),

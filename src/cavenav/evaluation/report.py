@@ -41,7 +41,7 @@ from cavenav.episode.records import (
     read_sweep_file,
 )
 from cavenav.episode.run_folder import write_atomic
-from cavenav.evaluation.results import aggregate, cave_rates, priced
+from cavenav.evaluation.results import ResultRow, aggregate, cave_rates, priced
 from cavenav.evaluation.results import outcome as episode_outcome
 from cavenav.evaluation.sweep import read_rows
 
@@ -90,7 +90,7 @@ class SweepRecord:
 
     path: Path
     config: Mapping[str, Any]
-    rows: tuple[Mapping[str, Any], ...]
+    rows: tuple[ResultRow, ...]
     groups: tuple[Mapping[str, Any], ...]
 
 
@@ -118,7 +118,7 @@ def read_run(path: Path) -> RunRecord:
     )
 
 
-def read_sweep_record(folder: Path, rows: Sequence[Mapping[str, Any]] | None = None) -> SweepRecord:
+def read_sweep_record(folder: Path, rows: Sequence[ResultRow] | None = None) -> SweepRecord:
     """Read sweep.json and every episode's results row, and aggregate them.
 
     Args:
@@ -707,7 +707,7 @@ def _episode_pages(
 
 
 def _write_sweep_report(
-    folder: Path, rows: Sequence[Mapping[str, Any]] | None, prices: tuple[float, float] | None
+    folder: Path, rows: Sequence[ResultRow] | None, prices: tuple[float, float] | None
 ) -> Path:
     """report/index.html and report/episodes/<id>.html for a sweep folder; returns the index."""
     if prices is not None:  # results.csv keeps what was recorded; the page, these prices
@@ -744,7 +744,7 @@ def _write_sweep_report(
 
 def write_report(
     folder: Path,
-    rows: Sequence[Mapping[str, Any]] | None = None,
+    rows: Sequence[ResultRow] | None = None,
     prices: tuple[float, float] | None = None,
 ) -> Path:
     """Write the HTML report of a sweep folder or of one run folder; returns its main page.

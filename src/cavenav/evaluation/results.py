@@ -34,7 +34,7 @@ import warnings
 from collections import Counter
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, TypedDict, cast
 
 import numpy as np
 from scipy.stats import binomtest, norm, wilcoxon
@@ -47,6 +47,7 @@ from cavenav.episode.records import (
     EpisodeSummary,
     Outcome,
     StepRecord,
+    Termination,
     load_steps,
     load_summary,
 )
@@ -56,6 +57,7 @@ from cavenav.safety.headway import Headway
 __all__ = [
     "COLUMNS",
     "OUTCOMES",
+    "ResultRow",
     "WINDOW",
     "aggregate",
     "cave_rates",
@@ -83,48 +85,60 @@ _OWN_OUTCOMES: tuple[Outcome, ...] = tuple(
     o for o in OUTCOMES if o in TERMINATIONS and o not in ("exit", "budget")
 )
 
-COLUMNS = (
-    "episode",
-    "scenario",
-    "seed",
-    "trial",
-    "scenario_set",
-    "pilot",
-    "status",
-    "success",
-    "termination",
-    "outcome",
-    "steps",
-    "collisions",
-    "progress_m",
-    "passage_length_m",
-    "path_length_m",
-    "path_efficiency",
-    "shortest_path_m",
-    "spl",
-    "min_clearance_m",
-    "mean_clearance_m",
-    "steps_below_standoff",
-    "shield_interventions",
-    "invalid_actions",
-    "energy_wh",
-    "moving_s",
-    "mean_current_m_s",
-    "mean_drift_m",
-    "requeries",
-    "transport_retries",
-    "prompt_tokens",
-    "completion_tokens",
-    "cost_usd",
-    "mean_model_latency_s",
-    "model_p50_s",
-    "model_p95_s",
-    "mean_pilot_ms",
-    "mean_sense_ms",
-    "wall_time_s",
-    "error",
-    "run_dir",
-)
+
+class ResultRow(TypedDict, total=False):
+    """One episode's row of results.csv, its columns in order (`COLUMNS`), as every reader
+    of results takes it: the report, the comparison, the exports and the progress line.
+
+    A row of a folder with no summary or a damaged one holds only ``episode``,
+    ``status``, ``outcome``, ``run_dir`` (and ``error``); every other value may be None.
+    """
+
+    episode: str
+    scenario: str | None
+    seed: int | None
+    trial: int | None
+    scenario_set: str
+    pilot: str | None
+    status: str | None  # running, finished, interrupted, crashed; missing or damaged
+    success: bool | None
+    termination: Termination | None
+    outcome: Outcome
+    steps: int | None
+    collisions: int | None
+    progress_m: float | None
+    passage_length_m: float | None
+    path_length_m: float | None
+    path_efficiency: float | None
+    shortest_path_m: float | None
+    spl: float | None
+    min_clearance_m: float | None
+    mean_clearance_m: float | None
+    steps_below_standoff: int | None
+    shield_interventions: int | None
+    invalid_actions: int | None
+    energy_wh: float | None
+    moving_s: float | None
+    mean_current_m_s: float | None
+    mean_drift_m: float | None
+    requeries: int | None
+    transport_retries: int | None
+    prompt_tokens: int | None
+    completion_tokens: int | None
+    cost_usd: float | None
+    mean_model_latency_s: float | None
+    model_p50_s: float | None
+    model_p95_s: float | None
+    mean_pilot_ms: float | None
+    mean_sense_ms: float | None
+    wall_time_s: float | None
+    error: str | None
+    run_dir: str
+    # each model step's server time, for a group's percentiles (not a results.csv column)
+    model_step_s: list[float | None]
+
+
+COLUMNS = tuple(name for name in ResultRow.__annotations__ if name != "model_step_s")
 
 
 def server_failed(summary: EpisodeSummary | Mapping[str, Any]) -> bool:
@@ -192,7 +206,7 @@ def read_episode(run_dir: Path) -> tuple[EpisodeSummary, list[StepRecord]]:
     return load_summary(run_dir / "summary.json"), load_steps(run_dir / "steps.jsonl")
 
 
-def episode_row(run_dir: Path, root: Path | None = None) -> dict[str, Any]:
+def episode_row(run_dir: Path, root: Path | None = None) -> ResultRow:
     """One results.csv row for the run folder ``run_dir`` (``root``: paths relative to it).
 
     A folder with no summary (never started, or killed before its first write) gives an
@@ -216,7 +230,6 @@ def episode_row(run_dir: Path, root: Path | None = None) -> dict[str, Any]:
         **_summary_columns(summary),
         "outcome": outcome(summary, steps),
         **_usage_columns(summary),
-        # each model step's server time, for a group's percentiles (not a results.csv column)
         "model_step_s": [
             step.vlm.get("model_s") for step in steps if step.vlm and not step.vlm.get("cached")
         ],
@@ -225,7 +238,7 @@ def episode_row(run_dir: Path, root: Path | None = None) -> dict[str, Any]:
     }
 
 
-def _summary_columns(s: EpisodeSummary) -> dict[str, Any]:
+def _summary_columns(s: EpisodeSummary) -> ResultRow:
     """The columns a summary gives as it stands, and the path efficiency (metres of
     centre line per metre flown)."""
     efficiency = None
@@ -262,22 +275,27 @@ def _summary_columns(s: EpisodeSummary) -> dict[str, Any]:
     }
 
 
-def _usage_columns(s: EpisodeSummary) -> dict[str, Any]:
+def _usage_columns(s: EpisodeSummary) -> ResultRow:
     """What the model cost, for a model pilot (empty columns for the others)."""
     usage = s.usage
+    if usage is None:
+        return cast(ResultRow, dict.fromkeys(_USAGE))
     return {
-        "requeries": usage and usage.requeries,
-        "transport_retries": usage and usage.transport_retries,
-        "prompt_tokens": usage and usage.prompt_tokens,
-        "completion_tokens": usage and usage.completion_tokens,
-        "cost_usd": usage and usage.cost_usd,
-        "mean_model_latency_s": usage and usage.mean_latency_s,
-        "model_p50_s": usage and usage.model_p50_s,
-        "model_p95_s": usage and usage.model_p95_s,
+        "requeries": usage.requeries,
+        "transport_retries": usage.transport_retries,
+        "prompt_tokens": usage.prompt_tokens,
+        "completion_tokens": usage.completion_tokens,
+        "cost_usd": usage.cost_usd,
+        "mean_model_latency_s": usage.mean_latency_s,
+        "model_p50_s": usage.model_p50_s,
+        "model_p95_s": usage.model_p95_s,
     }
 
 
-def priced(rows: Sequence[Mapping[str, Any]], prices: tuple[float, float]) -> list[dict]:
+_USAGE = COLUMNS[COLUMNS.index("requeries") : COLUMNS.index("model_p95_s") + 1]
+
+
+def priced(rows: Sequence[ResultRow], prices: tuple[float, float]) -> list[ResultRow]:
     """``rows`` with ``cost_usd`` worked out from their recorded tokens at ``prices`` (USD
     per million prompt and completion tokens), for a sweep flown without ``--price`` or
     at another price; a row that recorded no tokens keeps its cost."""
@@ -286,10 +304,10 @@ def priced(rows: Sequence[Mapping[str, Any]], prices: tuple[float, float]) -> li
     for row in rows:
         tokens_in, tokens_out = row.get("prompt_tokens"), row.get("completion_tokens")
         if tokens_in in (None, "") or tokens_out in (None, ""):
-            out.append(dict(row))
+            out.append(ResultRow(**row))
             continue
         cost = (float(tokens_in) * price_in + float(tokens_out) * price_out) / 1e6
-        out.append({**row, "cost_usd": round(cost, 6)})
+        out.append(ResultRow(**row, cost_usd=round(cost, 6)))
     return out
 
 
@@ -310,18 +328,17 @@ def _wilson_bounds(successes: int, trials: int, confidence: float) -> tuple[floa
 Cave = tuple[str, int]  # (scenario, seed): what pairs two sweeps' episodes, and trials repeat
 
 
-def _by_cave(
-    rows: Iterable[Mapping[str, Any]], completed: bool = True
-) -> dict[Cave, list[Mapping[str, Any]]]:
+def _by_cave(rows: Iterable[ResultRow], completed: bool = True) -> dict[Cave, list[ResultRow]]:
     """Completed episodes (``completed=False``: all) by cave, each cave's trials in order."""
-    caves: dict[Cave, list[Mapping[str, Any]]] = {}
+    caves: dict[Cave, list[ResultRow]] = {}
     for r in rows:
-        if (r["outcome"] != "incomplete" or not completed) and r.get("seed") not in (None, ""):
-            caves.setdefault((str(r["scenario"]), int(r["seed"])), []).append(r)
+        seed = r.get("seed")
+        if (r["outcome"] != "incomplete" or not completed) and seed not in (None, ""):
+            caves.setdefault((str(r["scenario"]), int(seed)), []).append(r)
     return caves
 
 
-Trials = Mapping[Cave, Sequence[Mapping[str, Any]]]  # a sweep's completed episodes by cave
+Trials = Mapping[Cave, Sequence[ResultRow]]  # a sweep's completed episodes by cave
 Counts = Sequence[tuple[int, int]]  # per cave: (episodes with the event, episodes)
 
 
@@ -387,14 +404,12 @@ def _clustered_side(counts: Counts, confidence: float) -> tuple[float, tuple[flo
     return rate, _wilson_at(rate, _effective_trials(counts), confidence)
 
 
-def _counts(trials: Iterable[Sequence[Mapping[str, Any]]], event: str) -> list[tuple[int, int]]:
+def _counts(trials: Iterable[Sequence[ResultRow]], event: str) -> list[tuple[int, int]]:
     """Per cave's completed ``trials``, the episodes whose outcome is ``event``, and all."""
     return [(sum(r["outcome"] == event for r in rows), len(rows)) for rows in trials]
 
 
-def _interval(
-    done: Sequence[Mapping[str, Any]], event: str, caves: Trials
-) -> tuple[float, float] | None:
+def _interval(done: Sequence[ResultRow], event: str, caves: Trials) -> tuple[float, float] | None:
     """The 95% interval of the rate of ``event`` over ``done``, the same episodes by cave
     in ``caves``: Wilson's, or `clustered_wilson` where caves were flown several times."""
     if len(caves) in (0, len(done)):
@@ -413,7 +428,7 @@ def _total(values: Iterable[Any]) -> float | None:
     return round(sum(numbers), 6) if numbers else None
 
 
-def _spl(done: Sequence[Mapping[str, Any]]) -> float | None:
+def _spl(done: Sequence[ResultRow]) -> float | None:
     """SPL over completed episodes, a failure (an error too) scoring 0; unknown (None)
     where a success has none recorded (flown before SPL was, or no shortest path found),
     as a mean without it would be biased."""
@@ -423,7 +438,7 @@ def _spl(done: Sequence[Mapping[str, Any]]) -> float | None:
     return _mean(known)
 
 
-def group(scenario: str, pilot: str, rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+def group(scenario: str, pilot: str, rows: Sequence[ResultRow]) -> dict[str, Any]:
     """The aggregate of one (scenario, pilot) cell over its completed episodes.
 
     Rates and their intervals count every completed episode (errors included: a pilot
@@ -436,7 +451,7 @@ def group(scenario: str, pilot: str, rows: Sequence[Mapping[str, Any]]) -> dict[
     collisions = sum(1 for r in done if r["outcome"] == "collision")
     n = len(done)
     caves = _by_cave(done)
-    clearance_minima = [r["min_clearance_m"] for r in done if r.get("min_clearance_m") is not None]
+    clearance_minima = [c for r in done if (c := r.get("min_clearance_m")) is not None]
     return {
         "scenario": scenario,
         "pilot": pilot,
@@ -476,7 +491,7 @@ def group(scenario: str, pilot: str, rows: Sequence[Mapping[str, Any]]) -> dict[
     }
 
 
-def _per_success(done: Sequence[Mapping[str, Any]], successes: int) -> dict[str, float | None]:
+def _per_success(done: Sequence[ResultRow], successes: int) -> dict[str, float | None]:
     """Tokens and cost per success: what one way out costs (None without a success, or
     for a pilot without a model)."""
     tokens = _total(_measure(r, "tokens") for r in done)
@@ -487,14 +502,14 @@ def _per_success(done: Sequence[Mapping[str, Any]], successes: int) -> dict[str,
     }
 
 
-def aggregate(rows: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
+def aggregate(rows: Sequence[ResultRow]) -> list[dict[str, Any]]:
     """One group per (scenario, pilot) in order of appearance, then "all" per pilot.
 
     ``path_efficiency`` is averaged over successful episodes only (metres of centre line
     per metre flown), ``path_efficiency_all`` over every completed one; clearances,
     steps and costs over every completed episode.
     """
-    cells: dict[tuple[str, str], list[Mapping[str, Any]]] = {}
+    cells: dict[tuple[str, str], list[ResultRow]] = {}
     for row in rows:
         cells.setdefault((str(row.get("scenario")), str(row.get("pilot"))), []).append(row)
     groups = [group(scenario, pilot, members) for (scenario, pilot), members in cells.items()]
@@ -504,7 +519,7 @@ def aggregate(rows: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
     return groups
 
 
-def cave_rates(rows: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
+def cave_rates(rows: Sequence[ResultRow]) -> list[dict[str, Any]]:
     """Each cave's success rate over its completed trials, for a sweep that flew caves
     several times (``--trials``): scenario, seed, successes, completed, success_rate and
     its episodes (run folder names, in trial order, incomplete ones included)."""
@@ -523,7 +538,7 @@ def cave_rates(rows: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
     return caves
 
 
-def write_results(folder: Path, rows: Sequence[Mapping[str, Any]], meta: Mapping[str, Any]) -> None:
+def write_results(folder: Path, rows: Sequence[ResultRow], meta: Mapping[str, Any]) -> None:
     """results.csv (one row per episode) and aggregate.json (``meta`` under "sweep"; with
     trials, each cave's rate under "caves")."""
     table = io.StringIO(newline="")
@@ -602,16 +617,16 @@ def _combined(
 PAIRED_MEASURES = ("min_clearance_m", "steps", "tokens", "cost_usd")
 
 
-def _measure(row: Mapping[str, Any], name: str) -> float | None:
+def _measure(row: ResultRow, name: str) -> float | None:
     if name == "tokens":
         given = [row.get("prompt_tokens"), row.get("completion_tokens")]
         counts = [float(c) for c in given if c not in (None, "")]
         return sum(counts) if counts else None
-    value = row.get(name)
+    value = cast(Mapping[str, Any], row).get(name)  # a column named at run time
     return None if value in (None, "") else float(value)
 
 
-def _cave_mean(trials: Sequence[Mapping[str, Any]], name: str) -> float | None:
+def _cave_mean(trials: Sequence[ResultRow], name: str) -> float | None:
     """The mean of measure ``name`` over a cave's trials that recorded it."""
     values = [v for r in trials if (v := _measure(r, name)) is not None]
     return sum(values) / len(values) if values else None
@@ -635,7 +650,7 @@ def _signed_rank(pairs: Sequence[tuple[float, float]]) -> dict[str, Any] | None:
     }
 
 
-def _won(row: Mapping[str, Any]) -> bool:
+def _won(row: ResultRow) -> bool:
     return row["outcome"] == "success"
 
 
@@ -730,7 +745,7 @@ def _paired_rates(keys: Sequence[Cave], a: Trials, b: Trials) -> dict[str, Any]:
     }
 
 
-def compare(rows_a: Sequence[Mapping[str, Any]], rows_b: Sequence[Mapping[str, Any]]) -> dict:
+def compare(rows_a: Sequence[ResultRow], rows_b: Sequence[ResultRow]) -> dict:
     """Two sweeps paired by cave (scenario, seed): success rates, their difference and
     the test of it, and paired tests of the other measures.
 

@@ -58,7 +58,7 @@ from cavenav.episode.settings import (
     EpisodeConfig,
     configured,
 )
-from cavenav.evaluation.results import episode_row, outcome, read_episode, write_results
+from cavenav.evaluation.results import ResultRow, episode_row, outcome, read_episode, write_results
 from cavenav.pilots.base import Pilot
 from cavenav.pilots.factory import PilotSpec, VLMOptions
 from cavenav.world.scenarios import (
@@ -501,7 +501,7 @@ class EpisodeWorker:
         settings = self.config.settings
         return settings.for_episode(cave, job.noise_seed(settings.seed) if job else 0)
 
-    def fly(self, job: EpisodeJob) -> dict[str, Any]:
+    def fly(self, job: EpisodeJob) -> ResultRow:
         """Fly one episode into a fresh run folder, with its episode.mp4 where the sweep's
         ``video`` asks for one; its results row.
 
@@ -530,7 +530,8 @@ class EpisodeWorker:
                     raise
             if fault is not None:  # the first cause, naming the file
                 raise fault from None
-        row = {**episode_row(run_dir, self.folder), "trial": job.trial}
+        row = episode_row(run_dir, self.folder)
+        row["trial"] = job.trial
         wanted = {"all": True, "failures": row["outcome"] != "success"}.get(self.config.video)
         if wanted and row.get("status") == "finished":
             _video(run_dir)
@@ -598,7 +599,7 @@ class Executor(Protocol):
         config: SweepConfig,
         folder: Path,
         jobs: Sequence[EpisodeJob],
-        done: Callable[[dict[str, Any]], None],
+        done: Callable[[ResultRow], None],
     ) -> None:
         """Fly every job, calling ``done`` with each results row as it arrives."""
 
@@ -607,9 +608,9 @@ def run_sweep(
     config: SweepConfig,
     folder: Path,
     executor: Executor,
-    done: Callable[[dict[str, Any]], None] | None = None,
+    done: Callable[[ResultRow], None] | None = None,
     started: Callable[[int, int], None] | None = None,
-) -> list[dict[str, Any]]:
+) -> list[ResultRow]:
     """Fly what is left of the sweep in ``folder``; write results.csv and aggregate.json.
 
     Args:
@@ -726,7 +727,7 @@ def read_sweep(folder: Path) -> tuple[SweepConfig, dict[str, Any]]:
         raise ConfigError(f"{path} cannot be read as a sweep: {exc}") from None
 
 
-def read_rows(folder: Path, write: bool = True) -> list[dict[str, Any]]:
+def read_rows(folder: Path, write: bool = True) -> list[ResultRow]:
     """Every episode's results row, in grid order; with ``write``, results.csv and
     aggregate.json are (re)written from them. Episodes never started are "incomplete"."""
     folder = Path(folder)
@@ -735,7 +736,7 @@ def read_rows(folder: Path, write: bool = True) -> list[dict[str, Any]]:
     for job in plan(config):
         row = episode_row(folder / "episodes" / job.episode, folder)
         if row["status"] in ("missing", "damaged"):  # no summary to say whose it is
-            row.update(scenario=job.scenario, pilot=config.pilot.label)
+            row["scenario"], row["pilot"] = job.scenario, config.pilot.label
         row["seed"] = job.seed  # a mesh file's summary has none, yet its episodes pair by it
         row["trial"] = job.trial
         rows.append(row)
