@@ -35,7 +35,7 @@ LIVE_VIEW = OptionGroup(
         flag(
             "rerun",
             bool,
-            False,
+            LiveView.rerun,
             "show the episode live in a Rerun viewer: cave, path, camera, depth, sounders, "
             "map and each decision (pip install -e '.[rerun]')",
             "--rerun",
@@ -67,18 +67,19 @@ class OwnSensors:
     depth_model: str | None = None
 
 
+_OWN = OwnSensors()
 OWN_SENSORS = OptionGroup(
     (
         flag(
             "camera",
             str,
-            "udp:5600",
+            _OWN.camera,
             "without --sim: the video, udp:PORT (RTP H.264, as BlueOS sends it) or rtsp://...",
         ),
         flag(
             "camera_hfov",
             float,
-            53.13,
+            _OWN.camera_hfov,
             "without --sim: the camera's horizontal field of view in water, degrees",
             min=10,
             max=170,
@@ -87,7 +88,7 @@ OWN_SENSORS = OptionGroup(
         flag(
             "camera_latency",
             float,
-            0.2,
+            _OWN.camera_latency,
             "without --sim: seconds from the camera's sensor to a decoded frame; each step "
             "waits for a frame decoded this long after the move ended",
             min=0,
@@ -124,8 +125,8 @@ class CaveScene:
     ping_down_port: int = 9090
 
 
-def _port(name: str, default: int, text: str) -> Flag:
-    return flag(name, int, default, f"--scene: {text}", min=1, max=65535)
+def _port(name: str, text: str) -> Flag:
+    return flag(name, int, getattr(CaveScene(), name), f"--scene: {text}", min=1, max=65535)
 
 
 CAVE_SCENE = OptionGroup(
@@ -137,10 +138,10 @@ CAVE_SCENE = OptionGroup(
             "serve the vehicle's camera (RTP H.264) and sounders "
             "(Ping1D) rendered in this cave (a family or a .toml)",
         ),  # fmt: skip
-        flag("cave_seed", int, 0, "seed of the --scene cave", min=0),
-        _port("camera_port", 5600, "the camera's UDP port on 127.0.0.1"),
-        _port("ping_up_port", 9091, "the upward Ping1D's UDP port"),
-        _port("ping_down_port", 9090, "the downward Ping1D's UDP port"),
+        flag("cave_seed", int, CaveScene.cave_seed, "seed of the --scene cave", min=0),
+        _port("camera_port", "the camera's UDP port on 127.0.0.1"),
+        _port("ping_up_port", "the upward Ping1D's UDP port"),
+        _port("ping_down_port", "the downward Ping1D's UDP port"),
     ),
     CaveScene,
 )
