@@ -320,23 +320,44 @@ def test_every_vlm_option_is_one_flag_with_one_help_in_run_eval_and_fly() -> Non
 
 
 def test_an_option_the_value_does_not_take_is_refused_when_declared() -> None:
-    from typing import Annotated
-
-    import typer
-
     from cavenav.cli.episode_flags import VLM
-    from cavenav.cli.flags import Flag, OptionGroup, takes
+    from cavenav.cli.flags import Group
     from cavenav.pilots.factory import VLMOptions
 
-    renamed = Flag("max_token", Annotated[int, typer.Option(help="tokens")], 1024)
     with pytest.raises(TypeError, match="VLMOptions takes no option max_token"):
-        OptionGroup((*VLM.flags, renamed), VLMOptions)
-    with pytest.raises(TypeError, match="no option colour"):
-        VLM.only("model", "colour")
-    with pytest.raises(TypeError, match="declares model twice"):
+        Group((*VLM.names, "max_token"), VLMOptions)
 
-        @takes(vlm=VLM)
-        def command(model: str = "", vlm: object = None) -> None: ...
+
+def test_each_command_declares_its_options_with_the_defaults_of_the_value_they_build() -> None:
+    """A command lists the options of each group it takes in its own signature; their
+    defaults there must build the value's own defaults (one default, written once)."""
+    import inspect
+
+    from cavenav.cli.episode_flags import SETTINGS, VLM
+    from cavenav.cli.episodes import ask, render, run
+    from cavenav.cli.fake_sub import fake_sub
+    from cavenav.cli.sweeps import eval_
+    from cavenav.cli.training import dataset
+    from cavenav.cli.vehicle import fly
+    from cavenav.cli.vehicle_flags import CAVE_SCENE, LIVE_VIEW, OWN_SENSORS
+
+    commands = {
+        run: (SETTINGS, VLM, LIVE_VIEW),
+        render: (SETTINGS,),
+        ask: (VLM,),
+        eval_: (SETTINGS, VLM),
+        dataset: (VLM,),
+        fly: (SETTINGS, VLM, LIVE_VIEW, OWN_SENSORS),
+        fake_sub: (CAVE_SCENE,),
+    }
+    for command, groups in commands.items():
+        parameters = inspect.signature(command).parameters
+        for group in groups:
+            declared = {
+                name: parameters[name].default for name in group.names if name in parameters
+            }
+            assert declared, f"{command.__name__} takes none of {group.build.__name__}'s options"
+            assert group.value(declared) == group.value({}), command.__name__
 
 
 def test_fly_takes_the_sensor_optics_resolution_and_difficulty_flags(

@@ -32,10 +32,11 @@ import typer
 from rich.markup import escape
 
 from cavenav.cli.episodes import ask, render, run, scenarios, video, view, warmup
+from cavenav.cli.fake_sub import fake_sub
 from cavenav.cli.output import errors
 from cavenav.cli.sweeps import FramesMode, compare, eval_, report
 from cavenav.cli.training import dataset, finetune
-from cavenav.cli.vehicle import fake_sub, fly
+from cavenav.cli.vehicle import fly
 from cavenav.core.errors import CavenavError
 from cavenav.core.redaction import redact
 

@@ -9,17 +9,12 @@ from typing import Annotated, Any
 import typer
 
 from cavenav.cli.output import console
-from cavenav.cli.vehicle_flags import CaveScene, LiveView, OwnSensors
+from cavenav.cli.vehicle_flags import LiveView
 from cavenav.core.errors import CavenavError
 from cavenav.episode.settings import EpisodeConfig
 from cavenav.pilots.factory import PilotSpec, VLMOptions
 
 __all__ = [
-    "CAVE_SCENE_FILLED_BY_TAKES",
-    "FILLED_BY_TAKES",
-    "OWN_SENSORS_FILLED_BY_TAKES",
-    "VIEW_FILLED_BY_TAKES",
-    "VLM_FILLED_BY_TAKES",
     "FramesOpt",
     "FromOpt",
     "PilotOpt",
@@ -53,14 +48,6 @@ TeacherOpt = Annotated[
         "as the step's teacher label for `cavenav dataset --labels teacher` (DAgger)"
     ),
 ]
-# Placeholder defaults: `takes` puts each group's flags in their place and passes the
-# value built from them (`cavenav.cli.flags`), so a command never sees these.
-FILLED_BY_TAKES, VLM_FILLED_BY_TAKES, VIEW_FILLED_BY_TAKES = (
-    EpisodeConfig(),
-    VLMOptions(),
-    LiveView(),
-)
-OWN_SENSORS_FILLED_BY_TAKES, CAVE_SCENE_FILLED_BY_TAKES = OwnSensors(), CaveScene()
 
 
 def check_view(view: LiveView) -> None:

@@ -1,20 +1,23 @@
-"""The flags of the VLM pilot (`VLM`) and of the episode, its sensors and optics
-(`SETTINGS`), each declared once (`cavenav.cli.flags`)."""
+"""The options of the VLM pilot and of the episode, its sensors and optics, each declared
+once as a typer ``Annotated`` type (``StepsOpt``, ``WaterOpt``, ``ModelOpt``, ...) that a
+command names in its signature, with the default the value it builds holds (`EPISODE`,
+`MODEL`); `SETTINGS` and `VLM` build the `EpisodeConfig` and the `VLMOptions` from a
+command's arguments (`cavenav.cli.flags.Group`)."""
 
 from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Literal
 
 import typer
 
-from cavenav.cli.flags import Backend, Flag, OptionGroup, Sounder, WaterType, finite, flag
+from cavenav.cli.flags import Backend, Group, Sounder, WaterType, bounded, finite, ranged
 from cavenav.episode.settings import EpisodeConfig, configured
 from cavenav.pilots.factory import VLMOptions
 from cavenav.world.current import MAX_DISCHARGE_M3S
 
-__all__ = ["SETTINGS", "VLM", "episode_settings"]
+__all__ = ["BACKEND", "EPISODE", "MODEL", "SETTINGS", "SOUNDER", "VLM", "episode_settings"]
 
 
 def _discharge(value: float | None) -> float | None:
@@ -33,65 +36,110 @@ def _positive(value: float) -> float:
     return value
 
 
-def _vlm(name: str, kind: Any, text: str, *decls: str, **limits: Any) -> Flag:
-    """A VLM option, its default `VLMOptions`'s."""
-    return flag(name, kind, getattr(VLMOptions(), name), text, *decls, **limits)
-
-
+# The defaults of the options, as the values they build hold them (and the enums' as enums).
+MODEL = VLMOptions()
+BACKEND = Backend(MODEL.backend)
 # The VLM pilot's options: `run`, `eval`, `fly`, and `ask` less history, map, price, cache.
-VLM = OptionGroup(
-    (
-        _vlm("backend", Backend, "where the model runs"),
-        _vlm(
-            "base_url",
-            str,
-            "OpenAI-compatible endpoint, e.g. http://localhost:8000/v1 (vLLM, SGLang, Ollama, "
-            "llama.cpp); default: api.openai.com",
-        ),
-        _vlm("model", str, "model name, or a local folder for transformers"),
-        _vlm("api_key_env", str, "environment variable that holds the API key"),
-        _vlm("timeout", float, "seconds one attempt may take, whole", min=0.1, callback=finite),
-        _vlm(
-            "deadline",
-            float,
+BackendOpt = Annotated[Backend, typer.Option(help="where the model runs")]
+BaseUrlOpt = Annotated[
+    str | None,
+    typer.Option(
+        help="OpenAI-compatible endpoint, e.g. http://localhost:8000/v1 (vLLM, SGLang, Ollama, "
+        "llama.cpp); default: api.openai.com"
+    ),
+]
+ModelOpt = Annotated[
+    str | None, typer.Option(help="model name, or a local folder for transformers")
+]
+ApiKeyEnvOpt = Annotated[str, typer.Option(help="environment variable that holds the API key")]
+TimeoutOpt = Annotated[
+    float,
+    typer.Option(
+        help=ranged("seconds one attempt may take, whole", 0.1, None),
+        callback=bounded(0.1, None, finite),
+    ),
+]
+DeadlineOpt = Annotated[
+    float | None,
+    typer.Option(
+        help=ranged(
             "seconds a request may take, retries and waits included "
             "(default: timeout x (retries + 1))",
-            min=0.1,
-            callback=finite,
+            0.1,
+            None,
         ),
-        _vlm("retries", int, "transport retries per request", min=0),
-        _vlm("temperature", float, "sampling temperature", min=0, callback=finite),
-        _vlm("max_tokens", int, "maximum output tokens per reply", min=16),
-        _vlm("detail", str, "image detail sent with images: low, high, auto"),
-        _vlm("requeries", int, "re-queries after an unusable reply", min=0),
-        _vlm("history", int, "earlier observations sent (K)", min=0),
-        _vlm("prompt_file", Path, "your own system-prompt template"),
-        _vlm("structured", bool, "ask for a JSON schema with fixed keys"),
-        _vlm(
-            "map_image",
-            bool,
-            "send a top-down picture of the pilot's own map (what it saw, where it flew) with "
-            "every step: the memory ablation",
-            "--map-image",
-        ),
-        _vlm(
-            "energy_prompt",
-            bool,
-            "tell the model what its battery has left with every step, and what moves cost: "
-            "energy-aware prompting (pair with --battery-wh)",
-            "--energy-prompt",
-        ),
-        _vlm("image_format", str, "how the colour image is sent: png or jpeg (depth: png)"),
-        _vlm("jpeg_quality", int, "quality of a jpeg colour image", min=1, max=100),
-        _vlm("image_size", str, "WIDTHxHEIGHT the images are resized to before sending"),
-        _vlm("price", str, "USD per million tokens, 'input,output'"),
-        _vlm("cache", Path, "reply cache folder (keyed by request hash)"),
-        _vlm("device", str, "transformers device: auto, cpu, cuda"),
+        callback=bounded(0.1, None, finite),
+    ),
+]
+RetriesOpt = Annotated[int, typer.Option(help="transport retries per request", min=0)]
+TemperatureOpt = Annotated[
+    float,
+    typer.Option(help=ranged("sampling temperature", 0, None), callback=bounded(0, None, finite)),
+]
+MaxTokensOpt = Annotated[int, typer.Option(help="maximum output tokens per reply", min=16)]
+DetailOpt = Annotated[
+    str | None, typer.Option(help="image detail sent with images: low, high, auto")
+]
+RequeriesOpt = Annotated[int, typer.Option(help="re-queries after an unusable reply", min=0)]
+HistoryOpt = Annotated[int, typer.Option(help="earlier observations sent (K)", min=0)]
+PromptFileOpt = Annotated[Path | None, typer.Option(help="your own system-prompt template")]
+StructuredOpt = Annotated[bool, typer.Option(help="ask for a JSON schema with fixed keys")]
+MapImageOpt = Annotated[
+    bool,
+    typer.Option(
+        "--map-image",
+        help="send a top-down picture of the pilot's own map (what it saw, where it flew) with "
+        "every step: the memory ablation",
+    ),
+]
+EnergyPromptOpt = Annotated[
+    bool,
+    typer.Option(
+        "--energy-prompt",
+        help="tell the model what its battery has left with every step, and what moves cost: "
+        "energy-aware prompting (pair with --battery-wh)",
+    ),
+]
+ImageFormatOpt = Annotated[
+    str, typer.Option(help="how the colour image is sent: png or jpeg (depth: png)")
+]
+JpegQualityOpt = Annotated[int, typer.Option(help="quality of a jpeg colour image", min=1, max=100)]
+ImageSizeOpt = Annotated[
+    str | None, typer.Option(help="WIDTHxHEIGHT the images are resized to before sending")
+]
+PriceOpt = Annotated[str | None, typer.Option(help="USD per million tokens, 'input,output'")]
+CacheOpt = Annotated[Path | None, typer.Option(help="reply cache folder (keyed by request hash)")]
+DeviceOpt = Annotated[str, typer.Option(help="transformers device: auto, cpu, cuda")]
+VLM = Group(
+    (
+        "backend",
+        "base_url",
+        "model",
+        "api_key_env",
+        "timeout",
+        "deadline",
+        "retries",
+        "temperature",
+        "max_tokens",
+        "detail",
+        "requeries",
+        "history",
+        "prompt_file",
+        "structured",
+        "map_image",
+        "energy_prompt",
+        "image_format",
+        "jpeg_quality",
+        "image_size",
+        "price",
+        "cache",
+        "device",
     ),
     VLMOptions,
 )
 
-_SETTINGS = EpisodeConfig()
+EPISODE = EpisodeConfig()
+SOUNDER = Sounder(EPISODE.sensors.sounder)
 
 
 def _size(given: str | None, flag: str) -> tuple[int, int] | None:
@@ -103,10 +151,10 @@ def _size(given: str | None, flag: str) -> tuple[int, int] | None:
 
 def episode_settings(
     *,
-    steps: int | None = _SETTINGS.max_steps,
-    stuck_after: int | None = _SETTINGS.stuck_after,
-    sounder: Literal["camera", "beam"] = _SETTINGS.sensors.sounder,
-    depth_max: float = _SETTINGS.sensors.depth_max_m,
+    steps: int | None = EPISODE.max_steps,
+    stuck_after: int | None = EPISODE.stuck_after,
+    sounder: Literal["camera", "beam"] = EPISODE.sensors.sounder,
+    depth_max: float = EPISODE.sensors.depth_max_m,
     water: str | None = None,
     light_power: float | None = None,
     lamps: int | None = None,
@@ -122,10 +170,10 @@ def episode_settings(
     resolution: str | None = None,
     sounder_resolution: str | None = None,
     difficulty: list[str] | None = None,
-    discharge: float | None = _SETTINGS.discharge_m3s,
-    gusts: float | None = _SETTINGS.gusts,
-    battery_wh: float | None = _SETTINGS.battery_wh,
-    noise_seed: int | None = _SETTINGS.seed,
+    discharge: float | None = EPISODE.discharge_m3s,
+    gusts: float | None = EPISODE.gusts,
+    battery_wh: float | None = EPISODE.battery_wh,
+    noise_seed: int | None = EPISODE.seed,
 ) -> EpisodeConfig:
     """`EpisodeConfig` from the episode, sensor and optics flags, one keyword each (so a flag
     renamed in `SETTINGS` alone fails when a command is declared); frames and shield stay.
@@ -163,170 +211,191 @@ def episode_settings(
 
 
 # The episode's options, its sensors' and their optics (None keeps the scenario's own).
-SETTINGS = OptionGroup(
-    (
-        flag(
-            "steps",
-            int,
-            _SETTINGS.max_steps,
-            "step budget (default: the scenario's; 150 for S1-S5)",
-            min=1,
-        ),
-        flag(
-            "stuck_after",
-            int,
-            _SETTINGS.stuck_after,
-            "end as 'stuck' after this many steps without headway (new progress toward the "
-            "exit or new ground); 0: never",
-            min=0,
-        ),
-        flag("sounder", Sounder, _SETTINGS.sensors.sounder, "echo-sounder model"),
-        flag(
-            "depth_max",
-            float,
-            _SETTINGS.sensors.depth_max_m,
-            "D_max of the depth PNG, metres (above 0)",
-            callback=_positive,
-        ),
-        flag("water", WaterType, None, "water preset (default: clear)"),
-        flag(
-            "light_power",
-            float,
-            None,
+StepsOpt = Annotated[
+    int | None, typer.Option(help="step budget (default: the scenario's; 150 for S1-S5)", min=1)
+]
+StuckAfterOpt = Annotated[
+    int | None,
+    typer.Option(
+        help="end as 'stuck' after this many steps without headway (new progress toward the "
+        "exit or new ground); 0: never",
+        min=0,
+    ),
+]
+SounderOpt = Annotated[Sounder, typer.Option(help="echo-sounder model")]
+DepthMaxOpt = Annotated[
+    float, typer.Option(help="D_max of the depth PNG, metres (above 0)", callback=_positive)
+]
+WaterOpt = Annotated[WaterType | None, typer.Option(help="water preset (default: clear)")]
+LightPowerOpt = Annotated[
+    float | None,
+    typer.Option(
+        help=ranged(
             "the lamps' total output as the radiance of a white wall 1 m ahead, overriding "
             "their lumens; 0 turns them off (default: from the lamps, about 32)",
-            min=0,
-            callback=finite,
-        ),
-        flag("lamps", int, None, "lamps on the vehicle, 1-4 (default 2)", min=1, max=4),
-        flag(
-            "lamp_lumens",
-            float,
+            0,
             None,
-            "luminous flux of each lamp (default 1500, a Lumen light)",
-            min=0,
-            max=100_000,
-            callback=finite,
         ),
-        flag(
-            "lamp_beam",
-            float,
-            None,
-            "full beam angle of each lamp in water, degrees at half intensity (default 90)",
-            min=10,
-            max=170,
-            callback=finite,
+        callback=bounded(0, None, finite),
+    ),
+]
+LampsOpt = Annotated[
+    int | None, typer.Option(help="lamps on the vehicle, 1-4 (default 2)", min=1, max=4)
+]
+LampLumensOpt = Annotated[
+    float | None,
+    typer.Option(
+        help=ranged("luminous flux of each lamp (default 1500, a Lumen light)", 0, 100_000),
+        callback=bounded(0, 100_000, finite),
+    ),
+]
+LampBeamOpt = Annotated[
+    float | None,
+    typer.Option(
+        help=ranged(
+            "full beam angle of each lamp in water, degrees at half intensity (default 90)", 10, 170
         ),
-        flag(
-            "lamp_kelvin",
-            float,
-            None,
-            "colour temperature of the lamps (default 6200)",
-            min=1500,
-            max=20_000,
-            callback=finite,
-        ),
-        flag(
-            "daylight",
-            float,
-            None,
-            "open-water brightness at exits (default 1)",
-            min=0,
-            callback=finite,
-        ),
-        flag(
-            "particles",
-            float,
-            None,
-            "marine snow, particles per m³ (default 4)",
-            min=0,
-            callback=finite,
-        ),
-        flag(
-            "silt_out",
-            bool,
-            None,
-            "thrust near the floor raises silt that hangs and clouds the camera "
-            "(default: on in the crawl family, off elsewhere)",
-            "--silt-out/--no-silt-out",
-        ),
-        flag("noise", float, None, "sensor noise, 0 = none (default 1)", min=0, callback=finite),
-        flag(
-            "depth_dropout",
-            float,
-            None,
-            "drop depth where returned lamp light is below this (default 0)",
-            min=0,
-            callback=finite,
-        ),
-        flag(
-            "depth_noise",
-            float,
-            None,
-            "depth noise std at 10 m, metres (default 0)",
-            min=0,
-            callback=finite,
-        ),
-        flag(
-            "resolution",
-            str,
-            None,
-            "forward camera pixels, e.g. 160x120 or 84x84 (default: the scenario file's "
-            "\\[sensors] table, else 640x480); the horizontal field of view stays 53 degrees",
-            metavar="WxH",
-        ),
-        flag(
-            "sounder_resolution",
-            str,
-            None,
-            "pixels of each echo sounder's depth camera (default 32x24)",
-            metavar="WxH",
-        ),
-        flag(
-            "difficulty",
-            list[str],
-            None,
-            "a difficulty knob of the cave family, KEY=VALUE (repeat for more), "
-            "e.g. constriction_m=2.5; see docs/guides/scenarios.md",
-        ),
-        flag(
-            "discharge",
-            float,
-            _SETTINGS.discharge_m3s,
-            "water flowing through the cave, m³/s: positive from the exit toward the start "
-            "(a spring's outflow, against the vehicle), negative toward the exit; it runs "
-            "faster where the passage narrows and carries the vehicle; 0: still water; "
-            "default: the cave's own (a scenario file's [water]; the families are still)",
-            metavar="M3S",
-            callback=_discharge,
-        ),
-        flag(
-            "gusts",
-            float,
-            _SETTINGS.gusts,
+        callback=bounded(10, 170, finite),
+    ),
+]
+LampKelvinOpt = Annotated[
+    float | None,
+    typer.Option(
+        help=ranged("colour temperature of the lamps (default 6200)", 1500, 20_000),
+        callback=bounded(1500, 20_000, finite),
+    ),
+]
+DaylightOpt = Annotated[
+    float | None,
+    typer.Option(
+        help=ranged("open-water brightness at exits (default 1)", 0, None),
+        callback=bounded(0, None, finite),
+    ),
+]
+ParticlesOpt = Annotated[
+    float | None,
+    typer.Option(
+        help=ranged("marine snow, particles per m³ (default 4)", 0, None),
+        callback=bounded(0, None, finite),
+    ),
+]
+SiltOutOpt = Annotated[
+    bool | None,
+    typer.Option(
+        "--silt-out/--no-silt-out",
+        help="thrust near the floor raises silt that hangs and clouds the camera "
+        "(default: on in the crawl family, off elsewhere)",
+    ),
+]
+NoiseOpt = Annotated[
+    float | None,
+    typer.Option(
+        help=ranged("sensor noise, 0 = none (default 1)", 0, None),
+        callback=bounded(0, None, finite),
+    ),
+]
+DepthDropoutOpt = Annotated[
+    float | None,
+    typer.Option(
+        help=ranged("drop depth where returned lamp light is below this (default 0)", 0, None),
+        callback=bounded(0, None, finite),
+    ),
+]
+DepthNoiseOpt = Annotated[
+    float | None,
+    typer.Option(
+        help=ranged("depth noise std at 10 m, metres (default 0)", 0, None),
+        callback=bounded(0, None, finite),
+    ),
+]
+ResolutionOpt = Annotated[
+    str | None,
+    typer.Option(
+        help="forward camera pixels, e.g. 160x120 or 84x84 (default: the scenario file's "
+        "\\[sensors] table, else 640x480); the horizontal field of view stays 53 degrees",
+        metavar="WxH",
+    ),
+]
+SounderResolutionOpt = Annotated[
+    str | None,
+    typer.Option(help="pixels of each echo sounder's depth camera (default 32x24)", metavar="WxH"),
+]
+DifficultyOpt = Annotated[
+    list[str] | None,
+    typer.Option(
+        help="a difficulty knob of the cave family, KEY=VALUE (repeat for more), "
+        "e.g. constriction_m=2.5; see docs/guides/scenarios.md"
+    ),
+]
+DischargeOpt = Annotated[
+    float | None,
+    typer.Option(
+        help="water flowing through the cave, m³/s: positive from the exit toward the start "
+        "(a spring's outflow, against the vehicle), negative toward the exit; it runs "
+        "faster where the passage narrows and carries the vehicle; 0: still water; "
+        "default: the cave's own (a scenario file's [water]; the families are still)",
+        metavar="M3S",
+        callback=_discharge,
+    ),
+]
+GustsOpt = Annotated[
+    float | None,
+    typer.Option(
+        help=ranged(
             "the current's slow turbulent gusts, as a fraction of its speed (default: the "
             "cave's own, else 0.2)",
-            min=0,
-            max=1,
-            metavar="FRACTION",
+            0,
+            1,
         ),
-        flag(
-            "battery_wh",
-            float,
-            _SETTINGS.battery_wh,
+        metavar="FRACTION",
+        callback=bounded(0, 1),
+    ),
+]
+BatteryWhOpt = Annotated[
+    float | None,
+    typer.Option(
+        help=ranged(
             "an energy budget in Wh: the episode ends as 'battery' once the moves have "
             "spent it (a BlueROV2's full pack holds 266 Wh); default: no budget",
-            min=0.001,
-            callback=finite,
+            0.001,
+            None,
         ),
-        flag(
-            "noise_seed",
-            int,
-            _SETTINGS.seed,
-            "seed of the sensor noise, held apart from the cave's (default: the episode's "
-            "own seed, so another --seed draws other noise too)",
-            min=0,
-        ),
+        callback=bounded(0.001, None, finite),
+    ),
+]
+NoiseSeedOpt = Annotated[
+    int | None,
+    typer.Option(
+        help="seed of the sensor noise, held apart from the cave's (default: the episode's "
+        "own seed, so another --seed draws other noise too)",
+        min=0,
+    ),
+]
+SETTINGS = Group(
+    (
+        "steps",
+        "stuck_after",
+        "sounder",
+        "depth_max",
+        "water",
+        "light_power",
+        "lamps",
+        "lamp_lumens",
+        "lamp_beam",
+        "lamp_kelvin",
+        "daylight",
+        "particles",
+        "silt_out",
+        "noise",
+        "depth_dropout",
+        "depth_noise",
+        "resolution",
+        "sounder_resolution",
+        "difficulty",
+        "discharge",
+        "gusts",
+        "battery_wh",
+        "noise_seed",
     ),
     episode_settings,
 )

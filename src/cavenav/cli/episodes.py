@@ -11,9 +11,6 @@ from rich.markup import escape
 from rich.table import Table
 
 from cavenav.cli.common import (
-    FILLED_BY_TAKES,
-    VIEW_FILLED_BY_TAKES,
-    VLM_FILLED_BY_TAKES,
     FramesOpt,
     FromOpt,
     PilotOpt,
@@ -26,17 +23,68 @@ from cavenav.cli.common import (
     check_view,
     pilot_spec,
 )
-from cavenav.cli.episode_flags import SETTINGS, VLM
-from cavenav.cli.flags import ExrCompression, bounded, takes
+from cavenav.cli.episode_flags import (
+    BACKEND,
+    EPISODE,
+    MODEL,
+    SETTINGS,
+    SOUNDER,
+    VLM,
+    ApiKeyEnvOpt,
+    BackendOpt,
+    BaseUrlOpt,
+    BatteryWhOpt,
+    CacheOpt,
+    DaylightOpt,
+    DeadlineOpt,
+    DepthDropoutOpt,
+    DepthMaxOpt,
+    DepthNoiseOpt,
+    DetailOpt,
+    DeviceOpt,
+    DifficultyOpt,
+    DischargeOpt,
+    EnergyPromptOpt,
+    GustsOpt,
+    HistoryOpt,
+    ImageFormatOpt,
+    ImageSizeOpt,
+    JpegQualityOpt,
+    LampBeamOpt,
+    LampKelvinOpt,
+    LampLumensOpt,
+    LampsOpt,
+    LightPowerOpt,
+    MapImageOpt,
+    MaxTokensOpt,
+    ModelOpt,
+    NoiseOpt,
+    NoiseSeedOpt,
+    ParticlesOpt,
+    PriceOpt,
+    PromptFileOpt,
+    RequeriesOpt,
+    ResolutionOpt,
+    RetriesOpt,
+    SiltOutOpt,
+    SounderOpt,
+    SounderResolutionOpt,
+    StepsOpt,
+    StructuredOpt,
+    StuckAfterOpt,
+    TemperatureOpt,
+    TimeoutOpt,
+    WaterOpt,
+)
+from cavenav.cli.flags import ExrCompression, bounded
 from cavenav.cli.flights import fly_episode
 from cavenav.cli.output import console, errors
-from cavenav.cli.vehicle_flags import LIVE_VIEW, LiveView
+from cavenav.cli.vehicle_flags import LIVE_VIEW, LiveView, RerunOpt, RerunSaveOpt
 from cavenav.episode.settings import EpisodeConfig
-from cavenav.pilots.factory import PilotSpec, VLMOptions
+from cavenav.pilots.factory import PilotSpec
 from cavenav.pilots.replay import recorded_noise_seed, recorded_scenario
 
 
-@takes(settings=SETTINGS, vlm=VLM, view=LIVE_VIEW)
 def run(
     scenario: ScenarioArg,
     pilot: PilotOpt = "geometric",
@@ -61,11 +109,58 @@ def run(
     from_: FromOpt = None,
     policy: PolicyOpt = None,
     teacher: TeacherOpt = None,
-    settings: EpisodeConfig = FILLED_BY_TAKES,
-    vlm: VLMOptions = VLM_FILLED_BY_TAKES,
-    view: LiveView = VIEW_FILLED_BY_TAKES,
+    steps: StepsOpt = EPISODE.max_steps,
+    stuck_after: StuckAfterOpt = EPISODE.stuck_after,
+    sounder: SounderOpt = SOUNDER,
+    depth_max: DepthMaxOpt = EPISODE.sensors.depth_max_m,
+    water: WaterOpt = None,
+    light_power: LightPowerOpt = None,
+    lamps: LampsOpt = None,
+    lamp_lumens: LampLumensOpt = None,
+    lamp_beam: LampBeamOpt = None,
+    lamp_kelvin: LampKelvinOpt = None,
+    daylight: DaylightOpt = None,
+    particles: ParticlesOpt = None,
+    silt_out: SiltOutOpt = None,
+    noise: NoiseOpt = None,
+    depth_dropout: DepthDropoutOpt = None,
+    depth_noise: DepthNoiseOpt = None,
+    resolution: ResolutionOpt = None,
+    sounder_resolution: SounderResolutionOpt = None,
+    difficulty: DifficultyOpt = None,
+    discharge: DischargeOpt = EPISODE.discharge_m3s,
+    gusts: GustsOpt = EPISODE.gusts,
+    battery_wh: BatteryWhOpt = EPISODE.battery_wh,
+    noise_seed: NoiseSeedOpt = EPISODE.seed,
+    backend: BackendOpt = BACKEND,
+    base_url: BaseUrlOpt = None,
+    model: ModelOpt = None,
+    api_key_env: ApiKeyEnvOpt = MODEL.api_key_env,
+    timeout: TimeoutOpt = MODEL.timeout,
+    deadline: DeadlineOpt = None,
+    retries: RetriesOpt = MODEL.retries,
+    temperature: TemperatureOpt = MODEL.temperature,
+    max_tokens: MaxTokensOpt = MODEL.max_tokens,
+    detail: DetailOpt = None,
+    requeries: RequeriesOpt = MODEL.requeries,
+    history: HistoryOpt = MODEL.history,
+    prompt_file: PromptFileOpt = None,
+    structured: StructuredOpt = MODEL.structured,
+    map_image: MapImageOpt = MODEL.map_image,
+    energy_prompt: EnergyPromptOpt = MODEL.energy_prompt,
+    image_format: ImageFormatOpt = MODEL.image_format,
+    jpeg_quality: JpegQualityOpt = MODEL.jpeg_quality,
+    image_size: ImageSizeOpt = None,
+    price: PriceOpt = None,
+    cache: CacheOpt = None,
+    device: DeviceOpt = MODEL.device,
+    rerun: RerunOpt = LiveView.rerun,
+    rerun_save: RerunSaveOpt = None,
 ) -> None:
     """Fly one episode and write its run folder (summary, steps, frames, plots)."""
+    settings = SETTINGS.value(locals())
+    vlm = VLM.value(locals())
+    view = LIVE_VIEW.value(locals())
     from cavenav.episode.run_folder import new_run_dir, prepared_root
 
     check_view(view)
@@ -103,13 +198,6 @@ def _recorded_seed(scenario: str, recording: str, seed: int) -> int:
     return recorded_seed if recorded_seed is not None else seed
 
 
-@takes(
-    settings=SETTINGS.only(
-        "depth_max", "water", "light_power", "lamps", "lamp_lumens", "lamp_beam", "lamp_kelvin",
-        "daylight", "particles", "noise",
-        "resolution", "sounder_resolution", "difficulty",
-    )
-)  # fmt: skip
 def render(
     scenario: ScenarioArg,
     seed: Annotated[int, typer.Option(min=0, help="seed of the procedural cave")] = 0,
@@ -117,9 +205,22 @@ def render(
     out: Annotated[
         Path | None, typer.Option(help="PNG to write (default: render-SCENARIO-WATER.png)")
     ] = None,
-    settings: EpisodeConfig = FILLED_BY_TAKES,
+    depth_max: DepthMaxOpt = EPISODE.sensors.depth_max_m,
+    water: WaterOpt = None,
+    light_power: LightPowerOpt = None,
+    lamps: LampsOpt = None,
+    lamp_lumens: LampLumensOpt = None,
+    lamp_beam: LampBeamOpt = None,
+    lamp_kelvin: LampKelvinOpt = None,
+    daylight: DaylightOpt = None,
+    particles: ParticlesOpt = None,
+    noise: NoiseOpt = None,
+    resolution: ResolutionOpt = None,
+    sounder_resolution: SounderResolutionOpt = None,
+    difficulty: DifficultyOpt = None,
 ) -> None:
     """Write a contact sheet: colour and depth views from poses along the passage."""
+    settings = SETTINGS.value(locals())
     from cavenav.episode.gallery import passage_poses, sheet_path, write_contact_sheet
 
     if out is not None:
@@ -135,13 +236,28 @@ def render(
     console.print(f"contact sheet: [bold]{path}[/]", soft_wrap=True)
 
 
-@takes(vlm=VLM.without("history", "map_image", "energy_prompt", "price", "cache"))
 def ask(
     image: Annotated[Path, typer.Argument(help="a colour photograph (PNG or JPEG)")],
     depth: Annotated[Path | None, typer.Option(help="a depth PNG (dark near, bright far)")] = None,
     top: Annotated[float | None, typer.Option(help="d_top: metres to the ceiling")] = None,
     bottom: Annotated[float | None, typer.Option(help="d_bottom: metres to the floor")] = None,
-    vlm: VLMOptions = VLM_FILLED_BY_TAKES,
+    backend: BackendOpt = BACKEND,
+    base_url: BaseUrlOpt = None,
+    model: ModelOpt = None,
+    api_key_env: ApiKeyEnvOpt = MODEL.api_key_env,
+    timeout: TimeoutOpt = MODEL.timeout,
+    deadline: DeadlineOpt = None,
+    retries: RetriesOpt = MODEL.retries,
+    temperature: TemperatureOpt = MODEL.temperature,
+    max_tokens: MaxTokensOpt = MODEL.max_tokens,
+    detail: DetailOpt = None,
+    requeries: RequeriesOpt = MODEL.requeries,
+    prompt_file: PromptFileOpt = None,
+    structured: StructuredOpt = MODEL.structured,
+    image_format: ImageFormatOpt = MODEL.image_format,
+    jpeg_quality: JpegQualityOpt = MODEL.jpeg_quality,
+    image_size: ImageSizeOpt = None,
+    device: DeviceOpt = MODEL.device,
 ) -> None:
     """Send one query for a single image (e.g. a photograph from a real cave).
 
@@ -149,6 +265,7 @@ def ask(
     --depth the request carries no depth image and says so, and a missing --top or
     --bottom is sent as "unknown".
     """
+    vlm = VLM.value(locals())
     from cavenav.motion.actions import to_twist
     from cavenav.pilots.photo import load_photo
 

@@ -12,19 +12,68 @@ from typing import TYPE_CHECKING, Annotated, Any
 import typer
 
 from cavenav.cli.common import (
-    FILLED_BY_TAKES,
-    VLM_FILLED_BY_TAKES,
     PolicyOpt,
     TeacherOpt,
     camera_for,
     pilot_spec,
 )
-from cavenav.cli.episode_flags import SETTINGS, VLM
-from cavenav.cli.flags import takes
+from cavenav.cli.episode_flags import (
+    BACKEND,
+    EPISODE,
+    MODEL,
+    SETTINGS,
+    SOUNDER,
+    VLM,
+    ApiKeyEnvOpt,
+    BackendOpt,
+    BaseUrlOpt,
+    BatteryWhOpt,
+    CacheOpt,
+    DaylightOpt,
+    DeadlineOpt,
+    DepthDropoutOpt,
+    DepthMaxOpt,
+    DepthNoiseOpt,
+    DetailOpt,
+    DeviceOpt,
+    DifficultyOpt,
+    DischargeOpt,
+    EnergyPromptOpt,
+    GustsOpt,
+    HistoryOpt,
+    ImageFormatOpt,
+    ImageSizeOpt,
+    JpegQualityOpt,
+    LampBeamOpt,
+    LampKelvinOpt,
+    LampLumensOpt,
+    LampsOpt,
+    LightPowerOpt,
+    MapImageOpt,
+    MaxTokensOpt,
+    ModelOpt,
+    NoiseOpt,
+    NoiseSeedOpt,
+    ParticlesOpt,
+    PriceOpt,
+    PromptFileOpt,
+    RequeriesOpt,
+    ResolutionOpt,
+    RetriesOpt,
+    SiltOutOpt,
+    SounderOpt,
+    SounderResolutionOpt,
+    StepsOpt,
+    StructuredOpt,
+    StuckAfterOpt,
+    TemperatureOpt,
+    TimeoutOpt,
+    WaterOpt,
+)
 from cavenav.cli.flights import fly_sweep
 from cavenav.cli.output import console, print_comparison, print_groups, print_leaderboard
 from cavenav.core.errors import CavenavError
-from cavenav.episode.settings import FRAME_MODES, VIDEO_MODES, EpisodeConfig
+from cavenav.episode.settings import FRAME_MODES, VIDEO_MODES
 from cavenav.pilots.factory import VLMOptions
 
 if TYPE_CHECKING:
@@ -47,7 +96,6 @@ WandbOpt = Annotated[
 ]
 
 
-@takes(settings=SETTINGS, vlm=VLM)
 def eval_(
     scenarios: Annotated[
         str,
@@ -82,10 +130,55 @@ def eval_(
     video: VideoOpt = VideoMode["none"],
     trials: TrialsOpt = 1,
     wandb: WandbOpt = False,
-    settings: EpisodeConfig = FILLED_BY_TAKES,
-    vlm: VLMOptions = VLM_FILLED_BY_TAKES,
+    steps: StepsOpt = EPISODE.max_steps,
+    stuck_after: StuckAfterOpt = EPISODE.stuck_after,
+    sounder: SounderOpt = SOUNDER,
+    depth_max: DepthMaxOpt = EPISODE.sensors.depth_max_m,
+    water: WaterOpt = None,
+    light_power: LightPowerOpt = None,
+    lamps: LampsOpt = None,
+    lamp_lumens: LampLumensOpt = None,
+    lamp_beam: LampBeamOpt = None,
+    lamp_kelvin: LampKelvinOpt = None,
+    daylight: DaylightOpt = None,
+    particles: ParticlesOpt = None,
+    silt_out: SiltOutOpt = None,
+    noise: NoiseOpt = None,
+    depth_dropout: DepthDropoutOpt = None,
+    depth_noise: DepthNoiseOpt = None,
+    resolution: ResolutionOpt = None,
+    sounder_resolution: SounderResolutionOpt = None,
+    difficulty: DifficultyOpt = None,
+    discharge: DischargeOpt = EPISODE.discharge_m3s,
+    gusts: GustsOpt = EPISODE.gusts,
+    battery_wh: BatteryWhOpt = EPISODE.battery_wh,
+    noise_seed: NoiseSeedOpt = EPISODE.seed,
+    backend: BackendOpt = BACKEND,
+    base_url: BaseUrlOpt = None,
+    model: ModelOpt = None,
+    api_key_env: ApiKeyEnvOpt = MODEL.api_key_env,
+    timeout: TimeoutOpt = MODEL.timeout,
+    deadline: DeadlineOpt = None,
+    retries: RetriesOpt = MODEL.retries,
+    temperature: TemperatureOpt = MODEL.temperature,
+    max_tokens: MaxTokensOpt = MODEL.max_tokens,
+    detail: DetailOpt = None,
+    requeries: RequeriesOpt = MODEL.requeries,
+    history: HistoryOpt = MODEL.history,
+    prompt_file: PromptFileOpt = None,
+    structured: StructuredOpt = MODEL.structured,
+    map_image: MapImageOpt = MODEL.map_image,
+    energy_prompt: EnergyPromptOpt = MODEL.energy_prompt,
+    image_format: ImageFormatOpt = MODEL.image_format,
+    jpeg_quality: JpegQualityOpt = MODEL.jpeg_quality,
+    image_size: ImageSizeOpt = None,
+    price: PriceOpt = None,
+    cache: CacheOpt = None,
+    device: DeviceOpt = MODEL.device,
 ) -> None:
     """Fly a pilot over scenarios x seeds (x trials); results.csv, aggregate.json, a report."""
+    settings = SETTINGS.value(locals())
+    vlm = VLM.value(locals())
     from cavenav.episode.run_folder import prepare_root
     from cavenav.evaluation.sweep import SweepConfig, check_grid, parse_seeds
 

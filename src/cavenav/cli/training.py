@@ -9,19 +9,22 @@ from typing import Annotated
 import typer
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
 
-from cavenav.cli.episode_flags import VLM
-from cavenav.cli.flags import takes
+from cavenav.cli.episode_flags import (
+    MODEL,
+    VLM,
+    DetailOpt,
+    EnergyPromptOpt,
+    HistoryOpt,
+    ImageFormatOpt,
+    ImageSizeOpt,
+    JpegQualityOpt,
+    MapImageOpt,
+    PromptFileOpt,
+    StructuredOpt,
+)
 from cavenav.cli.output import console
-from cavenav.pilots.factory import VLMOptions
 
 __all__ = ["dataset", "finetune"]
-
-# The VLM options that shape the requests a dataset holds (those of flights made again).
-PROMPT = VLM.only(
-    "history", "prompt_file", "structured", "map_image", "energy_prompt",
-    "image_format", "jpeg_quality", "image_size", "detail",
-)  # fmt: skip
-
 
 ReplyOpt = Annotated[
     str,
@@ -32,7 +35,6 @@ ReplyOpt = Annotated[
 ]
 
 
-@takes(vlm=PROMPT)
 def dataset(
     sources: Annotated[
         list[Path], typer.Argument(help="sweep folders (cavenav eval) and run folders")
@@ -62,10 +64,19 @@ def dataset(
     allow_mixed: Annotated[
         bool, typer.Option(help="accept sources flown with different settings or prompts")
     ] = False,
-    vlm: VLMOptions = VLMOptions(),  # noqa: B008 - filled by `takes`
+    detail: DetailOpt = None,
+    history: HistoryOpt = MODEL.history,
+    prompt_file: PromptFileOpt = None,
+    structured: StructuredOpt = MODEL.structured,
+    map_image: MapImageOpt = MODEL.map_image,
+    energy_prompt: EnergyPromptOpt = MODEL.energy_prompt,
+    image_format: ImageFormatOpt = MODEL.image_format,
+    jpeg_quality: JpegQualityOpt = MODEL.jpeg_quality,
+    image_size: ImageSizeOpt = None,
 ) -> None:
     """Make a Hugging Face dataset of flights: one row a decision, its request as the VLM
     pilot sends it and the reply it should give."""
+    vlm = VLM.value(locals())  # the options that shape the requests a dataset holds
     from cavenav.training.dataset import DatasetOptions, export_dataset
 
     options = DatasetOptions(

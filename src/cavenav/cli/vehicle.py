@@ -1,11 +1,8 @@
 """A vehicle over MAVLink: `fly` flies a pilot on an ArduSub vehicle (its own sensors, or a
-simulated cave with --sim), and `fake-sub` simulates one to fly against."""
+simulated cave with --sim); `cavenav.cli.fake_sub` simulates one to fly against."""
 
 from __future__ import annotations
 
-import contextlib
-import math
-import time
 from collections.abc import Callable
 from dataclasses import replace
 from enum import StrEnum
@@ -16,11 +13,6 @@ from typing import TYPE_CHECKING, Annotated, Any
 import typer
 
 from cavenav.cli.common import (
-    CAVE_SCENE_FILLED_BY_TAKES,
-    FILLED_BY_TAKES,
-    OWN_SENSORS_FILLED_BY_TAKES,
-    VIEW_FILLED_BY_TAKES,
-    VLM_FILLED_BY_TAKES,
     FramesOpt,
     FromOpt,
     PilotOpt,
@@ -31,24 +23,83 @@ from cavenav.cli.common import (
     check_view,
     pilot_spec,
 )
-from cavenav.cli.episode_flags import SETTINGS, VLM
-from cavenav.cli.flags import finite, takes
+from cavenav.cli.episode_flags import (
+    BACKEND,
+    EPISODE,
+    MODEL,
+    SETTINGS,
+    SOUNDER,
+    VLM,
+    ApiKeyEnvOpt,
+    BackendOpt,
+    BaseUrlOpt,
+    BatteryWhOpt,
+    CacheOpt,
+    DaylightOpt,
+    DeadlineOpt,
+    DepthDropoutOpt,
+    DepthMaxOpt,
+    DepthNoiseOpt,
+    DetailOpt,
+    DeviceOpt,
+    DifficultyOpt,
+    DischargeOpt,
+    EnergyPromptOpt,
+    GustsOpt,
+    HistoryOpt,
+    ImageFormatOpt,
+    ImageSizeOpt,
+    JpegQualityOpt,
+    LampBeamOpt,
+    LampKelvinOpt,
+    LampLumensOpt,
+    LampsOpt,
+    LightPowerOpt,
+    MapImageOpt,
+    MaxTokensOpt,
+    ModelOpt,
+    NoiseOpt,
+    NoiseSeedOpt,
+    ParticlesOpt,
+    PriceOpt,
+    PromptFileOpt,
+    RequeriesOpt,
+    ResolutionOpt,
+    RetriesOpt,
+    SiltOutOpt,
+    SounderOpt,
+    SounderResolutionOpt,
+    StepsOpt,
+    StructuredOpt,
+    StuckAfterOpt,
+    TemperatureOpt,
+    TimeoutOpt,
+    WaterOpt,
+)
+from cavenav.cli.flags import finite
 from cavenav.cli.flights import fly_on_own_sensors, fly_vehicle
 from cavenav.cli.output import console
 from cavenav.cli.vehicle_flags import (
-    CAVE_SCENE,
     LIVE_VIEW,
+    OWN,
     OWN_SENSORS,
-    CaveScene,
+    CameraHfovOpt,
+    CameraLatencyOpt,
+    CameraOpt,
+    DepthModelOpt,
     LiveView,
     OwnSensors,
+    PingDownOpt,
+    PingUpOpt,
+    RerunOpt,
+    RerunSaveOpt,
 )
 from cavenav.core.errors import CavenavError
 from cavenav.episode.settings import EpisodeConfig
-from cavenav.pilots.factory import PilotSpec, VLMOptions
+from cavenav.pilots.factory import PilotSpec
 
 if TYPE_CHECKING:  # pymavlink loads with it: only where the fake sub runs
-    from cavenav.vehicle.fake_sub import FakeSubState
+    pass
 
 
 class FlyMode(StrEnum):
@@ -69,7 +120,6 @@ StartDepthOpt = Annotated[
 ]
 
 
-@takes(settings=SETTINGS, vlm=VLM, view=LIVE_VIEW, own=OWN_SENSORS)
 def fly(
     connect: Annotated[
         str | None,
@@ -107,13 +157,66 @@ def fly(
     ] = True,
     from_: FromOpt = None,
     policy: PolicyOpt = None,
-    settings: EpisodeConfig = FILLED_BY_TAKES,
-    vlm: VLMOptions = VLM_FILLED_BY_TAKES,
-    view: LiveView = VIEW_FILLED_BY_TAKES,
-    own: OwnSensors = OWN_SENSORS_FILLED_BY_TAKES,
+    steps: StepsOpt = EPISODE.max_steps,
+    stuck_after: StuckAfterOpt = EPISODE.stuck_after,
+    sounder: SounderOpt = SOUNDER,
+    depth_max: DepthMaxOpt = EPISODE.sensors.depth_max_m,
+    water: WaterOpt = None,
+    light_power: LightPowerOpt = None,
+    lamps: LampsOpt = None,
+    lamp_lumens: LampLumensOpt = None,
+    lamp_beam: LampBeamOpt = None,
+    lamp_kelvin: LampKelvinOpt = None,
+    daylight: DaylightOpt = None,
+    particles: ParticlesOpt = None,
+    silt_out: SiltOutOpt = None,
+    noise: NoiseOpt = None,
+    depth_dropout: DepthDropoutOpt = None,
+    depth_noise: DepthNoiseOpt = None,
+    resolution: ResolutionOpt = None,
+    sounder_resolution: SounderResolutionOpt = None,
+    difficulty: DifficultyOpt = None,
+    discharge: DischargeOpt = EPISODE.discharge_m3s,
+    gusts: GustsOpt = EPISODE.gusts,
+    battery_wh: BatteryWhOpt = EPISODE.battery_wh,
+    noise_seed: NoiseSeedOpt = EPISODE.seed,
+    backend: BackendOpt = BACKEND,
+    base_url: BaseUrlOpt = None,
+    model: ModelOpt = None,
+    api_key_env: ApiKeyEnvOpt = MODEL.api_key_env,
+    timeout: TimeoutOpt = MODEL.timeout,
+    deadline: DeadlineOpt = None,
+    retries: RetriesOpt = MODEL.retries,
+    temperature: TemperatureOpt = MODEL.temperature,
+    max_tokens: MaxTokensOpt = MODEL.max_tokens,
+    detail: DetailOpt = None,
+    requeries: RequeriesOpt = MODEL.requeries,
+    history: HistoryOpt = MODEL.history,
+    prompt_file: PromptFileOpt = None,
+    structured: StructuredOpt = MODEL.structured,
+    map_image: MapImageOpt = MODEL.map_image,
+    energy_prompt: EnergyPromptOpt = MODEL.energy_prompt,
+    image_format: ImageFormatOpt = MODEL.image_format,
+    jpeg_quality: JpegQualityOpt = MODEL.jpeg_quality,
+    image_size: ImageSizeOpt = None,
+    price: PriceOpt = None,
+    cache: CacheOpt = None,
+    device: DeviceOpt = MODEL.device,
+    rerun: RerunOpt = LiveView.rerun,
+    rerun_save: RerunSaveOpt = None,
+    camera: CameraOpt = OWN.camera,
+    camera_hfov: CameraHfovOpt = OWN.camera_hfov,
+    camera_latency: CameraLatencyOpt = OWN.camera_latency,
+    ping_up: PingUpOpt = None,
+    ping_down: PingDownOpt = None,
+    depth_model: DepthModelOpt = None,
 ) -> None:
     """Fly a pilot on an ArduSub vehicle over MAVLink (BlueROV2): on its own camera,
     sounders and depth model, or with --sim in a simulated cave."""
+    settings = SETTINGS.value(locals())
+    vlm = VLM.value(locals())
+    view = LIVE_VIEW.value(locals())
+    own = OWN_SENSORS.value(locals())
     from cavenav.vehicle.mavlink import load_bridge_config
 
     check_view(view)
@@ -248,122 +351,3 @@ def _print_dry_run(bridge: Any, actions: list[str]) -> None:  # noqa: ANN401
         console.print(f"[bold]{format_action(command)}[/] ({bridge.mode} mode):")
         for line in describe(plan(command, bridge), bridge):
             console.print(f"  {line}", soft_wrap=True, highlight=False)
-
-
-@takes(cave=CAVE_SCENE)
-def fake_sub(
-    # Flags left out keep FakeSubConfig's defaults, which their help repeats (a test checks).
-    connect: Annotated[
-        str | None,
-        typer.Option(
-            help="where to send (the bridge listens there with udpin)",
-            show_default="udpout:127.0.0.1:14550",
-        ),
-    ] = None,
-    noise: Annotated[
-        float | None,
-        typer.Option(
-            min=0, callback=finite, help="execution noise (relative gain error)", show_default="0"
-        ),
-    ] = None,
-    current: Annotated[
-        str, typer.Option(metavar="N,E,D", help="water current, m/s north, east, down")
-    ] = "0,0,0",
-    depth: Annotated[
-        float | None,
-        typer.Option(min=0, callback=finite, help="start depth, m", show_default="30"),
-    ] = None,
-    position: Annotated[
-        bool, typer.Option(help="report LOCAL_POSITION_NED and allow GUIDED (a DVL)")
-    ] = True,
-    pilot_timeout: Annotated[
-        float | None,
-        typer.Option(min=0.1, callback=finite, help="FS_PILOT_TIMEOUT, seconds", show_default="3"),
-    ] = None,
-    seed: Annotated[
-        int | None, typer.Option(min=0, help="seed of the execution noise", show_default="0")
-    ] = None,
-    cave: CaveScene = CAVE_SCENE_FILLED_BY_TAKES,
-) -> None:
-    """A simulated ArduSub autopilot on MAVLink, for `cavenav fly` with no vehicle; with
-    --scene, its camera and sounders too, rendered in a cave."""
-    from cavenav.vehicle.fake_sub import FakeSubConfig, serve
-
-    given = {
-        "address": connect,
-        "noise": noise,
-        "start_ned": None if depth is None else (0.0, 0.0, depth),
-        "pilot_timeout_s": pilot_timeout,
-        "seed": seed,
-    }
-    settings = FakeSubConfig(
-        current_ned_mps=_current_ned(current),
-        position_estimate=position,
-        **{key: value for key, value in given.items() if value is not None},
-    )
-
-    if cave.scene is not None:
-        _serve_in_a_cave(settings, EpisodeConfig(), cave, _show_fake_sub)
-        return
-    console.print(f"fake ArduSub sending to {settings.address}; Ctrl-C stops it")
-    with contextlib.suppress(KeyboardInterrupt):
-        serve(settings, on_state=_show_fake_sub)
-
-
-def _show_fake_sub(state: FakeSubState) -> None:
-    """One line of the fake autopilot's state, as it changes."""
-    console.print(
-        f"{'ARMED' if state.armed else 'disarmed':8} {state.mode_name:8} "
-        f"N {state.north:7.2f}  E {state.east:7.2f}  depth {state.down:6.2f}  "
-        f"yaw {state.yaw_deg:7.1f}  sticks {state.sticks}"
-        + ("  [red]pilot-input failsafe[/]" if state.failsafe else ""),
-        highlight=False,
-        soft_wrap=True,
-    )
-
-
-def _current_ned(current: str) -> tuple[float, ...]:
-    """``--current N,E,D``: the water's velocity, m/s north, east and down."""
-    try:
-        drift = tuple(float(v) for v in current.split(","))
-    except ValueError:
-        drift = ()
-    if len(drift) != 3 or not all(map(math.isfinite, drift)):
-        raise typer.BadParameter(
-            f"{current!r}: give three numbers N,E,D in m/s", param_hint="--current"
-        )
-    return drift
-
-
-def _serve_in_a_cave(
-    config: Any,  # noqa: ANN401 - lazy imports
-    settings: EpisodeConfig,
-    scene: CaveScene,
-    show: Callable[[Any], None],
-) -> None:
-    """`fake-sub --scene`: the fake autopilot with its camera and sounders in a cave
-    (`cavenav.sim.cave_sensors`), until Ctrl-C."""
-    from cavenav.sim.cave_sensors import CaveSensors
-    from cavenav.vehicle.fake_sub import FakeSub
-
-    assert scene.scene is not None
-    cave = built(settings, scene.scene, scene.cave_seed)
-    pings = (scene.ping_up_port, scene.ping_down_port)
-    with FakeSub(config) as sub, CaveSensors(
-        sub, cave, settings.sensors_for(cave), scene.camera_port, pings
-    ) as sensors:  # fmt: skip
-        console.print(
-            f"fake ArduSub in {cave.name} sending to {config.address}; camera "
-            f"udp:{scene.camera_port} "
-            f"(RTP H.264), sounders {sensors.up.address} (up) and {sensors.down.address} "
-            "(down); Ctrl-C stops it",
-            soft_wrap=True,
-            highlight=False,
-        )
-        with contextlib.suppress(KeyboardInterrupt):
-            while True:
-                time.sleep(1.0)
-                show(sub.state())
-                clearance = sensors.clearance_m()
-                where = "[red]inside rock[/]" if clearance < 0 else f"clearance {clearance:.2f} m"
-                console.print(f"         {where}", highlight=False)

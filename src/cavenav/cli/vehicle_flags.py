@@ -1,13 +1,17 @@
-"""The flags of where an episode is shown (`LIVE_VIEW`), of a vehicle's own sensors
-(`OWN_SENSORS`) and of the fake sub's cave (`CAVE_SCENE`), each declared once
-(`cavenav.cli.flags`)."""
+"""The options of where an episode is shown (`LiveView`), of a vehicle's own sensors
+(`OwnSensors`) and of the fake sub's cave (`CaveScene`), each declared once as a typer
+``Annotated`` type that a command names in its signature; `LIVE_VIEW`, `OWN_SENSORS` and
+`CAVE_SCENE` build the values from a command's arguments (`cavenav.cli.flags.Group`)."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated
 
-from cavenav.cli.flags import Flag, OptionGroup, finite, flag
+import typer
+
+from cavenav.cli.flags import Group, bounded, finite, ranged
 
 __all__ = ["CAVE_SCENE", "LIVE_VIEW", "OWN_SENSORS", "CaveScene", "LiveView", "OwnSensors"]
 
@@ -30,17 +34,21 @@ class LiveView:
 
 
 # `run` and `fly`: a live 3D view of the episode.
-LIVE_VIEW = OptionGroup(
+RerunOpt = Annotated[
+    bool,
+    typer.Option(
+        "--rerun",
+        help="show the episode live in a Rerun viewer: cave, path, camera, depth, sounders, "
+        "map and each decision (pip install -e '.[rerun]')",
+    ),
+]
+RerunSaveOpt = Annotated[
+    Path | None, typer.Option(help="write the Rerun recording to this .rrd file")
+]
+LIVE_VIEW = Group(
     (
-        flag(
-            "rerun",
-            bool,
-            LiveView.rerun,
-            "show the episode live in a Rerun viewer: cave, path, camera, depth, sounders, "
-            "map and each decision (pip install -e '.[rerun]')",
-            "--rerun",
-        ),
-        flag("rerun_save", Path, None, "write the Rerun recording to this .rrd file"),
+        "rerun",
+        "rerun_save",
     ),
     LiveView,
 )
@@ -67,47 +75,55 @@ class OwnSensors:
     depth_model: str | None = None
 
 
-_OWN = OwnSensors()
-OWN_SENSORS = OptionGroup(
-    (
-        flag(
-            "camera",
-            str,
-            _OWN.camera,
-            "without --sim: the video, udp:PORT (RTP H.264, as BlueOS sends it) or rtsp://...",
+OWN = OwnSensors()
+CameraOpt = Annotated[
+    str,
+    typer.Option(
+        help="without --sim: the video, udp:PORT (RTP H.264, as BlueOS sends it) or rtsp://..."
+    ),
+]
+CameraHfovOpt = Annotated[
+    float,
+    typer.Option(
+        help=ranged(
+            "without --sim: the camera's horizontal field of view in water, degrees", 10, 170
         ),
-        flag(
-            "camera_hfov",
-            float,
-            _OWN.camera_hfov,
-            "without --sim: the camera's horizontal field of view in water, degrees",
-            min=10,
-            max=170,
-            callback=finite,
-        ),
-        flag(
-            "camera_latency",
-            float,
-            _OWN.camera_latency,
+        callback=bounded(10, 170, finite),
+    ),
+]
+CameraLatencyOpt = Annotated[
+    float,
+    typer.Option(
+        help=ranged(
             "without --sim: seconds from the camera's sensor to a decoded frame; each step "
             "waits for a frame decoded this long after the move ended",
-            min=0,
-            max=5,
-            callback=finite,
+            0,
+            5,
         ),
-        flag(
-            "ping_up",
-            str,
-            None,
-            "without --sim: the upward sounder, udp:HOST:PORT or serial:DEVICE[:BAUD]",
-        ),
-        flag("ping_down", str, None, "without --sim: the downward sounder (udp:HOST:9090)"),
-        flag(
-            "depth_model",
-            Path,
-            None,
-            "without --sim: a folder holding a metric monocular depth model (none: no depth image)",
-        ),
+        callback=bounded(0, 5, finite),
+    ),
+]
+PingUpOpt = Annotated[
+    str | None,
+    typer.Option(help="without --sim: the upward sounder, udp:HOST:PORT or serial:DEVICE[:BAUD]"),
+]
+PingDownOpt = Annotated[
+    str | None, typer.Option(help="without --sim: the downward sounder (udp:HOST:9090)")
+]
+DepthModelOpt = Annotated[
+    Path | None,
+    typer.Option(
+        help="without --sim: a folder holding a metric monocular depth model (none: no depth image)"
+    ),
+]
+OWN_SENSORS = Group(
+    (
+        "camera",
+        "camera_hfov",
+        "camera_latency",
+        "ping_up",
+        "ping_down",
+        "depth_model",
     ),
     OwnSensors,
 )
@@ -125,23 +141,31 @@ class CaveScene:
     ping_down_port: int = 9090
 
 
-def _port(name: str, text: str) -> Flag:
-    return flag(name, int, getattr(CaveScene(), name), f"--scene: {text}", min=1, max=65535)
-
-
-CAVE_SCENE = OptionGroup(
+SceneOpt = Annotated[
+    str | None,
+    typer.Option(
+        help="serve the vehicle's camera (RTP H.264) and sounders "
+        "(Ping1D) rendered in this cave (a family or a .toml)"
+    ),
+]
+CaveSeedOpt = Annotated[int, typer.Option(help="seed of the --scene cave", min=0)]
+SCENE = CaveScene()
+CameraPortOpt = Annotated[
+    int, typer.Option(help="--scene: the camera's UDP port on 127.0.0.1", min=1, max=65535)
+]
+PingUpPortOpt = Annotated[
+    int, typer.Option(help="--scene: the upward Ping1D's UDP port", min=1, max=65535)
+]
+PingDownPortOpt = Annotated[
+    int, typer.Option(help="--scene: the downward Ping1D's UDP port", min=1, max=65535)
+]
+CAVE_SCENE = Group(
     (
-        flag(
-            "scene",
-            str,
-            None,
-            "serve the vehicle's camera (RTP H.264) and sounders "
-            "(Ping1D) rendered in this cave (a family or a .toml)",
-        ),  # fmt: skip
-        flag("cave_seed", int, CaveScene.cave_seed, "seed of the --scene cave", min=0),
-        _port("camera_port", "the camera's UDP port on 127.0.0.1"),
-        _port("ping_up_port", "the upward Ping1D's UDP port"),
-        _port("ping_down_port", "the downward Ping1D's UDP port"),
+        "scene",
+        "cave_seed",
+        "camera_port",
+        "ping_up_port",
+        "ping_down_port",
     ),
     CaveScene,
 )
