@@ -42,7 +42,6 @@ from cavenav.world.scenarios import Scenario
 __all__ = [
     "DEFAULT_STEPS",
     "TERMINATIONS",
-    "EpisodeConfig",
     "EpisodeResult",
     "Watcher",
     "make_env",
