@@ -32,7 +32,7 @@ from cavenav.training.replay import recorded_cave, recorded_config
 from cavenav.world.scenarios import load_scenario
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from tests.test_vlm import pilot_for  # noqa: E402 - the tests' model server and pilot
+from tests.pilots.test_vlm import pilot_for  # noqa: E402 - the tests' model server and pilot
 from tests.vlm_server import FakeVLM  # noqa: E402
 
 SMALL = VLMOptions(image_size="128x96")
