@@ -89,9 +89,8 @@ class Watcher(Protocol):
 
 
 def step_budget(scenario: Scenario, config: EpisodeConfig) -> int:
-    """The steps an episode of ``config`` gets in ``scenario``: ``config.max_steps`` when
-    set, else the scenario's own budget, else `cavenav.core.types.STEP_BUDGET`."""
-    return config.for_episode(scenario).max_steps or STEP_BUDGET
+    """The steps an episode of ``config`` gets in ``scenario`` (`EpisodeConfig.steps_in`)."""
+    return config.steps_in(scenario)
 
 
 def make_env(scenario: Scenario, config: EpisodeConfig, motion: Motion | None = None) -> gym.Env:
@@ -107,7 +106,7 @@ def make_env(scenario: Scenario, config: EpisodeConfig, motion: Motion | None = 
         current=config.current,
         battery_wh=config.battery_wh,
     )
-    env = TimeLimit(env, max_episode_steps=config.max_steps or STEP_BUDGET)
+    env = TimeLimit(env, max_episode_steps=config.steps_in(scenario))
     if config.stuck_after:
         env = StuckLimit(env, config.stuck_after)
     return SafetyShield(env) if config.shield else env

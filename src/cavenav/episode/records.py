@@ -45,6 +45,7 @@ __all__ = [
     "Outcome",
     "StepRecord",
     "Termination",
+    "UsageRecord",
     "load_steps",
     "load_summary",
     "numbered_jsonl",
@@ -114,7 +115,9 @@ class _Pose(_Record):
     yaw_deg: float = 0.0
 
 
-class _Usage(_Record):
+class UsageRecord(_Record):
+    """summary.json's ``usage``: what a model pilot's requests cost (None: not recorded)."""
+
     model_steps: int | None = None
     prompt_tokens: int | None = None
     completion_tokens: int | None = None
@@ -181,7 +184,7 @@ class EpisodeSummary(_Record):
     first_sense_ms: float | None = None
     mean_sense_ms: float | None = None
     mean_pilot_ms: float | None = None
-    usage: _Usage | None = None
+    usage: UsageRecord | None = None
     mean_drift_m: float | None = None
     max_drift_m: float | None = None
     mean_drift_deg: float | None = None

@@ -168,6 +168,11 @@ class EpisodeConfig:
         sizes = {key: getattr(self, key) for key in SENSOR_KEYS if getattr(self, key) is not None}
         return self.sensors.for_scenario(cave.name, cave.optics, self.optics, cave.sensors, sizes)
 
+    def steps_in(self, cave: Scenario) -> int:
+        """The steps an episode gets in ``cave``: `max_steps` when set, else the cave's own
+        budget, else `cavenav.core.types.STEP_BUDGET`."""
+        return self.max_steps or cave.step_budget or STEP_BUDGET
+
     def for_episode(self, cave: Scenario, seed: int | None = None) -> EpisodeConfig:
         """This configuration as an episode in ``cave`` flies it, every value settled: the
         step budget, the sensors (`sensors_for`), the flow (`current_for`) and the noise
@@ -178,7 +183,7 @@ class EpisodeConfig:
         own_seed = (cave.seed or 0) if seed is None else seed
         return replace(
             self,
-            max_steps=self.max_steps or cave.step_budget or STEP_BUDGET,
+            max_steps=self.steps_in(cave),
             seed=own_seed if self.seed is None else self.seed,
             sensors=self.sensors_for(cave),
             current=self.current_for(cave),

@@ -48,6 +48,7 @@ from cavenav.episode.records import (
     Outcome,
     StepRecord,
     Termination,
+    UsageRecord,
     load_steps,
     load_summary,
 )
@@ -277,9 +278,7 @@ def _summary_columns(s: EpisodeSummary) -> ResultRow:
 
 def _usage_columns(s: EpisodeSummary) -> ResultRow:
     """What the model cost, for a model pilot (empty columns for the others)."""
-    usage = s.usage
-    if usage is None:
-        return cast(ResultRow, dict.fromkeys(_USAGE))
+    usage = s.usage or UsageRecord()
     return {
         "requeries": usage.requeries,
         "transport_retries": usage.transport_retries,
@@ -290,9 +289,6 @@ def _usage_columns(s: EpisodeSummary) -> ResultRow:
         "model_p50_s": usage.model_p50_s,
         "model_p95_s": usage.model_p95_s,
     }
-
-
-_USAGE = COLUMNS[COLUMNS.index("requeries") : COLUMNS.index("model_p95_s") + 1]
 
 
 def priced(rows: Sequence[ResultRow], prices: tuple[float, float]) -> list[ResultRow]:
