@@ -352,8 +352,13 @@ def test_fly_without_a_simulator_flies_the_vehicles_own_sensors(
         FakePing1D(lambda: 1.0) as ceiling,
         FakePing1D(lambda: 3.0) as floor,
     ):
+        # The fake camera encodes, and the flight decodes, on two cores shared with the
+        # suite's other workers: light takes longer to become a decoded frame than the
+        # 0.2 s a real camera needs (measured: a frame 0.06 m of descent stale under three
+        # workers), so the flight is told the latency of this camera.
         result = cavenav(
             "fly", "--connect", bridge.connect, "--camera", camera.address,
+            "--camera-latency", "0.5",
             "--ping-up", ceiling.address, "--ping-down", floor.address,
             "--depth-model", str(depth_model), "--steps", "3", "--yes",
             "--out", str(tmp_path),
