@@ -409,3 +409,28 @@ def test_a_table_printed_to_a_pipe_keeps_every_cell_whole():
     ).stdout
     assert shown.count("51%-100%") == 12 and "…" not in shown
     assert max(len(line) for line in shown.splitlines()) > 80
+
+
+def test_run_with_a_sonar_a_dvl_and_a_stereo_camera_records_them(tmp_path: Path) -> None:
+    room = write_room(tmp_path / "caves")
+    flags = ("--sonar", "multibeam", "--dvl", "--depth-source", "stereo", "--steps", "3")
+    result = cavenav("run", str(room), "--pilot", "geometric", *flags, "--out", str(tmp_path))
+    assert result.returncode == 0, result.stderr
+    run = next(tmp_path.glob("*_room_geometric"))
+    steps = [json.loads(line) for line in (run / "steps.jsonl").read_text().splitlines()]
+    first, later = steps[0], steps[-1]
+    assert first["sonar"] == {"kind": "multibeam", "fresh_beams": 512}
+    assert later["dvl"]["locked"] and len(later["dvl"]["velocity_m_s"]) == 3
+    assert later["reckoned"]["sigma_m"] > 0
+    with np.load(run / first["frames"]["sonar_npz"]) as echoes:
+        assert echoes["echoes"].shape == (512, 512) and str(echoes["kind"]) == "multibeam"
+    assert Image.open(run / first["frames"]["sonar_png"]).size[1] == 400
+    assert Image.open(run / first["frames"]["depth_png"]).text == {"depth_source": "stereo"}
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["config"]["sensors"]["sonar"] == "multibeam"
+
+
+def test_an_unknown_sonar_is_refused_in_one_line(tmp_path: Path) -> None:
+    result = cavenav("run", "S1", "--sonar", "sidescan", "--out", str(tmp_path))
+    assert result.returncode == 2
+    assert "sidescan" in result.stderr and "Traceback" not in result.stderr

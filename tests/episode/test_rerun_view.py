@@ -8,8 +8,17 @@ from pathlib import Path
 
 import pytest
 
-from cavenav.episode.rerun_log import ENTITIES
+from cavenav.episode.loop import run_episode
+from cavenav.episode.rerun_log import (
+    ACOUSTIC_ENTITIES,
+    ENTITIES,
+    RerunWatcher,
+    log_run_folder,
+    open_recording,
+)
+from cavenav.episode.settings import EpisodeConfig
 from tests.conftest import cavenav
+from tests.evaluation.test_report import ScriptedPilot, corridor
 
 rerun_chunk = pytest.importorskip("rerun.chunk", reason="the Rerun view needs rerun-sdk")
 
@@ -87,4 +96,35 @@ def test_view_of_a_folder_that_is_not_a_run_says_so_in_one_line(tmp_path: Path) 
     assert (
         done.stderr.strip()
         == f"error: {tmp_path / 'summary.json'}: cannot be read (No such file or directory)"
+    )
+
+
+def test_the_sonar_dvl_and_reckoned_path_are_logged_live_and_replayed(tmp_path: Path) -> None:
+    sensed = EpisodeConfig(max_steps=2, plots=False, sonar="multibeam", dvl=True)
+    live = tmp_path / "live.rrd"
+    watcher = RerunWatcher(open_recording("live", save=live), sensed.sensors.camera)
+    run_dir = tmp_path / "sonar"
+    run_episode(corridor(), ScriptedPilot(("forward 1 m",)), sensed, run_dir, watchers=[watcher])
+    watcher.recording.disconnect()  # closes the file, as the end of `cavenav run` does
+    replay = tmp_path / "replay.rrd"
+    summary = json.loads((run_dir / "summary.json").read_text())
+    steps = [json.loads(line) for line in (run_dir / "steps.jsonl").open()]
+    log_run_folder(open_recording("replay", save=replay), run_dir, summary, steps, corridor())
+    for rrd, arrivals in ((live, 3), (replay, 2)):  # live: the start, then each step's end
+        rows = entity_rows(rrd)
+        assert {f"/{name}" for name in ACOUSTIC_ENTITIES} <= rows.keys()
+        assert rows["/vehicle/sonar"] == rows["/vehicle/camera/rgb"] == arrivals
+        assert rows["/reckoned"] == rows["/reckoned/sigma"] == 2  # one a step record
+        # No velocity before the first move (no bottom track yet), then one a reading.
+        assert rows["/dvl/velocity/forward"] == rows["/dvl/altitude"] - 1 == arrivals - 1
+
+    plain = tmp_path / "plain"
+    run_episode(corridor(), ScriptedPilot(("forward 1 m",)), EpisodeConfig(max_steps=2), plain)
+    steps = [json.loads(line) for line in (plain / "steps.jsonl").open()]
+    summary = json.loads((plain / "summary.json").read_text())
+    log_run_folder(
+        open_recording("plain", save=tmp_path / "plain.rrd"), plain, summary, steps, None
+    )
+    assert (
+        not {f"/{name}" for name in ACOUSTIC_ENTITIES} & entity_rows(tmp_path / "plain.rrd").keys()
     )

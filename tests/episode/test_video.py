@@ -13,6 +13,7 @@ from pathlib import Path
 import imageio_ffmpeg
 import numpy as np
 import pytest
+from PIL import Image
 
 from cavenav.core.errors import (
     CavenavError,
@@ -226,3 +227,25 @@ def test_a_full_disk_is_one_line_and_leaves_no_part_of_a_video(
         assert str(error.value) == f"cannot write {disk}/v.mp4: No space left on device"
         assert error.value.exit_status == 1
         assert list(disk.iterdir()) == []
+
+
+def test_a_sonar_episode_shows_the_sonar_image_between_the_depth_and_the_map(
+    tmp_path: Path,
+) -> None:
+    run_dir = tmp_path / "sonar"
+    config = EpisodeConfig(max_steps=2, plots=False, sonar="multibeam")
+    run_episode(corridor(), ScriptedPilot(("forward 1 m",)), config, run_dir)
+    size, _, frames = read_video(write_video(run_dir))
+    # The multibeam's 726 x 400 fan is 871 px wide at the panel height; H.264 wants even.
+    sonar_width = round(726 * PANEL_HEIGHT / 400)
+    assert size == (2 * CAMERA[0] + sonar_width + PANEL_HEIGHT + 1, 512) == (2632, 512)
+    below_label = slice(REASON_TOP, PANEL_HEIGHT)
+    for k, frame in enumerate(frames):
+        with Image.open(run_dir / "frames" / f"step_{k:04d}_sonar.png") as png:
+            assert png.mode == "L" and png.size == (726, 400)
+            scaled = png.convert("RGB").resize((sonar_width, PANEL_HEIGHT))
+        want = np.asarray(scaled, int)[below_label]
+        got = frame[below_label, 2 * CAMERA[0] : 2 * CAMERA[0] + sonar_width].astype(int)
+        assert (want > 60).mean() > 0.002  # the fan shows the corridor's walls
+        assert np.abs(got - want).mean() < 2 and np.corrcoef(got.ravel(), want.ravel())[0, 1] > 0.95
+        assert vehicle_centre(frame)[1] > sonar_width  # the map comes after the sonar

@@ -466,3 +466,20 @@ def test_an_episode_without_a_run_folder_gets_a_page_saying_it_will_be_flown_aga
     assert "It left no run folder. It counts as incomplete: run the same sweep again" in page.text
     assert not any(tag == "img" for tag, _ in page.tags)
     assert all(target.exists() for target in page.local_targets())
+
+
+def test_a_sonar_episode_shows_the_sonar_image_beside_each_steps_frames(tmp_path: Path) -> None:
+    run_dir = tmp_path / "sonar"
+    config = EpisodeConfig(max_steps=2, plots=False, sonar="ping360")
+    run_episode(corridor(), ScriptedPilot(("forward 1 m",)), config, run_dir)
+    page = Page(write_report(run_dir))
+    figures = lxml.html.fromstring(page.html).xpath("//section[@id='step-1']//figure")
+    shown = [(f.xpath(".//img/@src")[0], text(f.xpath(".//figcaption")[0])) for f in figures]
+    assert shown == [
+        ("frames/step_0001_rgb.png", "colour"),
+        ("frames/step_0001_depth.png", "depth"),
+        ("frames/step_0001_sonar.png", "ping360 sonar"),
+    ]
+    sonar = [a for tag, a in page.tags if tag == "img" and "sonar" in a["src"]]
+    assert len(sonar) == 2 and all(a["class"] == "sonar" for a in sonar)  # as high as the camera's
+    assert all(target.exists() for target in page.local_targets())  # linked, as the frames are

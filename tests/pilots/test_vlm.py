@@ -432,3 +432,29 @@ def test_a_steps_model_times_are_summed_and_an_episodes_given_as_percentiles() -
     assert total["model_p50_s"] == pytest.approx(0.25)
     assert total["model_p95_s"] == pytest.approx(0.385)
     assert Usage.total([Usage(cached=True)])["model_p50_s"] is None
+
+
+def test_a_sonar_and_a_stereo_camera_are_sent_and_explained(server: FakeVLM) -> None:
+    config = EpisodeConfig(
+        max_steps=2, save_frames=False, plots=False, sonar="ping360", depth_source="stereo"
+    )
+    run_episode(load_scenario("S4"), pilot_for(server), config)
+    first, second = server.requests[0], server.requests[1]
+    system = first["messages"][0]["content"]
+    assert "# Your sonar" in system and "scanning imaging sonar (a Ping360)" in system
+    assert "20 m away" in system and "12.5 degrees above or below" in system
+    assert "# Your depth camera" in system and "Treat black as unknown" in system
+    parts = second["messages"][1]["content"]
+    images = [p for p in parts if p["type"] == "image_url"]
+    assert len(images) == 5  # the earlier colour and depth, then colour, depth and sonar
+    assert any("Colour, then depth, then sonar:" in p.get("text", "") for p in parts)
+
+
+def test_without_the_instruments_the_prompt_is_the_papers(server: FakeVLM) -> None:
+    run_episode(
+        load_scenario("S4"),
+        pilot_for(server),
+        EpisodeConfig(max_steps=1, plots=False, save_frames=False),
+    )
+    system = server.requests[0]["messages"][0]["content"]
+    assert "# Your sonar" not in system and "# Your depth camera" not in system

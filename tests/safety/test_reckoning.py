@@ -11,9 +11,11 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from cavenav.core.errors import ConfigError
-from cavenav.core.types import Action
+from cavenav.core.types import Action, DvlReading
 from cavenav.safety.reckoning import (
+    COMMANDED_DRIFT,
     DepthSamples,
+    ReckonedPose,
     executed_since,
     move_points,
     reckon,
@@ -99,3 +101,39 @@ def test_the_stride_follows_the_width_unless_given() -> None:
     assert sampling_stride(640, 3, 128) == 3
     with pytest.raises(ConfigError, match="stride"):
         sampling_stride(640, 0, 128)
+
+
+def dvl_reading(velocity: tuple[float, float, float], seconds: float = 2.0, locked: bool = True):
+    return DvlReading(
+        velocity_m_s=np.array(velocity if locked else (np.nan,) * 3),
+        locked=locked,
+        altitude_m=2.0 if locked else np.nan,
+        beam_ranges_m=np.full(4, 2.2),
+        seconds=seconds,
+        sigma_m_s=0.003,
+    )
+
+
+def test_with_bottom_lock_the_move_is_what_the_dvl_measured() -> None:
+    commanded = Action(forward=1.0, yaw_deg=10.0)
+    # The current set the vehicle 0.3 m to its left: the DVL says so, the command cannot.
+    seen = synthetic(5.0, previous_action=commanded, dvl=dvl_reading((0.5, 0.15, 0.0)))
+    moved = executed_since(seen, None)
+    assert moved == Action(forward=1.0, right=-0.3, up=0.0, yaw_deg=10.0)
+    lost = synthetic(5.0, previous_action=commanded, dvl=dvl_reading((0, 0, 0), locked=False))
+    assert executed_since(lost, None) == commanded
+
+
+def test_dead_reckoning_drifts_less_with_the_dvl() -> None:
+    start = ReckonedPose.launched(0.0, 0.0, 0.0, 0.0)  # heading -y
+    with_dvl = synthetic(5.0, previous_action=Action(forward=1.0), dvl=dvl_reading((0.5, 0, 0)))
+    without = synthetic(5.0, previous_action=Action(forward=1.0))
+    reckoned = start.after(with_dvl, None)
+    assert reckoned.position == pytest.approx([0.0, -1.0, 0.0])
+    assert reckoned.dvl_moves == 1 and reckoned.moves == 1
+    blind = start.after(without, None)
+    assert blind.position == pytest.approx([0.0, -1.0, 0.0])
+    assert reckoned.sigma_m < blind.sigma_m == pytest.approx(COMMANDED_DRIFT)
+    # A calibration's error grows with the distance, not its square root.
+    assert blind.after(without, None).sigma_m == pytest.approx(2 * COMMANDED_DRIFT)
+    assert start.after(synthetic(5.0), None) is start  # no move known: no move reckoned

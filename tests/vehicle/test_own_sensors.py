@@ -10,6 +10,7 @@ import json
 import math
 import socket
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -25,6 +26,8 @@ from cavenav.vehicle.dead_reckoning import DeadReckoning
 from cavenav.vehicle.fake_sub import FakeSub, FakeSubConfig
 from cavenav.vehicle.mavlink import ArduSubMotion, BridgeConfig
 from cavenav.vehicle.ping import FakePing1D
+from cavenav.vehicle.ping360 import FakePing360
+from cavenav.vehicle.waterlinked import DvlVelocity, FakeDvl
 from tests.conftest import cavenav
 
 
@@ -346,11 +349,18 @@ def test_fly_without_a_simulator_flies_the_vehicles_own_sensors(
     def true_depth_grey(index: int) -> np.ndarray:
         return grey(round(min(max(grey_of(sub.state().down), 0), 255)))
 
+    def unlocked() -> DvlVelocity:  # a DVL with no bottom lock: the moves stay reckoned
+        return DvlVelocity(
+            time.time(), np.zeros(3), False, 0.0, -1.0, np.zeros(4), np.zeros(4, bool)
+        )
+
     with (
         sub,
         FakeCamera(true_depth_grey, free_rtp_port()) as camera,
         FakePing1D(lambda: 1.0) as ceiling,
         FakePing1D(lambda: 3.0) as floor,
+        FakePing360(lambda angle, samples, range_m: np.full(samples, 60, np.uint8)) as sonar,
+        FakeDvl(unlocked) as dvl,
     ):
         # The fake camera encodes, and the flight decodes, on two cores shared with the
         # suite's other workers: light takes longer to become a decoded frame than the
@@ -361,9 +371,9 @@ def test_fly_without_a_simulator_flies_the_vehicles_own_sensors(
             "--camera-latency", "0.5",
             "--ping-up", ceiling.address, "--ping-down", floor.address,
             "--depth-model", str(depth_model), "--steps", "3", "--yes",
-            "--out", str(tmp_path),
+            "--sonar", sonar.address, "--dvl", dvl.address, "--out", str(tmp_path),
         )  # fmt: skip
-        truth = sub.state()
+        truth, sonar_address = sub.state(), sonar.address
     assert result.returncode == 0, result.stderr
     (run_dir,) = tmp_path.iterdir()
     summary = json.loads((run_dir / "summary.json").read_text())
@@ -391,6 +401,16 @@ def test_fly_without_a_simulator_flies_the_vehicles_own_sensors(
     # 0.25 m), so the reckoning lags the truth by up to 0.15 m a step here.
     assert summary["progress_m"] == pytest.approx(flown, abs=0.2 + 0.2 * flown)
     assert summary["position_sigma_m"] > 0
+    # The Ping360's disc and the DVL's readings ride along in every step.
+    assert all(s["sonar"]["kind"] == "ping360" for s in steps)
+    assert (run_dir / steps[-1]["frames"]["sonar_npz"]).is_file()
+    assert steps[-1]["dvl"] == {
+        "velocity_m_s": [None, None, None],
+        "locked": False,
+        "altitude_m": None,
+        "sigma_m_s": 0.0,
+    }
+    assert summary["vehicle"]["sonar"] == sonar_address
 
 
 @pytest.mark.slow
@@ -475,3 +495,49 @@ def test_ctrl_c_while_a_flights_plots_are_drawn_leaves_it_finished(
     summary = json.loads((tmp_path / "run" / "summary.json").read_text())
     assert (summary["status"], summary["steps"]) == ("finished", 2)
     assert "plots" not in summary
+
+
+def test_a_fake_sub_in_a_cave_answers_as_a_ping360_and_a_dvl(tmp_path: Path) -> None:
+    """`cavenav fake-sub --scene --sonar-port --dvl-port`: the sonar's echoes and the
+    DVL's reports are rendered at the true pose, and read as `fly --sonar --dvl` reads
+    them."""
+    from cavenav.episode.own_acoustics import DvlFeed, SweptSonar
+    from cavenav.sensors.fusion import echo_ranges
+    from cavenav.sensors.rig import SensorConfig
+    from cavenav.sim.cave_sensors import CaveSensors
+    from cavenav.vehicle.ping360 import Ping360Settings, Ping360Sonar
+    from cavenav.vehicle.waterlinked import WaterLinkedDvl
+    from cavenav.world.scenarios import load_scenario
+    from tests.conftest import write_room
+
+    room = load_scenario(str(write_room(tmp_path)), 0)  # an 8 m wide hall, 7 m high
+    sub, _ = udp_sub(position=False)
+    sensors = SensorConfig().with_resolution(160, 120)
+    pings = (free_udp_port(), free_udp_port())
+    ports = {"sonar_port": free_udp_port(), "dvl_port": 0}
+    with sub, CaveSensors(sub, room, sensors, free_rtp_port(), pings, **ports) as cave:
+        assert cave.sonar is not None and cave.dvl is not None
+        settings = Ping360Settings(range_m=10.0, sector_deg=200.0, step_grad=10)
+        sonar = SweptSonar(Ping360Sonar.connect(cave.sonar.address, settings))
+        feed = DvlFeed(WaterLinkedDvl.connect(cave.dvl.address))
+        try:
+            deadline = time.monotonic() + 20
+            while not np.isfinite(sonar.image().age_s).sum() >= 20 and time.monotonic() < deadline:
+                time.sleep(0.1)
+            image = sonar.image()
+            time.sleep(0.5)
+            reading = feed.reading()
+        finally:
+            sonar.close()
+            feed.close()
+    ranges = echo_ranges(replace(image, age_s=np.zeros_like(image.age_s)))
+    # The side walls are 4 m either side of the hall's axis.
+    right = int(np.argmin(np.abs(image.bearings_deg - 90.0)))
+    left = int(np.argmin(np.abs(image.bearings_deg + 90.0)))
+    assert ranges[right] == pytest.approx(4.0, abs=0.3) and ranges[left] == pytest.approx(
+        4.0, abs=0.3
+    )
+    assert image.fan.shape == (400, 400) and image.fan.any()
+    assert reading is not None and reading.locked  # the floor 3.5 m below
+    assert reading.velocity_m_s == pytest.approx(np.zeros(3), abs=0.05)  # the sub sits still
+    assert reading.altitude_m == pytest.approx(3.5, abs=0.05)

@@ -12,7 +12,17 @@ from typing import Annotated, Literal
 
 import typer
 
-from cavenav.cli.flags import Backend, Group, Sounder, WaterType, bounded, finite, ranged
+from cavenav.cli.flags import (
+    Backend,
+    DepthSource,
+    Group,
+    SonarKind,
+    Sounder,
+    WaterType,
+    bounded,
+    finite,
+    ranged,
+)
 from cavenav.episode.settings import EpisodeConfig, configured
 from cavenav.pilots.factory import VLMOptions
 from cavenav.world.current import MAX_DISCHARGE_M3S
@@ -169,6 +179,9 @@ def episode_settings(
     depth_noise: float | None = None,
     resolution: str | None = None,
     sounder_resolution: str | None = None,
+    depth_source: str | None = None,
+    sonar: str | None = None,
+    dvl: bool | None = None,
     difficulty: list[str] | None = None,
     discharge: float | None = EPISODE.discharge_m3s,
     gusts: float | None = EPISODE.gusts,
@@ -202,6 +215,9 @@ def episode_settings(
         optics={key: value for key, value in optics.items() if value is not None},
         resolution=_size(resolution, "--resolution"),
         sounder_resolution=_size(sounder_resolution, "--sounder-resolution"),
+        depth_source=depth_source,
+        sonar=sonar,
+        dvl=dvl,
         difficulty=parse_difficulty(difficulty or []).to_dict(),
         discharge_m3s=discharge,
         gusts=gusts,
@@ -320,6 +336,29 @@ SounderResolutionOpt = Annotated[
     str | None,
     typer.Option(help="pixels of each echo sounder's depth camera (default 32x24)", metavar="WxH"),
 ]
+DepthSourceOpt = Annotated[
+    DepthSource | None,
+    typer.Option(
+        help="what makes the depth image: exact (the simulator's, as the paper's), stereo (a "
+        "stereo camera's: none where the water, silt or bare rock leave no texture) or none; "
+        "default: the scenario's, else exact"
+    ),
+]
+SonarOpt = Annotated[
+    SonarKind | None,
+    typer.Option(
+        help="an imaging sonar on the vehicle: ping360 (a scanning sonar's disc) or "
+        "multibeam (a 130-degree forward fan); default: the scenario's, else none"
+    ),
+]
+DvlOpt = Annotated[
+    bool | None,
+    typer.Option(
+        "--dvl/--no-dvl",
+        help="a Doppler velocity log (DVL A50-like): dead reckoning uses its velocity while "
+        "it has bottom lock; default: the scenario's, else none",
+    ),
+]
 DifficultyOpt = Annotated[
     list[str] | None,
     typer.Option(
@@ -391,6 +430,9 @@ SETTINGS = Group(
         "depth_noise",
         "resolution",
         "sounder_resolution",
+        "depth_source",
+        "sonar",
+        "dvl",
         "difficulty",
         "discharge",
         "gusts",

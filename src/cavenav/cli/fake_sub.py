@@ -20,9 +20,11 @@ from cavenav.cli.vehicle_flags import (
     CameraPortOpt,
     CaveScene,
     CaveSeedOpt,
+    DvlPortOpt,
     PingDownPortOpt,
     PingUpPortOpt,
     SceneOpt,
+    SonarPortOpt,
 )
 from cavenav.episode.settings import EpisodeConfig
 
@@ -69,6 +71,8 @@ def fake_sub(
     camera_port: CameraPortOpt = SCENE.camera_port,
     ping_up_port: PingUpPortOpt = SCENE.ping_up_port,
     ping_down_port: PingDownPortOpt = SCENE.ping_down_port,
+    sonar_port: SonarPortOpt = SCENE.sonar_port,
+    dvl_port: DvlPortOpt = SCENE.dvl_port,
 ) -> None:
     """A simulated ArduSub autopilot on MAVLink, for `cavenav fly` with no vehicle; with
     --scene, its camera and sounders too, rendered in a cave."""
@@ -136,13 +140,19 @@ def _serve_in_a_cave(
     cave = built(settings, scene.scene, scene.cave_seed)
     pings = (scene.ping_up_port, scene.ping_down_port)
     with FakeSub(config) as sub, CaveSensors(
-        sub, cave, settings.sensors_for(cave), scene.camera_port, pings
+        sub, cave, settings.sensors_for(cave), scene.camera_port, pings,
+        sonar_port=scene.sonar_port, dvl_port=scene.dvl_port,
     ) as sensors:  # fmt: skip
+        acoustic = "".join(
+            f", {what} {device.address}"
+            for what, device in (("Ping360", sensors.sonar), ("DVL", sensors.dvl))
+            if device is not None
+        )
         console.print(
             f"fake ArduSub in {cave.name} sending to {config.address}; camera "
             f"udp:{scene.camera_port} "
             f"(RTP H.264), sounders {sensors.up.address} (up) and {sensors.down.address} "
-            "(down); Ctrl-C stops it",
+            f"(down){acoustic}; Ctrl-C stops it",
             soft_wrap=True,
             highlight=False,
         )

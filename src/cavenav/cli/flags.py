@@ -34,6 +34,22 @@ __all__ = [
 ]
 
 
+class DepthSource(StrEnum):
+    """What makes the depth image (see `cavenav.sensors.config.SensorConfig`)."""
+
+    exact = "exact"
+    stereo = "stereo"
+    none = "none"
+
+
+class SonarKind(StrEnum):
+    """Imaging sonars (see `cavenav.sensors.sonar`)."""
+
+    ping360 = "ping360"
+    multibeam = "multibeam"
+    none = "none"
+
+
 class Sounder(StrEnum):
     """Echo-sounder models (see `cavenav.sensors.rig.SensorConfig`)."""
 

@@ -262,7 +262,30 @@ def open_sensors(own: OwnSensors, size: tuple[int, int], stack: contextlib.ExitS
     hfov = camera.hfov_deg(own.camera_hfov)  # less where the stream's sides are cropped
     focal_mm = 18.0 / math.tan(math.radians(hfov) / 2)  # on a 36 mm sensor
     intrinsics = CameraIntrinsics(*size, focal_mm=focal_mm)
-    return VehicleSenses(camera, sounders, depth, intrinsics)
+    sonar, dvl = _open_acoustics(own, stack)
+    return VehicleSenses(camera, sounders, depth, intrinsics, sonar=sonar, dvl=dvl)
+
+
+def _open_acoustics(own: OwnSensors, stack: contextlib.ExitStack) -> tuple[Any, Any]:
+    """The Ping360's image and the DVL's reading, as callables (None: not fitted)."""
+    from cavenav.episode.own_acoustics import DvlFeed, SweptSonar
+
+    sonar = dvl = None
+    if own.sonar is not None:
+        from cavenav.vehicle.ping360 import Ping360Sonar
+
+        with console.status(f"opening the Ping360 {own.sonar}"):
+            swept = SweptSonar(Ping360Sonar.connect(own.sonar))
+        stack.callback(swept.close)
+        sonar = swept.image
+    if own.dvl is not None:
+        from cavenav.vehicle.waterlinked import WaterLinkedDvl
+
+        with console.status(f"waiting for the DVL {own.dvl}"):
+            feed = DvlFeed(WaterLinkedDvl.connect(own.dvl))
+        stack.callback(feed.close)
+        dvl = feed.reading
+    return sonar, dvl
 
 
 def fly_on_own_sensors(

@@ -88,7 +88,9 @@ from cavenav.cli.vehicle_flags import (
     CameraOpt,
     DepthModelOpt,
     LiveView,
+    OwnDvlOpt,
     OwnSensors,
+    OwnSonarOpt,
     PingDownOpt,
     PingUpOpt,
     RerunOpt,
@@ -210,6 +212,8 @@ def fly(
     ping_up: PingUpOpt = None,
     ping_down: PingDownOpt = None,
     depth_model: DepthModelOpt = None,
+    sonar: OwnSonarOpt = None,
+    dvl: OwnDvlOpt = None,
 ) -> None:
     """Fly a pilot on an ArduSub vehicle over MAVLink (BlueROV2): on its own camera,
     sounders and depth model, or with --sim in a simulated cave."""
@@ -300,9 +304,13 @@ def _fly_own_sensors(
     from cavenav.vehicle.ping import PingAddress
 
     camera = CameraAddress.parse(own.camera)  # refused before any folder or connection
-    for sounder in (own.ping_up, own.ping_down):
+    for sounder in (own.ping_up, own.ping_down, own.sonar):
         if sounder:
             PingAddress.parse(sounder)
+    if own.dvl:
+        from cavenav.vehicle.waterlinked import DvlAddress
+
+        DvlAddress.parse(own.dvl)
 
     if spec.name in ("geometric", "policy") and own.depth_model is None:
         raise CavenavError(
@@ -319,7 +327,7 @@ def _fly_own_sensors(
         "connect": bridge.connect, "mode": bridge.mode, "camera": str(camera),
         "camera_hfov_deg": own.camera_hfov, "camera_latency_s": own.camera_latency,
         "ping_up": own.ping_up, "ping_down": own.ping_down,
-        "depth_model": own.depth_model,
+        "depth_model": own.depth_model, "sonar": own.sonar, "dvl": own.dvl,
     }  # fmt: skip
     flight = Flight(settings, vehicle)
     flyer = spec.build(seed=0)

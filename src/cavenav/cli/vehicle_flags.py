@@ -65,6 +65,8 @@ class OwnSensors:
         ping_up, ping_down: the sounders' addresses (`cavenav.vehicle.ping.PingAddress`);
             None: not fitted.
         depth_model: the folder of a metric monocular depth model; None: no depth image.
+        sonar: a Ping360's address (`cavenav.vehicle.ping360`); None: not fitted.
+        dvl: a Water Linked DVL's address (`cavenav.vehicle.waterlinked`); None: not fitted.
     """
 
     camera: str = "udp:5600"
@@ -73,6 +75,8 @@ class OwnSensors:
     ping_up: str | None = None
     ping_down: str | None = None
     depth_model: str | None = None
+    sonar: str | None = None
+    dvl: str | None = None
 
 
 OWN = OwnSensors()
@@ -116,6 +120,22 @@ DepthModelOpt = Annotated[
         help="without --sim: a folder holding a metric monocular depth model (none: no depth image)"
     ),
 ]
+OwnSonarOpt = Annotated[
+    str | None,
+    typer.Option(
+        "--sonar",
+        help="without --sim: a Ping360 scanning sonar, udp:HOST:PORT (BlueOS serves one on "
+        "9092) or serial:DEVICE[:BAUD]; its disc goes to the pilot",
+    ),
+]
+OwnDvlOpt = Annotated[
+    str | None,
+    typer.Option(
+        "--dvl",
+        help="without --sim: a Water Linked DVL, tcp:HOST[:PORT] (16171); dead reckoning "
+        "uses its velocity while it has bottom lock",
+    ),
+]
 OWN_SENSORS = Group(
     (
         "camera",
@@ -124,6 +144,8 @@ OWN_SENSORS = Group(
         "ping_up",
         "ping_down",
         "depth_model",
+        "sonar",
+        "dvl",
     ),
     OwnSensors,
 )
@@ -139,6 +161,8 @@ class CaveScene:
     camera_port: int = 5600
     ping_up_port: int = 9091
     ping_down_port: int = 9090
+    sonar_port: int | None = None
+    dvl_port: int | None = None
 
 
 SceneOpt = Annotated[
@@ -159,6 +183,22 @@ PingUpPortOpt = Annotated[
 PingDownPortOpt = Annotated[
     int, typer.Option(help="--scene: the downward Ping1D's UDP port", min=1, max=65535)
 ]
+SonarPortOpt = Annotated[
+    int | None,
+    typer.Option(
+        help="--scene: also answer as a Ping360 on this UDP port (BlueOS's is 9092)",
+        min=1,
+        max=65535,
+    ),
+]
+DvlPortOpt = Annotated[
+    int | None,
+    typer.Option(
+        help="--scene: also stream a Water Linked DVL's reports on this TCP port (16171)",
+        min=1,
+        max=65535,
+    ),
+]
 CAVE_SCENE = Group(
     (
         "scene",
@@ -166,6 +206,8 @@ CAVE_SCENE = Group(
         "camera_port",
         "ping_up_port",
         "ping_down_port",
+        "sonar_port",
+        "dvl_port",
     ),
     CaveScene,
 )

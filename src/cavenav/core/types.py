@@ -25,9 +25,11 @@ __all__ = [
     "Action",
     "Cruise",
     "Decision",
+    "DvlReading",
     "Observation",
     "Pose",
     "Rules",
+    "SonarImage",
     "Usage",
     "VehicleBody",
 ]
@@ -183,6 +185,92 @@ class VehicleBody:
         return pose.position + self.hull_points @ rot.T
 
 
+def _same_fields(one: object, other: object) -> bool:
+    """Field by field, arrays by value and NaN equal to NaN: two renderings of one step are
+    equal, so an environment's ``info`` that carries them can be compared."""
+    pairs = ((getattr(one, f.name), getattr(other, f.name)) for f in fields(one))  # type: ignore[arg-type]
+    return all(
+        np.array_equal(a, b, equal_nan=True)
+        if isinstance(a, np.ndarray) or isinstance(b, np.ndarray)
+        else a == b or (a != a and b != b)
+        for a, b in pairs
+    )
+
+
+@dataclass(frozen=True, eq=False)
+class SonarImage:
+    """What an imaging sonar shows at one step (`cavenav.sensors.sonar`).
+
+    Attributes:
+        kind: "ping360" (a scanning sonar's disc) or "multibeam" (a forward fan).
+        echoes: (beams, bins) uint8 echo strength, nearest bin first, over 0-``range_m``.
+        bearings_deg: (beams,) each beam's bearing, right of ahead positive.
+        range_m: the range the bins span.
+        fan: (H, W) uint8 the image as the device's software draws it, heading up.
+        age_s: (beams,) seconds since each beam was pinged: 0 for those pinged since the
+            previous observation (all of a multibeam's; the part of its sector a scanning
+            head swept), ``inf`` for those never pinged; the disc shows the rest as they
+            were.
+        turned_deg: (beams,) how far the vehicle has turned (left positive, as its gyro
+            knows) since each beam was pinged: such a beam now lies ``turned_deg`` further
+            right than its bearing says.
+        moved_m: (beams,) how far the vehicle has moved since each beam was pinged (its
+            odometry): an echo that old may be that much nearer now.
+        frequency_khz: the carrier.
+        beam_width_deg, aperture_deg: one beam's horizontal width and vertical aperture.
+    """
+
+    kind: str
+    echoes: np.ndarray
+    bearings_deg: np.ndarray
+    range_m: float
+    fan: np.ndarray
+    age_s: np.ndarray
+    frequency_khz: float
+    beam_width_deg: float = 0.0
+    aperture_deg: float = 0.0
+    turned_deg: np.ndarray | None = None
+    moved_m: np.ndarray | None = None
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, SonarImage) and _same_fields(self, other)
+
+    @property
+    def bin_m(self) -> float:
+        return self.range_m / self.echoes.shape[1]
+
+    @property
+    def fresh(self) -> np.ndarray:
+        """(beams,) bool, the beams pinged since the previous observation."""
+        return self.age_s == 0
+
+
+@dataclass(frozen=True, eq=False)
+class DvlReading:
+    """What a Doppler velocity log measured over the move just made
+    (`cavenav.sensors.dvl`).
+
+    Attributes:
+        velocity_m_s: (3,) mean velocity over the ground in the body frame after the
+            move's turn (forward, left, up); NaN without bottom lock.
+        locked: whether enough beams found a surface in range (bottom lock).
+        altitude_m: the vertical distance to what the beams hit; NaN without a lock.
+        beam_ranges_m: (4,) each beam's slant range, ``inf`` where it found nothing.
+        seconds: the time the velocity is the mean over (the move's duration).
+        sigma_m_s: the velocity's standard error per axis (the device's figure of merit).
+    """
+
+    velocity_m_s: np.ndarray
+    locked: bool
+    altitude_m: float
+    beam_ranges_m: np.ndarray
+    seconds: float
+    sigma_m_s: float
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, DvlReading) and _same_fields(self, other)
+
+
 @dataclass(frozen=True)
 class Observation:
     """What a pilot may see at one step; never the mesh, never the pose.
@@ -211,6 +299,11 @@ class Observation:
         energy_left_wh: what the battery has left, as a BlueROV2 reports it (a budget
             given to the environment, else the full pack); None when the source does not
             say.
+        depth_source: what made the depth image: "exact" (the simulator's ray depth),
+            "stereo" (a stereo camera's, `cavenav.sensors.stereo`: NaN in ``depth_m`` and
+            0, near, in ``depth_png`` where it found no match) or "none".
+        sonar: the imaging sonar's image, when the vehicle carries one.
+        dvl: the Doppler velocity log's reading, when the vehicle carries one.
     """
 
     rgb: np.ndarray
@@ -225,17 +318,15 @@ class Observation:
     previous_action: Action | None = None
     has_depth: bool = True
     energy_left_wh: float | None = None
+    depth_source: str = "exact"
+    sonar: SonarImage | None = None
+    dvl: DvlReading | None = None
 
     def __eq__(self, other: object) -> bool:
-        """Field by field, the images by value (NaN equal to NaN): two renderings of one
-        step are equal, so an environment's ``info`` that carries them can be compared."""
+        """Field by field, the images by value (NaN equal to NaN)."""
         if not isinstance(other, Observation):
             return NotImplemented
-        pairs = ((getattr(self, f.name), getattr(other, f.name)) for f in fields(self))
-        return all(
-            np.array_equal(a, b, equal_nan=True) if isinstance(a, np.ndarray) else a == b
-            for a, b in pairs
-        )
+        return _same_fields(self, other)
 
     def arrays(self, depth_max_m: float, sounder_max_m: float) -> dict[str, np.ndarray]:
         """The observation as `cavenav.sim.env.CaveNavEnv` gives it to a learner (and a
@@ -248,7 +339,20 @@ class Observation:
             "depth_m": np.minimum(self.depth_m, np.float32(depth_max_m))[..., None],
             "d_top": np.array([min(self.d_top, limit)], np.float32),
             "d_bottom": np.array([min(self.d_bottom, limit)], np.float32),
+            **self._acoustic_arrays(),
         }
+
+    def _acoustic_arrays(self) -> dict[str, np.ndarray]:
+        """The sonar's echoes (beams, bins, 1) and the DVL's (velocity forward, left, up,
+        altitude, lock), zeros in place of NaN, when the vehicle carries them."""
+        found = {}
+        if self.sonar is not None:
+            found["sonar"] = self.sonar.echoes[..., None]
+        if self.dvl is not None:
+            dvl = self.dvl
+            values = [*dvl.velocity_m_s, dvl.altitude_m, float(dvl.locked)]
+            found["dvl"] = np.nan_to_num(np.array(values, np.float32), nan=0.0)
+        return found
 
 
 @dataclass(frozen=True)

@@ -33,13 +33,24 @@ import numpy as np
 
 from cavenav import __version__
 from cavenav.core.errors import CavenavError, PilotFailure
-from cavenav.core.types import STEP_BUDGET, Action, Decision, Observation, Pose, Usage
+from cavenav.core.types import (
+    STEP_BUDGET,
+    Action,
+    Decision,
+    DvlReading,
+    Observation,
+    Pose,
+    SonarImage,
+    Usage,
+)
 from cavenav.episode.metrics import path_length
+from cavenav.episode.record import acoustic_fields
 from cavenav.episode.records import EpisodeSummary, StepRecord
 from cavenav.episode.run_folder import LostStep, RunFolder
 from cavenav.episode.settings import EpisodeConfig
 from cavenav.motion.actions import DEFAULT_SPACE, TWIST_KEYS, format_action, to_twist
 from cavenav.pilots.base import Pilot
+from cavenav.safety.reckoning import ReckonedPose
 from cavenav.safety.shield import Shield, ShieldConfig
 from cavenav.sensors.camera import CameraIntrinsics
 from cavenav.sensors.depth import DEPTH_RANGE_M, normalise_depth, unknown_depth
@@ -92,6 +103,10 @@ class VehicleSenses:
         depth: metres from the colour image (`cavenav.sensors.monocular`), or None for
             a vehicle with no depth source.
         camera: the camera's lens; its horizontal field of view goes to the pilot.
+        sonar: the imaging sonar's image as swept so far (`own_acoustics.SweptSonar`);
+            None: not fitted.
+        dvl: the DVL's mean velocity since the last step (`own_acoustics.DvlFeed`);
+            None: not fitted.
     """
 
     camera: Camera
@@ -99,6 +114,8 @@ class VehicleSenses:
     depth: Callable[[np.ndarray], np.ndarray] | None = None
     intrinsics: CameraIntrinsics = field(default_factory=CameraIntrinsics)
     camera_offset_m: float = 0.0
+    sonar: Callable[[], SonarImage] | None = None
+    dvl: Callable[[], DvlReading | None] | None = None
 
     def sense(self, after: float, step: int, previous: Action | None) -> Observation:
         """The observation of the first frame after the monotonic time ``after``."""
@@ -121,6 +138,8 @@ class VehicleSenses:
             step=step,
             previous_action=previous,
             has_depth=self.depth is not None,
+            sonar=None if self.sonar is None else self.sonar(),
+            dvl=None if self.dvl is None else self.dvl(),
         )
 
 
@@ -151,6 +170,8 @@ class _Log:
 
     def __init__(self, pilot: str, flight: Flight, start: Pose, depth_source: bool):
         self.pilot, self.flight, self.poses = pilot, flight, [start]
+        # With a DVL: the position reckoned from its velocity (`acoustic_fields`).
+        self.reckoning = ReckonedPose.launched(start.x, start.y, start.z, start.psi)
         self.steps: list[dict[str, Any]] = []
         self.usage: list[Usage] = []
         self.termination: str | None = None
@@ -339,7 +360,11 @@ def _begin(step: int, log: _Log, motion: VehicleMotion, obs: Observation) -> dic
     record = {"step": step, "pose": log.poses[-1].to_dict()}
     if sigma is not None:
         record["position_sigma_m"] = round(sigma, 4)
-    return {**record, "d_top_m": _rounded(obs.d_top), "d_bottom_m": _rounded(obs.d_bottom)}
+    acoustic, log.reckoning = acoustic_fields(obs, log.reckoning, obs.previous_action)
+    return {
+        **record, "d_top_m": _rounded(obs.d_top), "d_bottom_m": _rounded(obs.d_bottom),
+        **acoustic,
+    }  # fmt: skip
 
 
 def _rounded(metres: float) -> float | None:

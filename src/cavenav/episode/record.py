@@ -8,6 +8,7 @@ same values.
 
 from __future__ import annotations
 
+import math
 import os
 import platform
 import time
@@ -23,10 +24,37 @@ from cavenav.core.types import Action, Decision, Observation, Pose, Rules, Usage
 from cavenav.episode.metrics import path_length, summarise_clearance
 from cavenav.episode.records import TERMINATED, TERMINATIONS, TRUNCATED, EpisodeSummary, StepRecord
 from cavenav.motion.actions import TWIST_KEYS, format_action, to_twist
+from cavenav.safety.reckoning import ReckonedPose
 from cavenav.world.geodesic import NoPath, shortest_path_of
 from cavenav.world.scenarios import Scenario
 
-__all__ = ["TERMINATIONS", "EpisodeLog"]
+__all__ = ["TERMINATIONS", "EpisodeLog", "acoustic_fields"]
+
+
+def acoustic_fields(
+    observation: Observation, reckoning: ReckonedPose, last: Action | None
+) -> tuple[dict[str, Any], ReckonedPose]:
+    """A step record's ``sonar``, ``dvl`` and ``reckoned`` (`StepRecord`), with the
+    reckoning moved by the move before ``observation`` (``last``: the action of the step
+    before); nothing for a vehicle without a sonar or a DVL."""
+    record: dict[str, Any] = {}
+    if (sonar := observation.sonar) is not None:
+        record["sonar"] = {"kind": sonar.kind, "fresh_beams": int(sonar.fresh.sum())}
+    if (dvl := observation.dvl) is not None:
+        record["dvl"] = {
+            "velocity_m_s": [_finite(v, 5) for v in dvl.velocity_m_s],
+            "locked": dvl.locked,
+            "altitude_m": _finite(dvl.altitude_m, 4),
+            "sigma_m_s": round(dvl.sigma_m_s, 5),
+        }
+    if record:
+        reckoning = reckoning.after(observation, last)
+        record["reckoned"] = reckoning.to_dict()
+    return record, reckoning
+
+
+def _finite(value: float, digits: int) -> float | None:
+    return round(float(value), digits) if math.isfinite(value) else None
 
 
 class EpisodeLog:
@@ -51,6 +79,8 @@ class EpisodeLog:
         self.rules = rules
         self.shielded = shielded
         self.poses = [start]
+        self.reckoning = ReckonedPose.launched(start.x, start.y, start.z, start.psi)
+        self._executed: Action | None = None  # the action of the step before
         self.clearances = [start_clearance]
         self.steps: list[dict[str, Any]] = []
         self.usage: list[Usage] = []
@@ -79,13 +109,16 @@ class EpisodeLog:
         }
 
     def _begin(self, observation: Observation) -> dict[str, Any]:
-        return {
+        record: dict[str, Any] = {
             "step": len(self.steps),
             "pose": self.poses[-1].to_dict(),
             "clearance_m": round(self.clearances[-1], 4),
             "d_top_m": round(observation.d_top, 4),
             "d_bottom_m": round(observation.d_bottom, 4),
         }
+        acoustic, self.reckoning = acoustic_fields(observation, self.reckoning, self._executed)
+        record.update(acoustic)
+        return record
 
     def stepped(
         self,
@@ -104,6 +137,7 @@ class EpisodeLog:
             pose: where the step left the vehicle.
         """
         record = self._begin(observation)
+        self._executed = executed
         if info["collision"]:
             self.collision_pose = info["collision_pose"]
             self.termination = "collision"

@@ -223,7 +223,11 @@ class StepRecord(_Record):
     (after it); the step at which the pilot gave up has ``action`` None and ``failure``.
     ``frames`` names the images saved (empty with frames off); ``model_images`` the
     stored images of the current observation as the model was sent them
-    ({"rgb", "depth_png"}, model pilots only).
+    ({"rgb", "depth_png"}, model pilots only). With acoustic instruments, ``dvl`` is what
+    the DVL reported before the step (velocity forward, left, up in m/s, lock, altitude),
+    ``sonar`` the sonar's kind and the beams it pinged since the step before, and
+    ``frames`` adds its image (``sonar_png``) and its raw echoes (``sonar_npz``);
+    ``reckoned`` is where dead reckoning put the vehicle then, and its standard error.
     """
 
     step: int
@@ -253,6 +257,9 @@ class StepRecord(_Record):
     timing_ms: dict[str, float] = Field(default_factory=dict)
     frames: dict[str, str] = Field(default_factory=dict)
     model_images: dict[str, str] = Field(default_factory=dict)
+    dvl: dict[str, Any] | None = None
+    sonar: dict[str, Any] | None = None
+    reckoned: dict[str, float] | None = None
 
     @model_validator(mode="after")
     def _moved(self) -> StepRecord:

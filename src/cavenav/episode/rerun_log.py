@@ -21,6 +21,18 @@ functions below, so a live view and a replay show the same entities:
     pilot/action         TextLog: the action string and its justification
     pilot/map            Image: the pilot's own map, top-down, heading up
 
+and, for a vehicle that carries acoustic instruments (`ACOUSTIC_ENTITIES`):
+
+    vehicle/sonar        Image: the imaging sonar's fan or disc as its software draws it,
+                         heading up (JPEG, as the colour image)
+    dvl/velocity/forward, dvl/velocity/left, dvl/velocity/up
+                         Scalars: the DVL's velocity over the ground, body frame, m/s;
+                         none at a step without bottom lock
+    dvl/altitude         Scalars: the DVL's altitude, m; none where it found no bottom
+    reckoned             LineStrips3D: where dead reckoning put the vehicle, up to this
+                         step, beside the true path
+    reckoned/sigma       Scalars: the reckoned position's standard error, m
+
 Rerun is an optional dependency (``pip install -e '.[rerun]'``).
 """
 
@@ -43,7 +55,7 @@ from cavenav.sensors.camera import CameraIntrinsics
 from cavenav.sensors.depth import read_exr
 from cavenav.world.scenarios import Scenario
 
-__all__ = ["ENTITIES", "RerunWatcher", "log_run_folder", "open_recording"]
+__all__ = ["ACOUSTIC_ENTITIES", "ENTITIES", "RerunWatcher", "log_run_folder", "open_recording"]
 
 ENTITIES = (
     "cave",
@@ -59,6 +71,16 @@ ENTITIES = (
     "pilot/action",
     "pilot/map",
 )
+ACOUSTIC_ENTITIES = (
+    "vehicle/sonar",
+    "dvl/velocity/forward",
+    "dvl/velocity/left",
+    "dvl/velocity/up",
+    "dvl/altitude",
+    "reckoned",
+    "reckoned/sigma",
+)
+_DVL_AXES = ("forward", "left", "up")  # the order of a DVL's velocity (body frame)
 ROCK = (150, 135, 115)
 MAP_SPAN_M = 32.0
 CEILING_NORMAL_Z = -0.3  # a face whose inward normal points further down is ceiling
@@ -148,9 +170,17 @@ def _ceiling(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return inward * normals[:, 2] / length < CEILING_NORMAL_Z
 
 
-def log_cave(recording: Any, scenario: Scenario) -> None:  # noqa: ANN401
+def log_cave(
+    recording: Any,  # noqa: ANN401
+    scenario: Scenario,
+    *,
+    sonar: bool = False,
+    dvl: bool = False,
+) -> None:
     """The cave's mesh, cut away above, and its exits, static; and the layout of the
-    viewer's panels, the 3D view looking down on the whole cave."""
+    viewer's panels, the 3D view looking down on the whole cave, with a panel for the
+    sonar's image (``sonar``) and a plot of the DVL and dead reckoning (``dvl`` or
+    ``sonar``: either makes a reckoned path) where the vehicle carries them."""
     rr = _rerun()
     vertices, faces = scenario.mesh.vertices.astype(np.float32), scenario.mesh.faces
     ceiling = _ceiling(vertices, faces)
@@ -163,12 +193,14 @@ def log_cave(recording: Any, scenario: Scenario) -> None:  # noqa: ANN401
         recording.log(entity, mesh, static=True)
     exits = np.array([portal.point for portal in scenario.exits], np.float32).reshape(-1, 3)
     recording.log("cave/exits", rr.Points3D(exits, radii=0.3, colors=(60, 200, 90)), static=True)
-    recording.send_blueprint(_layout(vertices.min(axis=0), vertices.max(axis=0)))
+    low, high = vertices.min(axis=0), vertices.max(axis=0)
+    recording.send_blueprint(_layout(low, high, sonar=sonar, dvl=dvl))
 
 
-def _layout(low: np.ndarray, high: np.ndarray) -> Any:  # noqa: ANN401
-    """The 3D view over the whole cave, beside the camera, the depth, the pilot's map
-    and the decisions."""
+def _layout(low: np.ndarray, high: np.ndarray, *, sonar: bool, dvl: bool) -> Any:  # noqa: ANN401
+    """The 3D view over the whole cave, beside the camera, the depth, the sonar (with
+    ``sonar``), the pilot's map, the decisions, and the DVL's and dead reckoning's
+    numbers over time (with either)."""
     import rerun.blueprint as rrb
 
     centre, span = (low + high) / 2, float(np.max(high - low))
@@ -177,19 +209,26 @@ def _layout(low: np.ndarray, high: np.ndarray) -> Any:  # noqa: ANN401
         look_target=centre,
         eye_up=[0.0, 0.0, 1.0],
     )
-    cave = rrb.Spatial3DView(
-        origin="/", contents=["+ /**", "- /cave/ceiling", "- /pilot/**"], eye_controls=eye
-    )
-    senses = rrb.Vertical(
-        rrb.Horizontal(
-            rrb.Spatial2DView(origin="vehicle/camera", contents="$origin/rgb", name="camera"),
-            rrb.Spatial2DView(origin="vehicle/camera", contents="$origin/depth", name="depth"),
-        ),
+    # The sonar's image is 2D with no pinhole to place it in 3D: its own panel shows it.
+    hidden = ["- /cave/ceiling", "- /pilot/**", "- /vehicle/sonar"]
+    cave = rrb.Spatial3DView(origin="/", contents=["+ /**", *hidden], eye_controls=eye)
+    images = [
+        rrb.Spatial2DView(origin="vehicle/camera", contents="$origin/rgb", name="camera"),
+        rrb.Spatial2DView(origin="vehicle/camera", contents="$origin/depth", name="depth"),
+    ]
+    if sonar:
+        images.append(rrb.Spatial2DView(origin="vehicle/sonar", name="sonar"))
+    rows: list[rrb.Container | rrb.View] = [
+        rrb.Horizontal(*images),
         rrb.Horizontal(
             rrb.Spatial2DView(origin="pilot/map", name="pilot's map"),
             rrb.TextLogView(origin="pilot/action", name="decisions"),
         ),
-    )
+    ]
+    if sonar or dvl:
+        contents = ["/dvl/**", "/reckoned/sigma"]
+        rows.append(rrb.TimeSeriesView(contents=contents, name="DVL and dead reckoning"))
+    senses = rrb.Vertical(*rows)
     return rrb.Blueprint(rrb.Horizontal(cave, senses, column_shares=[3, 2]), collapse_panels=True)
 
 
@@ -263,6 +302,47 @@ def log_senses(
     )
 
 
+def log_sonar(recording: Any, step: int, fan: np.ndarray) -> None:  # noqa: ANN401
+    """The imaging sonar's image at ``step``: ``fan`` (H, W) uint8 as the device's
+    software draws it, heading up."""
+    rr = _rerun()
+    recording.set_time("step", sequence=step)
+    recording.log("vehicle/sonar", rr.Image(fan).compress(jpeg_quality=JPEG_QUALITY))
+
+
+def log_dvl(
+    recording: Any,  # noqa: ANN401
+    step: int,
+    velocity_m_s: Sequence[float | None],
+    altitude_m: float | None,
+) -> None:
+    """The DVL's reading at ``step``: its velocity (forward, left, up; m/s) and altitude
+    (m), each left out where it measured none (None or NaN: no bottom lock), so that the
+    plot never shows a lost lock as a stop."""
+    rr = _rerun()
+    recording.set_time("step", sequence=step)
+    entities = [f"dvl/velocity/{axis}" for axis in _DVL_AXES] + ["dvl/altitude"]
+    for entity, value in zip(entities, [*velocity_m_s, altitude_m], strict=True):
+        if value is not None and math.isfinite(value):
+            recording.log(entity, rr.Scalars(float(value)))
+
+
+def log_reckoned(
+    recording: Any,  # noqa: ANN401
+    step: int,
+    reckoned: Mapping[str, float],
+    path: list[np.ndarray],
+) -> None:
+    """Where dead reckoning put the vehicle at ``step`` (a step record's ``reckoned``:
+    x, y, z and sigma_m in metres), added to ``path``, the positions it gave before; drawn
+    beside the true path, the two part as the reckoning drifts."""
+    rr = _rerun()
+    recording.set_time("step", sequence=step)
+    path.append(np.array([reckoned["x"], reckoned["y"], reckoned["z"]], np.float32))
+    recording.log("reckoned", rr.LineStrips3D([np.array(path)], colors=(60, 140, 230)))
+    recording.log("reckoned/sigma", rr.Scalars(float(reckoned["sigma_m"])))
+
+
 def log_decision(recording: Any, step: int, record: Mapping[str, Any]) -> None:  # noqa: ANN401
     """The action the step flew and why, as the pilot said it (or how the pilot failed)."""
     rr = _rerun()
@@ -281,12 +361,15 @@ class RerunWatcher:
     def __init__(self, recording: Any, camera: CameraIntrinsics) -> None:  # noqa: ANN401
         self.recording, self.camera = recording, camera
         self._path: list[np.ndarray] = []
+        self._reckoned: list[np.ndarray] = []
         self._pilot: Any = None
 
     def started(self, scenario: Scenario, pilot: object, info: Mapping[str, Any]) -> None:
         """The cave, the start pose and the first observation."""
-        self._pilot, self._path = pilot, []
-        log_cave(self.recording, scenario)
+        self._pilot, self._path, self._reckoned = pilot, [], []
+        first: Observation = info["observation"]
+        sonar, dvl = first.sonar is not None, first.dvl is not None
+        log_cave(self.recording, scenario, sonar=sonar, dvl=dvl)
         self._arrived(0, info)
 
     def stepped(self, record: Mapping[str, Any], info: Mapping[str, Any]) -> None:
@@ -294,6 +377,8 @@ class RerunWatcher:
         step = int(record["step"])
         log_decision(self.recording, step, record)
         self._log_map(step)
+        if record.get("reckoned"):  # where the vehicle was reckoned when the step began
+            log_reckoned(self.recording, step, record["reckoned"], self._reckoned)
         if info:  # the pilot failed: nothing moved
             self._arrived(step + 1, info)
 
@@ -307,6 +392,10 @@ class RerunWatcher:
         log_senses(
             self.recording, step, observation.rgb, depth, observation.d_top, observation.d_bottom
         )
+        if observation.sonar is not None:
+            log_sonar(self.recording, step, observation.sonar.fan)
+        if (dvl := observation.dvl) is not None:
+            log_dvl(self.recording, step, list(dvl.velocity_m_s), dvl.altitude_m)
 
     def _log_map(self, step: int) -> None:
         cave_map = getattr(self._pilot, "map", None)
@@ -332,25 +421,51 @@ def log_run_folder(
     scenario: Scenario | None,
 ) -> None:
     """A recorded episode: its cave (when known), and every step's pose, the frames the
-    folder kept, the sounder readings and the decision."""
+    folder kept, the sounder readings, the sonar, DVL and dead reckoning where the
+    vehicle carried them, and the decision."""
     sensors = (summary.get("config") or {}).get("sensors") or {}
     camera = CameraIntrinsics(**(sensors.get("camera") or {}))
     offset = float(sensors.get("camera_offset_m", 0.2))
     if scenario is not None:
-        log_cave(recording, scenario)
+        sonar = any("sonar_png" in (record.get("frames") or {}) for record in steps)
+        dvl = any(record.get("dvl") for record in steps)
+        log_cave(recording, scenario, sonar=sonar, dvl=dvl)
     path: list[np.ndarray] = []
+    reckoned: list[np.ndarray] = []
     for record in steps:
         step, pose = int(record["step"]), Pose.from_dict(record["pose"])
         path.append(pose.position)
         log_pose(recording, step, pose, np.array(path, np.float32), camera, offset)
         rgb, depth = _frames(run_dir, record.get("frames") or {})
         log_senses(recording, step, rgb, depth, record.get("d_top_m"), record.get("d_bottom_m"))
+        _log_instruments(recording, run_dir, record, reckoned)
         log_decision(recording, step, record)
     final = summary.get("final_pose")
     if steps and final and not steps[-1].get("collision"):
         path.append(Pose.from_dict(final).position)
         log_pose(recording, len(steps), Pose.from_dict(final), np.array(path), camera, offset)
     recording.flush()
+
+
+def _log_instruments(
+    recording: Any,  # noqa: ANN401
+    run_dir: Path,
+    record: Mapping[str, Any],
+    reckoned: list[np.ndarray],
+) -> None:
+    """A recorded step's sonar image (where the folder kept it), DVL reading and reckoned
+    position (added to ``reckoned``, the path reckoned before it)."""
+    step, files = int(record["step"]), record.get("frames") or {}
+    if "sonar_png" in files and (run_dir / files["sonar_png"]).is_file():
+        from PIL import Image
+
+        with Image.open(run_dir / files["sonar_png"]) as image:
+            log_sonar(recording, step, np.asarray(image.convert("L")))
+    if dvl := record.get("dvl"):
+        velocity = dvl.get("velocity_m_s") or [None] * len(_DVL_AXES)
+        log_dvl(recording, step, velocity, dvl.get("altitude_m"))
+    if record.get("reckoned"):
+        log_reckoned(recording, step, record["reckoned"], reckoned)
 
 
 def _frames(run_dir: Path, files: Mapping[str, str]) -> tuple[np.ndarray | None, ...]:

@@ -35,7 +35,7 @@ import numpy as np
 from cavenav.core.errors import CavenavError, ConfigError, RecordingError
 from cavenav.core.files import probe_writable, write_then_rename
 from cavenav.core.redaction import redact
-from cavenav.core.types import Observation
+from cavenav.core.types import Observation, SonarImage
 from cavenav.episode.records import numbered_jsonl
 from cavenav.sensors.depth import EXR_COMPRESSIONS, ExrCompression, save_png, write_exr
 
@@ -152,6 +152,16 @@ def write_json(path: Path, data: Mapping[str, Any]) -> None:
     """Atomically (re)write a JSON file; inf and NaN become null, numpy values plain, API
     keys redacted (`cavenav.core.redaction`)."""
     write_atomic(path, _dumps(data, indent=2) + "\n")
+
+
+def _save_echoes(path: Path, sonar: SonarImage) -> None:
+    """A sonar's raw echoes as NPZ: ``echoes`` (beams, bins) uint8, ``bearings_deg``,
+    ``fresh``, ``range_m`` and ``frequency_khz``; ``kind`` as text."""
+    with open(path, "wb") as out:  # an open file: np.savez would add its own suffix
+        np.savez_compressed(
+            out, echoes=sonar.echoes, bearings_deg=sonar.bearings_deg, fresh=sonar.fresh,
+            range_m=sonar.range_m, frequency_khz=sonar.frequency_khz, kind=sonar.kind,
+        )  # fmt: skip
 
 
 def _dumps(data: Mapping[str, Any], indent: int | None = None) -> str:
@@ -310,14 +320,17 @@ class RunFolder:
         self._stored: dict[str, str] = {}
         self._writer = _StepWriter(self._write_step)
 
-    def frame_names(self, step: int) -> dict[str, str]:
-        """The paths, relative to the run folder, of the frames step ``step`` writes."""
+    def frame_names(self, step: int, obs: Observation | None = None) -> dict[str, str]:
+        """The paths, relative to the run folder, of the frames step ``step`` writes (with
+        ``obs``'s sonar image and echoes, when it has them)."""
         if not self.save_frames:
             return {}
         stem = f"frames/step_{step:04d}"
         files = {"rgb": f"{stem}_rgb.png", "depth_png": f"{stem}_depth.png"}
         if self.save_exr:
             files["depth_exr"] = f"{stem}_depth.exr"
+        if obs is not None and obs.sonar is not None:
+            files.update(sonar_png=f"{stem}_sonar.png", sonar_npz=f"{stem}_sonar.npz")
         return files
 
     def write_frames(self, files: Mapping[str, str], obs: Observation) -> None:
@@ -325,12 +338,18 @@ class RunFolder:
         if not files:
             return
         self._save_png(files["rgb"], obs.rgb)
-        self._save_png(files["depth_png"], obs.depth_png)
+        source = {"depth_source": obs.depth_source}  # which camera made the depth
+        write_then_rename(
+            self.path / files["depth_png"], lambda tmp: save_png(obs.depth_png, tmp, source)
+        )
         if self.save_exr:
             write_then_rename(
                 self.path / files["depth_exr"],
-                lambda t: write_exr(t, obs.depth_m, self.exr_compression),
+                lambda t: write_exr(t, obs.depth_m, self.exr_compression, source),
             )
+        if "sonar_png" in files and (sonar := obs.sonar) is not None:
+            self._save_png(files["sonar_png"], sonar.fan)
+            write_then_rename(self.path / files["sonar_npz"], lambda t: _save_echoes(t, sonar))
 
     def _save_png(self, name: str, image: np.ndarray) -> None:
         write_then_rename(self.path / name, lambda tmp: save_png(image, tmp))
@@ -385,7 +404,7 @@ class RunFolder:
         Raises:
             LostStep: an earlier step could not be written.
         """
-        step["frames"] = self.frame_names(step["step"])
+        step["frames"] = self.frame_names(step["step"], obs)
         self._writer.put(_Step(step, obs, exchanges, summary, undo))
 
     def flush(self) -> None:

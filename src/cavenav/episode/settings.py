@@ -21,7 +21,7 @@ from typing import Any
 from cavenav.core.errors import ConfigError
 from cavenav.core.types import DEFAULT_RULES, STEP_BUDGET, Rules, VehicleBody
 from cavenav.motion.energy import checked_budget
-from cavenav.sensors.config import SENSOR_KEYS, SensorConfig
+from cavenav.sensors.config import SENSOR_KEYS, SIZE_KEYS, SensorConfig
 from cavenav.sensors.depth import EXR_COMPRESSIONS, ExrCompression
 from cavenav.world.current import Current
 from cavenav.world.scenario import Difficulty
@@ -73,6 +73,10 @@ class EpisodeConfig:
             ...; see `cavenav.sensors.optics.optics_from_table`); absent keys keep it.
         resolution, sounder_resolution: (width, height) pixels over the scenario's
             [sensors] table; None keeps it.
+        depth_source: "exact", "stereo" or "none" over the scenario's [sensors] table;
+            None keeps it.
+        sonar, dvl: the imaging sonar ("ping360", "multibeam" or "none") and whether a
+            DVL rides along, over the scenario's [sensors] table; None keeps it.
         difficulty: `Difficulty` knobs of the cave family, by name (`load`).
         current: the water's flow (`cavenav.world.current.Current`); None takes the
             cave's own (`Scenario.water`: still, but where a scenario file's [water] table
@@ -96,6 +100,9 @@ class EpisodeConfig:
     optics: Mapping[str, Any] = field(default_factory=dict)
     resolution: tuple[int, int] | None = None
     sounder_resolution: tuple[int, int] | None = None
+    depth_source: str | None = None
+    sonar: str | None = None
+    dvl: bool | None = None
     difficulty: Mapping[str, float] = field(default_factory=dict)
     current: Current | None = None
     discharge_m3s: float | None = None
@@ -110,7 +117,7 @@ class EpisodeConfig:
                 f"EXR compression {self.exr_compression!r}: choose one of "
                 f"{', '.join(EXR_COMPRESSIONS)}"
             )
-        for name in SENSOR_KEYS:  # JSON gives lists
+        for name in SIZE_KEYS:  # JSON gives lists
             size = getattr(self, name)
             if size is not None:
                 object.__setattr__(self, name, tuple(size))
@@ -222,8 +229,9 @@ class EpisodeConfig:
             "optics": dict(self.optics),
         }
         for key in SENSOR_KEYS:
-            if getattr(self, key) is not None:
-                sensors[key] = list(getattr(self, key))
+            value = getattr(self, key)
+            if value is not None:
+                sensors[key] = list(value) if key in SIZE_KEYS else value
         return {"episode": episode, "difficulty": dict(self.difficulty), "sensors": sensors}
 
     @classmethod

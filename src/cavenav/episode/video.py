@@ -9,6 +9,10 @@ summary.json (S1-S5, by name, seed and difficulty), else the path alone, with th
 the whole path faintly, the path flown so far coloured by clearance and the vehicle as an
 arrow along its heading.
 
+An episode flown with an imaging sonar (its steps' ``sonar_png``) shows the sonar's image
+too, between the depth and the map, grey as the device's software draws it: a
+multibeam's 726 x 400 fan is 871 px wide at the panel height, a Ping360's disc 480.
+
 The map background is drawn once with matplotlib; each frame only draws the vehicle and
 its path into a copy of it, through the axes' data-to-pixel mapping taken once, so a
 150-step episode encodes in seconds. Frames are H.264 (yuv420p), through the ffmpeg that
@@ -63,7 +67,8 @@ _CMAP = "viridis"  # clearance colours, as in topdown.png (episode/plots.py)
 _CLEARANCE_MAX_M = 3.0  # top of the colour scale, as in topdown.png for calm episodes
 _MARGIN_M = 3.0  # map margin around the path and the exits
 _IMAGES = ("rgb", "depth_png")  # the frames/ files shown, left to right
-_LABELS = {"rgb": "colour", "depth_png": "depth (dark = near)"}
+_SONAR = "sonar_png"  # shown after them in an episode that kept a sonar's images
+_LABELS = {"rgb": "colour", "depth_png": "depth (dark = near)", _SONAR: "sonar (bright = echo)"}
 
 
 @dataclass(frozen=True)
@@ -250,6 +255,19 @@ def _panel_width(run_dir: Path, steps: Sequence[StepRecord], key: str) -> int:
     return 640
 
 
+def _shown(steps: Sequence[StepRecord]) -> tuple[str, ...]:
+    """The frames/ files shown, left to right: the sonar's after the camera's where any
+    step kept one (a step without it is a grey panel), so that an episode without a
+    sonar is drawn exactly as before sonars were carried."""
+    return (*_IMAGES, _SONAR) if any(_SONAR in s.frames for s in steps) else _IMAGES
+
+
+def _label(step: StepRecord, key: str) -> str:
+    """A panel's label; the sonar's names its kind (a fan or a disc) where recorded."""
+    kind = (step.sonar or {}).get("kind") if key == _SONAR else None
+    return f"{kind} {_LABELS[key]}" if kind else _LABELS[key]
+
+
 def _caption(step: StepRecord, count: int) -> str:
     def metres(value: float | None) -> str:  # null where the record holds no finite value
         return "-" if value is None else f"{value:.2f}"
@@ -292,7 +310,8 @@ def _frames(
     canvas = _draw_map(positions, exits, _rebuild_scenario(summary))
     pixels = canvas.pixels(positions[:, :2])
     colours = _viridis(np.array([s.clearance_m or 0.0 for s in steps], np.float64))
-    widths = [_panel_width(run_dir, steps, key) for key in _IMAGES]
+    keys = _shown(steps)
+    widths = [_panel_width(run_dir, steps, key) for key in keys]
     widths.append(canvas.image.shape[1])
     width = sum(widths) + sum(widths) % 2  # H.264 with yuv420p needs even sizes
     height = PANEL_HEIGHT + CAPTION_HEIGHT
@@ -301,11 +320,11 @@ def _frames(
         frame = Image.new("RGB", (width, height), (16, 16, 16))
         x = 0
         draw = ImageDraw.Draw(frame)
-        for key, w in zip(_IMAGES, widths, strict=False):
+        for key, w in zip(keys, widths, strict=False):
             frame.paste(_panel(run_dir, step, key, w), (x, 0))
             draw.text(
                 (x + 8, 6),
-                _LABELS[key],
+                _label(step, key),
                 fill="white",
                 font=small,
                 stroke_width=2,
@@ -443,9 +462,10 @@ def _output(out: Path) -> Path:
 def write_video(run_dir: Path, out: Path | None = None, fps: float = 4.0) -> Path:
     """Write an MP4 of the episode in ``run_dir``, one frame per step; returns its path.
 
-    Each frame: colour image | depth PNG | top-down map with the vehicle's position,
-    heading and path so far, above a caption (step, action, clearance, echo sounders).
-    1760 x 512 px for the default 640 x 480 camera (see the module docstring).
+    Each frame: colour image | depth PNG | (the sonar's image, where the episode kept
+    one) | top-down map with the vehicle's position, heading and path so far, above a
+    caption (step, action, clearance, echo sounders). 1760 x 512 px for the default
+    640 x 480 camera without a sonar (see the module docstring).
 
     Args:
         out: the MP4 to write (default ``run_dir/episode.mp4``).

@@ -374,8 +374,16 @@ def _summary_facts(s: EpisodeSummary, outcome: str) -> list[tuple[str, str]]:
 
 @dataclass(frozen=True)
 class Picture:
+    """An image of a step, linked relative to the page.
+
+    Attributes:
+        sonar: a sonar's fan or disc, shown as high as the camera's images rather than as
+            wide (a multibeam's fan is wider than it is high, a Ping360's disc square).
+    """
+
     href: str
     label: str
+    sonar: bool = False
 
 
 @dataclass(frozen=True)
@@ -391,7 +399,8 @@ class StepView:
 
     Attributes:
         record: the steps.jsonl record.
-        pictures: the colour and depth images, relative to the page.
+        pictures: the colour and depth images (and the sonar's, where the vehicle
+            carried one), relative to the page.
         pictures_note: where they came from, or why there are none.
         attempts: the model's exchanges of the step, first try first.
     """
@@ -424,13 +433,14 @@ class StepView:
 def _step_pictures(
     run: RunRecord, record: StepRecord, page_dir: Path, no_frames_note: str
 ) -> tuple[tuple[Picture, ...], str]:
-    """The step's saved frames; else the current observation's images as the model was
-    sent them (``model_images``, stored under images/, or for a step recorded before that
-    field existed, read from its first request); else a note saying why none."""
-    saved = _pictures(run, page_dir, record.frames, ("colour", "depth"))
+    """The step's saved frames, with its sonar image where the vehicle carried a sonar;
+    else the current observation's images as the model was sent them (``model_images``,
+    stored under images/, or for a step recorded before that field existed, read from its
+    first request); else a note saying why none."""
+    saved = _pictures(run, page_dir, record.frames, {"rgb": "colour", "depth_png": "depth"})
     if saved:
-        return saved, ""
-    labels = ("colour, as sent to the model", "depth, as sent to the model")
+        return saved + _sonar_picture(run, record, page_dir), ""
+    labels = {"rgb": "colour, as sent to the model", "depth_png": "depth, as sent to the model"}
     sent_files = record.model_images or _sent_images_before_model_images(
         run.exchanges.get(record.step, ())
     )
@@ -470,14 +480,25 @@ def _sent_images_before_model_images(
 
 
 def _pictures(
-    run: RunRecord, page_dir: Path, files: Mapping[str, str], labels: tuple[str, str]
+    run: RunRecord, page_dir: Path, files: Mapping[str, str], labels: Mapping[str, str]
 ) -> tuple[Picture, ...]:
-    """The colour and depth images of ``files`` (keys "rgb", "depth_png") that exist."""
+    """The images of ``files`` named in ``labels`` (keys as in a step's ``frames``: "rgb",
+    "depth_png") that exist, in the order of ``labels``."""
     return tuple(
         Picture(_href(run.path / files[key], page_dir), label)
-        for key, label in zip(("rgb", "depth_png"), labels, strict=True)
+        for key, label in labels.items()
         if key in files and (run.path / files[key]).is_file()
     )
+
+
+def _sonar_picture(run: RunRecord, record: StepRecord, page_dir: Path) -> tuple[Picture, ...]:
+    """The step's sonar image (``frames["sonar_png"]``) where it exists, labelled with the
+    sonar's kind ("multibeam sonar", "ping360 sonar")."""
+    name = record.frames.get("sonar_png")
+    if name is None or not (run.path / name).is_file():
+        return ()
+    kind = (record.sonar or {}).get("kind")
+    return (Picture(_href(run.path / name, page_dir), f"{kind} sonar" if kind else "sonar", True),)
 
 
 def _missing_plot_reason(summary: EpisodeSummary) -> str:

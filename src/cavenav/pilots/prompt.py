@@ -14,13 +14,13 @@ from importlib import resources
 from pathlib import Path
 
 from cavenav.core.errors import ConfigError
-from cavenav.core.types import DEFAULT_RULES, Cruise, Rules
+from cavenav.core.types import DEFAULT_RULES, Cruise, Observation, Rules
 from cavenav.motion.actions import DEFAULT_SPACE, ActionSpace
 from cavenav.motion.energy import PowerModel
 from cavenav.sensors.camera import CameraIntrinsics
 from cavenav.sensors.depth import DEPTH_RANGE_M
 
-__all__ = ["STRUCTURED_SCHEMA", "PromptConfig", "render_repair", "render_system"]
+__all__ = ["STRUCTURED_SCHEMA", "Instruments", "PromptConfig", "render_repair", "render_system"]
 
 
 @dataclass(frozen=True)
@@ -108,10 +108,56 @@ def _render(template: str, fields: dict[str, str], source: str) -> str:
         ) from None
 
 
+@dataclass(frozen=True)
+class Instruments:
+    """What the observations say about the sensors beyond the paper's: the depth image's
+    source and the imaging sonar, when there is one (the prompt then explains them)."""
+
+    depth_source: str = "exact"
+    sonar_kind: str | None = None
+    sonar_range_m: float = 0.0
+    sonar_beam_deg: float = 0.0
+    sonar_aperture_deg: float = 0.0
+    sonar_span_deg: float = 0.0
+
+    @classmethod
+    def of(cls, observation: Observation) -> Instruments:
+        sonar = observation.sonar
+        if sonar is None:
+            return cls(observation.depth_source)
+        bearings = sonar.bearings_deg
+        span = float(bearings.max() - bearings.min()) if sonar.kind == "multibeam" else 360.0
+        return cls(
+            observation.depth_source, sonar.kind, sonar.range_m, sonar.beam_width_deg,
+            sonar.aperture_deg, span,
+        )  # fmt: skip
+
+    def fields(self) -> dict[str, str]:
+        """The sonar section's fields (`prompts/sonar.md`)."""
+        scanning = self.sonar_kind == "ping360"
+        span = _num(self.sonar_span_deg)
+        return {
+            "sonar_name": "scanning imaging sonar (a Ping360)" if scanning
+            else f"forward-looking multibeam imaging sonar ({span} degrees wide)",
+            "sonar_shape": "a disc with you at its centre" if scanning
+            else "a fan with you at its bottom point",
+            "sonar_range_m": _num(self.sonar_range_m),
+            "sonar_beam_deg": _num(self.sonar_beam_deg),
+            "sonar_aperture_deg": _num(self.sonar_aperture_deg),
+            "sonar_half_aperture_deg": _num(self.sonar_aperture_deg / 2),
+            "sonar_scan_text": (
+                "Its head turns, one beam at a time: each step shows only the part of its "
+                "sector swept since the last, and the rest as it was when last swept, from "
+                "where you were then."
+            ) if scanning else "It sees its whole fan at every step.",
+        }  # fmt: skip
+
+
 def render_system(
     config: PromptConfig,
     depth_range: tuple[float, float] = DEPTH_RANGE_M,
     hfov_deg: float | None = None,
+    instruments: Instruments | None = None,
 ) -> str:
     """The full system prompt (mission, inputs, strategy, chain of thought, reply format).
 
@@ -119,6 +165,8 @@ def render_system(
         depth_range: the depth range of the images the prompt is sent with (the VLM
             pilot passes each observation's own).
         hfov_deg: their horizontal field of view, likewise.
+        instruments: the depth camera's source and the sonar, likewise: a stereo
+            camera's and a sonar's sections follow the paper's prompt when present.
     """
     fields = config.fields(depth_range, hfov_deg)
     if config.system_file is not None:
@@ -128,6 +176,11 @@ def render_system(
         text = _render(path.read_text(encoding="utf-8"), fields, str(path))
     else:
         text = _render(_template("system.md"), fields, "system.md")
+    instruments = instruments or Instruments()
+    if instruments.depth_source == "stereo":
+        text += "\n\n" + _template("stereo.md")
+    if instruments.sonar_kind is not None:
+        text += "\n\n" + _render(_template("sonar.md"), instruments.fields(), "sonar.md")
     if config.map_image:
         text += "\n\n" + _render(_template("map.md"), fields, "map.md")
     if config.energy:

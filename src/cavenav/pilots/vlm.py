@@ -22,7 +22,13 @@ from cavenav.core.errors import ActionError, BackendAuthError, BackendError, Pil
 from cavenav.core.types import Action, Decision, Observation, Usage
 from cavenav.motion.actions import format_action
 from cavenav.pilots.backends import Backend, Completion, Message, request_hash
-from cavenav.pilots.prompt import STRUCTURED_SCHEMA, PromptConfig, render_repair, render_system
+from cavenav.pilots.prompt import (
+    STRUCTURED_SCHEMA,
+    Instruments,
+    PromptConfig,
+    render_repair,
+    render_system,
+)
 from cavenav.pilots.reply import MAX_REQUERIES, parse_reply
 from cavenav.pilots.request_images import PNG, ImageEncoding, data_url
 from cavenav.safety.cave_map import CaveMap
@@ -50,6 +56,7 @@ class EncodedObservation:
     d_top: float
     d_bottom: float
     action: str = ""
+    sonar_url: str | None = None  # the current observation's sonar image; never history's
 
 
 @dataclass(frozen=True)
@@ -111,17 +118,24 @@ def _readings(seen: EncodedObservation) -> str:
 def _introduce(seen: EncodedObservation, opening: str, detail: str | None) -> list[dict[str, Any]]:
     """The sounder readings and what the images are, then the images."""
     text = f"{opening}: {_readings(seen)}."
+    sonar = [] if seen.sonar_url is None else [_image(seen.sonar_url, detail)]
+    then_sonar = ", then sonar" if sonar else ""
     if seen.depth_url is not None:
         return [
-            {"type": "text", "text": f"{text} Colour, then depth:"},
+            {"type": "text", "text": f"{text} Colour, then depth{then_sonar}:"},
             _image(seen.rgb_url, detail),
             _image(seen.depth_url, detail),
+            *sonar,
         ]
     sounders = math.isfinite(seen.d_top) or math.isfinite(seen.d_bottom)
     sources = "the colour image and the sounder readings" if sounders else "the colour image"
     return [
-        {"type": "text", "text": f"{text} {NO_DEPTH_TEXT} {sources}. Colour:"},
+        {
+            "type": "text",
+            "text": f"{text} {NO_DEPTH_TEXT} {sources}. Colour{then_sonar}:",
+        },
         _image(seen.rgb_url, detail),
+        *sonar,
     ]
 
 
@@ -196,7 +210,7 @@ class VLMPilot:
         self.name = f"vlm:{backend.model}"
         # Rendered once now so a broken template fails before the first step, then for
         # each new camera (depth range, field of view) the observations come from.
-        self._system: dict[tuple[tuple[float, float], float] | None, str] = {
+        self._system: dict[tuple[tuple[float, float], float, Instruments] | None, str] = {
             None: render_system(self.prompt)
         }
         self._history: deque[EncodedObservation] = deque(maxlen=max(self.prompt.history, 0) or None)
@@ -222,7 +236,8 @@ class VLMPilot:
         return (prompt_tokens * price_in + completion_tokens * price_out) / 1e6
 
     def _system_for(self, observation: Observation) -> str:
-        key = (observation.depth_range, observation.hfov_deg)
+        instruments = Instruments.of(observation)
+        key = (observation.depth_range, observation.hfov_deg, instruments)
         if key not in self._system:
             self._system[key] = render_system(self.prompt, *key)
         return self._system[key]
@@ -233,6 +248,7 @@ class VLMPilot:
             data_url(observation.depth_png, self.images) if observation.has_depth else None,
             observation.d_top,
             observation.d_bottom,
+            sonar_url=None if observation.sonar is None else data_url(observation.sonar.fan, PNG),
         )
         messages = self._messages(observation, current)
         schema = STRUCTURED_SCHEMA if self.prompt.structured else None

@@ -154,7 +154,9 @@ class CaveMap:
         reach = np.minimum(seen.depth, self.config.max_range_m).astype(np.float64)
         surface = seen.surface & (seen.depth <= self.config.max_range_m)
         camera = np.array([obs.camera_offset_m, 0.0, 0.0])
-        ends = seen.points(reach, ahead_m=obs.camera_offset_m).reshape(-1, 3)
+        ranged = seen.ranged.reshape(-1)  # a guess is neither rock nor free water
+        ends = seen.points(reach, ahead_m=obs.camera_offset_m).reshape(-1, 3)[ranged]
+        surface = surface.reshape(-1)[ranged]
         # The sounders: free up to the ceiling and the floor, and a surface at each (a
         # reading that is not a number says nothing).
         sounded = np.array([[0.0, 0.0, obs.d_top], [0.0, 0.0, -obs.d_bottom]])
@@ -162,7 +164,7 @@ class CaveMap:
         sounded_surface = np.abs(sounded[:, 2]) <= self.config.max_range_m
         sounded[:, 2] = np.clip(sounded[:, 2], -self.config.max_range_m, self.config.max_range_m)
         for origin, targets, met in (
-            (camera, ends, surface.reshape(-1)),
+            (camera, ends, surface),
             (np.zeros(3), sounded, sounded_surface),
         ):
             start = self._cells(self.to_map(origin[None]))

@@ -61,6 +61,7 @@ from cavenav.safety.reckoning import (
     yaw_matrix,
 )
 from cavenav.sensors.depth import denormalise_depth
+from cavenav.sensors.fusion import readable_depth
 
 __all__ = [
     "DepthMemory",
@@ -204,12 +205,13 @@ class DepthMemory:
         points = np.empty((0, 3), np.float32)
         if obs.has_depth:  # without one, no surface is known and no space free (depth 0)
             seen = DepthSamples.of(obs, s)
-            keep = seen.surface & (seen.depth < self.max_range_m)
+            keep = seen.surface & seen.ranged & (seen.depth < self.max_range_m)
             points = seen.points(ahead_m=obs.camera_offset_m)[keep].astype(np.float32)
         sounded = [(0.0, 0.0, z) for z in (obs.d_top, -obs.d_bottom) if abs(z) < self.max_range_m]
         points = np.concatenate([points, np.array(sounded, np.float32).reshape(-1, 3)])
         # Free space: the nearest depth in each block and its neighbours.
-        blocks = obs.depth_png[: h // s * s, : w // s * s].reshape(h // s, s, w // s, s)
+        png, _ = readable_depth(obs)  # the sonar's ranges where stereo found nothing
+        blocks = png[: h // s * s, : w // s * s].reshape(h // s, s, w // s, s)
         nearest = blocks.min(axis=(1, 3))
         padded = np.pad(nearest, 1, mode="edge")
         nearest = np.min(

@@ -16,11 +16,18 @@ from cavenav.core.errors import ConfigError
 from cavenav.sensors.camera import CameraIntrinsics, pixel_size
 from cavenav.sensors.depth import DEPTH_RANGE_M
 from cavenav.sensors.optics import Optics, optics_from_table
+from cavenav.sensors.stereo import StereoCamera
 
-__all__ = ["SENSOR_KEYS", "SensorConfig"]
+__all__ = ["DEPTH_SOURCES", "SENSOR_KEYS", "SIZE_KEYS", "SONAR_KINDS", "SensorConfig"]
 
-# The keys of a scenario file's [sensors] table and of the matching run options.
-SENSOR_KEYS = ("resolution", "sounder_resolution")
+# The keys of a scenario file's [sensors] table and of the matching run options: the
+# cameras' sizes, then the acoustic instruments the vehicle carries.
+SIZE_KEYS = ("resolution", "sounder_resolution")
+SENSOR_KEYS = (*SIZE_KEYS, "depth_source", "sonar", "dvl")
+# What makes the depth image (`SensorConfig.depth_source`).
+DEPTH_SOURCES = ("exact", "stereo", "none")
+# The imaging sonars (`cavenav.sensors.sonar.SONARS`).
+SONAR_KINDS = ("ping360", "multibeam")
 
 
 @dataclass(frozen=True)
@@ -51,6 +58,14 @@ class SensorConfig:
         optics: water, lamps, daylight, rock, particles and camera of the colour image.
         seed: seeds the rock colours, the marine snow and, unless an observation is
             given a seed of its own, the sensor noise.
+        depth_source: what makes the depth image: "exact" (the ray cast's depth, as the
+            paper's S1-S5 are flown), "stereo" (a stereo camera's: no depth where the
+            colour image has no texture to match, `cavenav.sensors.stereo`) or "none"
+            (no depth camera: `Observation.has_depth` false).
+        stereo: the stereo pair's figures, for "stereo".
+        sonar: the imaging sonar the vehicle carries (`cavenav.sensors.sonar`):
+            "ping360", "multibeam" or None.
+        dvl: whether it carries a Doppler velocity log (`cavenav.sensors.dvl`).
     """
 
     camera: CameraIntrinsics = field(default_factory=CameraIntrinsics)
@@ -63,6 +78,10 @@ class SensorConfig:
     sounder_max_range_m: float = 50.0
     optics: Optics = field(default_factory=Optics)
     seed: int = 0
+    depth_source: Literal["exact", "stereo", "none"] = "exact"
+    stereo: StereoCamera = field(default_factory=StereoCamera)
+    sonar: Literal["ping360", "multibeam"] | None = None
+    dvl: bool = False
 
     def __post_init__(self) -> None:
         # A D_max of 0 flies with every pixel at 0 m; NaN or a negative one breaks the
@@ -76,6 +95,12 @@ class SensorConfig:
         object.__setattr__(
             self, "sounder_pixels", pixel_size(self.sounder_pixels, "sounder resolution")
         )
+        if self.depth_source not in DEPTH_SOURCES:
+            raise ConfigError(
+                f"depth source {self.depth_source!r}: choose {', '.join(DEPTH_SOURCES)}"
+            )
+        if self.sonar not in (None, *SONAR_KINDS):
+            raise ConfigError(f"sonar {self.sonar!r}: choose {', '.join(SONAR_KINDS)} or none")
 
     @property
     def resolution(self) -> tuple[int, int]:
@@ -92,9 +117,10 @@ class SensorConfig:
         return replace(self, camera=self.camera.with_resolution(width, height))
 
     def with_sensors(self, table: Mapping[str, Any], where: str = "[sensors]") -> SensorConfig:
-        """This set-up with the sizes ``table`` sets: ``resolution`` (the forward camera)
-        and ``sounder_resolution``, each (width, height) in pixels; None keeps the
-        current value.
+        """This set-up with what ``table`` sets: ``resolution`` (the forward camera) and
+        ``sounder_resolution``, each (width, height) in pixels; ``depth_source`` ("exact",
+        "stereo" or "none"), ``sonar`` ("ping360",
+        "multibeam" or "none") and ``dvl`` (true or false); None keeps the current value.
 
         Layered twice by the drivers (`for_scenario`), as the optics are: a scenario
         file's [sensors] table, then the flags.
@@ -114,6 +140,24 @@ class SensorConfig:
         if table.get("sounder_resolution") is not None:
             size = pixel_size(table["sounder_resolution"], f"{where} sounder_resolution")
             config = replace(config, sounder_pixels=size)
+        if table.get("depth_source") is not None:
+            source = table["depth_source"]
+            if source not in DEPTH_SOURCES:
+                raise ConfigError(
+                    f"{where} depth_source: {source!r}; choose {', '.join(DEPTH_SOURCES)}"
+                )
+            config = replace(config, depth_source=source)
+        if table.get("sonar") is not None:
+            sonar = table["sonar"]
+            if sonar not in ("none", *SONAR_KINDS):
+                raise ConfigError(
+                    f"{where} sonar: {sonar!r}; choose {', '.join(SONAR_KINDS)} or none"
+                )
+            config = replace(config, sonar=None if sonar == "none" else sonar)
+        if table.get("dvl") is not None:
+            if not isinstance(table["dvl"], bool):
+                raise ConfigError(f"{where} dvl: {table['dvl']!r}; give true or false")
+            config = replace(config, dvl=table["dvl"])
         return config
 
     def with_optics(self, table: Mapping[str, Any], where: str = "[optics]") -> SensorConfig:

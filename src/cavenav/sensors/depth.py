@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import math
 import zlib
+from collections.abc import Mapping
 from pathlib import Path
 from typing import IO, Literal
 
@@ -99,9 +100,12 @@ EXR_COMPRESSIONS: dict[str, str] = {
 }
 
 
-def save_png(image: np.ndarray, target: str | Path | IO[bytes]) -> None:
+def save_png(
+    image: np.ndarray, target: str | Path | IO[bytes], text: Mapping[str, str] | None = None
+) -> None:
     """Write a uint8 (H, W) or (H, W, 3) image as PNG with the settings measured above:
-    colour through fpng, grey through Pillow (fpng writes only colour)."""
+    colour through fpng, grey through Pillow (fpng writes only colour), with ``text`` as
+    the PNG's text chunks (a depth image's source; grey images only)."""
     if image.ndim == 3 and image.shape[2] == 3:
         import fpng  # here, as Pillow: pilots read depth images through this module
 
@@ -111,18 +115,29 @@ def save_png(image: np.ndarray, target: str | Path | IO[bytes]) -> None:
         else:
             target.write(data)
         return
-    from PIL import Image
+    from PIL import Image, PngImagePlugin
 
-    Image.fromarray(image).save(target, format="PNG", compress_level=1, compress_type=zlib.Z_RLE)
+    info = PngImagePlugin.PngInfo()
+    for key, value in (text or {}).items():
+        info.add_text(key, value)
+    Image.fromarray(image).save(
+        target, format="PNG", compress_level=1, compress_type=zlib.Z_RLE, pnginfo=info
+    )
 
 
-def write_exr(path: str | Path, depth_m: np.ndarray, compression: ExrCompression = "none") -> None:
-    """Write raw float32 depth (metres; ``inf`` where no hit) as a one-channel 'Z' EXR,
-    exactly (every compression offered is lossless)."""
+def write_exr(
+    path: str | Path,
+    depth_m: np.ndarray,
+    compression: ExrCompression = "none",
+    text: Mapping[str, str] | None = None,
+) -> None:
+    """Write raw float32 depth (metres; ``inf`` where no hit, NaN where a stereo camera
+    found no match) as a one-channel 'Z' EXR, exactly (every compression offered is
+    lossless), with ``text`` as string attributes of its header (the depth's source)."""
     import OpenEXR
 
     method = getattr(OpenEXR, EXR_COMPRESSIONS[compression])
-    header = {"compression": method, "type": OpenEXR.scanlineimage}
+    header = {"compression": method, "type": OpenEXR.scanlineimage, **(text or {})}
     with OpenEXR.File(header, {"Z": np.ascontiguousarray(depth_m, dtype=np.float32)}) as f:
         f.write(str(path))
 

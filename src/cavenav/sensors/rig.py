@@ -23,6 +23,7 @@ import simplejpeg
 from cavenav.core.types import Observation, Pose
 from cavenav.sensors.camera import CameraIntrinsics, camera_to_world, look_frame
 from cavenav.sensors.config import SENSOR_KEYS, SensorConfig
+from cavenav.sensors.depth import normalise_depth, unknown_depth
 from cavenav.sensors.kernels import (
     SHARE,
     develop_image,
@@ -43,6 +44,7 @@ from cavenav.sensors.lighting import (
     vertex_normals,
 )
 from cavenav.sensors.optics import HALO_SIGMA_DEG, Optics, tone_lut
+from cavenav.sensors.stereo import stereo_depth
 from cavenav.world.procedural import cpu_independent
 from cavenav.world.raycast import RayCaster
 from cavenav.world.silt import (
@@ -397,14 +399,29 @@ class SensorRig:
         if particles:
             self._speck_blocks[:] = 0  # shade_frame has zeroed the specks it read
         shape = (camera.height, camera.width)
+        image = compress(rgb.reshape(*shape, 3), optics.compression)
+        depth_m, png = self._depth_as_seen(
+            depth.reshape(shape), depth_png.reshape(shape), image, key
+        )
         frame = Frame(
-            depth.reshape(shape),
-            depth_png.reshape(shape),
-            compress(rgb.reshape(*shape, 3), optics.compression),
-            light.reshape(*shape, 3) if radiance else None,
-            particles,
+            depth_m, png, image, light.reshape(*shape, 3) if radiance else None, particles
         )
         return frame, readings
+
+    def _depth_as_seen(
+        self, depth: np.ndarray, png: np.ndarray, rgb: np.ndarray, key: np.uint64
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The depth image as the configured source gives it (`SensorConfig.depth_source`):
+        the ray cast's, a stereo pair's from the colour frame, or none (NaN and 0)."""
+        cfg = self.config
+        if cfg.depth_source == "exact":
+            return depth, png
+        if cfg.depth_source == "none":
+            return unknown_depth(*depth.shape)
+        seen = stereo_depth(depth, rgb, cfg.camera.focal_px, cfg.stereo, int(key))
+        png = normalise_depth(seen, cfg.depth_min_m, cfg.depth_max_m)
+        png[np.isnan(seen)] = 0  # unmatched: near, never free space
+        return seen, png
 
     def _silt_tables(
         self, silt: SiltCloud | None, origin: np.ndarray, rot: np.ndarray
@@ -489,4 +506,6 @@ class SensorRig:
             hfov_deg=cfg.camera.hfov_deg,
             camera_offset_m=cfg.camera_offset_m,
             step=step,
+            has_depth=cfg.depth_source != "none",
+            depth_source=cfg.depth_source,
         )

@@ -41,7 +41,9 @@ from cavenav.motion.actions import (
 from cavenav.motion.energy import BATTERY_WH, PowerModel, checked_budget, lamp_watts
 from cavenav.motion.kinematics import Drift, Kinematic, Motion, carried
 from cavenav.sensors.camera import pixel_size
+from cavenav.sensors.dvl import DopplerLog
 from cavenav.sensors.rig import SensorConfig, SensorRig
+from cavenav.sensors.sonar import SONARS, Sonar
 from cavenav.world.collision import clearance, swept_collision
 from cavenav.world.current import Current, CurrentField, carry
 from cavenav.world.geodesic import NoPath, shortest_path_of
@@ -156,8 +158,22 @@ def _observation_space(sensors: SensorConfig) -> spaces.Dict:
             "depth_m": spaces.Box(0.0, d_max, (*image, 1), np.float32),
             "d_top": spaces.Box(0.0, sounder, (1,), np.float32),
             "d_bottom": spaces.Box(0.0, sounder, (1,), np.float32),
+            **_acoustic_space(sensors),
         }
     )
+
+
+def _acoustic_space(sensors: SensorConfig) -> dict[str, spaces.Box]:
+    """The sonar's (beams, bins, 1) echoes and the DVL's (velocity forward, left, up in
+    m/s, altitude in m, lock 0 or 1), for the instruments ``sensors`` carry."""
+    found: dict[str, spaces.Box] = {}
+    if sensors.sonar is not None:
+        sonar = SONARS[sensors.sonar]
+        beams = len(sonar.bearings_deg())
+        found["sonar"] = spaces.Box(0, 255, (beams, sonar.samples, 1), np.uint8)
+    if sensors.dvl:
+        found["dvl"] = spaces.Box(-np.inf, np.inf, (5,), np.float32)
+    return found
 
 
 @dataclass(frozen=True)
@@ -256,6 +272,23 @@ class _World:
     scenario: Scenario
     caster: RayCaster
     rig: SensorRig
+    sonar: Sonar | None = None
+    dvl: DopplerLog | None = None
+
+    def acoustic(
+        self, observation: Observation, before: Pose | None, after: Pose, seconds: float,
+        seed: int, silt: SiltCloud | None,
+    ) -> Observation:  # fmt: skip
+        """``observation`` with what the sonar and the DVL report after the move from
+        ``before`` to ``after`` that lasted ``seconds`` (None: no move, the start, where
+        the scanning sonar had ``seconds`` to sweep and the DVL has measured nothing)."""
+        if self.sonar is None and self.dvl is None:
+            return observation
+        sonar = None if self.sonar is None else self.sonar.observe(after, seconds, seed, silt)
+        dvl = None
+        if self.dvl is not None:
+            dvl = self.dvl.measure(before or after, after, 0.0 if before is None else seconds)
+        return replace(observation, sonar=sonar, dvl=dvl)
 
 
 class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
@@ -440,7 +473,10 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
         if self._caves is not None:
             self._caves[key] = cave, caster
         self._world = None  # free the previous cave's tables before building the next
-        return _World(key, cave, caster, SensorRig(caster, self.sensors))
+        sensors = self.sensors
+        sonar = None if sensors.sonar is None else Sonar(caster, SONARS[sensors.sonar])
+        dvl = DopplerLog(caster) if sensors.dvl else None
+        return _World(key, cave, caster, SensorRig(caster, sensors), sonar, dvl)
 
     # ------------------------------------------------------------------ the API
     def reset(
@@ -468,7 +504,16 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
         self._field = self._current_field()
         self._clock_s = self._energy_wh = 0.0
         started = time.perf_counter()
-        observation = self._world.rig.observe(self.pose, 0, self._noise_seed)
+        world = self._world
+        observation = world.rig.observe(self.pose, 0, self._noise_seed)
+        if world.sonar is not None:  # a scanning head has swept its sector at the start
+            world.sonar.reset()
+        if world.dvl is not None:
+            world.dvl.reset(self._noise_seed)
+        sweep_s = 0.0 if world.sonar is None else world.sonar.sweep_s
+        observation = world.acoustic(
+            observation, None, self.pose, sweep_s, self._noise_seed, self._silt
+        )
         self.observation = replace(observation, energy_left_wh=self._energy_left_wh)
         self._timings = Timings(sense_ms=1e3 * (time.perf_counter() - started))
         info = self._info(Action(), None, None)
@@ -494,7 +539,7 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
             )
         started = time.perf_counter()
         command, invalid = self.command(action)
-        start = self.pose
+        start = self._before = self.pose
         # One pose update: the vehicle's move, then what the water carried it off it.
         moved = self.motion.move(start, command)
         asked, command = command, getattr(self.motion, "flown", command)  # cut at a limit
@@ -547,6 +592,9 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
         sensed = time.perf_counter()
         observation = self._world.rig.observe(
             self.pose, self._steps, self._noise_seed, self._silt, cast
+        )
+        observation = self._world.acoustic(
+            observation, self._before, self.pose, move.seconds, self._noise_seed, self._silt
         )
         self.observation = replace(
             observation, previous_action=move.command, energy_left_wh=self._energy_left_wh

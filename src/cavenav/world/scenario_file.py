@@ -25,6 +25,9 @@ A mesh file (its path relative to the file)::
     resolution = [160, 120]     # forward camera, default [640, 480]; the horizontal
                                 # field of view (53 deg) is kept at any size
     sounder_resolution = [32, 24]   # each echo sounder's depth camera
+    depth_source = "stereo"     # exact (default), stereo or none
+    sonar = "ping360"           # an imaging sonar: ping360, multibeam or none (default)
+    dvl = true                  # a Doppler velocity log (default false)
     [water]                     # optional: the flow (--discharge, --gusts override it)
     discharge_m3s = 2.0         # from the exit toward the start; default 0, still
     gusts = 0.2                 # RMS of the slow gusts, a fraction of the mean speed
@@ -154,7 +157,8 @@ class _MeshPieceModel(BaseModel):
 
 
 class _SensorsModel(BaseModel):
-    """A scenario file's [sensors] table: pixel counts; the lens stays the paper's."""
+    """A scenario file's [sensors] table: pixel counts (the lens stays the paper's), and
+    the acoustic instruments the vehicle carries."""
 
     model_config = _STRICT
     resolution: tuple[_Pixels, _Pixels] | None = Field(
@@ -163,6 +167,13 @@ class _SensorsModel(BaseModel):
     sounder_resolution: tuple[_Pixels, _Pixels] | None = Field(
         None, description="[width, height] of each echo sounder's depth camera ([32, 24])"
     )
+    depth_source: Literal["exact", "stereo", "none"] | None = Field(
+        None, description="what makes the depth image (default exact)"
+    )
+    sonar: Literal["ping360", "multibeam", "none"] | None = Field(
+        None, description="the imaging sonar (default none)"
+    )
+    dvl: bool | None = Field(None, strict=True, description="a Doppler velocity log (false)")
 
 
 class _WaterModel(BaseModel):
