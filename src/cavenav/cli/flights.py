@@ -271,18 +271,21 @@ def _open_acoustics(own: OwnSensors, stack: contextlib.ExitStack) -> tuple[Any, 
     from cavenav.episode.own_acoustics import DvlFeed, SweptSonar
 
     sonar = dvl = None
-    if own.sonar is not None:
-        from cavenav.vehicle.ping360 import Ping360Sonar
+    if own.sonar_address is not None:
+        from cavenav.sensors.sonar import PING360
+        from cavenav.vehicle.ping360 import Ping360Settings, Ping360Sonar
 
-        with console.status(f"opening the Ping360 {own.sonar}"):
-            swept = SweptSonar(Ping360Sonar.connect(own.sonar))
+        # As the simulated one sweeps: the range and the sector ahead of `--sonar ping360`.
+        settings = Ping360Settings(range_m=PING360.range_m, sector_deg=PING360.sector_deg)
+        with console.status(f"opening the Ping360 {own.sonar_address}"):
+            swept = SweptSonar(Ping360Sonar.connect(own.sonar_address, settings))
         stack.callback(swept.close)
         sonar = swept.image
-    if own.dvl is not None:
+    if own.dvl_address is not None:
         from cavenav.vehicle.waterlinked import WaterLinkedDvl
 
-        with console.status(f"waiting for the DVL {own.dvl}"):
-            feed = DvlFeed(WaterLinkedDvl.connect(own.dvl))
+        with console.status(f"waiting for the DVL {own.dvl_address}"):
+            feed = DvlFeed(WaterLinkedDvl.connect(own.dvl_address))
         stack.callback(feed.close)
         dvl = feed.reading
     return sonar, dvl

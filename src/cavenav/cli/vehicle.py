@@ -212,8 +212,8 @@ def fly(
     ping_up: PingUpOpt = None,
     ping_down: PingDownOpt = None,
     depth_model: DepthModelOpt = None,
-    sonar: OwnSonarOpt = None,
-    dvl: OwnDvlOpt = None,
+    sonar_address: OwnSonarOpt = None,
+    dvl_address: OwnDvlOpt = None,
 ) -> None:
     """Fly a pilot on an ArduSub vehicle over MAVLink (BlueROV2): on its own camera,
     sounders and depth model, or with --sim in a simulated cave."""
@@ -304,13 +304,13 @@ def _fly_own_sensors(
     from cavenav.vehicle.ping import PingAddress
 
     camera = CameraAddress.parse(own.camera)  # refused before any folder or connection
-    for sounder in (own.ping_up, own.ping_down, own.sonar):
+    for sounder in (own.ping_up, own.ping_down, own.sonar_address):
         if sounder:
             PingAddress.parse(sounder)
-    if own.dvl:
+    if own.dvl_address:
         from cavenav.vehicle.waterlinked import DvlAddress
 
-        DvlAddress.parse(own.dvl)
+        DvlAddress.parse(own.dvl_address)
 
     if spec.name in ("geometric", "policy") and own.depth_model is None:
         raise CavenavError(
@@ -327,7 +327,7 @@ def _fly_own_sensors(
         "connect": bridge.connect, "mode": bridge.mode, "camera": str(camera),
         "camera_hfov_deg": own.camera_hfov, "camera_latency_s": own.camera_latency,
         "ping_up": own.ping_up, "ping_down": own.ping_down,
-        "depth_model": own.depth_model, "sonar": own.sonar, "dvl": own.dvl,
+        "depth_model": own.depth_model, "sonar": own.sonar_address, "dvl": own.dvl_address,
     }  # fmt: skip
     flight = Flight(settings, vehicle)
     flyer = spec.build(seed=0)

@@ -65,8 +65,11 @@ class OwnSensors:
         ping_up, ping_down: the sounders' addresses (`cavenav.vehicle.ping.PingAddress`);
             None: not fitted.
         depth_model: the folder of a metric monocular depth model; None: no depth image.
-        sonar: a Ping360's address (`cavenav.vehicle.ping360`); None: not fitted.
-        dvl: a Water Linked DVL's address (`cavenav.vehicle.waterlinked`); None: not fitted.
+        sonar_address: a Ping360's address (`cavenav.vehicle.ping360`), ``--sonar``;
+            None: not fitted. (Named apart from the episode's ``sonar``, the kind a
+            simulated vehicle carries, which `fly --sim` takes from the scenario.)
+        dvl_address: a Water Linked DVL's address (`cavenav.vehicle.waterlinked`),
+            ``--dvl``; None: not fitted.
     """
 
     camera: str = "udp:5600"
@@ -75,8 +78,8 @@ class OwnSensors:
     ping_up: str | None = None
     ping_down: str | None = None
     depth_model: str | None = None
-    sonar: str | None = None
-    dvl: str | None = None
+    sonar_address: str | None = None
+    dvl_address: str | None = None
 
 
 OWN = OwnSensors()
@@ -144,8 +147,8 @@ OWN_SENSORS = Group(
         "ping_up",
         "ping_down",
         "depth_model",
-        "sonar",
-        "dvl",
+        "sonar_address",
+        "dvl_address",
     ),
     OwnSensors,
 )

@@ -301,7 +301,8 @@ class Observation:
             say.
         depth_source: what made the depth image: "exact" (the simulator's ray depth),
             "stereo" (a stereo camera's, `cavenav.sensors.stereo`: NaN in ``depth_m`` and
-            0, near, in ``depth_png`` where it found no match) or "none".
+            0, near, in ``depth_png`` where it found no match), "monocular" (a model's,
+            from a vehicle's colour image) or "none".
         sonar: the imaging sonar's image, when the vehicle carries one.
         dvl: the Doppler velocity log's reading, when the vehicle carries one.
     """

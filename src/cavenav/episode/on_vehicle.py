@@ -138,6 +138,7 @@ class VehicleSenses:
             step=step,
             previous_action=previous,
             has_depth=self.depth is not None,
+            depth_source="none" if self.depth is None else "monocular",
             sonar=None if self.sonar is None else self.sonar(),
             dvl=None if self.dvl is None else self.dvl(),
         )

@@ -6,7 +6,8 @@ threads of their own between the steps, as the devices do: the sonar's head keep
 sweeping its sector, and the DVL keeps reporting. At each step:
 
 - `SweptSonar.image` gives the disc as Ping Viewer shows it: every angle's latest echoes,
-  their age, and the fan image (`cavenav.sensors.sonar.fan_lookup`);
+  their age (0 for those swept since the last step, as the simulator counts them), and
+  the fan image (`cavenav.sensors.sonar.fan_lookup`);
 - `DvlFeed.reading` gives the mean velocity over the ground since the last step, from the
   valid reports in between (each weighted by the time to the next), in the body frame the
   simulator's DVL uses (forward, left, up: the A50's x forward, y right, z down turned
@@ -43,6 +44,7 @@ class SweptSonar:
         self._sonar = sonar
         self._echoes = np.zeros((GRADIANS // settings.step_grad, samples), np.uint8)
         self._pinged_at = np.full(len(self._echoes), -math.inf)
+        self._shown_at = -math.inf  # when `image` was last asked for
         self._lookup = fan_lookup(self.config, image_size)
         self._lock = threading.Lock()
         self._stop = threading.Event()
@@ -71,8 +73,12 @@ class SweptSonar:
         """
         if self._failure is not None:
             raise self._failure
+        now = time.monotonic()
         with self._lock:
-            echoes, age = self._echoes.copy(), time.monotonic() - self._pinged_at
+            echoes, pinged_at = self._echoes.copy(), self._pinged_at.copy()
+        # The angles swept since the last step are this step's, as the simulator's are.
+        age = np.where(pinged_at > self._shown_at, 0.0, now - pinged_at)
+        self._shown_at = now
         flat = np.append(echoes.ravel(), np.uint8(0))
         cfg = self.config
         return SonarImage(

@@ -63,15 +63,11 @@ class DopplerLog:
         self.caster, self.config = caster, config
         tilt = math.radians(config.beam_angle_deg)
         # Beams in an X, between the body's axes (forward, right, down), as the A50's.
-        azimuths = np.radians([45.0, 135.0, 225.0, 315.0])
-        self._beams = np.stack(
-            [
-                math.sin(tilt) * np.cos(azimuths),
-                math.sin(tilt) * np.sin(azimuths),
-                np.full(4, -math.cos(tilt)),
-            ],
-            axis=1,
-        )
+        azimuths = [math.radians(a) for a in (45.0, 135.0, 225.0, 315.0)]
+        self._beams = np.array(
+            [[math.sin(tilt) * math.cos(a), math.sin(tilt) * math.sin(a), -math.cos(tilt)]
+             for a in azimuths]
+        )  # fmt: skip
         self.reset(0)
 
     def reset(self, seed: int) -> None:

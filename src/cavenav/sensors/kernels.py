@@ -109,15 +109,18 @@ _LAUNCHING = threading.Lock()
 os.register_at_fork(after_in_child=lambda: globals().update(_LAUNCHING=threading.Lock()))
 
 
-def _parallel_kernel(function: Callable[..., Any]) -> Callable[..., Any]:
-    """A kernel split over Numba's threads (``numba.prange``), compiled once and cached.
+def _parallel_kernel(
+    function: Callable[..., Any], fastmath: bool | set[str] = _FAST
+) -> Callable[..., Any]:
+    """A kernel split over Numba's threads (``numba.prange``), compiled once and cached
+    (with ``fastmath``'s liberties: False takes none).
 
     It lets go of the GIL, so that several frames are shaded at once, each on threads of
     its own: a batched environment's, a sweep's episodes in flight. Where the layer
     cannot take that (`KERNELS_RUN_CONCURRENTLY`), its launches take turns instead; the
     compiled kernel is then ``__wrapped__``.
     """
-    kernel = numba.njit(parallel=True, fastmath=_FAST, cache=True, nogil=True)(function)
+    kernel = numba.njit(parallel=True, fastmath=fastmath, cache=True, nogil=True)(function)
     if KERNELS_RUN_CONCURRENTLY:
         return kernel
 

@@ -44,7 +44,8 @@ import numpy as np
 
 from cavenav.core.errors import ConfigError
 from cavenav.core.types import Pose, SonarImage
-from cavenav.sensors.kernels import mix
+from cavenav.sensors.kernels import _parallel_kernel, mix
+from cavenav.world.procedural import cpu_independent
 from cavenav.world.raycast import RayCaster
 from cavenav.world.silt import SiltCloud
 
@@ -290,17 +291,19 @@ class Sonar:
         self._alpha = absorption_db_per_m(
             config.frequency_khz, config.temperature_c, config.salinity_psu
         )
-        v = config.rays_vertical
+        v, h = config.rays_vertical, config.rays_horizontal
         self._elevations = np.radians(_offsets(v) * config.aperture_deg)
-        h = config.rays_horizontal
         self._widths = np.radians(_offsets(h) * config.beam_width_deg)
-        # The two-way beam pattern over the rays, width-major as `_directions` lays them.
+        # The two-way beam pattern over the rays, width-major as `_body_rays` lays them.
         pattern = np.outer(_pattern(_offsets(h)), _pattern(_offsets(v))).ravel()
         self._pattern = pattern / pattern.sum()
+        self._rays = self._body_rays(self._bearings)  # every beam's, (beams, rays, 3)
         self._lookup = fan_lookup(config, image_size)
         centres = (np.arange(config.samples) + 0.5) * config.bin_m
-        gain = centres**2 * 10 ** (0.2 * self._alpha * centres)  # the time-varied gain
-        self._noise = (10 ** (config.noise_db / 10.0) * gain).astype(np.float32)
+        absorbed = cpu_independent(lambda x: 10.0**x, 0.2 * self._alpha * centres)
+        gain = centres**2 * absorbed  # the time-varied gain, 20 log r + 2 alpha r
+        self._noise = 10 ** (config.noise_db / 10.0) * gain
+        self._steps = _level_steps(config)
         self._pulse_m = config.sound_speed_m_s * config.pulse_s / 2.0
         self._pulse_bins = max(1, round(self._pulse_m / config.bin_m))
         self._blanked = centres < config.blanking_m
@@ -333,14 +336,15 @@ class Sonar:
             fresh = np.unique(self._sector[swept])
         self._age_s += max(seconds, 0.0)
         if self._last is not None:
-            self._moved_m += float(np.linalg.norm(pose.position - self._last.position))
+            self._moved_m += math.dist(pose.position, self._last.position)
         self._last = pose
         if len(fresh):
-            self._echoes[fresh] = self.ping(pose, self._bearings[fresh], seed, silt)
+            bearings = self._bearings[fresh]
+            self._echoes[fresh] = self._ping(pose, self._rays[fresh], bearings, seed, silt)
             self._age_s[fresh] = 0.0
             self._heading_at[fresh] = pose.psi
             self._moved_m[fresh] = 0.0
-        turned = np.degrees(np.angle(np.exp(1j * (pose.psi - self._heading_at))))
+        turned = (np.degrees(pose.psi - self._heading_at) + 180.0) % 360.0 - 180.0
         return SonarImage(
             kind=self.config.kind,
             echoes=self._echoes.copy(),
@@ -370,16 +374,34 @@ class Sonar:
         self, pose: Pose, bearings_deg: np.ndarray, seed: int = 0, silt: SiltCloud | None = None
     ) -> np.ndarray:
         """(n, bins) uint8 echo strengths of beams at ``bearings_deg`` from ``pose``."""
+        bearings = np.asarray(bearings_deg, np.float64)
+        return self._ping(pose, self._body_rays(bearings), bearings, seed, silt)
+
+    def _ping(
+        self,
+        pose: Pose,
+        body_rays: np.ndarray,
+        bearings_deg: np.ndarray,
+        seed: int,
+        silt: SiltCloud | None,
+    ) -> np.ndarray:
+        """`ping` of the beams whose rays in the body frame are ``body_rays``."""
         cfg = self.config
-        directions = self._directions(pose, np.radians(bearings_deg))
-        per_beam = len(self._elevations) * len(self._widths)
+        b = body_rays.reshape(-1, 3)
+        # Turned into the world by the heading alone: products and sums, no function that
+        # a CPU's vector unit might round otherwise.
+        directions = b[:, :1] * pose.forward + b[:, 1:2] * pose.right
+        directions[:, 2] += b[:, 2]
+        per_beam = body_rays.shape[1]
         rays = np.empty((len(directions), 6), np.float32)
         rays[:, :3] = pose.position
         rays[:, 3:] = directions
         hit = self.caster.cast_raw_rays(rays)
         t = hit["t_hit"].astype(np.float64)
-        normals = hit["primitive_normals"].astype(np.float64)
-        cosine = np.abs(np.einsum("ij,ij->i", normals, directions))
+        n = hit["primitive_normals"].astype(np.float64)
+        cosine = np.abs(
+            n[:, 0] * directions[:, 0] + n[:, 1] * directions[:, 1] + n[:, 2] * directions[:, 2]
+        )
         beam = np.repeat(np.arange(len(bearings_deg)), per_beam)
         keep = np.isfinite(t) & (t < cfg.range_m)
         weight = np.tile(self._pattern, len(bearings_deg))[keep]
@@ -393,41 +415,41 @@ class Sonar:
         reach = np.minimum(nearest / cfg.bin_m, cfg.samples).astype(np.int64)
         if silt is not None and silt.puffs:
             shadowed = np.arange(cfg.samples)[None, :] >= reach[:, None]
-            echo += np.where(shadowed, 0.0, self._silt_echo(pose, np.radians(bearings_deg), silt))
+            echo += np.where(shadowed, 0.0, self._silt_echo(pose, body_rays, silt))
         out = np.empty(shape, np.uint8)
-        scale = 2550.0 / cfg.dynamic_db  # 10 dB a decade, 255 over the span
-        offset = (cfg.gain_db + cfg.dynamic_db) / cfg.dynamic_db * 255.0
-        _develop(
-            echo.astype(np.float32), self._noise, self._snow, reach, np.uint64(
-                _ping_key(seed, pose, bearings_deg)), scale, offset, out,
-        )  # fmt: skip
+        key = np.uint64(_ping_key(seed, pose, bearings_deg))
+        _develop(echo, self._noise, self._snow, reach, key, self._steps, _EXPONENTIAL, out)
         out[:, self._blanked] = 0
         return out
 
-    def _silt_echo(self, pose: Pose, bearings: np.ndarray, silt: SiltCloud) -> np.ndarray:
-        """(n, bins) volume echo of the silt along each beam's axis, in proportion to its
-        concentration (after the time-varied gain: module docstring)."""
+    def _silt_echo(self, pose: Pose, body_rays: np.ndarray, silt: SiltCloud) -> np.ndarray:
+        """(n, bins) volume echo of the silt along each beam's middle ray, in proportion to
+        its concentration (after the time-varied gain: module docstring)."""
         cfg = self.config
         centres = (np.arange(cfg.samples) + 0.5) * cfg.bin_m
-        axes = self._axes(pose, bearings)
+        middle = body_rays[:, body_rays.shape[1] // 2]
+        axes = middle[:, :1] * pose.forward + middle[:, 1:2] * pose.right
+        axes[:, 2] += middle[:, 2]
         points = pose.position + axes[:, None, :] * centres[None, :, None]
         grams = silt.concentration(points.reshape(-1, 3)).reshape(len(axes), cfg.samples)
         return cfg.silt_backscatter * grams * self._pulse_m  # the water one sample hears
 
-    def _axes(self, pose: Pose, bearings: np.ndarray) -> np.ndarray:
-        """(n, 3) each beam's axis (level, at its bearing) in the world."""
-        return np.cos(bearings)[:, None] * pose.forward + np.sin(bearings)[:, None] * pose.right
-
-    def _directions(self, pose: Pose, bearings: np.ndarray) -> np.ndarray:
-        """(n * rays, 3) the unit rays of beams at ``bearings``: across each beam's width,
-        then up its aperture, beam by beam."""
-        across = (bearings[:, None] + self._widths[None, :]).reshape(-1)
-        level = np.cos(across)[:, None] * pose.forward + np.sin(across)[:, None] * pose.right
-        up = self._elevations
-        directions = np.cos(up)[None, :, None] * level[:, None, :] + np.sin(up)[
-            None, :, None
-        ] * np.array([0.0, 0.0, 1.0])
-        return directions.reshape(-1, 3)
+    def _body_rays(self, bearings_deg: np.ndarray) -> np.ndarray:
+        """(n, rays, 3) the unit rays of beams at ``bearings_deg`` in the body frame
+        (forward, right, up): across each beam's width, then up its aperture, with the C
+        library's sines and cosines (`cpu_independent`): the same rays on every CPU."""
+        across = (np.radians(bearings_deg)[:, None] + self._widths[None, :]).reshape(-1)
+        cos_a, sin_a = (cpu_independent(f, across) for f in (math.cos, math.sin))
+        cos_e, sin_e = (cpu_independent(f, self._elevations) for f in (math.cos, math.sin))
+        rays = np.stack(
+            [
+                cos_a[:, None] * cos_e[None, :],
+                sin_a[:, None] * cos_e[None, :],
+                np.broadcast_to(sin_e[None, :], (len(across), len(cos_e))),
+            ],
+            axis=-1,
+        )
+        return rays.reshape(len(bearings_deg), -1, 3)
 
 
 # A beam's rays reach out to this many times its -3 dB width (a ray per 1/n of it).
@@ -444,45 +466,65 @@ def _pattern(offsets: np.ndarray) -> np.ndarray:
     """The two-way (transmit times receive) sensitivity at ``offsets`` from the axis, in
     units of the -3 dB width: a Gaussian main lobe, -3 dB one way at the width's edge, so
     -6 dB two ways."""
-    return 10.0 ** (-0.6 * (2.0 * offsets) ** 2)
+    return cpu_independent(lambda x: 10.0**x, -0.6 * (2.0 * offsets) ** 2)
 
 
-@numba.njit(cache=True, nogil=True)
-def _develop(
+def _develop_bins(
     echo: np.ndarray,
     noise: np.ndarray,
     snow: np.ndarray,
     reach: np.ndarray,
     key: np.uint64,
-    scale: float,
-    offset: float,
+    steps: np.ndarray,
+    exponential: np.ndarray,
     out: np.ndarray,
 ) -> None:
     """Write ``out`` (n, bins) uint8: ``echo`` with marine snow (with chance ``snow`` per
-    bin, up to the beam's first rock at bin ``reach``), speckle (the gamma of four
-    looks: a coherent echo averaged over four samples) and the receiver's ``noise``
-    (exponential energy per bin), in decibels mapped by ``scale`` and ``offset``. Each bin
-    draws from a hash of ``key`` and its index: the same bits in any order."""
+    bin, up to the beam's first rock at bin ``reach``), speckle (the gamma of four looks,
+    a coherent echo averaged over four samples: the mean of four exponentials) and the
+    receiver's ``noise`` (exponential energy per bin), as the number of ``steps`` (the
+    energies between the 8-bit levels, rising) it reaches. The exponentials are read
+    from ``exponential``, a table of their quantiles at a 16-bit index: no logarithm is
+    taken, and each bin draws from a hash of ``key`` and its index, the same bits in any
+    order and on every CPU."""
     mask = np.uint64(0xFFFF)
     bins = echo.shape[1]
-    for b in range(echo.shape[0]):
+    for b in numba.prange(echo.shape[0]):
         for j in range(bins):
             h = mix(key + np.uint64(b * bins + j) * _GOLDEN)
-            product = 1.0  # of four uniforms from h's 16-bit quarters: a gamma of 4 looks
+            speckle = 0.0
             for k in range(4):
-                product *= (float((h >> np.uint64(16 * k)) & mask) + 0.5) / 65536.0
+                speckle += exponential[(h >> np.uint64(16 * k)) & mask]
             h2 = mix(h)
-            v = (float(h2 >> np.uint64(32)) + 0.5) / 4294967296.0
-            u = (float(h2 & np.uint64(0xFFFFFFFF)) + 0.5) / 4294967296.0
-            speck = SPECK if u < snow[j] and j < reach[b] else 0.0
-            signal = echo[b, j] + speck
-            energy = -signal * math.log(product) * 0.25 - noise[j] * math.log(v)
-            level = math.log10(max(energy, 1e-30)) * scale + offset
-            out[b, j] = np.uint8(min(max(round(level), 0.0), 255.0))
+            u = float(h2 & np.uint64(0xFFFFFFFF)) / 4294967296.0
+            signal = echo[b, j] + (SPECK if u < snow[j] and j < reach[b] else 0.0)
+            energy = 0.25 * signal * speckle + noise[j] * exponential[h2 >> np.uint64(48)]
+            low, high = 0, len(steps)
+            while low < high:  # how many steps lie at or below the energy
+                middle = (low + high) // 2
+                if energy >= steps[middle]:
+                    low = middle + 1
+                else:
+                    high = middle
+            out[b, j] = low
 
 
+# Split over the cores; no fast-math liberties.
+_develop = _parallel_kernel(_develop_bins, fastmath=False)
+# Quantiles of the unit exponential at 65,536 evenly spaced probabilities, through the C
+# library's logarithm (`cpu_independent`): the same table on every CPU.
+_EXPONENTIAL = -cpu_independent(math.log, (np.arange(65536) + 0.5) / 65536.0)
 _GOLDEN = np.uint64(0x9E3779B97F4A7C15)
 SPECK = 0.003  # one speck of marine snow's echo, relative to a wall's (-25 dB)
+
+
+def _level_steps(config: SonarConfig) -> np.ndarray:
+    """(255,) the energies at which the 8-bit echo strength steps up from each level to the
+    next: 255 levels over `SonarConfig.dynamic_db` decibels above the display's floor,
+    ``gain_db`` raising the echoes; the powers of ten through the C library."""
+    levels = np.arange(255) + 0.5
+    decibels = levels / 255.0 * config.dynamic_db - config.dynamic_db - config.gain_db
+    return cpu_independent(lambda x: 10.0**x, decibels / 10.0)
 
 
 def _smeared(echo: np.ndarray, width: int) -> np.ndarray:

@@ -60,8 +60,8 @@ class CaveSensors:
     ):
         """
         Args:
-            sonar_port, dvl_port: where a Ping360 (UDP) and a DVL (TCP) answer on
-                127.0.0.1; None: not fitted.
+            sonar_port: where a Ping360 answers on 127.0.0.1 (UDP); None: not fitted.
+            dvl_port: where a DVL streams on 127.0.0.1 (TCP); None: not fitted.
 
         Raises:
             ConfigError: a sounder's, the sonar's or the DVL's port is taken.
