@@ -11,9 +11,11 @@ DVL does for dead reckoning.
    each as a share of the full step (targets: a sonar frame 15% or less, the DVL 2% or less).
 2. Accuracy, in clear water: for every beam whose axis meets rock within the range, the
    bin of its strongest return against the bin of the axis's ray-cast distance; the share
-   within one bin (target: 95% or more); and the same for the echo's leading edge (its
-   first bin within 6 dB of its peak): a pulse spans several bins (8 cm, five of a
-   Ping360's at 20 m), and speckle puts the strongest sample anywhere along it.
+   within one bin (target: 95% or more); and, of the beams whose axis meets the rock
+   within 30 degrees of square on, the share whose strongest return lies within the
+   pulse's length behind the wall: a pulse spans several bins (8 cm, five of a Ping360's
+   at 20 m) and speckle puts the strongest sample anywhere along it, and a tall beam
+   meets floor and ceiling nearer than the wall its axis meets.
 3. Reckoning over S4 (seed 0), flown by the geometric pilot: dead reckoning from the DVL
    and from the commands alone, in still water and in a current, as the error at the end
    over the distance flown (target with the DVL: 2% or less).
@@ -75,31 +77,32 @@ def cost(name: str, poses: int, repeats: int) -> dict[str, float]:
     return {key: statistics.median(values) for key, values in timed.items()}
 
 
-def accuracy(name: str, poses: int) -> tuple[int, int, int]:
-    """Over both sonars: beams whose strongest return lies within one bin of the axis's
-    ray-cast distance, beams whose echo's leading edge (module docstring) does, and beams
-    whose axis hits rock in range."""
+def accuracy(name: str, poses: int) -> np.ndarray:
+    """Over both sonars, counts of beams: whose axis hits rock in range; of those, whose
+    strongest return lies within one bin of the axis's ray-cast distance; whose axis meets
+    the rock square on (within 30 degrees of its normal); and of those, whose strongest
+    return lies within the pulse's length behind the wall (from a bin before it)."""
     caster, path = _path(name, poses)
-    within = leading = hits = 0
+    counts = np.zeros(4, int)
     for config in (PING360, MULTIBEAM):
         sonar = Sonar(caster, config)
         bearings = config.bearings_deg()
+        pulse_bins = round(config.sound_speed_m_s * config.pulse_s / 2 / config.bin_m)
         for pose in path:
             echoes = sonar.ping(pose, bearings)
             angle = np.radians(bearings)[:, None]
             axes = np.cos(angle) * pose.forward + np.sin(angle) * pose.right
-            distance = caster.first_hit(np.tile(pose.position, (len(axes), 1)), axes)
+            rays = np.hstack([np.tile(pose.position, (len(axes), 1)), axes]).astype(np.float32)
+            cast = caster.cast_raw_rays(rays)
+            distance, normals = cast["t_hit"], cast["primitive_normals"]
             hit = (
                 np.isfinite(distance) & (distance < config.range_m) & (distance > config.blanking_m)
             )
-            truth = np.floor(distance[hit] / config.bin_m)
-            strongest = echoes[hit].argmax(axis=1)
-            within += int(np.sum(np.abs(strongest - truth) <= 1))
-            # 6 dB below the peak: 34 of the 255 levels that span 45 dB.
-            near_peak = echoes[hit].astype(int) >= echoes[hit].max(axis=1, keepdims=True) - 34
-            leading += int(np.sum(np.abs(near_peak.argmax(axis=1) - truth) <= 1))
-            hits += int(hit.sum())
-    return within, leading, hits
+            error = echoes[hit].argmax(axis=1) - np.floor(distance[hit] / config.bin_m)
+            square = np.abs(np.sum(normals[hit] * axes[hit], axis=1)) > np.cos(np.radians(30))
+            behind = (error >= -1) & (error <= pulse_bins)
+            counts += (hit.sum(), np.sum(np.abs(error) <= 1), square.sum(), behind[square].sum())
+    return counts
 
 
 def reckoning(current: Current) -> dict[str, float]:
@@ -154,13 +157,14 @@ def main() -> None:
         + ", ".join(f"{k} {100 * statistics.median(v):.1f}%" for k, v in shares.items())
         + " (targets: sonar <= 15%, dvl <= 2%)"
     )
-    counts = np.zeros(3, int)
+    counts = np.zeros(4, int)
     for name in SCENARIOS:
         counts += accuracy(name, args.poses)
-    within, leading, hits = counts
+    hits, within, square, behind = counts
+    share = 100 * behind / max(square, 1)
     print(f"strongest return within one bin of the wall: {within}/{hits} beams "
-          f"({100 * within / max(hits, 1):.1f}%, target >= 95%); the echo's leading edge: "
-          f"{leading}/{hits} ({100 * leading / max(hits, 1):.1f}%)")  # fmt: skip
+          f"({100 * within / max(hits, 1):.1f}%, target >= 95%); of the {square} beams "
+          f"square on, within the pulse behind it: {behind} ({share:.1f}%)")  # fmt: skip
     for label, current in (("still water", Current()), ("current 2 m3/s", Current(2.0, 0.2))):
         r = reckoning(current)
         flown = max(r["flown_m"], 1e-9)

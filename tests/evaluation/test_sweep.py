@@ -268,6 +268,8 @@ def test_a_script_reads_and_sets_the_settings_by_their_names_before_episode_sett
     with pytest.raises(AttributeError):
         config.steps = 7  # type: ignore[misc]
     with pytest.raises(ConfigError, match="sensors: unknown key"):
+        SweepConfig((room,), (0,), sensors={"sidescan": "beam"})
+    with pytest.raises(ConfigError, match="sonar: 'beam'; choose ping360, multibeam or none"):
         SweepConfig((room,), (0,), sensors={"sonar": "beam"})
     knobs = SweepConfig(("S1",), (0,), difficulty={"constriction_m": 3.0})
     assert knobs.difficulty == {"constriction_m": 3.0}

@@ -122,6 +122,9 @@ class EpisodeConfig:
             if size is not None:
                 object.__setattr__(self, name, tuple(size))
         Difficulty.from_dict(self.difficulty)  # a bad knob fails here, not in a worker
+        SensorConfig().with_sensors(  # so does a bad sonar, DVL or depth source
+            {key: getattr(self, key) for key in SENSOR_KEYS if key not in SIZE_KEYS}, "sensors"
+        )
         self.current_for({})  # a bad value fails here, not in a worker
         checked_budget(self.battery_wh)
         seed = self.seed
