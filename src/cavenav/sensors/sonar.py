@@ -33,6 +33,7 @@ it was last seen, as Ping Viewer's does.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import math
 import struct
@@ -209,11 +210,14 @@ MULTIBEAM = SonarConfig(
 SONARS = {"ping360": PING360, "multibeam": MULTIBEAM}
 
 
+@functools.lru_cache(maxsize=8)
 def fan_lookup(config: SonarConfig, size: int) -> np.ndarray:
     """(size, width) indices into the (beams, bins) array, flattened, for each pixel of the
     displayed image (-1: outside the fan): a multibeam's fan with its apex at the bottom
     centre, or the scanning sonar's disc with the head at its centre; heading up, bearings
-    to the right of ahead on the right."""
+    to the right of ahead on the right. The angles come from the C library, so the image
+    sent to a model is the same on every CPU; computed once per sonar and size (shared:
+    read it, never write it)."""
     bearings = config.bearings_deg()
     if config.kind == "multibeam":
         half = math.radians(config.fov_deg / 2.0)
@@ -225,8 +229,11 @@ def fan_lookup(config: SonarConfig, size: int) -> np.ndarray:
         x = np.arange(size) - size / 2 + 0.5
         y = size / 2 - np.arange(size)[:, None] - 0.5
     scale = config.range_m / (size if config.kind == "multibeam" else size / 2)
-    r = np.hypot(x, y) * scale
-    bearing = np.degrees(np.arctan2(x, y))
+    x, y = np.broadcast_arrays(x, y)
+    r = np.sqrt(x * x + y * y) * scale
+    # The C library's arctangent, pixel by pixel: numpy's may round otherwise on another CPU.
+    atan2 = [math.atan2(a, b) for a, b in zip(x.ravel().tolist(), y.ravel().tolist(), strict=True)]
+    bearing = np.degrees(np.array(atan2).reshape(x.shape))
     span = bearings[-1] - bearings[0] if config.kind == "multibeam" else 360.0
     pitch = span / max(len(bearings) - 1, 1) if config.kind == "multibeam" else span / len(bearings)
     if config.kind == "multibeam":
@@ -237,7 +244,9 @@ def fan_lookup(config: SonarConfig, size: int) -> np.ndarray:
         inside = np.ones_like(beam, bool)
     bins = np.floor(r / config.bin_m).astype(np.int64)
     inside &= bins < config.samples
-    return np.where(inside, beam * config.samples + bins, -1)
+    lookup = np.where(inside, beam * config.samples + bins, -1)
+    lookup.setflags(write=False)  # shared by every sonar of this kind and size
+    return lookup
 
 
 @dataclass(frozen=True)
