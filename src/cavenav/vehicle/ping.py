@@ -23,14 +23,14 @@ import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 from types import TracebackType
-from typing import Any
+from typing import Any, Self
 
 import brping
 from brping import definitions
 
 from cavenav.core.errors import ConfigError, VehicleError
 
-__all__ = ["FakePing1D", "PingAddress", "PingSounder", "PingSounders"]
+__all__ = ["FakePing1D", "FakePingDevice", "PingAddress", "PingSounder", "PingSounders"]
 
 SERIAL_BAUD = 115200
 HEADER = struct.Struct("<2sHHBB")  # "BR", payload length, message id, source, destination
@@ -167,37 +167,44 @@ def _message(message_id: int, **fields: int) -> bytes:
     return bytes(message.pack_msg_data())
 
 
-class FakePing1D:
-    """A Ping1D on 127.0.0.1 (UDP) that answers every request in the ping protocol's own
-    messages: the protocol version, its general information and ``distance_simple`` with
-    the range ``distance_m()`` gives (NaN: confidence 0).
+class FakePingDevice:
+    """A device on 127.0.0.1 (UDP) that answers the ping protocol's messages, for tests
+    and for flying the loop without a vehicle: the socket, the thread that serves it, and
+    the reading of each request's id (a general request names the message it wants in its
+    payload). A kind of device says what it answers with `_answer`.
 
-    Use as a context manager; ``address`` is where it listens (``udp:127.0.0.1:PORT``).
+    Use as a context manager; ``address`` is where it listens (``udp:127.0.0.1:PORT``),
+    ``requests`` lists the message ids asked for. An exception while answering stops the
+    device, and leaving the context raises it.
     """
 
-    def __init__(self, distance_m: Callable[[], float], confidence: int = 100, port: int = 0):
+    name = "ping device"
+
+    def __init__(self, port: int = 0):
         """``port``: where to listen on 127.0.0.1 (0: a free port the system picks).
 
         Raises:
             ConfigError: the port is taken.
         """
-        self.distance_m, self.confidence = distance_m, confidence
         self.requests: list[int] = []
         self._socket = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         try:
             self._socket.bind(("127.0.0.1", port))
         except OSError as exc:
             self._socket.close()
-            raise ConfigError(f"a fake Ping1D cannot listen on UDP port {port}: {exc}") from None
+            raise ConfigError(
+                f"a fake {self.name} cannot listen on UDP port {port}: {exc}"
+            ) from None
         self._socket.settimeout(0.1)
         self._stop = threading.Event()
+        self._error: BaseException | None = None
         self._thread = threading.Thread(target=self._serve, daemon=True)
 
     @property
     def address(self) -> str:
         return f"udp:127.0.0.1:{self._socket.getsockname()[1]}"
 
-    def __enter__(self) -> FakePing1D:
+    def __enter__(self) -> Self:
         self._thread.start()
         return self
 
@@ -210,6 +217,8 @@ class FakePing1D:
         self._stop.set()
         self._thread.join()
         self._socket.close()
+        if self._error is not None and error is None:
+            raise self._error
 
     def _serve(self) -> None:
         while not self._stop.is_set():
@@ -217,19 +226,47 @@ class FakePing1D:
                 data, client = self._socket.recvfrom(4096)
             except TimeoutError:
                 continue
-            reply = self._reply(data)
+            try:
+                reply = self._reply(data)
+            except Exception as error:  # handed to the caller at the end of the context
+                self._error = error
+                return
             if reply:
                 self._socket.sendto(reply, client)
 
     def _reply(self, data: bytes) -> bytes | None:
-        """The answer to one request: a general request names the message it wants in its
-        payload; a Ping1D legacy request is an empty message of that id."""
+        """The answer to one message (None: none, as to anything not in the protocol)."""
         if len(data) < HEADER.size + 2 or data[:2] != b"BR":
             return None
         _, length, message_id, _, _ = HEADER.unpack_from(data)
         if message_id == GENERAL_REQUEST and length >= 2:
             (message_id,) = struct.unpack_from("<H", data, HEADER.size)
         self.requests.append(message_id)
+        return self._answer(message_id, data[HEADER.size : HEADER.size + length])
+
+    def _answer(self, message_id: int, payload: bytes) -> bytes | None:
+        """The answer to the message ``message_id`` whose payload is ``payload``."""
+        raise NotImplementedError
+
+
+class FakePing1D(FakePingDevice):
+    """A Ping1D that answers every request in the ping protocol's own messages: the
+    protocol version, its general information and ``distance_simple`` with the range
+    ``distance_m()`` gives (NaN: confidence 0). A Ping1D's legacy request is an empty
+    message of the id it wants. See `FakePingDevice` for its use.
+    """
+
+    name = "Ping1D"
+
+    def __init__(self, distance_m: Callable[[], float], confidence: int = 100, port: int = 0):
+        """
+        Raises:
+            ConfigError: the port is taken.
+        """
+        self.distance_m, self.confidence = distance_m, confidence
+        super().__init__(port)
+
+    def _answer(self, message_id: int, payload: bytes) -> bytes | None:
         if message_id == PROTOCOL_VERSION:
             return _message(PROTOCOL_VERSION, version_major=1)
         if message_id == GENERAL_INFO:

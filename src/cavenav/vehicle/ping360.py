@@ -41,13 +41,10 @@ from __future__ import annotations
 import contextlib
 import io
 import math
-import socket
 import struct
-import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from types import TracebackType
 from typing import Any
 
 import brping
@@ -55,7 +52,7 @@ import numpy as np
 from brping import definitions
 
 from cavenav.core.errors import ConfigError, VehicleError
-from cavenav.vehicle.ping import HEADER, PingAddress
+from cavenav.vehicle.ping import HEADER, FakePingDevice, PingAddress
 
 __all__ = [
     "FakePing360",
@@ -80,7 +77,6 @@ ANSWER_S = 4.0  # the protocol's advice for device_data's worst case (a long tur
 
 PROTOCOL_VERSION = definitions.COMMON_PROTOCOL_VERSION
 DEVICE_INFORMATION = definitions.COMMON_DEVICE_INFORMATION
-GENERAL_REQUEST = definitions.COMMON_GENERAL_REQUEST
 NACK = definitions.COMMON_NACK
 DEVICE_DATA = definitions.PING360_DEVICE_DATA
 TRANSDUCER = definitions.PING360_TRANSDUCER
@@ -407,83 +403,31 @@ class _Head:
     number_of_samples: int = 1024
 
 
-class FakePing360:
-    """A Ping360 on 127.0.0.1 (UDP) that answers in the ping protocol's own messages: its
-    protocol version, its device information (type 2), ``device_data`` on request, and
-    a ``transducer`` request with ``device_data`` whose intensities ``echo`` draws:
+class FakePing360(FakePingDevice):
+    """A Ping360 that answers in the ping protocol's own messages: its protocol version,
+    its device information (type 2), ``device_data`` on request, and a ``transducer``
+    request with ``device_data`` whose intensities ``echo`` draws:
     ``echo(angle_deg, number_of_samples, range_m)`` -> (number_of_samples,) uint8, the
     range from the request's samples and sample period at ``speed_of_sound``. An echo of
     another length is answered with a NACK, as the sonar refuses what it cannot do.
 
-    Use as a context manager; ``address`` is where it listens (``udp:127.0.0.1:PORT``);
-    ``requests`` lists the message ids asked for, ``pings`` the head angles transmitted.
-    An exception from ``echo`` stops the fake, and leaving the context raises it.
+    See `FakePingDevice` for its use; ``pings`` lists the head angles transmitted.
     """
 
-    def __init__(self, echo: Echo, port: int = 0, speed_of_sound: float = 1500.0):
-        """``port``: where to listen on 127.0.0.1 (0: a free port the system picks).
+    name = "Ping360"
 
+    def __init__(self, echo: Echo, port: int = 0, speed_of_sound: float = 1500.0):
+        """
         Raises:
             ConfigError: the port is taken.
         """
         self.echo, self.speed_of_sound = echo, speed_of_sound
-        self.requests: list[int] = []
         self.pings: list[int] = []
         self.head = _Head()
-        self._socket = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        try:
-            self._socket.bind(("127.0.0.1", port))
-        except OSError as exc:
-            self._socket.close()
-            raise ConfigError(f"a fake Ping360 cannot listen on UDP port {port}: {exc}") from None
-        self._socket.settimeout(0.1)
-        self._stop = threading.Event()
-        self._error: BaseException | None = None
-        self._thread = threading.Thread(target=self._serve, daemon=True)
+        super().__init__(port)
 
-    @property
-    def address(self) -> str:
-        return f"udp:127.0.0.1:{self._socket.getsockname()[1]}"
-
-    def __enter__(self) -> FakePing360:
-        self._thread.start()
-        return self
-
-    def __exit__(
-        self,
-        kind: type[BaseException] | None,
-        error: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self._stop.set()
-        self._thread.join()
-        self._socket.close()
-        if self._error is not None and error is None:
-            raise self._error
-
-    def _serve(self) -> None:
-        while not self._stop.is_set():
-            try:
-                data, client = self._socket.recvfrom(4096)
-            except TimeoutError:
-                continue
-            try:
-                reply = self._reply(data)
-            except Exception as error:  # handed to the test at the end of the context
-                self._error = error
-                return
-            if reply:
-                self._socket.sendto(reply, client)
-
-    def _reply(self, data: bytes) -> bytes | None:
-        """The answer to one message: a general request names the message it wants in
-        its payload; a ``transducer`` request sets the head and may transmit."""
-        if len(data) < HEADER.size + 2 or data[:2] != b"BR":
-            return None
-        _, length, message_id, _, _ = HEADER.unpack_from(data)
-        if message_id == GENERAL_REQUEST and length >= 2:
-            (message_id,) = struct.unpack_from("<H", data, HEADER.size)
-        self.requests.append(message_id)
+    def _answer(self, message_id: int, payload: bytes) -> bytes | None:
+        """A ``transducer`` request sets the head and may transmit."""
         if message_id == PROTOCOL_VERSION:
             return _message(PROTOCOL_VERSION, version_major=1, version_minor=0)
         if message_id == DEVICE_INFORMATION:
@@ -495,8 +439,8 @@ class FakePing360:
             )
         if message_id == DEVICE_DATA:
             return self._device_data(b"")
-        if message_id == TRANSDUCER and length >= 14:
-            return self._transduce(data[HEADER.size : HEADER.size + length])
+        if message_id == TRANSDUCER and len(payload) >= 14:
+            return self._transduce(payload)
         return None
 
     def _transduce(self, payload: bytes) -> bytes:
