@@ -15,6 +15,7 @@ from __future__ import annotations
 import base64
 import io
 import json
+import math
 import re
 import threading
 import time
@@ -91,6 +92,76 @@ def _reply(action: Action, justification: str, style: int) -> str:
     return f'**Reasoning**\n{reasoning}\n\n{{"{text}": "{justification}"}}'
 
 
+def _design(system: str) -> str:
+    """The design a system prompt asks for (`cavenav.pilots.prompts`)."""
+    if "# The numbered arrows" in system:
+        return "arrows"
+    return "waypoint" if "# Your waypoint" in system else "direct"
+
+
+_OFFER = re.compile(
+    r"(\d+) = (?:turn (left|right) [\d.]+ degrees in place|"
+    r"(?:(\d+) degrees (left|right))?(?:, )?(?:(\d+) degrees (up|down))?(?:straight ahead)?, "
+    r"([\d.]+) m free)"
+)
+
+
+Offered = tuple[int, float, float, float]  # number, bearing, elevation, free metres
+
+
+def _offered(text: str) -> list[Offered]:
+    """The numbers a request offers: (number, bearing, elevation, free metres; 0 for a
+    turn in place), degrees, left and up positive."""
+    offered = []
+    for m in _OFFER.finditer(text):
+        number, turn, bearing, side, elevation, updown, free = m.groups()
+        if turn:
+            offered.append((int(number), 45.0 if turn == "left" else -45.0, 0.0, 0.0))
+            continue
+        b = float(bearing or 0) * (1 if side == "left" else -1)
+        e = float(elevation or 0) * (1 if updown == "up" else -1)
+        offered.append((int(number), b, e, float(free)))
+    return offered
+
+
+def _choose(
+    action: Action, offered: list[Offered], design: str, shape: tuple[int, int], style: int
+) -> str:
+    """The offered number (or, every other waypoint, its point) nearest the geometric
+    pilot's heading. Where that pilot would turn away out of view, an arrow that way
+    reaching 8 m or more, else the turn in place."""
+    ahead = [o for o in offered if o[3]]
+    if not action.forward and abs(action.yaw_deg) >= 26.5:
+        side = 1.0 if action.yaw_deg > 0 else -1.0
+        ahead = [o for o in ahead if o[1] * side > 0 and o[3] >= 8.0]
+    if not ahead:
+        turns = [o for o in offered if not o[3] and (o[1] > 0) == (action.yaw_deg >= 0)]
+        return str(turns[0][0])
+    number, bearing, elevation, _ = min(ahead, key=lambda o: abs(o[1] - action.yaw_deg))
+    if design == "arrows":
+        up = round(action.up, 2)
+        if up:
+            return f"{number}, {'ascend' if up > 0 else 'descend'} {abs(up):g} m"
+        return str(number)
+    if style % 2:
+        h, w = shape
+        focal = 0.5 * w / math.tan(math.radians(53.13) / 2)
+        b, e = math.radians(bearing), math.radians(elevation)
+        x = (0.5 * w - focal * math.tan(b)) / w
+        y = (0.5 * h - focal * math.tan(e) / math.cos(b)) / h
+        return f"point {x:.3f}, {y:.3f}"
+    return str(number)
+
+
+def _reply_choice(choice: str, justification: str, style: int) -> str:
+    reasoning = (
+        f"Let me think step by step.\n(a) Situation: {justification}\n(c) I choose {choice}."
+    )
+    if style % 2:
+        return f"{reasoning}\n{{'{choice}': '{justification.replace(chr(39), '')}'}}"
+    return f"{reasoning}\n```json\n{json.dumps({choice: justification})}\n```"
+
+
 class FakeVLM:
     """Owns the server thread; use as a context manager."""
 
@@ -125,9 +196,11 @@ class FakeVLM:
         self._server.server_close()
 
     def answer(self, body: dict) -> str:
-        """The reply text for a chat request (the geometric pilot's choice, phrased)."""
+        """The reply text for a chat request (the geometric pilot's choice, phrased; in
+        the arrows and waypoint designs, the offered number or point nearest it)."""
         messages = body["messages"]
         fresh = messages[-1]["role"] == "user" and isinstance(messages[-1]["content"], list)
+        design = _design(messages[0]["content"])
         if fresh or self._last_answer is None:
             content = messages[1]["content"]
             images = [p["image_url"]["url"] for p in content if p["type"] == "image_url"]
@@ -146,10 +219,21 @@ class FakeVLM:
                 hfov_deg=53.13,
                 camera_offset_m=0.2,
             )
-            decision = self._pilot.decide(obs)
+            # A designed pilot is asked at some steps only, and flies its own moves in
+            # between: a pilot with no memory of earlier requests reads each one.
+            pilot = self._pilot if design == "direct" else GeometricPilot()
+            decision = pilot.decide(obs)
             self._last_answer = (decision.action, decision.justification)
+            if design != "direct":
+                offered = _offered(texts[-2])
+                self._last_answer = (
+                    _choose(decision.action, offered, design, depth.shape, self._style),
+                    decision.justification,
+                )
         self._style += 1
         action, justification = self._last_answer
+        if isinstance(action, str):
+            return _reply_choice(action, justification, self._style)
         return _reply(action, justification, self._style)
 
     def _handler(self) -> type[BaseHTTPRequestHandler]:

@@ -110,6 +110,18 @@ EnergyPromptOpt = Annotated[
         "energy-aware prompting (pair with --battery-wh)",
     ),
 ]
+DesignOpt = Annotated[
+    str,
+    typer.Option(
+        help="how the model answers: direct (the action string, the paper's), arrows (the "
+        "number of a direction drawn on the image) or waypoint (a point on the image a "
+        "local planner flies to)"
+    ),
+]
+ReplanEveryOpt = Annotated[
+    int,
+    typer.Option(help="--design waypoint: the most steps the planner flies before asking again"),
+]
 ImageFormatOpt = Annotated[
     str, typer.Option(help="how the colour image is sent: png or jpeg (depth: png)")
 ]
@@ -138,6 +150,8 @@ VLM = Group(
         "structured",
         "map_image",
         "energy_prompt",
+        "design",
+        "replan_every",
         "image_format",
         "jpeg_quality",
         "image_size",

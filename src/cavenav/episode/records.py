@@ -223,8 +223,13 @@ class StepRecord(_Record):
     (after it); the step at which the pilot gave up has ``action`` None and ``failure``.
     ``frames`` names the images saved (empty with frames off); ``model_images`` the
     stored images of the current observation as the model was sent them
-    ({"rgb", "depth_png"}, model pilots only). With acoustic instruments, ``dvl`` is what
-    the DVL reported before the step (velocity forward, left, up in m/s, lock, altitude),
+    ({"rgb", "depth_png"}, model pilots only; ``drawn``, the colour image with the
+    choices drawn on it, in place of ``rgb`` for the arrows and waypoint designs). A
+    designed VLM pilot's steps say its ``design``, whether the local planner flew the
+    step without a call (``planned``), the model's ``choice`` among the ``candidates``
+    drawn, and the waypoint's ``goal`` (body frame, metres). With acoustic instruments,
+    ``dvl`` is what the DVL reported before the step (velocity forward, left, up in m/s,
+    lock, altitude),
     ``sonar`` the sonar's kind and the beams it pinged since the step before, and
     ``frames`` adds its image (``sonar_png``) and its raw echoes (``sonar_npz``);
     ``reckoned`` is where dead reckoning put the vehicle then, and its standard error.
@@ -260,6 +265,11 @@ class StepRecord(_Record):
     dvl: dict[str, Any] | None = None
     sonar: dict[str, Any] | None = None
     reckoned: dict[str, float] | None = None
+    design: str | None = None
+    planned: bool | None = None
+    choice: dict[str, Any] | None = None
+    candidates: list[dict[str, Any]] | None = None
+    goal: list[float] | None = None
 
     @model_validator(mode="after")
     def _moved(self) -> StepRecord:

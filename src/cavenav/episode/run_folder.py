@@ -454,13 +454,18 @@ class RunFolder:
 
     def _sent_images(self, obs: Observation) -> dict[str, str]:
         """The stored images (under images/) that are ``obs``'s colour and depth images as
-        a model pilot sent them (`cavenav.pilots.request_images.sent_as`): the current
+        a model pilot sent them (and the colour image with a design's choices drawn on it,
+        ``drawn``, sent in its place) (`cavenav.pilots.request_images.sent_as`): the current
         observation among the earlier ones and the map that a request also carries, told
         by the images themselves rather than by the prompt's wording, and not encoded
         again. Empty for a pilot that sent them otherwise."""
-        from cavenav.pilots.request_images import sent_as  # only steps with model requests
+        from cavenav.pilots.request_images import drawing_on, sent_as  # model requests only
 
-        images = {"rgb": obs.rgb, "depth_png": obs.depth_png if obs.has_depth else None}
+        images = {
+            "rgb": obs.rgb,
+            "depth_png": obs.depth_png if obs.has_depth else None,
+            "drawn": drawing_on(obs.rgb),  # the colour image with a design's choices drawn
+        }
         sent = {}
         for key, image in images.items():
             url = None if image is None else sent_as(image)

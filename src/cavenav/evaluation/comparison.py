@@ -202,6 +202,7 @@ def _rate(standing: Mapping[str, Any]) -> str:
 def board_cells(standing: Mapping[str, Any]) -> list[str]:
     clearance = standing["min_clearance_m"]["mean"]
     cost, p50 = standing["cost_per_success_usd"], standing["model_p50_s"]
+    calls, without = standing.get("calls_per_m"), standing.get("steps_without_call_share")
     return [
         standing["pilot"],
         f"{standing['successes']}/{standing['completed']}",
@@ -210,6 +211,8 @@ def board_cells(standing: Mapping[str, Any]) -> list[str]:
         str(standing["collisions"]),
         "-" if clearance is None else f"{clearance:.2f}",
         "-" if standing["steps"] is None else f"{standing['steps']:.0f}",
+        "-" if calls is None else f"{calls:.2f}",
+        "-" if without is None else f"{without:.0%}",
         "-" if standing["tokens_per_success"] is None else f"{standing['tokens_per_success']:.0f}",
         "-" if cost is None else f"{cost:.4f}",
         "-" if p50 is None else f"{p50:.2f} / {standing['model_p95_s']:.2f}",
@@ -224,6 +227,8 @@ BOARD_HEADERS = (
     "collisions",
     "mean min. clearance (m)",
     "mean steps",
+    "model calls per m",
+    "steps without a call",
     "tokens per success",
     "USD per success",
     "model s p50 / p95",

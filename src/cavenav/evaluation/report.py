@@ -143,7 +143,8 @@ def _num(value: Any, digits: int = 2, unit: str = "") -> str:
         return _EMPTY
     if isinstance(value, bool) or not isinstance(value, int | float):
         return str(value)
-    return f"{value:.{digits}f}{unit}"
+    text = f"{value:.{digits}f}"
+    return f"{text.lstrip('-') if float(text) == 0 else text}{unit}"  # no "-0.0"
 
 
 def _int(value: Any) -> str:
@@ -284,6 +285,14 @@ _AGGREGATE_COLUMNS = (
     Column("tokens per success", _key("tokens_per_success"), _int),
     Column("cost per success", _key("cost_per_success_usd"), lambda v: f"${v:.4f}"),
     Column("re-queries", _key("requeries"), _int, zero_is_empty=True),
+    Column("model calls per episode", _key("calls_per_episode"), lambda v: _num(v, 1)),
+    Column("model calls per m", _key("calls_per_m"), lambda v: _num(v, 2)),
+    Column(
+        "steps without a call",
+        _key("steps_without_call_share"),
+        lambda v: f"{v:.0%}",
+        zero_is_empty=True,
+    ),
 )
 
 
@@ -311,6 +320,9 @@ _EPISODE_COLUMNS = (
     Column("drift (m)", _key("mean_drift_m"), lambda v: _num(v, 2)),
     Column("re-queries", _key("requeries"), _int, zero_is_empty=True),
     Column("retries", _key("transport_retries"), _int, zero_is_empty=True),
+    Column("model calls", _key("model_calls"), _int),
+    Column("calls per m", _key("calls_per_m"), lambda v: _num(v, 2)),
+    Column("without a call", _key("steps_without_call"), _int, zero_is_empty=True),
     Column(
         "tokens in / out",
         lambda r: (r.get("prompt_tokens") or 0) + (r.get("completion_tokens") or 0),
@@ -412,8 +424,9 @@ class StepView:
 
     @property
     def marks(self) -> tuple[str, ...]:
-        """CSS classes of what happened: collision, shield, invalid, failure, requery, and
-        a vehicle's move that did not reach its goal."""
+        """CSS classes of what happened: collision, shield, invalid, failure, requery, a
+        vehicle's move that did not reach its goal, and a step the planner flew without
+        asking the model."""
         r = self.record
         marks = [
             name
@@ -424,10 +437,22 @@ class StepView:
                 ("failure", r.failure),
                 ("requery", len(self.attempts) > 1),
                 ("vehicle", r.vehicle is not None and r.vehicle.get("ended") != "reached"),
+                ("planned", bool(r.planned)),
             )
             if hit
         ]
         return tuple(marks)
+
+    @property
+    def chosen_at(self) -> tuple[float, float] | None:
+        """Where on the drawn image the model's choice lies, in percent from the top left
+        (a designed pilot's point, or its number's disc); None for other steps."""
+        choice, candidates = self.record.choice or {}, self.record.candidates or []
+        point = choice.get("point")
+        if point is None:
+            chosen = [c for c in candidates if c.get("number") == choice.get("number")]
+            point = [chosen[0]["x"], chosen[0]["y"]] if chosen else None
+        return None if point is None else (100 * float(point[0]), 100 * float(point[1]))
 
 
 def _step_pictures(
@@ -437,10 +462,15 @@ def _step_pictures(
     else the current observation's images as the model was sent them (``model_images``,
     stored under images/, or for a step recorded before that field existed, read from its
     first request); else a note saying why none."""
+    drawn = _pictures(run, page_dir, record.model_images, {"drawn": "the choices drawn, as sent"})
     saved = _pictures(run, page_dir, record.frames, {"rgb": "colour", "depth_png": "depth"})
     if saved:
-        return saved + _sonar_picture(run, record, page_dir), ""
-    labels = {"rgb": "colour, as sent to the model", "depth_png": "depth, as sent to the model"}
+        return drawn + saved + _sonar_picture(run, record, page_dir), ""
+    labels = {
+        "drawn": "the choices drawn, as sent to the model",
+        "rgb": "colour, as sent to the model",
+        "depth_png": "depth, as sent to the model",
+    }
     sent_files = record.model_images or _sent_images_before_model_images(
         run.exchanges.get(record.step, ())
     )

@@ -127,6 +127,9 @@ class ResultRow(TypedDict, total=False):
     prompt_tokens: int | None
     completion_tokens: int | None
     cost_usd: float | None
+    model_calls: int | None  # requests to the model, re-queries included
+    calls_per_m: float | None  # of them per metre flown
+    steps_without_call: int | None  # steps a designed pilot's planner flew without one
     mean_model_latency_s: float | None
     model_p50_s: float | None
     model_p95_s: float | None
@@ -277,14 +280,25 @@ def _summary_columns(s: EpisodeSummary) -> ResultRow:
 
 
 def _usage_columns(s: EpisodeSummary) -> ResultRow:
-    """What the model cost, for a model pilot (empty columns for the others)."""
+    """What the model cost, for a model pilot (empty columns for the others): tokens,
+    money, time, and how often it was asked, per metre flown too."""
     usage = s.usage or UsageRecord()
+    calls = None
+    if usage.model_steps is not None:
+        calls = usage.model_steps + (usage.requeries or 0)
+    flown = s.path_length_m
+    asked = usage.model_steps
     return {
         "requeries": usage.requeries,
         "transport_retries": usage.transport_retries,
         "prompt_tokens": usage.prompt_tokens,
         "completion_tokens": usage.completion_tokens,
         "cost_usd": usage.cost_usd,
+        "model_calls": calls,
+        "calls_per_m": round(calls / flown, 4) if calls is not None and flown else None,
+        "steps_without_call": s.steps - asked
+        if asked is not None and s.steps is not None
+        else None,
         "mean_model_latency_s": usage.mean_latency_s,
         "model_p50_s": usage.model_p50_s,
         "model_p95_s": usage.model_p95_s,
@@ -484,6 +498,23 @@ def group(scenario: str, pilot: str, rows: Sequence[ResultRow]) -> dict[str, Any
         "cost_usd": _total(r.get("cost_usd") for r in done),
         "requeries": _total(r.get("requeries") for r in done),
         **_per_success(done, successes),
+        **_calls(done),
+    }
+
+
+def _calls(done: Sequence[ResultRow]) -> dict[str, float | None]:
+    """How often a model pilot asked its model: calls per episode, per metre flown
+    (over the episodes' metres together), and the share of steps flown without a call
+    (a designed pilot's planner's); None for pilots without a model."""
+    asked = [r for r in done if r.get("model_calls") is not None]
+    calls = sum(int(r["model_calls"] or 0) for r in asked)
+    flown = sum(float(r.get("path_length_m") or 0.0) for r in asked)
+    steps = sum(int(r.get("steps") or 0) for r in asked)
+    without = sum(int(r.get("steps_without_call") or 0) for r in asked)
+    return {
+        "calls_per_episode": round(calls / len(asked), 2) if asked else None,
+        "calls_per_m": round(calls / flown, 4) if asked and flown else None,
+        "steps_without_call_share": round(without / steps, 4) if asked and steps else None,
     }
 
 

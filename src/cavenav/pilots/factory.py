@@ -17,6 +17,7 @@ from typing import Any
 
 from cavenav.core.errors import ConfigError
 from cavenav.pilots.base import Pilot
+from cavenav.pilots.designs import REPLAN_EVERY, design_suffix
 from cavenav.pilots.endpoints import OpenAIConfig, TransformersConfig
 from cavenav.pilots.prompt import PromptConfig
 from cavenav.pilots.reply import MAX_REQUERIES
@@ -61,6 +62,8 @@ class VLMOptions:
     structured: bool = False
     map_image: bool = False  # a top-down picture of the pilot's map with each step
     energy_prompt: bool = False  # tell the model its battery's energy left
+    design: str = "direct"  # how the model answers: direct, arrows or waypoint
+    replan_every: int = REPLAN_EVERY  # waypoint: the planner's most steps between answers
     image_format: str = "png"  # how the colour image is sent: png or jpeg
     jpeg_quality: int = 90
     image_size: str | None = None  # "WxH": the images are resized to it before sending
@@ -113,6 +116,8 @@ class VLMOptions:
             structured=self.structured,
             map_image=self.map_image,
             energy=self.energy_prompt,
+            design=self.design,  # type: ignore[arg-type]  # checked by PromptConfig
+            replan_every=self.replan_every,
         )
 
     def request_images(self) -> ImageEncoding:
@@ -165,15 +170,17 @@ class PilotSpec:
             raise ConfigError(
                 f"unknown teacher '{self.teacher}'; choose one of {', '.join(TEACHERS)}"
             )
-        self.vlm.prices()  # a malformed price or image setting fails now, not in a worker
+        self.vlm.prices()  # a malformed setting fails now, not in a worker
         self.vlm.request_images()
+        self.vlm.prompt_config()
 
     @property
     def label(self) -> str:
-        """The name tables and run folders show: ``vlm:MODEL`` for model pilots,
-        ``policy:FOLDER/FILE`` (no suffix) for learned ones."""
+        """The name tables and run folders show: ``vlm:MODEL`` for model pilots (``vlm:MODEL
+        (arrows)`` and ``(waypoint)`` for the other designs), ``policy:FOLDER/FILE`` (no
+        suffix) for learned ones."""
         if self.name == "vlm":
-            return f"vlm:{self.vlm.model}"
+            return f"vlm:{self.vlm.model}{design_suffix(self.vlm.design)}"
         if self.name == "policy":
             from cavenav.pilots.policy import policy_label
 

@@ -55,7 +55,7 @@ from cavenav.safety.shield import (
     move_hazard,
 )
 
-__all__ = ["GeometricPilot", "GeometricPilotConfig"]
+__all__ = ["FreeView", "GeometricPilot", "GeometricPilotConfig"]
 
 # Candidate directions, degrees: bearings span the 53-degree view, elevations most of the
 # 41-degree vertical view (left and up positive).
@@ -138,6 +138,19 @@ class GeometricPilotConfig:
     def corridor_radius(self, tight: bool = False) -> float:
         """Radius of the corridor tested along a bearing: the body's section plus a margin."""
         return self.margins.corridor_m(self.body, tight)
+
+
+@dataclass(frozen=True)
+class FreeView:
+    """How far a corridor the body fits stays free along directions across the view
+    (`GeometricPilot.survey`): ``free[i, j]`` metres along ``bearings_deg[i]`` (left
+    positive) and ``elevations_deg[j]`` (up positive), from the camera; with the
+    crawlway's thin margin where ``crawling``."""
+
+    bearings_deg: np.ndarray
+    elevations_deg: np.ndarray
+    free: np.ndarray
+    crawling: bool
 
 
 @dataclass(frozen=True)
@@ -338,6 +351,7 @@ class GeometricPilot:
 
     def reset(self) -> None:
         self.state = _State()
+        self._surveyed: tuple[Observation, _Scene] | None = None
         self.memory.reset()
         self.map.reset()
 
@@ -726,10 +740,79 @@ class GeometricPilot:
         state = self.state
         self._remember(observation, state)
         scene = self._measure(observation, state)
+        state = self._looked_as_chosen(observation, state)
+        heading, state = self._heading(scene, observation.hfov_deg / 2, state)
+        return self._move(observation, scene, heading, state)
+
+    # ------------------------------------------------------------------ steered by another
+    def survey(self, observation: Observation) -> FreeView:
+        """Remember and measure ``observation`` for a pilot that chooses where to go
+        another way (a VLM's numbered arrow or waypoint, `cavenav.pilots.designs`); then
+        `steer` sizes and keeps clear the move toward its choice, once per observation."""
+        self._remember(observation, self.state)
+        scene = self._measure(observation, self.state)
+        self._surveyed = (observation, scene)
+        free = scene.tight_free if scene.crawling and scene.tight_free is not None else scene.free
+        return FreeView(_BEARINGS, _ELEVATIONS, free, scene.crawling)
+
+    def steer(
+        self,
+        observation: Observation,
+        bearing: float,
+        elevation: float,
+        why: str,
+        up_m: float | None = None,
+        most_m: float = math.inf,
+    ) -> Decision:
+        """The move toward ``bearing`` and ``elevation`` (degrees, left and up positive)
+        that this pilot's standoff rules and keep-clear judgement allow, for the
+        observation last surveyed: at most ``most_m`` forward, ``up_m`` up or down
+        where given instead of centring between ceiling and floor.
+
+        A bearing outside the view is turned toward first, in admissible steps.
+        """
+        assert self._surveyed is not None and self._surveyed[0] is observation, (
+            "survey the observation before steering by it"
+        )
+        scene = self._surveyed[1]
+        state = self._looked_as_chosen(observation, self.state)
+        half_view = observation.hfov_deg / 2
+        if state.look_back:
+            heading, state = (
+                _turn(state.look_back, "turning back to the way chosen"),
+                state.turned_back(),
+            )
+        elif abs(bearing) > half_view:
+            heading = _turn(self._turn_toward(bearing), f"{why}: turning toward it")
+        else:
+            free = (
+                scene.tight_free if scene.crawling and scene.tight_free is not None else scene.free
+            )
+            reach = self._free_along(free, bearing, elevation)
+            chosen = _ViewOpening(bearing, elevation, reach, reach, False, scene.crawling)
+            heading = self._follow(scene, chosen, why, half_view)
+        forward = max((f for f in self.space.forward_m if f <= most_m), default=0.0)
+        return self._move(observation, scene, heading, state, up_m, forward)
+
+    def _looked_as_chosen(self, observation: Observation, state: _State) -> _State:
+        """``state``, without the turn back it owes when its look at a side was not made
+        as chosen (a shield changed it): there is nothing to turn back from."""
         executed = observation.previous_action
         if state.look_back and executed is not None and executed.yaw_deg != -state.look_back:
-            state = state.turned_back()  # the look was not made as chosen: nothing to turn back
-        heading, state = self._heading(scene, observation.hfov_deg / 2, state)
+            return state.turned_back()
+        return state
+
+    def _move(
+        self,
+        observation: Observation,
+        scene: _Scene,
+        heading: _Heading,
+        state: _State,
+        up_m: float | None = None,
+        most_forward: float = math.inf,
+    ) -> Decision:
+        """The decision that flies toward ``heading``: sized by the standoff rules, at
+        most ``most_forward`` ahead, ``up_m`` up where given, kept clear of what was seen."""
         d_top, d_bottom = observation.d_top, observation.d_bottom
         # The standoff counts walls beside the next move's path: they will be beside us. A
         # sounder that reads nothing sure (NaN) counts for nothing here; the moves toward
@@ -737,6 +820,10 @@ class GeometricPilot:
         sounded = [d for d in (d_top, d_bottom) if not math.isnan(d)]
         nearest = min(*sounded, scene.nearest_m, scene.ahead_m, scene.beside_m)
         proposed, constraint, state = self._propose(heading, scene, observation, nearest, state)
+        if proposed.forward > most_forward:
+            proposed = replace(proposed, forward=most_forward)
+        if up_m is not None:
+            proposed = replace(proposed, up=up_m)
         action, shielded = self._make_safe(proposed, scene, nearest)
         if shielded:
             constraint += f"; {shielded}"

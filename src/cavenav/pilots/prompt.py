@@ -17,6 +17,7 @@ from cavenav.core.errors import ConfigError
 from cavenav.core.types import DEFAULT_RULES, Cruise, Observation, Rules
 from cavenav.motion.actions import DEFAULT_SPACE, ActionSpace
 from cavenav.motion.energy import PowerModel
+from cavenav.pilots.designs import DESIGNS, REPLAN_EVERY, TURN_DEG, Design, navigable_reach_m
 from cavenav.sensors.camera import CameraIntrinsics
 from cavenav.sensors.depth import DEPTH_RANGE_M
 
@@ -38,6 +39,10 @@ class PromptConfig:
         map_span_m: how many metres across that picture is.
         energy: tell the model what its battery has left with each current observation,
             and what moves cost (`cavenav.motion.energy`): energy-aware prompting.
+        design: how the model answers (`cavenav.pilots.designs.DESIGNS`): the paper's
+            action string, the number of an arrow drawn on the image, or a waypoint.
+        replan_every: with waypoints, the most steps the planner flies before the model
+            is asked again.
     """
 
     space: ActionSpace = field(default_factory=lambda: DEFAULT_SPACE)
@@ -48,6 +53,19 @@ class PromptConfig:
     map_image: bool = False
     map_span_m: float = 32.0
     energy: bool = False
+    design: Design = "direct"
+    replan_every: int = REPLAN_EVERY
+
+    def __post_init__(self) -> None:
+        if self.design not in DESIGNS:
+            raise ConfigError(
+                f"unknown --design '{self.design}'; choose one of {', '.join(DESIGNS)}"
+            )
+        if self.replan_every < 1:
+            raise ConfigError(
+                f"--replan-every {self.replan_every}: the planner must fly at least 1 step "
+                "before the model is asked again"
+            )
 
     def fields(
         self, depth_range: tuple[float, float] = DEPTH_RANGE_M, hfov_deg: float | None = None
@@ -87,6 +105,9 @@ class PromptConfig:
             "map_span_m": _num(self.map_span_m),
             # a metre straight ahead at cruise, with two lamps
             "energy_per_m_wh": f"{PowerModel().straight_wh_per_m(Cruise().speed_m_s):.3f}",
+            "reach_m": _num(navigable_reach_m(rules)),
+            "turn_deg": _num(TURN_DEG),
+            "replan_every": str(self.replan_every),
         }
 
 
@@ -167,6 +188,10 @@ def render_system(
         hfov_deg: their horizontal field of view, likewise.
         instruments: the depth camera's source and the sonar, likewise: a stereo
             camera's and a sonar's sections follow the paper's prompt when present.
+
+    The closing sections, how the model answers, are the design's (``config.design``,
+    `cavenav.pilots.designs`): ``prompts/direct.md``, ``arrows.md`` or ``waypoint.md``
+    after the shared ones. A user's own template is the whole prompt, whatever the design.
     """
     fields = config.fields(depth_range, hfov_deg)
     if config.system_file is not None:
@@ -176,6 +201,8 @@ def render_system(
         text = _render(path.read_text(encoding="utf-8"), fields, str(path))
     else:
         text = _render(_template("system.md"), fields, "system.md")
+        design = f"{config.design}.md"
+        text += "\n" + _render(_template(design), fields, design)
     instruments = instruments or Instruments()
     if instruments.depth_source == "stereo":
         text += "\n\n" + _template("stereo.md")

@@ -17,7 +17,7 @@ from cavenav.core.errors import ActionError
 from cavenav.core.types import Action
 from cavenav.motion.actions import DEFAULT_SPACE, ActionSpace, parse_action
 
-__all__ = ["MAX_REQUERIES", "ParsedReply", "parse_reply"]
+__all__ = ["MAX_REQUERIES", "ParsedReply", "final_answer", "parse_reply"]
 
 # SPEC's N: the re-queries after unusable replies before the pilot gives up and the
 # episode ends as a pilot failure.
@@ -100,8 +100,9 @@ def _final_dict(text: str, passes: int = 64) -> dict | None:
     return answer
 
 
-def parse_reply(text: str, space: ActionSpace = DEFAULT_SPACE) -> ParsedReply:
-    """Extract and validate the final answer of a reply.
+def final_answer(text: str) -> tuple[object, str]:
+    """The final one-pair dictionary of a reply as (key, justification), the key as
+    written (the action string, or a pilot design's choice, `cavenav.pilots.designs`).
 
     Raises:
         ActionError: with a reason that can be sent back to the model.
@@ -114,15 +115,24 @@ def parse_reply(text: str, space: ActionSpace = DEFAULT_SPACE) -> ParsedReply:
             'no final dictionary found; end the reply with {"<action>": "<justification>"}'
         )
     if set(answer) >= {"action", "justification"}:
-        action_text, justification = answer["action"], answer["justification"]
-    elif len(answer) != 1:
+        return answer["action"], str(answer["justification"]).strip()
+    if len(answer) != 1:
         raise ActionError(
             f"the final dictionary has {len(answer)} key-value pairs; give exactly one, "
             'as {"<action>": "<justification>"}'
         )
-    else:
-        ((action_text, justification),) = answer.items()
+    ((key, justification),) = answer.items()
+    return key, str(justification).strip()
+
+
+def parse_reply(text: str, space: ActionSpace = DEFAULT_SPACE) -> ParsedReply:
+    """Extract and validate the final answer of a reply.
+
+    Raises:
+        ActionError: with a reason that can be sent back to the model.
+    """
+    action_text, justification = final_answer(text)
     if not isinstance(action_text, str):
         raise ActionError("the dictionary's key must be the action string")
     action = parse_action(action_text, space)
-    return ParsedReply(action, action_text.strip(), str(justification).strip())
+    return ParsedReply(action, action_text.strip(), justification)

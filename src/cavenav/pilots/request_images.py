@@ -27,7 +27,14 @@ from PIL import Image
 
 from cavenav.core.errors import ConfigError
 
-__all__ = ["IMAGE_FORMATS", "ImageEncoding", "data_url", "sent_as"]
+__all__ = [
+    "IMAGE_FORMATS",
+    "ImageEncoding",
+    "data_url",
+    "drawing_on",
+    "remember_drawing",
+    "sent_as",
+]
 
 IMAGE_FORMATS = ("png", "jpeg")
 
@@ -61,6 +68,9 @@ PNG = ImageEncoding()
 # array does (a weak reference's callback), before its id can be given to another.
 _SENT: dict[int, tuple[weakref.ref, ImageEncoding, str]] = {}
 _LOCK = threading.Lock()
+# The copy with choices drawn on it that a designed pilot sent in place of a colour image
+# (`cavenav.pilots.designs`), by the id of the colour image it was drawn on, while it lives.
+_DRAWN: dict[int, tuple[weakref.ref, np.ndarray]] = {}
 
 
 def data_url(image: np.ndarray, encoding: ImageEncoding = PNG) -> str:
@@ -91,6 +101,30 @@ def sent_as(image: np.ndarray) -> str | None:
     with _LOCK:
         known = _SENT.get(id(image))
     return known[2] if known is not None and known[0]() is image else None
+
+
+def remember_drawing(image: np.ndarray, drawn: np.ndarray) -> None:
+    """Say that ``drawn``, a copy of the colour image ``image`` with choices drawn on it,
+    was sent in its place: the run folder then stores which image the model saw."""
+    key = id(image)
+
+    def forget(ref: weakref.ref) -> None:
+        with _LOCK:
+            gone = _DRAWN.pop(key) if key in _DRAWN and _DRAWN[key][0] is ref else None
+        # The drawn copy goes here, outside the lock: its own entry in `_SENT` goes with it.
+        del gone
+
+    with _LOCK:
+        replaced = _DRAWN.get(key)
+        _DRAWN[key] = (weakref.ref(image, forget), drawn)
+    del replaced
+
+
+def drawing_on(image: np.ndarray) -> np.ndarray | None:
+    """The drawn copy sent in place of ``image`` (`remember_drawing`), if one was."""
+    with _LOCK:
+        known = _DRAWN.get(id(image))
+    return known[1] if known is not None and known[0]() is image else None
 
 
 def _encode(image: np.ndarray, encoding: ImageEncoding) -> str:

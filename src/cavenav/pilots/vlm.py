@@ -7,14 +7,21 @@ back with the reason, at most `max_requeries` times; after that, or when the bac
 gives up after its own retries (or is refused the key), the pilot raises `PilotFailure`,
 the failed request recorded with it, and the episode ends as ``pilot_failure``. It never
 substitutes a default action.
+
+How the model answers is its design (`cavenav.pilots.designs`): the paper's action string
+(``direct``, the default, whose requests are byte for byte those of earlier versions), or
+a number or a point among choices drawn on the colour image (``arrows``, ``waypoint``),
+which the pilot's `Helm` turns into moves; with waypoints, its planner flies the steps
+between the model's answers without asking it.
 """
 
 from __future__ import annotations
 
 import math
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, replace
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -22,6 +29,7 @@ from cavenav.core.errors import ActionError, BackendAuthError, BackendError, Pil
 from cavenav.core.types import Action, Decision, Observation, Usage
 from cavenav.motion.actions import format_action
 from cavenav.pilots.backends import Backend, Completion, Message, request_hash
+from cavenav.pilots.designs import Choice, Helm, design_suffix, read_choice
 from cavenav.pilots.prompt import (
     STRUCTURED_SCHEMA,
     Instruments,
@@ -29,12 +37,14 @@ from cavenav.pilots.prompt import (
     render_repair,
     render_system,
 )
-from cavenav.pilots.reply import MAX_REQUERIES, parse_reply
-from cavenav.pilots.request_images import PNG, ImageEncoding, data_url
+from cavenav.pilots.reply import MAX_REQUERIES, final_answer, parse_reply
+from cavenav.pilots.request_images import PNG, ImageEncoding, data_url, remember_drawing
 from cavenav.safety.cave_map import CaveMap
 from cavenav.safety.reckoning import executed_since
 
 __all__ = ["EncodedObservation", "Exchange", "VLMPilot", "build_messages", "png_data_url"]
+
+Parsed = TypeVar("Parsed")
 
 
 def png_data_url(image: np.ndarray) -> str:
@@ -146,6 +156,7 @@ def build_messages(
     detail: str | None = None,
     map_view: tuple[str, str] | None = None,
     energy_left_wh: float | None = None,
+    offered: str | None = None,
 ) -> list[Message]:
     """OpenAI-format messages: system prompt, then one user turn with every image.
 
@@ -153,7 +164,9 @@ def build_messages(
     measured) and by what its images are; one without a depth image gets a sentence
     saying so (`NO_DEPTH_TEXT`) in place of the image. ``map_view`` is the pilot's map
     as (a line of text, a picture's data URL), sent after the current images;
-    ``energy_left_wh``, when given, what the battery has left, said after them.
+    ``energy_left_wh``, when given, what the battery has left, said after them;
+    ``offered``, the numbered choices drawn on the colour image in words, last (the
+    arrows and waypoint designs, `cavenav.pilots.designs`).
     """
     content: list[dict[str, Any]] = []
     for k, seen in enumerate(history):
@@ -172,6 +185,8 @@ def build_messages(
         ]
     if energy_left_wh is not None:
         content.append({"type": "text", "text": f"Battery: {energy_left_wh:.2f} Wh left."})
+    if offered is not None:
+        content.append({"type": "text", "text": offered})
     content.append(
         {"type": "text", "text": "Think step by step, then give the final one-pair dictionary."}
     )
@@ -207,7 +222,7 @@ class VLMPilot:
         self.detail = detail
         self.price_per_mtok = price_per_mtok
         self.images = images
-        self.name = f"vlm:{backend.model}"
+        self.name = f"vlm:{backend.model}{design_suffix(self.prompt.design)}"
         # Rendered once now so a broken template fails before the first step, then for
         # each new camera (depth range, field of view) the observations come from.
         self._system: dict[tuple[tuple[float, float], float, Instruments] | None, str] = {
@@ -219,6 +234,13 @@ class VLMPilot:
         # The map of `--map-image`: built from the observations, moved by the actions
         # executed (or, when an observation does not say, the one this pilot chose).
         self.map = CaveMap() if self.prompt.map_image else None
+        # The arrows and waypoint designs: what draws the choices and flies them.
+        design, prompt = self.prompt.design, self.prompt
+        self.helm = (
+            None
+            if design == "direct"
+            else Helm(design, prompt.rules, prompt.space, prompt.replan_every)
+        )
         self._last: Action | None = None
         if check:
             backend.check()
@@ -226,6 +248,8 @@ class VLMPilot:
     def reset(self) -> None:
         self._history.clear()
         self._last = None
+        if self.helm is not None:
+            self.helm.reset()
         if self.map is not None:
             self.map.reset()
 
@@ -243,14 +267,86 @@ class VLMPilot:
         return self._system[key]
 
     def decide(self, observation: Observation) -> Decision:
+        sonar = observation.sonar
+        sonar_url = None if sonar is None else data_url(sonar.fan, PNG)
+        depth_url = data_url(observation.depth_png, self.images) if observation.has_depth else None
+        if self.helm is not None:
+            return self._decide_designed(observation, self.helm, depth_url, sonar_url)
         current = EncodedObservation(
             data_url(observation.rgb, self.images),
-            data_url(observation.depth_png, self.images) if observation.has_depth else None,
+            depth_url,
             observation.d_top,
             observation.d_bottom,
-            sonar_url=None if observation.sonar is None else data_url(observation.sonar.fan, PNG),
+            sonar_url=sonar_url,
         )
         messages = self._messages(observation, current)
+        space = self.prompt.space
+        parsed, exchanges, completion = self._ask(messages, lambda text: parse_reply(text, space))
+        self._last = parsed.action
+        self._history.append(replace(current, action=parsed.action_text, sonar_url=None))
+        return Decision(
+            action=parsed.action,
+            action_text=parsed.action_text,
+            justification=parsed.justification,
+            raw=completion.text,
+            usage=self._usage(exchanges),
+            exchanges=self._records(exchanges),
+        )
+
+    def _decide_designed(
+        self, observation: Observation, helm: Helm, depth_url: str | None, sonar_url: str | None
+    ) -> Decision:
+        """A step of the arrows or waypoint design: the planner's toward a waypoint while
+        it flies one, else the model's choice among the candidates drawn on the image."""
+        planned = helm.planned(observation)
+        if planned is not None:
+            self._last = planned.action
+            return planned
+        candidates, drawn = helm.offer(observation)
+        remember_drawing(observation.rgb, drawn)
+        current = EncodedObservation(
+            data_url(drawn, self.images),
+            depth_url,
+            observation.d_top,
+            observation.d_bottom,
+            sonar_url=sonar_url,
+        )
+        offered = "Numbers offered: " + "; ".join(c.words() for c in candidates) + "."
+        if helm.stopped:
+            offered = f"The planner stopped: {helm.stopped}. {offered}"
+        messages = self._messages(observation, current, offered)
+
+        def read(text: str) -> Choice:
+            key, justification = final_answer(text)
+            choice = read_choice(
+                str(key).strip(), justification, helm.design, candidates, self.prompt.space
+            )
+            helm.check(observation, choice)
+            return choice
+
+        choice, exchanges, completion = self._ask(messages, read)
+        flown = helm.fly(observation, choice, candidates)
+        self._last = flown.action
+        self._history.append(
+            replace(current, action=f"{choice.text} ({flown.action_text})", sonar_url=None)
+        )
+        return replace(
+            flown,
+            justification=choice.justification,
+            raw=completion.text,
+            usage=self._usage(exchanges),
+            exchanges=self._records(exchanges),
+        )
+
+    def _ask(
+        self, messages: list[Message], parse: Callable[[str], Parsed]
+    ) -> tuple[Parsed, list[Exchange], Completion]:
+        """Ask the model until ``parse`` accepts a reply, each rejected reply sent back
+        with the reason, at most `max_requeries` times.
+
+        Raises:
+            PilotFailure: the backend gave up, or no reply was usable.
+        """
         schema = STRUCTURED_SCHEMA if self.prompt.structured else None
         exchanges: list[Exchange] = []
         reason = ""
@@ -262,7 +358,7 @@ class VLMPilot:
                 cause = "auth" if isinstance(exc, BackendAuthError) else "backend"
                 raise self._failure(f"backend failed: {exc}", exchanges, cause) from None
             try:
-                parsed = parse_reply(completion.text, self.prompt.space)
+                parsed = parse(completion.text)
             except ActionError as exc:
                 reason = str(exc)
                 exchanges.append(Exchange(list(messages), completion, reason))
@@ -272,34 +368,18 @@ class VLMPilot:
                 ]
                 continue
             exchanges.append(Exchange(list(messages), completion))
-            self._last = parsed.action
-            self._history.append(
-                EncodedObservation(
-                    current.rgb_url,
-                    current.depth_url,
-                    current.d_top,
-                    current.d_bottom,
-                    parsed.action_text,
-                )
-            )
-            return Decision(
-                action=parsed.action,
-                action_text=parsed.action_text,
-                justification=parsed.justification,
-                raw=completion.text,
-                usage=self._usage(exchanges),
-                exchanges=self._records(exchanges),
-            )
+            return parsed, exchanges, completion
         raise self._failure(
             f"no usable reply after {self.max_requeries + 1} attempts; last problem: {reason}",
             exchanges,
         )
 
     def _messages(
-        self, observation: Observation, current: EncodedObservation
+        self, observation: Observation, current: EncodedObservation, offered: str | None = None
     ) -> list[dict[str, Any]]:
-        """The request for this step: system prompt, history, map and current images."""
-        if self._history and observation.previous_action is not None:
+        """The request for this step: system prompt, history, map and current images, and
+        the choices offered (a design's)."""
+        if self._history and observation.previous_action is not None and self.helm is None:
             # The action actually executed (a shield may have replaced the proposal).
             last = self._history[-1]
             self._history[-1] = replace(last, action=format_action(observation.previous_action))
@@ -310,7 +390,8 @@ class VLMPilot:
             map_view = (self.map.describe(), png_data_url(self.map.top_down(span_m=span)))
         system = self._system_for(observation)
         energy = observation.energy_left_wh if self.prompt.energy else None
-        return build_messages(system, current, list(self._history), self.detail, map_view, energy)
+        history = list(self._history)
+        return build_messages(system, current, history, self.detail, map_view, energy, offered)
 
     def _records(self, exchanges: list[Exchange]) -> tuple[dict[str, Any], ...]:
         return tuple(e.to_record(self.backend.model) for e in exchanges)
