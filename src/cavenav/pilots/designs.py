@@ -147,7 +147,9 @@ class Choice:
         return out
 
 
-def _pixel(bearing_deg: float, elevation_deg: float, hfov_deg: float, shape: tuple[int, int]):
+def _pixel(
+    bearing_deg: float, elevation_deg: float, hfov_deg: float, shape: tuple[int, int]
+) -> tuple[float, float]:
     """Where a direction from the camera meets the image, normalised (x, y)."""
     h, w = shape
     focal = 0.5 * w / math.tan(math.radians(hfov_deg) / 2)
@@ -227,7 +229,10 @@ def draw_candidates(rgb: np.ndarray, candidates: tuple[Candidate, ...]) -> np.nd
     return np.asarray(picture)
 
 
-def _arrow(draw: ImageDraw.ImageDraw, start, end, line: int, radius: int) -> None:
+Pixel = tuple[float, float]
+
+
+def _arrow(draw: ImageDraw.ImageDraw, start: Pixel, end: Pixel, line: int, radius: int) -> None:
     """A white arrow with a black outline from ``start`` to ``end``, its head at ``end``."""
     dx, dy = end[0] - start[0], end[1] - start[1]
     length = math.hypot(dx, dy) or 1.0
@@ -240,7 +245,7 @@ def _arrow(draw: ImageDraw.ImageDraw, start, end, line: int, radius: int) -> Non
     ]
     for colour, extra in (((0, 0, 0), line + 2), ((255, 255, 255), 0)):
         draw.line([start, back], fill=colour, width=line + extra)
-        draw.polygon(head, fill=(255, 255, 255), outline=(0, 0, 0))
+    draw.polygon(head, fill=(255, 255, 255), outline=(0, 0, 0))
 
 
 _NUMBER = re.compile(

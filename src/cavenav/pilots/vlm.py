@@ -267,18 +267,9 @@ class VLMPilot:
         return self._system[key]
 
     def decide(self, observation: Observation) -> Decision:
-        sonar = observation.sonar
-        sonar_url = None if sonar is None else data_url(sonar.fan, PNG)
-        depth_url = data_url(observation.depth_png, self.images) if observation.has_depth else None
         if self.helm is not None:
-            return self._decide_designed(observation, self.helm, depth_url, sonar_url)
-        current = EncodedObservation(
-            data_url(observation.rgb, self.images),
-            depth_url,
-            observation.d_top,
-            observation.d_bottom,
-            sonar_url=sonar_url,
-        )
+            return self._decide_designed(observation, self.helm)
+        current = self._encoded(observation, observation.rgb)
         messages = self._messages(observation, current)
         space = self.prompt.space
         parsed, exchanges, completion = self._ask(messages, lambda text: parse_reply(text, space))
@@ -293,9 +284,18 @@ class VLMPilot:
             exchanges=self._records(exchanges),
         )
 
-    def _decide_designed(
-        self, observation: Observation, helm: Helm, depth_url: str | None, sonar_url: str | None
-    ) -> Decision:
+    def _encoded(self, observation: Observation, colour: np.ndarray) -> EncodedObservation:
+        """``observation`` as a request carries it, ``colour`` as its colour image."""
+        sonar = observation.sonar
+        return EncodedObservation(
+            data_url(colour, self.images),
+            data_url(observation.depth_png, self.images) if observation.has_depth else None,
+            observation.d_top,
+            observation.d_bottom,
+            sonar_url=None if sonar is None else data_url(sonar.fan, PNG),
+        )
+
+    def _decide_designed(self, observation: Observation, helm: Helm) -> Decision:
         """A step of the arrows or waypoint design: the planner's toward a waypoint while
         it flies one, else the model's choice among the candidates drawn on the image."""
         planned = helm.planned(observation)
@@ -304,13 +304,7 @@ class VLMPilot:
             return planned
         candidates, drawn = helm.offer(observation)
         remember_drawing(observation.rgb, drawn)
-        current = EncodedObservation(
-            data_url(drawn, self.images),
-            depth_url,
-            observation.d_top,
-            observation.d_bottom,
-            sonar_url=sonar_url,
-        )
+        current = self._encoded(observation, drawn)
         offered = "Numbers offered: " + "; ".join(c.words() for c in candidates) + "."
         if helm.stopped:
             offered = f"The planner stopped: {helm.stopped}. {offered}"
