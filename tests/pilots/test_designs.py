@@ -229,3 +229,11 @@ def test_candidates_and_choices_are_plain_records() -> None:
     assert c.words() == "3 = 12 degrees left, 3 degrees down, 7.2 m free"
     assert Candidate(1, 45.0, 0.0, 0.0, 0.03, 0.5).words() == "1 = turn left 45 degrees in place"
     assert math.isclose(Choice("x", "", point=(0.5, 0.25)).to_dict()["point"][1], 0.25)
+
+
+def test_the_pilots_map_moves_with_every_step_the_planner_flies_without_a_call() -> None:
+    pilot = arrows_pilot(answer("point 0.5, 0.5"), design="waypoint", map_image=True)
+    moves = [pilot.decide(synthetic_observation(12.0)).action for _ in range(4)]
+    assert pilot.map is not None and all(m.yaw_deg == 0 for m in moves[:3])
+    # The map has moved by the three moves flown before the fourth observation.
+    assert pilot.map.position[0] == pytest.approx(sum(m.forward for m in moves[:3]), abs=1e-6)

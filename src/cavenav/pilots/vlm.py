@@ -235,12 +235,10 @@ class VLMPilot:
         # executed (or, when an observation does not say, the one this pilot chose).
         self.map = CaveMap() if self.prompt.map_image else None
         # The arrows and waypoint designs: what draws the choices and flies them.
-        design, prompt = self.prompt.design, self.prompt
-        self.helm = (
-            None
-            if design == "direct"
-            else Helm(design, prompt.rules, prompt.space, prompt.replan_every)
-        )
+        prompt = self.prompt
+        self.helm = None
+        if prompt.design != "direct":
+            self.helm = Helm(prompt.design, prompt.rules, prompt.space, prompt.replan_every)
         self._last: Action | None = None
         if check:
             backend.check()
@@ -267,6 +265,8 @@ class VLMPilot:
         return self._system[key]
 
     def decide(self, observation: Observation) -> Decision:
+        if self.map is not None:  # at every step: a waypoint's planner asks at some only
+            self.map.update(observation, executed_since(observation, self._last))
         if self.helm is not None:
             return self._decide_designed(observation, self.helm)
         current = self._encoded(observation, observation.rgb)
@@ -379,7 +379,6 @@ class VLMPilot:
             self._history[-1] = replace(last, action=format_action(observation.previous_action))
         map_view = None
         if self.map is not None:
-            self.map.update(observation, executed_since(observation, self._last))
             span = self.prompt.map_span_m
             map_view = (self.map.describe(), png_data_url(self.map.top_down(span_m=span)))
         system = self._system_for(observation)
