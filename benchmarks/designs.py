@@ -2,6 +2,10 @@
 
     .venv/bin/python benchmarks/designs.py --out designs    # about 5 minutes on 2 cores
 
+One worker flies the episodes one after the other, so that the stand-in answers them in
+the same order every run: its direct-design pilot remembers an episode's earlier
+requests, and its wording alternates from one reply to the next.
+
 Flies the VLM pilot with ``--design direct``, ``arrows`` and ``waypoint`` over S1-S5
 (seed 0 by default) against the tests' stand-in OpenAI-compatible server
 (tests/vlm_server.py), which reads each request's depth image with the geometric pilot
@@ -46,7 +50,7 @@ def fly(design: str, base_url: str, args: argparse.Namespace) -> Path:
     out = args.out / design
     command = [CAVENAV, "eval", "--pilot", "vlm", "--model", "stand-in", "--base-url", base_url,
                "--design", design, "--scenarios", args.scenarios, "--seeds", args.seeds,
-               "--workers", "2", "--frames", "none", "--price", args.price,
+               "--workers", "1", "--frames", "none", "--price", args.price,
                "--out", str(out)]  # fmt: skip
     done = subprocess.run(command, capture_output=True, text=True)
     if done.returncode != 0:

@@ -54,6 +54,8 @@ def test_the_three_designs_fly_the_same_cave_and_compare_side_by_side(
     labels = ["vlm:fake-vlm", "vlm:fake-vlm (arrows)", "vlm:fake-vlm (waypoint)"]
     assert sorted(s["label"] for s in result["sweeps"]) == sorted(labels)
     assert all(pair["overall"]["pairs"] == 1 for pair in result["pairs"])  # paired by cave
+    calls = [pair["overall"]["paired_tests"]["calls_per_m"] for pair in result["pairs"]]
+    assert all(test["pairs"] == 1 for test in calls)  # and the calls a metre cost, by cave
     board = (tmp_path / "c" / "leaderboard.md").read_text()
     assert "model calls per m" in board and "steps without a call" in board
 

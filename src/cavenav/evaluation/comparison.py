@@ -67,6 +67,7 @@ MEASURE_NAMES = {
     "steps": "steps",
     "tokens": "tokens",
     "cost_usd": "cost (USD)",
+    "calls_per_m": "model calls per m",
 }
 
 

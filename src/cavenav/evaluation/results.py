@@ -641,7 +641,7 @@ def _combined(
 
 
 # What the paired tests compare besides success, each over the caves both sweeps flew.
-PAIRED_MEASURES = ("min_clearance_m", "steps", "tokens", "cost_usd")
+PAIRED_MEASURES = ("min_clearance_m", "steps", "tokens", "cost_usd", "calls_per_m")
 
 
 def _measure(row: ResultRow, name: str) -> float | None:

@@ -57,6 +57,8 @@ MOST_ARROWS = 7
 GOAL_MIN_M = 0.5  # a waypoint nearer than this past the standoff is no goal to fly to
 ARRIVED_M = 0.5  # the planner has arrived this near its goal, across
 DRAWN_REACH_M = 8.0  # an arrow free this far or more is drawn at full length
+EDGE = 0.12  # the arrows' numbers keep this share of the image from its sides
+TURN_Y = 0.72  # the turns' arrows lie this far down the sides, below most arrows' ends
 
 
 def design_suffix(design: str) -> str:
@@ -182,15 +184,16 @@ def offer_candidates(
         if all(abs(bearings[i] - bearings[k]) >= SPACING_DEG for k in kept):
             kept.append(i)
     kept = sorted(kept[:MOST_ARROWS], key=lambda i: -bearings[i])  # left to right
-    directions = [(TURN_DEG, 0.0, 0.0, 0.03, 0.5)]
+    directions = [(TURN_DEG, 0.0, 0.0, 0.03, TURN_Y)]
     for i in kept:
         b, e, f = float(bearings[i]), float(elevations[best[i]]), float(reach[i])
         x, y = _pixel(b, e, hfov_deg, shape)
         # The number sits part way from the vehicle (bottom centre) toward the direction,
-        # farther the more water is free along it.
+        # farther the more water is free along it, clear of the edges the turns hold.
         share = min(max(f / DRAWN_REACH_M, 0.35), 1.0)
-        directions.append((b, e, f, 0.5 + share * (x - 0.5), 1.0 + share * (y - 1.0)))
-    directions.append((-TURN_DEG, 0.0, 0.0, 0.97, 0.5))
+        x = min(max(0.5 + share * (x - 0.5), EDGE), 1.0 - EDGE)
+        directions.append((b, e, f, x, min(max(1.0 + share * (y - 1.0), EDGE), 1.0 - EDGE)))
+    directions.append((-TURN_DEG, 0.0, 0.0, 0.97, TURN_Y))
     return tuple(Candidate(n, *d) for n, d in enumerate(directions, start=1))
 
 
