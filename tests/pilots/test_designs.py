@@ -99,6 +99,8 @@ def test_a_reply_chooses_an_offered_number_or_a_point_and_anything_else_is_refus
     chosen = read_choice("arrow 2, ascend 0.3 m", "why", "arrows", candidates, DEFAULT_SPACE)
     assert chosen.candidate == candidates[1] and chosen.up_m == 0.3
     assert read_choice("3", "", "arrows", candidates, DEFAULT_SPACE).up_m is None
+    for written in ("Arrow 3", "#3", "3.", "3 - descend 0.2 m"):  # as models write them
+        assert read_choice(written, "", "arrows", candidates, DEFAULT_SPACE).candidate.number == 3
     point = read_choice("point 0.62, 0.41", "", "waypoint", candidates, DEFAULT_SPACE)
     assert point.point == (0.62, 0.41) and point.candidate is None
     assert read_choice("(0.5, 0.5)", "", "waypoint", candidates, DEFAULT_SPACE).point == (0.5, 0.5)
@@ -107,6 +109,7 @@ def test_a_reply_chooses_an_offered_number_or_a_point_and_anything_else_is_refus
         ("arrows", "2, forward 1 m"): "only ascend or descend may follow the number",
         ("arrows", "2, ascend 7 m"): "vertical 7 m is not admissible",
         ("arrows", "forward 1 m"): "is not a choice: answer with the number of an arrow",
+        ("arrows", "0.5, 0.5"): "is not a choice",  # a point, where a number is asked
         ("waypoint", "point 1.4, 0.5"): "lies outside the image",
         ("waypoint", "point -0.1, 0.5"): "lies outside the image",
         ("waypoint", "2, descend 0.2 m"): "give the number alone",

@@ -252,7 +252,7 @@ def _arrow(draw: ImageDraw.ImageDraw, start: Pixel, end: Pixel, line: int, radiu
 
 
 _NUMBER = re.compile(
-    r"^\s*(?:arrow|candidate|number|choice|option)?\s*#?\s*(\d+)\b\s*[,;:+]?\s*(.*)$", re.I
+    r"^\s*(?:arrow|candidate|number|choice|option)?\s*#?\s*(\d+)(?!\.\d)\b\s*[,;:+]?\s*(.*)$", re.I
 )
 _POINT = re.compile(
     r"^\s*(?:point|waypoint|goal)?\s*[:=]?\s*\(?\s*x?\s*=?\s*([-+]?\d*\.?\d+)\s*[,; ]\s*y?\s*=?\s*"
@@ -296,7 +296,7 @@ def read_choice(
             else "the number of an arrow"
         )
         raise ActionError(f"'{answer}' is not a choice: answer with {what} (offered: {offered})")
-    wanted, rest = int(number.group(1)), number.group(2).strip()
+    wanted, rest = int(number.group(1)), number.group(2).strip(" .,;:-")
     chosen = next((c for c in candidates if c.number == wanted), None)
     if chosen is None:
         raise ActionError(f"number {wanted} was not offered: choose one of {offered}")
