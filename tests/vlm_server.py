@@ -221,7 +221,8 @@ class FakeVLM:
             )
             # A designed pilot is asked at some steps only, and flies its own moves in
             # between: a pilot with no memory of earlier requests reads each one.
-            if not any(t.startswith("Earlier observation") for t in texts):
+            remembers = "No earlier observations" not in messages[0]["content"]
+            if remembers and not any(t.startswith("Earlier observation") for t in texts):
                 self._pilot.reset()  # an episode's first request: nothing seen before
             pilot = self._pilot if design == "direct" else GeometricPilot()
             decision = pilot.decide(obs)

@@ -99,11 +99,20 @@ def test_a_reply_chooses_an_offered_number_or_a_point_and_anything_else_is_refus
     chosen = read_choice("arrow 2, ascend 0.3 m", "why", "arrows", candidates, DEFAULT_SPACE)
     assert chosen.candidate == candidates[1] and chosen.up_m == 0.3
     assert read_choice("3", "", "arrows", candidates, DEFAULT_SPACE).up_m is None
-    for written in ("Arrow 3", "#3", "3.", "3 - descend 0.2 m"):  # as models write them
+    written_by_models = (
+        "Arrow 3",
+        "#3",
+        "3.",
+        "3 - descend 0.2 m",
+        "3 = straight ahead, 6.0 m free",
+    )
+    for written in written_by_models:
         assert read_choice(written, "", "arrows", candidates, DEFAULT_SPACE).candidate.number == 3
     point = read_choice("point 0.62, 0.41", "", "waypoint", candidates, DEFAULT_SPACE)
     assert point.point == (0.62, 0.41) and point.candidate is None
-    assert read_choice("(0.5, 0.5)", "", "waypoint", candidates, DEFAULT_SPACE).point == (0.5, 0.5)
+    for written in ("(0.5, 0.5)", "[0.5, 0.5]", "x: 0.5, y: 0.5", "x=0.5, y=0.5"):
+        assert read_choice(written, "", "waypoint", candidates, DEFAULT_SPACE).point == (0.5, 0.5)
+    assert read_choice("point 2", "", "waypoint", candidates, DEFAULT_SPACE).candidate.number == 2
     refused = {
         ("arrows", "9"): f"number 9 was not offered: choose one of {', '.join(map(str, numbers))}",
         ("arrows", "2, forward 1 m"): "only ascend or descend may follow the number",
@@ -149,6 +158,7 @@ def test_an_arrow_not_offered_is_asked_again_with_the_reason_then_flown() -> Non
     assert "number 99 was not offered" in first["rejected"] and second["rejected"] is None
     repair = second["messages"][-1]["content"]
     assert "number 99 was not offered" in repair
+    assert "the number of one arrow offered" in repair and "strafe" not in repair
     assert decision.usage is not None and decision.usage.requeries == 1
     chosen = decision.extra["choice"]
     assert chosen == {"text": "3", "number": 3}
@@ -240,3 +250,19 @@ def test_the_pilots_map_moves_with_every_step_the_planner_flies_without_a_call()
     assert pilot.map is not None and all(m.yaw_deg == 0 for m in moves[:3])
     # The map has moved by the three moves flown before the fourth observation.
     assert pilot.map.position[0] == pytest.approx(sum(m.forward for m in moves[:3]), abs=1e-6)
+
+
+def test_after_a_look_aside_the_turn_back_is_flown_without_asking_the_model() -> None:
+    pilot = arrows_pilot(answer("3"))
+    observation = synthetic_observation(12.0)
+    pilot.decide(observation)
+    # The helmsman turned to look at a side it would shift to: the turn back is its own.
+    pilot.helm.helmsman.state = pilot.helm.helmsman.state.looking(-45.0, np.zeros(3))
+    turned = pilot.decide(synthetic_observation(12.0))
+    assert turned.action.yaw_deg == -45.0 and not turned.exchanges and turned.extra["planned"]
+
+
+def test_structured_mode_asks_for_the_designs_answer() -> None:
+    arrows = render_system(PromptConfig(design="arrows", structured=True))
+    assert "the arrow's number, and its short justification" in arrows
+    assert "the action string" in render_system(PromptConfig(structured=True))

@@ -252,11 +252,13 @@ def _arrow(draw: ImageDraw.ImageDraw, start: Pixel, end: Pixel, line: int, radiu
 
 
 _NUMBER = re.compile(
-    r"^\s*(?:arrow|candidate|number|choice|option)?\s*#?\s*(\d+)(?!\.\d)\b\s*[,;:+]?\s*(.*)$", re.I
+    r"^\s*(?:arrow|candidate|number|choice|option|point|waypoint)?\s*#?\s*(\d+)(?!\.\d)\b"
+    r"\s*[,;:+=]?\s*(.*)$",
+    re.I,
 )
 _POINT = re.compile(
-    r"^\s*(?:point|waypoint|goal)?\s*[:=]?\s*\(?\s*x?\s*=?\s*([-+]?\d*\.?\d+)\s*[,; ]\s*y?\s*=?\s*"
-    r"([-+]?\d*\.?\d+)\s*\)?\s*$",
+    r"^\s*(?:point|waypoint|goal)?\s*[:=]?\s*[(\[]?\s*(?:x\s*[:=])?\s*([-+]?\d*\.?\d+)\s*[,; ]\s*"
+    r"(?:y\s*[:=])?\s*([-+]?\d*\.?\d+)\s*[)\]]?\s*$",
     re.I,
 )
 
@@ -301,7 +303,7 @@ def read_choice(
     if chosen is None:
         raise ActionError(f"number {wanted} was not offered: choose one of {offered}")
     up = None
-    if rest:
+    if rest and _motions(rest):  # anything else after the number is words about it
         if design == "waypoint":
             raise ActionError(f"give the number alone, not '{answer}': the waypoint sets the depth")
         action = parse_action(rest, space)
@@ -312,6 +314,19 @@ def read_choice(
             )
         up = action.up or None
     return Choice(answer, justification, candidate=chosen, up_m=up)
+
+
+_MOTION_WORDS = re.compile(
+    r"\b(forward|ahead|back|strafe|shift|left|right|ascend|descend|up|down|rise|sink|turn|yaw|"
+    r"rotate|hold)\b.*\d|\bhold\b",
+    re.I,
+)
+
+
+def _motions(text: str) -> bool:
+    """Whether ``text`` after a number asks for a motion with a magnitude (read as an
+    action), rather than echoing the offer's words ("= straight ahead, 6.0 m free")."""
+    return bool(_MOTION_WORDS.search(text)) and "free" not in text.lower()
 
 
 def waypoint_goal(
@@ -399,6 +414,8 @@ class Helm:
         self.view = self.helmsman.survey(observation)
         goal = self.goal
         if goal is None:
+            if self.helmsman.owes_turn_back(observation):  # from a look aside: no choice
+                return self._turn_back(observation)
             return None
         moved = executed_since(observation, self._last)
         point = goal.point if moved is None else move_points(goal.point[None], moved)[0]
@@ -479,6 +496,13 @@ class Helm:
         )
         self._last = decision.action
         return replace(decision, extra={**record, "planned": False})
+
+    def _turn_back(self, observation: Observation) -> Decision:
+        """The turn back after the helmsman turned to look at a side it would shift to:
+        a step of its own, not the model's."""
+        decision = self.helmsman.steer(observation, 0.0, 0.0, "after a look aside")
+        self._last = decision.action
+        return replace(decision, extra={"design": self.design, "planned": True})
 
     def _toward(self, observation: Observation, goal: _Goal, planned: bool) -> Decision:
         """One admissible step toward ``goal``, no farther than it."""

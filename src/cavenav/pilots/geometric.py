@@ -794,6 +794,11 @@ class GeometricPilot:
         forward = max((f for f in self.space.forward_m if f <= most_m), default=0.0)
         return self._move(observation, scene, heading, state, up_m, forward)
 
+    def owes_turn_back(self, observation: Observation) -> bool:
+        """Whether the next move must turn back from a look at a side (`steer` makes it,
+        whatever it is told): a pilot that steers this one need not choose that step."""
+        return bool(self._looked_as_chosen(observation, self.state).look_back)
+
     def _looked_as_chosen(self, observation: Observation, state: _State) -> _State:
         """``state``, without the turn back it owes when its look at a side was not made
         as chosen (a shield changed it): there is nothing to turn back from."""

@@ -213,13 +213,17 @@ def render_system(
     if config.energy:
         text += "\n\n" + _render(_template("energy.md"), fields, "energy.md")
     if config.structured:
-        text += "\n\n" + _template("structured.md")
+        answer = {"direct": "the action string", "arrows": "the arrow's number"}
+        chosen = answer.get(config.design, "your point or candidate's number")
+        text += "\n\n" + _render(_template("structured.md"), {"answer": chosen}, "structured.md")
     return text
 
 
 def render_repair(config: PromptConfig, reason: str) -> str:
-    """The message that re-queries the model after an unusable reply, with the reason."""
-    return _render(_template("repair.md"), {**config.fields(), "reason": reason}, "repair.md")
+    """The message that re-queries the model after an unusable reply, with the reason and
+    the form the design's answer takes (`prompts/repair.md`, `<design>_repair.md`)."""
+    name = "repair.md" if config.design == "direct" else f"{config.design}_repair.md"
+    return _render(_template(name), {**config.fields(), "reason": reason}, name)
 
 
 # The fixed-key JSON schema of structured-output mode: OpenAI strict schemas cannot express
