@@ -183,6 +183,12 @@ class _Scene:
     left_room_m: float  # mean depth of the left and right thirds of the image
     right_room_m: float
 
+    @property
+    def way_free(self) -> np.ndarray:
+        """The free lengths a way on is read from: the crawlway corridor's in a crawlway
+        (where it was measured), the full margin's elsewhere."""
+        return self.tight_free if self.crawling and self.tight_free is not None else self.free
+
 
 @dataclass(frozen=True)
 class _Heading:
@@ -752,8 +758,7 @@ class GeometricPilot:
         self._remember(observation, self.state)
         scene = self._measure(observation, self.state)
         self._surveyed = (observation, scene)
-        free = scene.tight_free if scene.crawling and scene.tight_free is not None else scene.free
-        return FreeView(_BEARINGS, _ELEVATIONS, free, scene.crawling)
+        return FreeView(_BEARINGS, _ELEVATIONS, scene.way_free, scene.crawling)
 
     def steer(
         self,
@@ -785,10 +790,7 @@ class GeometricPilot:
         elif abs(bearing) > half_view:
             heading = _turn(self._turn_toward(bearing), f"{why}: turning toward it")
         else:
-            free = (
-                scene.tight_free if scene.crawling and scene.tight_free is not None else scene.free
-            )
-            reach = self._free_along(free, bearing, elevation)
+            reach = self._free_along(scene.way_free, bearing, elevation)
             chosen = _ViewOpening(bearing, elevation, reach, reach, False, scene.crawling)
             heading = self._follow(scene, chosen, why, half_view)
         forward = max((f for f in self.space.forward_m if f <= most_m), default=0.0)
