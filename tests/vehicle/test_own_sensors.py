@@ -385,14 +385,17 @@ def test_fly_without_a_simulator_flies_the_vehicles_own_sensors(
     assert all((run_dir / name).stat().st_size > 10_000 for name in summary["plots"].values())
     assert summary["vehicle"]["depth_image"] is True
     assert [(s["d_top_m"], s["d_bottom_m"]) for s in steps] == [(1.0, 3.0)] * 3
-    # Each step's frame is the camera's after the move before it: its grey is the depth
-    # the vehicle had then, which the record's pose says (the pose's z is -depth + 30 m),
-    # and each move changed the depth by a decimetre or more, 4 grey levels or more.
+    # Each step's frame is the camera's after the move before it: its grey shows the
+    # depth the record's pose says (the pose's z is -depth + 30 m). Each move descended
+    # half a metre or more (20 grey levels), so a frame from before the move would show
+    # the vehicle that much shallower. Within 0.2 m: after the move settles, ALT_HOLD
+    # still pulls the vehicle back from its overshoot (a decimetre, measured, when the
+    # frame comes 1.5 s after the move), and H.264 shifts a flat grey by a level or two.
     depths = [30.0 - step["pose"]["z"] for step in steps]
-    assert all(later - earlier >= 0.1 for earlier, later in itertools.pairwise(depths))
+    assert all(later - earlier >= 0.5 for earlier, later in itertools.pairwise(depths))
     for step, depth in zip(steps, depths, strict=True):
         rgb = np.asarray(Image.open(run_dir / step["frames"]["rgb"]))
-        assert abs(float(np.median(rgb[..., 1])) - grey_of(depth)) <= 2.5, step["step"]
+        assert abs(float(np.median(rgb[..., 1])) - grey_of(depth)) <= 8, step["step"]
         assert (run_dir / step["frames"]["depth_exr"]).is_file()
     flown = math.hypot(truth.north, truth.east)
     assert flown > 0.05  # forward too, though slowly: the ceiling is within the standoff
