@@ -55,6 +55,7 @@ __all__ = [
     "integrate_backscatter",
     "integrate_silt",
     "mix",
+    "photograph_rock_grid",
     "shade_frame",
     "shade_grid",
     "splat_particles",
@@ -247,49 +248,6 @@ def _smooth_normal(nx, ny, nz, u, v, a, b, c, vertex_normals):  # noqa: ANN001, 
         return False, nx, ny, nz
     scale = 1.0 / length if along > 0 else -1.0 / length
     return True, sx * scale, sy * scale, sz * scale
-
-
-GRAIN_VOXEL_M = 0.06  # texel of the rock-grain texture
-GRAIN_STEP = 0.5 / 127.0  # relative albedo change per unit of the int8 texture
-_INV_GRAIN = 1.0 / GRAIN_VOXEL_M
-
-
-@numba.njit(inline="always")
-def _texture_slope(field: np.ndarray, x: float, y: float, z: float):  # noqa: ANN202
-    """A tileable (g, g, g) int8 texture (g a power of two) at world (x, y, z), in the
-    texture's units, and its gradient in texture units per metre.
-
-    Interpolated between the eight texels around with smoothstep weights s(t) = t^2 (3 -
-    2t) rather than linear ones, so that the gradient, which tilts the shading normal,
-    is continuous: a trilinear one jumps at every texel's face and shades each texel as
-    a flat facet. Coordinates are shifted positive so that truncation is floor, and
-    wrapped with a bit mask: no floor calls, no modulo branches in the hottest loop. One
-    byte a texel keeps a 64^3 texture (256 KB) in the L2 cache.
-    """
-    mask = field.shape[0] - 1
-    u = x * _INV_GRAIN + 65536.0
-    v = y * _INV_GRAIN + 65536.0
-    w = z * _INV_GRAIN + 65536.0
-    iu, iv, iw = int(u), int(v), int(w)
-    fu, fv, fw = u - iu, v - iv, w - iw
-    au, av, aw = fu * fu * (3.0 - 2.0 * fu), fv * fv * (3.0 - 2.0 * fv), fw * fw * (3.0 - 2.0 * fw)
-    du_, dv_, dw_ = 6.0 * fu * (1.0 - fu), 6.0 * fv * (1.0 - fv), 6.0 * fw * (1.0 - fw)
-    i0, j0, k0 = iu & mask, iv & mask, iw & mask
-    i1, j1, k1 = (iu + 1) & mask, (iv + 1) & mask, (iw + 1) & mask
-    f000, f001 = float(field[i0, j0, k0]), float(field[i0, j0, k1])
-    f010, f011 = float(field[i0, j1, k0]), float(field[i0, j1, k1])
-    f100, f101 = float(field[i1, j0, k0]), float(field[i1, j0, k1])
-    f110, f111 = float(field[i1, j1, k0]), float(field[i1, j1, k1])
-    c00, c01 = f000 + aw * (f001 - f000), f010 + aw * (f011 - f010)
-    c10, c11 = f100 + aw * (f101 - f100), f110 + aw * (f111 - f110)
-    c0, c1 = c00 + av * (c01 - c00), c10 + av * (c11 - c10)
-    value = c0 + au * (c1 - c0)
-    du = du_ * (c1 - c0)
-    dv = dv_ * ((1.0 - au) * (c01 - c00) + au * (c11 - c10))
-    d00, d01 = f001 - f000, f011 - f010
-    d10, d11 = f101 - f100, f111 - f110
-    dw = dw_ * ((1.0 - au) * (d00 + av * (d01 - d00)) + au * (d10 + av * (d11 - d10)))
-    return value, du * _INV_GRAIN, dv * _INV_GRAIN, dw * _INV_GRAIN
 
 
 @numba.njit(inline="always")
@@ -561,26 +519,17 @@ def splat_particles(
 
 SHININESS = 60.0  # Blinn-Phong exponent of wet rock: highlights some 10 degrees wide
 _GLINT = (np.linspace(0.0, 1.0, CURVE_STEPS + 1) ** SHININESS).astype(np.float32)[None, :]
-# Height of the rock's small relief per unit of the grain texture: +-2 cm at the texture's
-# extremes over its 6 cm texels, so facets tilt by up to about 20 degrees; and a finer
-# octave, the same texture at a quarter of the scale (1.5 cm texels, +-4 mm), for the
-# millimetres of grain, pits and crystal faces. It shades the rock (bump mapping); depth
-# and collisions keep the mesh's own surface.
-BUMP_M = 0.02 / 127.0
-FINE_SCALE = 4.0
-FINE_BUMP_M = 0.004 / 127.0
 
 
 @numba.njit(inline="always")
-def _surface_light(i, tri, r, hit, d, n, slope, uvs, faces, vertex_normals, surface, surface_at, lamps, gloss, c, kept):  # fmt: skip  # noqa: ANN001, ANN202, E501
-    """Light from rock hit by pixel i reaching the camera, before the grain texture:
+def _surface_light(i, tri, r, hit, d, n, uvs, faces, vertex_normals, surface, surface_at, lamps, gloss, c, kept):  # fmt: skip  # noqa: ANN001, ANN202, E501
+    """Light from rock hit by pixel i reaching the camera, before the photographed rock:
     (R, G, B straight, R, G, B scattered forward, green lamp light returned). r is the
     path length to the hit point ``hit`` (3 floats), ``d`` the ray's direction (3
-    floats), ``n`` the hit triangle's normal, ``slope`` the gradient of the rock's small
-    relief (3 floats, metres per metre; its part along the surface tilts the shading
-    normal), ``gloss`` the rock's specular reflectance there, ``c`` the water's beam
-    attenuation and ``kept`` what is left of it (k) when light scattered by a few degrees
-    is counted as kept (`optics.Water.kept_attenuation`), each (3).
+    floats), ``n`` the hit triangle's normal, ``gloss`` the rock's specular reflectance,
+    ``c`` the water's beam attenuation and ``kept`` what is left of it (k) when light
+    scattered by a few degrees is counted as kept (`optics.Water.kept_attenuation`),
+    each (3).
 
     The lamps' light reaches the rock through k: what the water scatters forward still
     lands about the spot. On the way back, exp(-c r) of the rock's light comes straight
@@ -610,11 +559,6 @@ def _surface_light(i, tri, r, hit, d, n, slope, uvs, faces, vertex_normals, surf
     u, v = uvs[i, 0], uvs[i, 1]
     w = 1.0 - u - v
     smooth, nx, ny, nz = _smooth_normal(nx, ny, nz, u, v, a, b, cc, vertex_normals)
-    gx, gy, gz = slope
-    along = gx * nx + gy * ny + gz * nz
-    bx, by, bz = nx - (gx - along * nx), ny - (gy - along * ny), nz - (gz - along * nz)
-    inv_b = 1.0 / math.sqrt(bx * bx + by * by + bz * bz)
-    nx, ny, nz = bx * inv_b, by * inv_b, bz * inv_b
     if smooth:  # surface properties, too, blend smoothly across the triangle
         r0 = w * surface_at[a, side, 0] + u * surface_at[b, side, 0] + v * surface_at[cc, side, 0]
         r1 = w * surface_at[a, side, 1] + u * surface_at[b, side, 1] + v * surface_at[cc, side, 1]
@@ -677,31 +621,80 @@ def _surface_light(i, tri, r, hit, d, n, slope, uvs, faces, vertex_normals, surf
     )  # fmt: skip
 
 
+# Photographed rock (`lighting.rock_photographs`), sampled per pixel on the three planes
+# of the world's axes (triplanar: no stretching on any orientation of the rock) at the
+# mip level of the pixel's footprint. Its luminance, relative to its mean, is the rock's
+# albedo at the millimetre-to-decimetre scale, and read as a height (pale rock standing
+# out, dark cracks and pits sunk in; RELIEF_M per unit) it tilts the shading normal
+# toward or away from the lamps. Depth and collisions keep the mesh's own surface.
+RELIEF_M = 0.008
+_PHOTO_SHIFT = 4194304.0  # 2^22 texels: coordinates positive, so truncation is floor
+
+
 @numba.njit(inline="always")
-def _rock(i, depth, origin, dx, dy, dz, length, cast, scene, lamps, c, kept):  # noqa: ANN001, ANN202
-    """`_surface_light` of the rock hit by pixel i, times the rock grain at the hit; the
-    grain also makes pale rock glossier (calcite crystals, polished flowstone)."""
-    _, triangle, normals, uvs = cast
-    faces, vertex_normals, surface, surface_at, grain_field, specular = scene
-    hx = origin[0] + depth * dx
-    hy = origin[1] + depth * dy
-    hz = origin[2] + depth * dz
-    value, gu, gv, gw = _texture_slope(grain_field, hx, hy, hz)
-    # The finer octave, shifted off the coarse one's lattice; its slope in metres per
-    # metre has the scale's factor from the chain rule.
-    fine, fu, fv, fw = _texture_slope(
-        grain_field, FINE_SCALE * hx + 0.37, FINE_SCALE * hy + 0.71, FINE_SCALE * hz + 0.13
-    )
-    tilt = FINE_BUMP_M * FINE_SCALE
-    slope = (BUMP_M * gu + tilt * fu, BUMP_M * gv + tilt * fv, BUMP_M * gw + tilt * fw)
-    relief = GRAIN_STEP * (value + 0.3 * fine)
-    l0, l1, l2, h0, h1, h2, lamp_return = _surface_light(
-        i, triangle[i], depth * length, (hx, hy, hz), (dx, dy, dz),
-        (normals[i, 0], normals[i, 1], normals[i, 2]), slope, uvs, faces, vertex_normals,
-        surface, surface_at, lamps, specular * max(1.0 + 3.0 * relief, 0.0), c, kept,
-    )  # fmt: skip
-    grain = 1.0 + relief
-    return grain * l0, grain * l1, grain * l2, grain * h0, grain * h1, grain * h2, lamp_return
+def _photo_sample(texels, start, size, u, v):  # noqa: ANN001, ANN202
+    """(value, d/du, d/dv) of one square level of a photograph at texel coordinates
+    (u, v), bilinear, wrapping (the photographs tile seamlessly)."""
+    mask = size - 1
+    u += _PHOTO_SHIFT
+    v += _PHOTO_SHIFT
+    iu, iv = int(u), int(v)
+    fu, fv = u - iu, v - iv
+    row0 = start + (iv & mask) * size
+    row1 = start + ((iv + 1) & mask) * size
+    i0, i1 = iu & mask, (iu + 1) & mask
+    t00, t01 = float(texels[row0 + i0]), float(texels[row0 + i1])
+    t10, t11 = float(texels[row1 + i0]), float(texels[row1 + i1])
+    top, bottom = t00 + fu * (t01 - t00), t10 + fu * (t11 - t10)
+    return top + fv * (bottom - top), (t01 - t00) + fv * (t11 - t10 - t01 + t00), bottom - top
+
+
+@numba.njit(inline="always")
+def photographed_rock(texels, offsets, sizes, units, per_texel, hit, n, toward_lamps, footprint):  # fmt: skip  # noqa: ANN001, ANN201, E501
+    """The photographed rock's factor on the smooth rock's light at ``hit`` (3 floats,
+    world), facing ``n`` (unit), lit from the unit direction ``toward_lamps``: its
+    relative albedo there, times how its relief turns the surface toward the lamps or
+    away. The photographs are `lighting.RockPhotographs` (its `as_tuple`, spread).
+
+    ``footprint`` is the pixel's width on the rock, metres: the mip level whose texels
+    are half as wide to as wide is read, so that distant rock averages its detail
+    rather than aliasing it (found from the float's exponent: no logarithm, no loop).
+    The photograph is projected along the axis the rock faces most (one read a pixel,
+    and no stretching beyond the 1.4x of a surface at 45 degrees): walls, facing x or
+    y, show the bedded photograph with its strata level and continuous from one plane
+    to the other; floors and ceilings the plain one, which changes where the rock turns
+    from wall to floor.
+    """
+    hx, hy, hz = hit
+    nx, ny, nz = n
+    reach = np.float32(max(footprint * per_texel, 1.0))  # finest texels a pixel spans
+    exponent = (np.int64(_float_bits(reach)) >> 23) - 127
+    level = min(exponent, sizes.shape[0] - 1)
+    size = sizes[level]
+    scale = per_texel * size / sizes[0]  # texels a metre at this level
+    ax, ay, az = abs(nx), abs(ny), abs(nz)
+    if az >= ax and az >= ay:  # floors and ceilings
+        unit = units[1]
+        value, du, dv = _photo_sample(texels, offsets[1, level], size, hx * scale, hy * scale)
+        gx, gy, gz = du, dv, 0.0
+    else:  # walls: the same strata (v) on both planes, the x plane's shifted along
+        unit = units[0]
+        u = hy * scale + 0.5 * size if ax >= ay else hx * scale
+        value, du, dv = _photo_sample(texels, offsets[0, level], size, u, -hz * scale)
+        gx, gy, gz = (0.0, du, -dv) if ax >= ay else (du, 0.0, -dv)
+    albedo = unit * value
+    rise = RELIEF_M * scale * unit  # the relief's slope, metres per metre, per unit
+    gx, gy, gz = rise * gx, rise * gy, rise * gz
+    # To first order in the slope, the relief's normal is n minus the slope's part along
+    # the surface, and the light it gathers changes by that part's pull toward the
+    # lamps: none where they face the rock head-on, most where they graze it. Left
+    # unnormalised, it keeps the rock's mean tone: bumps turn as much toward as away.
+    lx, ly, lz = toward_lamps
+    flat = nx * lx + ny * ly + nz * lz
+    along = gx * nx + gy * ny + gz * nz
+    pull = (gx - along * nx) * lx + (gy - along * ny) * ly + (gz - along * nz) * lz
+    turned = max(flat - pull, 0.0) / max(flat, 0.2)
+    return albedo * min(turned, 3.0)
 
 
 @numba.njit(inline="always")
@@ -738,11 +731,13 @@ def _tone(lut: np.ndarray, value: float) -> np.uint8:
 
 @numba.njit(inline="always")
 def _own_light(i, row, col, cast, rays, scene, lamps, water):  # noqa: ANN001, ANN202
-    """Radiance reaching the lens along pixel i's ray, before marine snow: (R, G, B
-    straight, with the veil; R, G, B scattered forward, for the halo; green lamp light
-    returned by the rock, 0 for open water)."""
-    t, triangle, _, _ = cast
+    """Radiance reaching the lens along pixel i's ray, before marine snow and the
+    photographed rock: (R, G, B straight, with the veil; R, G, B scattered forward, for
+    the halo; green lamp light returned by the rock, 0 for open water; R, G, B of the
+    straight light that is the rock's own, which the photographed rock multiplies)."""
+    t, triangle, normals, uvs = cast
     directions, ray_length, origin = rays
+    faces, vertex_normals, surface, surface_at, specular = scene[:5]
     attenuation, kept, backscatter, block, far, sky, bounds, silt_veil, silt_light = water
     c0, c1, c2 = attenuation[0], attenuation[1], attenuation[2]
     k0, k1, k2 = kept[0], kept[1], kept[2]
@@ -760,32 +755,116 @@ def _own_light(i, row, col, cast, rays, scene, lamps, water):  # noqa: ANN001, A
         )
         h0, h1, h2 = a0 - o0, a1 - o1, a2 - o2
         lamp_return = 0.0
+        rock = 0.0
     else:
-        o0, o1, o2, h0, h1, h2, lamp_return = _rock(
-            i, depth, origin, dx, dy, dz, length, cast, scene, lamps, (c0, c1, c2), (k0, k1, k2)
-        )
+        hit = (origin[0] + depth * dx, origin[1] + depth * dy, origin[2] + depth * dz)
+        o0, o1, o2, h0, h1, h2, lamp_return = _surface_light(
+            i, triangle[i], depth * length, hit, (dx, dy, dz),
+            (normals[i, 0], normals[i, 1], normals[i, 2]), uvs, faces, vertex_normals,
+            surface, surface_at, lamps, specular, (c0, c1, c2), (k0, k1, k2),
+        )  # fmt: skip
+        rock = 1.0
     if silt_veil.shape[0] > 1:  # silt hangs in the water: a table as large as the veil's
         s0, s1, s2 = _veil(silt_veil, row // block, col // block, depth, far)
         t0, t1, t2 = _veil(silt_light, row // block, col // block, depth, far)
-        return (
-            v0 + s0 + t0 * o0, v1 + s1 + t1 * o1, v2 + s2 + t2 * o2,
-            t0 * h0, t1 * h1, t2 * h2, t1 * lamp_return,
-        )  # fmt: skip
-    return v0 + o0, v1 + o1, v2 + o2, h0, h1, h2, lamp_return
+        o0, o1, o2 = t0 * o0, t1 * o1, t2 * o2
+        v0, v1, v2 = v0 + s0, v1 + s1, v2 + s2
+        h0, h1, h2, lamp_return = t0 * h0, t1 * h1, t2 * h2, t1 * lamp_return
+    return (
+        v0 + o0, v1 + o1, v2 + o2, h0, h1, h2, lamp_return, rock * o0, rock * o1, rock * o2,
+    )  # fmt: skip
+
+
+@numba.njit(inline="always")
+def _photo_at(i, nx, ny, nz, cast, rays, scene, spacing):  # noqa: ANN001, ANN202
+    """`photographed_rock` for the rock pixel i sees, its surface facing (nx, ny, nz)
+    (unit, or nearly), read at the footprint of ``spacing`` pixels.
+
+    Its relief is lit from the camera: the lamps of an ROV flank the camera
+    symmetrically, a few decimetres apart, so the mean of their directions to rock a
+    metre or more away is the camera's within a few degrees.
+    """
+    t = cast[0]
+    directions, ray_length, origin = rays
+    focal_px = scene[5]
+    depth = t[i]
+    length = ray_length[i]
+    dx, dy, dz = directions[i, 0], directions[i, 1], directions[i, 2]
+    inv_n = 1.0 / math.sqrt(nx * nx + ny * ny + nz * nz)
+    facing = -(nx * dx + ny * dy + nz * dz) * inv_n / length
+    if facing < 0.0:  # the side the camera sees
+        inv_n, facing = -inv_n, -facing
+    inv_length = 1.0 / length
+    return photographed_rock(
+        scene[6], scene[7], scene[8], scene[9], scene[10],
+        (origin[0] + depth * dx, origin[1] + depth * dy, origin[2] + depth * dz),
+        (nx * inv_n, ny * inv_n, nz * inv_n),
+        (-dx * inv_length, -dy * inv_length, -dz * inv_length),
+        spacing * depth * length / (focal_px * max(facing, 0.25)),
+    )  # fmt: skip
+
+
+PHOTO_SHARE = 2  # photograph_rock_grid reads the photographed rock every PHOTO_SHARE pixels
+
+
+@_parallel_kernel
+def photograph_rock_grid(
+    cast: tuple,  # (t, triangle, normals, uvs) as in shade_frame
+    rays: tuple,  # (directions, ray_length, origin) as in shade_frame
+    scene: tuple,  # as in shade_frame
+    width: int,
+    photo: np.ndarray,  # (ceil(H / PHOTO_SHARE) + 1, ceil(W / PHOTO_SHARE) + 1) float32 out
+) -> None:
+    """The photographed rock's factor (`photographed_rock`) at every PHOTO_SHARE-th pixel
+    of every PHOTO_SHARE-th row (and the last ones), 1 where a ray escapes; `shade_frame`
+    interpolates it between them (`_photo_between`).
+
+    Read at the footprint of PHOTO_SHARE pixels, the photographs' detail is as fine as
+    these points can carry without aliasing: two pixels, the scale at which a frame's
+    structure is measured (`cavenav.sensors.image_stats`), at a quarter of the cost of
+    reading them at every pixel (the sensor step's budget; `benchmarks/sensor_step.py`).
+    The triangle's own normal picks the plane and tilts the relief: the smooth normal
+    would cost a third more, for a difference only where the rock turns through 45
+    degrees.
+    """
+    t, triangle, normals, _ = cast
+    height = t.shape[0] // width
+    for a in numba.prange(photo.shape[0]):
+        row = min(a * PHOTO_SHARE, height - 1)
+        for b in range(photo.shape[1]):
+            col = min(b * PHOTO_SHARE, width - 1)
+            i = row * width + col
+            if triangle[i] == _NO_HIT:
+                photo[a, b] = 1.0
+                continue
+            nx, ny, nz = normals[i, 0], normals[i, 1], normals[i, 2]
+            photo[a, b] = _photo_at(i, nx, ny, nz, cast, rays, scene, PHOTO_SHARE)
+
+
+@numba.njit(inline="always")
+def _photo_between(photo, row, col) -> float:  # noqa: ANN001
+    """`photograph_rock_grid`'s factor at pixel (row, col), bilinear between its points."""
+    y, x = row / PHOTO_SHARE, col / PHOTO_SHARE
+    y0, x0 = int(y), int(x)
+    y1, x1 = min(y0 + 1, photo.shape[0] - 1), min(x0 + 1, photo.shape[1] - 1)
+    fy, fx = y - y0, x - x0
+    top = photo[y0, x0] + fx * (photo[y0, x1] - photo[y0, x0])
+    bottom = photo[y1, x0] + fx * (photo[y1, x1] - photo[y1, x0])
+    return top + fy * (bottom - top)
 
 
 @_parallel_kernel
 def shade_grid(
     cast: tuple,  # (t, triangle, normals, uvs) as in shade_frame
     rays: tuple,  # (directions, ray_length, origin) as in shade_frame
-    scene: tuple,  # (faces, vertex_normals, surface, surface_at, grain_field, specular)
+    scene: tuple,  # (faces, vertex_normals, surface, surface_at, specular, focal px, *photos)
     lamps: tuple,  # (position, axis, power (k, 3), beam profile) world frame
     water: tuple,  # see shade_frame
     specks: np.ndarray,  # (n, 3) float32 marine snow, see splat_particles
     speck_blocks: np.ndarray,  # (ceil(H / SHARE), ceil(W / SHARE)) uint8
     vignetting: float,
     width: int,
-    grid: np.ndarray,  # (H', W', 8) float32 out, H' = ceil(H / SHARE) + 1, likewise W'
+    grid: np.ndarray,  # (H', W', 11) float32 out, H' = ceil(H / SHARE) + 1, likewise W'
     grid_triangle: np.ndarray,  # (H', W') uint32 out: the triangle hit at each point
     halo: np.ndarray,  # (H', W', 3) float32 out: light scattered forward, per grid point
     row_sums: np.ndarray,  # (H', 3) float64 out: each grid row's colour at the sensor, summed
@@ -795,8 +874,10 @@ def shade_grid(
 
     Per grid point: 1 / depth (-1 where the ray escapes), the normal the rock is shaded
     with (the vertex normals smoothed across the triangle, `_smooth_normal`), the
-    radiance reaching the lens straight (RGB: rock with its grain, and the veil in front
-    of it) and the green lamp light the rock returns; and in ``halo`` the light scattered
+    radiance reaching the lens straight (RGB: the smooth rock, and the veil in front of
+    it), the green lamp light the rock returns, and the part of the straight radiance
+    that is the rock's own (RGB), which `shade_frame` multiplies per pixel by the
+    photographed rock; and in ``halo`` the light scattered
     forward on its way, which the rig blurs (`spread_halo`) for `shade_frame` to add.
     `shade_frame` interpolates between these wherever a pixel lies on the same smooth
     surface as the four around it. The mean, halo included, is what the camera meters
@@ -814,7 +895,7 @@ def shade_grid(
         for b in range(grid.shape[1]):
             col = min(b * SHARE, width - 1)
             i = row * width + col
-            l0, l1, l2, h0, h1, h2, lamp_return = _own_light(
+            l0, l1, l2, h0, h1, h2, lamp_return, r0, r1, r2 = _own_light(
                 i, row, col, cast, rays, scene, lamps, water
             )
             halo[a, b, 0], halo[a, b, 1], halo[a, b, 2] = h0, h1, h2
@@ -831,6 +912,7 @@ def shade_grid(
                 grid[a, b, 1], grid[a, b, 2], grid[a, b, 3] = nx, ny, nz
                 grid[a, b, 4], grid[a, b, 5], grid[a, b, 6] = l0, l1, l2
                 grid[a, b, 7] = lamp_return
+                grid[a, b, 8], grid[a, b, 9], grid[a, b, 10] = r0, r1, r2
             if speck_blocks[row // SHARE, col // SHARE]:
                 l0, l1, l2 = l0 + specks[i, 0], l1 + specks[i, 1], l2 + specks[i, 2]
             lens = _lens(ray_length[i], vignetting)
@@ -1100,11 +1182,12 @@ def _sigma_filter(own, width, gains, gain, noise, denoise, shift) -> None:  # no
 def shade_frame(
     cast: tuple,  # (t, triangle, normals, uvs): the forward cast, see below
     rays: tuple,  # (directions, ray_length, origin), see below
-    scene: tuple,  # (faces, vertex_normals, surface, surface_at, grain_field, specular)
+    scene: tuple,  # (faces, vertex_normals, surface, surface_at, specular, focal px, *photos)
     lamps: tuple,  # (position, axis, power (k, 3), beam profile) world frame
     water: tuple,  # attenuation, kept, backscatter, block, far, sky, bounds, silt tables
     grid: np.ndarray,  # from shade_grid
     grid_triangle: np.ndarray,  # from shade_grid
+    photo: np.ndarray,  # from photograph_rock_grid
     halo: np.ndarray,  # (H', W', 3) float32: forward scatter's blurred light, see below
     specks: np.ndarray,  # (n, 3) float32 marine snow; zeroed here as it is read
     speck_blocks: np.ndarray,  # (ceil(H / SHARE), ceil(W / SHARE)) uint8
@@ -1181,10 +1264,14 @@ def shade_frame(
                     )
                     and abs(_blend(grid, a, b, 0, w00, w01, w10, w11) - inverse) <= 0.02 * inverse
                 ):  # fmt: skip
+                    more = _photo_between(photo, row, col) - 1.0
                     _finish(
-                        i, _blend(grid, a, b, 4, w00, w01, w10, w11),
-                        _blend(grid, a, b, 5, w00, w01, w10, w11),
-                        _blend(grid, a, b, 6, w00, w01, w10, w11),
+                        i, _blend(grid, a, b, 4, w00, w01, w10, w11)
+                        + more * _blend(grid, a, b, 8, w00, w01, w10, w11),
+                        _blend(grid, a, b, 5, w00, w01, w10, w11)
+                        + more * _blend(grid, a, b, 9, w00, w01, w10, w11),
+                        _blend(grid, a, b, 6, w00, w01, w10, w11)
+                        + more * _blend(grid, a, b, 10, w00, w01, w10, w11),
                         _blend(grid, a, b, 7, w00, w01, w10, w11), True, col, t, frame_key,
                         depth_range, row_light, depth_png,
                     )  # fmt: skip
@@ -1194,9 +1281,12 @@ def shade_frame(
         for k in range(count):
             col = pending[k]
             i = row * width + col
-            l0, l1, l2, _, _, _, lamp_return = _own_light(
+            l0, l1, l2, _, _, _, lamp_return, r0, r1, r2 = _own_light(
                 i, row, col, cast, rays, scene, lamps, water
             )
+            if triangle[i] != _NO_HIT:
+                more = _photo_between(photo, row, col) - 1.0
+                l0, l1, l2 = l0 + more * r0, l1 + more * r1, l2 + more * r2
             h0, h1, h2 = _halo_at(halo, row, col)
             _finish(
                 i, l0 + h0, l1 + h1, l2 + h2, lamp_return, triangle[i] != _NO_HIT, col, t,

@@ -28,14 +28,12 @@ from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
-from scipy.ndimage import gaussian_filter
 
 from cavenav.core.files import write_then_rename
 from cavenav.sensors import kernels
 from cavenav.sensors import optics as optics_model
 from cavenav.sensors.camera import CameraIntrinsics
 from cavenav.sensors.kernels import (
-    GRAIN_STEP,
     beam_profile,
     bounce_light,
     corner_sums,
@@ -56,7 +54,8 @@ __all__ = [
     "face_normals",
     "lamp_arrays",
     "rock_albedo",
-    "rock_grain",
+    "rock_photographs",
+    "RockPhotographs",
     "surface_patches",
     "surface_table",
     "vertex_normals",
@@ -128,21 +127,87 @@ def rock_albedo(mesh: CaveMesh, seed: int = 0, colour=DEFAULT_ROCK) -> np.ndarra
     return np.clip(rock, 0.02, 0.9).astype(np.float32)
 
 
-def rock_grain(seed: int = 0, size: int = 64, strength: float = 0.5) -> np.ndarray:
-    """(size,)*3 int8 tileable texture of relative albedo changes in units of
-    `kernels.GRAIN_STEP`, mean 0, at most ``strength`` (0.5 at most) either way.
+ROCK_PHOTOGRAPHS = Path(__file__).parent / "rock"
+# The photographs' span on the rock: the bedding of StriatedRock then runs 5-10 cm thick,
+# the cracks of CaveWall a few decimetres apart, as in limestone passage walls.
+PHOTOGRAPH_SPAN_M = 2.0
+PHOTOGRAPH_FILES = ("StriatedRock_Natural.jpg", "CaveWall_Natural.jpg")  # walls, floors
+# The photographs are of dry rock under diffuse daylight. Wet rock under a lamp shows its
+# pale grains and dark cracks with more contrast (water darkens what is porous, fills
+# the fine relief that scatters light): their relative luminance is raised to this power.
+PHOTOGRAPH_CONTRAST = 2.0
 
-    Sampled at the hit points the renderer shades in full (`kernels.GRAIN_VOXEL_M` per
-    texel, so a 3.8 m tile): the centimetre-scale grain, pits and streaks of rock that no
-    triangle mesh carries, at one trilinear lookup each. Two octaves of smoothed white
-    noise, wrapped so the tile repeats without seams.
+
+@dataclass(frozen=True)
+class RockPhotographs:
+    """Photographed rock as the renderer samples it (`kernels.photographed_rock`): each
+    photograph's luminance as a mip pyramid of square uint8 levels, packed in one array.
+
+    Attributes:
+        texels: every level of every photograph, row-major, concatenated.
+        offsets: (photographs, levels) where each level starts in ``texels``.
+        sizes: (levels,) texels a side of each level, a power of two, halving.
+        units: (photographs,) the relative albedo of one unit of a texel: a texel times
+            its unit is the rock's albedo relative to its mean, with contrast as wet
+            rock shows it (`PHOTOGRAPH_CONTRAST`).
+        texel_m: the finest level's texel on the rock, metres.
     """
-    rng = np.random.default_rng([seed, 11])
-    fine = gaussian_filter(rng.normal(size=(size,) * 3), sigma=1.0, mode="wrap")
-    coarse = gaussian_filter(rng.normal(size=(size,) * 3), sigma=3.0, mode="wrap")
-    field = fine / fine.std() + 0.6 * coarse / coarse.std()
-    field *= min(strength, 127 * GRAIN_STEP) / np.abs(field).max()
-    return np.round(field / GRAIN_STEP).astype(np.int8)
+
+    texels: np.ndarray
+    offsets: np.ndarray
+    sizes: np.ndarray
+    units: np.ndarray
+    texel_m: float
+
+    def as_tuple(self) -> tuple:
+        """What the kernels take."""
+        return self.texels, self.offsets, self.sizes, self.units, 1.0 / self.texel_m
+
+
+def _mip_levels(luma: np.ndarray, smallest: int = 8) -> list[np.ndarray]:
+    """``luma`` and its halvings by 2x2 means (a box filter: each coarser texel is the
+    mean of what a pixel that large would gather), down to ``smallest`` a side."""
+    levels = [luma]
+    while levels[-1].shape[0] > smallest:
+        finer = levels[-1].astype(np.float32)
+        half = 0.25 * (
+            finer[0::2, 0::2] + finer[1::2, 0::2] + finer[0::2, 1::2] + finer[1::2, 1::2]
+        )
+        levels.append(np.round(half).astype(np.uint8))
+    return levels
+
+
+@lru_cache(maxsize=1)
+def rock_photographs() -> RockPhotographs:
+    """The shipped photographs of rock (`ROCK_PHOTOGRAPHS`, credited in its NOTICE.md)
+    as `RockPhotographs`, read once per process.
+
+    Only the JPEG's luma is decoded (its Y channel, no chroma and no colour conversion):
+    the photographs are near-neutral grey, and the rock's colour comes from the cave's
+    own limestone palette (`rock_albedo`), which they modulate.
+    """
+    from PIL import Image
+
+    pyramids, units = [], []
+    for name in PHOTOGRAPH_FILES:
+        with Image.open(ROCK_PHOTOGRAPHS / name) as image:
+            image.draft("L", image.size)
+            luma = np.asarray(image.convert("L"), np.float64)
+        relative = (luma / luma.mean()) ** PHOTOGRAPH_CONTRAST
+        relative /= relative.mean()
+        unit = float(np.percentile(relative, 99.9)) / 255.0  # the brightest specks clip
+        pyramids.append(_mip_levels(np.round(np.minimum(relative / unit, 255)).astype(np.uint8)))
+        units.append(unit)
+    sizes = np.array([level.shape[0] for level in pyramids[0]], np.int64)
+    flat = [level.ravel() for pyramid in pyramids for level in pyramid]
+    starts = np.cumsum([0] + [len(level) for level in flat[:-1]])
+    return RockPhotographs(
+        texels=np.concatenate(flat),
+        offsets=starts.reshape(len(pyramids), len(sizes)).astype(np.int64),
+        sizes=sizes,
+        units=np.array(units, np.float32),
+        texel_m=PHOTOGRAPH_SPAN_M / int(sizes[0]),
+    )
 
 
 def face_normals(mesh: CaveMesh) -> tuple[np.ndarray, np.ndarray]:

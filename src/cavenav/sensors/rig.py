@@ -25,10 +25,12 @@ from cavenav.sensors.camera import CameraIntrinsics, camera_to_world, look_frame
 from cavenav.sensors.config import SENSOR_KEYS, SensorConfig
 from cavenav.sensors.depth import normalise_depth, unknown_depth
 from cavenav.sensors.kernels import (
+    PHOTO_SHARE,
     SHARE,
     develop_image,
     fill_rays,
     integrate_silt,
+    photograph_rock_grid,
     shade_frame,
     shade_grid,
     splat_particles,
@@ -38,7 +40,7 @@ from cavenav.sensors.lighting import (
     at_vertices,
     backscatter_table,
     lamp_arrays,
-    rock_grain,
+    rock_photographs,
     surface_table,
     veil_directions,
     vertex_normals,
@@ -249,7 +251,7 @@ class SensorRig:
         self._rays = np.empty((len(self._pixel_dirs) + 2 * len(lengths), 6), np.float32)
         optics = cfg.optics
         self._surface = surface_table(caster, optics, cfg.seed)
-        self._grain = rock_grain(cfg.seed)
+        self._photos = rock_photographs().as_tuple()
         mesh = caster.mesh
         self._faces = mesh.faces.astype(np.int32)
         self._vertex_normals = vertex_normals(mesh)
@@ -264,8 +266,9 @@ class SensorRig:
         self._lut = tone_lut(1.0, optics.tone)
         # Work buffers of the shading passes, reused every frame (see kernels.shade_frame).
         blocks = (-(-cfg.camera.height // SHARE), -(-cfg.camera.width // SHARE))
-        self._grid = np.zeros((blocks[0] + 1, blocks[1] + 1, 8), np.float32)
+        self._grid = np.zeros((blocks[0] + 1, blocks[1] + 1, 11), np.float32)
         self._grid_triangle = np.empty((blocks[0] + 1, blocks[1] + 1), np.uint32)
+        self._photo = np.empty([side * SHARE // PHOTO_SHARE + 1 for side in blocks], np.float32)
         self._halo = np.empty((blocks[0] + 1, blocks[1] + 1, 3), np.float32)
         self._row_sums = np.empty((blocks[0] + 1, 3), np.float64)
         self._halo_weights = halo_weights(cfg.camera.focal_px)
@@ -369,8 +372,8 @@ class SensorRig:
         surfaces = (depth, *(part[:n] for part in hit))
         ray_tuple = (rays[:n, 3:], self._ray_length, origin)
         scene = (
-            self._faces, self._vertex_normals, self._surface, self._surface_at, self._grain,
-            float(optics.specular),
+            self._faces, self._vertex_normals, self._surface, self._surface_at,
+            float(optics.specular), float(camera.focal_px), *self._photos,
         )  # fmt: skip
         table = self._backscatter
         water = (
@@ -389,9 +392,10 @@ class SensorRig:
         depth_range = (cfg.depth_min_m, cfg.depth_max_m, optics.depth_dropout, optics.depth_noise_m)
         light = np.empty((n if radiance else 0, 3), np.float32)
         rgb, depth_png = np.empty((n, 3), np.uint8), np.empty(n, np.uint8)
+        photograph_rock_grid(surfaces, ray_tuple, scene, camera.width, self._photo)
         shade_frame(
             surfaces, ray_tuple, scene, lamp_tuple, water, self._grid, self._grid_triangle,
-            self._halo, self._specks, self._speck_blocks,
+            self._photo, self._halo, self._specks, self._speck_blocks,
             sensor, depth_range, camera.width, light, self._signal, depth_png,
         )  # fmt: skip
         signal, work = self._signal, self._luma
