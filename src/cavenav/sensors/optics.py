@@ -41,14 +41,20 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from cavenav.core.errors import ConfigError
 
 __all__ = [
+    "BLACK_DISK_CONTRAST",
     "BLUEROV2_LAMPS",
     "CAVE_WATERS",
     "FULL_SCALE_NITS",
     "JERLOV_KD",
+    "KARST_SPRING_BLACK_DISK_M",
     "LAMP_MOUNTS",
     "LUMA",
+    "PHOTOPIC_BAND",
+    "PUBLISHED_JERLOV_GREEN",
+    "PURE_WATER_BLACK_DISK_M",
     "TONE_FLOOR",
     "TONE_SHIFT",
+    "VISIBILITY_CONTRAST",
     "WATER_TYPES",
     "Lamp",
     "Optics",
@@ -60,6 +66,7 @@ __all__ = [
     "lamp_colour",
     "optics_from_table",
     "tone_lut",
+    "visibility_m",
 ]
 
 RGB = tuple[float, float, float]
@@ -224,6 +231,83 @@ WATER_TYPES: dict[str, Water] = {
     "turbid": Water(absorption=(0.40, 0.14, 0.22), scattering=(0.19, 0.20, 0.21)),
 } | {f"jerlov-{name}": jerlov_water(name) for name in JERLOV_KD}
 CAVE_WATERS = ("clear", "ocean", "coastal", "turbid")  # the presets made for caves
+
+
+# Visibility. Looking horizontally through uniform water, the difference between the
+# radiance of a target and that of the water behind it falls as exp(-c r) at every
+# wavelength, c the beam attenuation (Duntley 1963, Light in the Sea; Zaneveld and Pegau
+# 2003, Robust underwater visibility parameter): the light the water scatters into the
+# path fills a black target in toward the background. So a black target's contrast falls
+# to a threshold at r = ln(1 / threshold) / c; 2% is Koschmieder's threshold for the
+# daytime visual range. A diver sights a large black disk farther, to about 4.8 / c
+# (Davies-Colley 1988, Measuring water clarity with a black disk; Hou, Lee and Weidemann
+# 2007): an effective threshold of exp(-4.8), 0.8%.
+VISIBILITY_CONTRAST = 0.02
+BLACK_DISK_CONTRAST = math.exp(-4.8)
+PHOTOPIC_BAND = 1  # G (520-570 nm): the camera band that holds the eye's peak, 555 nm
+
+
+def visibility_m(water: Water, contrast: float = VISIBILITY_CONTRAST) -> float:
+    """Horizontal visibility in ``water``, metres: the range at which a black target's
+    contrast against the water behind it falls to ``contrast`` (2%), ln(1 / contrast) / c.
+
+    c is the beam attenuation a + b (`Water.attenuation`), not `Water.kept_attenuation`:
+    what the water scatters forward still arrives, but as a halo that no longer shows
+    the target's edges. It is taken in the green band (520-570 nm), which holds the
+    photopic peak, as visibility meters take c near 532 nm (Zaneveld and Pegau 2003).
+    A luminance-weighted c would not do: a target's luminance contrast is a weighted sum
+    of exp(-c_k r), which the least attenuated band dominates at range, not the
+    exponential of a weighted c. Infinite where green passes unattenuated.
+
+    This is visibility by the water's own light, as tables of water types state it. By
+    the vehicle's lamps the veil they light in front of the lens lowers every contrast
+    further, the more the nearer the lamps sit to the lens.
+
+    Raises:
+        ValueError: a contrast outside (0, 1).
+    """
+    if not 0.0 < contrast < 1.0:
+        raise ValueError(f"contrast {contrast} is not between 0 and 1")
+    c = float(water.attenuation[PHOTOPIC_BAND])
+    return math.log(1.0 / contrast) / c if c > 0.0 else math.inf
+
+
+# What the presets stand for. Jerlov's types as published, (a, b) in 1/m at 525 and 550 nm
+# (the wavelengths of JERLOV_NM in the camera's green band, which `jerlov_water` averages):
+# Solonenko and Mobley (2015, Inherent optical properties of Jerlov water types, Appl.
+# Opt. 54(17), 5392, Tables 4-8), fitted to Jerlov's Kd with bio-optical models; and
+# Williamson and Hollins (2022, Measured IOPs of Jerlov water types, Appl. Opt. 61(33),
+# 9951), from measured a and b (types IB to 5C). Read from the tables of the `jerlov`
+# package (github.com/tishibashi-cpu/jerlov), which transcribes both.
+PUBLISHED_JERLOV_GREEN: dict[str, dict[str, tuple[tuple[float, float], ...]]] = {
+    "Solonenko and Mobley 2015": {
+        "I": ((0.046, 0.00205), (0.062, 0.0017)),
+        "IA": ((0.0468, 0.00402), (0.0622, 0.00354)),
+        "IB": ((0.0469, 0.0565), (0.0623, 0.0536)),
+        "II": ((0.0469, 0.387), (0.0622, 0.358)),
+        "III": ((0.0507, 1.06), (0.0646, 0.980)),
+        "1C": ((0.068, 0.395), (0.076, 0.365)),
+        "3C": ((0.078, 1.15), (0.082, 1.06)),
+        "5C": ((0.127, 1.44), (0.117, 1.33)),
+        "7C": ((0.233, 2.54), (0.195, 2.35)),
+        "9C": ((0.430, 3.38), (0.348, 3.12)),
+    },
+    "Williamson and Hollins 2022": {
+        "IB": ((0.0516, 0.125), (0.0655, 0.122)),
+        "II": ((0.0609, 0.181), (0.0724, 0.177)),
+        "III": ((0.0821, 0.292), (0.0878, 0.287)),
+        "1C": ((0.0972, 0.433), (0.0988, 0.427)),
+        "3C": ((0.132, 0.654), (0.128, 0.644)),
+        "5C": ((0.174, 1.21), (0.159, 1.19)),
+    },
+}
+# Black-disk sighting ranges, metres, in the clearest karst spring measured and in pure
+# water: Te Waikoropupu Springs (New Zealand), 63 m by divers in 1993 (Davies-Colley and
+# Smith 1995, Optically pure waters in Waikoropupu Springs) and about 75 m from a green
+# beam transmissometer in 2017-18; pure water about 83 m (NIWA 2018, A clearer look at
+# Te Waikoropupu Springs).
+KARST_SPRING_BLACK_DISK_M = (63.0, 75.0)
+PURE_WATER_BLACK_DISK_M = 83.0
 
 
 @dataclass(frozen=True)
