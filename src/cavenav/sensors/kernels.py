@@ -621,12 +621,11 @@ def _surface_light(i, tri, r, hit, d, n, uvs, faces, vertex_normals, surface, su
     )  # fmt: skip
 
 
-# Photographed rock (`lighting.rock_photographs`), sampled per pixel on the three planes
-# of the world's axes (triplanar: no stretching on any orientation of the rock) at the
-# mip level of the pixel's footprint. Its luminance, relative to its mean, is the rock's
-# albedo at the millimetre-to-decimetre scale, and read as a height (pale rock standing
-# out, dark cracks and pits sunk in; RELIEF_M per unit) it tilts the shading normal
-# toward or away from the lamps. Depth and collisions keep the mesh's own surface.
+# Photographed rock (`lighting.rock_photographs`, `photographed_rock`): its luminance,
+# relative to its mean, is the rock's albedo at the millimetre-to-decimetre scale, and
+# read as a height (pale rock standing out, dark cracks and pits sunk in; RELIEF_M per
+# unit) it turns the rock toward or away from the lamps. Depth and collisions keep the
+# mesh's own surface.
 RELIEF_M = 0.008
 _PHOTO_SHIFT = 4194304.0  # 2^22 texels: coordinates positive, so truncation is floor
 
@@ -813,11 +812,11 @@ def photograph_rock_grid(
     rays: tuple,  # (directions, ray_length, origin) as in shade_frame
     scene: tuple,  # as in shade_frame
     width: int,
-    photo: np.ndarray,  # (ceil(H / PHOTO_SHARE) + 1, ceil(W / PHOTO_SHARE) + 1) float32 out
+    photo: np.ndarray,  # (ceil(H / PHOTO_SHARE) + 1, ceil(W / PHOTO_SHARE) + 1, 1) float32 out
 ) -> None:
     """The photographed rock's factor (`photographed_rock`) at every PHOTO_SHARE-th pixel
     of every PHOTO_SHARE-th row (and the last ones), 1 where a ray escapes; `shade_frame`
-    interpolates it between them (`_photo_between`).
+    interpolates it between them.
 
     Read at the footprint of PHOTO_SHARE pixels, the photographs' detail is as fine as
     these points can carry without aliasing: two pixels, the scale at which a frame's
@@ -835,22 +834,10 @@ def photograph_rock_grid(
             col = min(b * PHOTO_SHARE, width - 1)
             i = row * width + col
             if triangle[i] == _NO_HIT:
-                photo[a, b] = 1.0
+                photo[a, b, 0] = 1.0
                 continue
             nx, ny, nz = normals[i, 0], normals[i, 1], normals[i, 2]
-            photo[a, b] = _photo_at(i, nx, ny, nz, cast, rays, scene, PHOTO_SHARE)
-
-
-@numba.njit(inline="always")
-def _photo_between(photo, row, col) -> float:  # noqa: ANN001
-    """`photograph_rock_grid`'s factor at pixel (row, col), bilinear between its points."""
-    y, x = row / PHOTO_SHARE, col / PHOTO_SHARE
-    y0, x0 = int(y), int(x)
-    y1, x1 = min(y0 + 1, photo.shape[0] - 1), min(x0 + 1, photo.shape[1] - 1)
-    fy, fx = y - y0, x - x0
-    top = photo[y0, x0] + fx * (photo[y0, x1] - photo[y0, x0])
-    bottom = photo[y1, x0] + fx * (photo[y1, x1] - photo[y1, x0])
-    return top + fy * (bottom - top)
+            photo[a, b, 0] = _photo_at(i, nx, ny, nz, cast, rays, scene, PHOTO_SHARE)
 
 
 @_parallel_kernel
@@ -1023,24 +1010,29 @@ def spread_halo(
 
 
 @numba.njit(inline="always")
-def _halo_at(halo, row, col):  # noqa: ANN001, ANN202
-    """Forward scatter's blurred light at pixel (row, col), interpolated bilinearly from
-    its value at the shading grid's points (every SHARE-th pixel, and the last ones)."""
-    rows, columns = halo.shape[0], halo.shape[1]
-    y, x = min(row / SHARE, rows - 1.0), min(col / SHARE, columns - 1.0)
+def _interpolated(field, row, col, share, c) -> float:  # noqa: ANN001
+    """Channel c of ``field``, a grid of every ``share``-th pixel and row (and the last
+    ones), at pixel (row, col), bilinearly between the points around it."""
+    rows, columns = field.shape[0], field.shape[1]
+    y, x = min(row / share, rows - 1.0), min(col / share, columns - 1.0)
     y0, x0 = int(y), int(x)
     y1, x1 = min(y0 + 1, rows - 1), min(x0 + 1, columns - 1)
-    fy, fx = y - y0, x - x0
+    return _bilinear(field, y0, y1, y - y0, x0, x1, x - x0, c)
+
+
+@numba.njit(inline="always")
+def _halo_at(halo, row, col):  # noqa: ANN001, ANN202
+    """Forward scatter's blurred light at pixel (row, col), from the shading grid's."""
     return (
-        _bilinear(halo, y0, y1, fy, x0, x1, fx, 0),
-        _bilinear(halo, y0, y1, fy, x0, x1, fx, 1),
-        _bilinear(halo, y0, y1, fy, x0, x1, fx, 2),
+        _interpolated(halo, row, col, SHARE, 0),
+        _interpolated(halo, row, col, SHARE, 1),
+        _interpolated(halo, row, col, SHARE, 2),
     )
 
 
 @numba.njit(inline="always")
 def _bilinear(field, y0, y1, fy, x0, x1, fx, c) -> float:  # noqa: ANN001
-    """Channel c of (h, w, 3) ``field`` between rows y0, y1 and columns x0, x1, at the
+    """Channel c of (h, w, channels) ``field`` between rows y0, y1 and columns x0, x1, at the
     fractions fy, fx of the way from the first to the second."""
     top = field[y0, x0, c] + fx * (field[y0, x1, c] - field[y0, x0, c])
     bottom = field[y1, x0, c] + fx * (field[y1, x1, c] - field[y1, x0, c])
@@ -1264,7 +1256,7 @@ def shade_frame(
                     )
                     and abs(_blend(grid, a, b, 0, w00, w01, w10, w11) - inverse) <= 0.02 * inverse
                 ):  # fmt: skip
-                    more = _photo_between(photo, row, col) - 1.0
+                    more = _interpolated(photo, row, col, PHOTO_SHARE, 0) - 1.0
                     _finish(
                         i, _blend(grid, a, b, 4, w00, w01, w10, w11)
                         + more * _blend(grid, a, b, 8, w00, w01, w10, w11),
@@ -1285,7 +1277,7 @@ def shade_frame(
                 i, row, col, cast, rays, scene, lamps, water
             )
             if triangle[i] != _NO_HIT:
-                more = _photo_between(photo, row, col) - 1.0
+                more = _interpolated(photo, row, col, PHOTO_SHARE, 0) - 1.0
                 l0, l1, l2 = l0 + more * r0, l1 + more * r1, l2 + more * r2
             h0, h1, h2 = _halo_at(halo, row, col)
             _finish(

@@ -268,7 +268,7 @@ class SensorRig:
         blocks = (-(-cfg.camera.height // SHARE), -(-cfg.camera.width // SHARE))
         self._grid = np.zeros((blocks[0] + 1, blocks[1] + 1, 11), np.float32)
         self._grid_triangle = np.empty((blocks[0] + 1, blocks[1] + 1), np.uint32)
-        self._photo = np.empty([side * SHARE // PHOTO_SHARE + 1 for side in blocks], np.float32)
+        self._photo = np.empty((*[b * SHARE // PHOTO_SHARE + 1 for b in blocks], 1), np.float32)
         self._halo = np.empty((blocks[0] + 1, blocks[1] + 1, 3), np.float32)
         self._row_sums = np.empty((blocks[0] + 1, 3), np.float64)
         self._halo_weights = halo_weights(cfg.camera.focal_px)
