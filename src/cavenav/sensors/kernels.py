@@ -777,7 +777,7 @@ def _own_light(i, row, col, cast, rays, scene, lamps, water):  # noqa: ANN001, A
 @numba.njit(inline="always")
 def _photo_at(i, nx, ny, nz, cast, rays, scene, spacing):  # noqa: ANN001, ANN202
     """`photographed_rock` for the rock pixel i sees, its surface facing (nx, ny, nz)
-    (unit, or nearly), read at the footprint of ``spacing`` pixels.
+    (unit; either side), read at the footprint of ``spacing`` pixels.
 
     Its relief is lit from the camera: the lamps of an ROV flank the camera
     symmetrically, a few decimetres apart, so the mean of their directions to rock a
@@ -789,15 +789,15 @@ def _photo_at(i, nx, ny, nz, cast, rays, scene, spacing):  # noqa: ANN001, ANN20
     depth = t[i]
     length = ray_length[i]
     dx, dy, dz = directions[i, 0], directions[i, 1], directions[i, 2]
-    inv_n = 1.0 / math.sqrt(nx * nx + ny * ny + nz * nz)
-    facing = -(nx * dx + ny * dy + nz * dz) * inv_n / length
-    if facing < 0.0:  # the side the camera sees
-        inv_n, facing = -inv_n, -facing
     inv_length = 1.0 / length
+    facing = -(nx * dx + ny * dy + nz * dz) * inv_length
+    side = 1.0
+    if facing < 0.0:  # the side the camera sees
+        side, facing = -1.0, -facing
     return photographed_rock(
         scene[6], scene[7], scene[8], scene[9], scene[10],
         (origin[0] + depth * dx, origin[1] + depth * dy, origin[2] + depth * dz),
-        (nx * inv_n, ny * inv_n, nz * inv_n),
+        (side * nx, side * ny, side * nz),
         (-dx * inv_length, -dy * inv_length, -dz * inv_length),
         spacing * depth * length / (focal_px * max(facing, 0.25)),
     )  # fmt: skip
@@ -1013,11 +1013,10 @@ def spread_halo(
 def _interpolated(field, row, col, share, c) -> float:  # noqa: ANN001
     """Channel c of ``field``, a grid of every ``share``-th pixel and row (and the last
     ones), at pixel (row, col), bilinearly between the points around it."""
-    rows, columns = field.shape[0], field.shape[1]
-    y, x = min(row / share, rows - 1.0), min(col / share, columns - 1.0)
-    y0, x0 = int(y), int(x)
-    y1, x1 = min(y0 + 1, rows - 1), min(x0 + 1, columns - 1)
-    return _bilinear(field, y0, y1, y - y0, x0, x1, x - x0, c)
+    y0, x0 = row // share, col // share  # a grid has a point past every pixel
+    fy, fx = (row - y0 * share) / share, (col - x0 * share) / share
+    y1, x1 = min(y0 + 1, field.shape[0] - 1), min(x0 + 1, field.shape[1] - 1)
+    return _bilinear(field, y0, y1, fy, x0, x1, fx, c)
 
 
 @numba.njit(inline="always")
