@@ -253,10 +253,11 @@ def _breakdown(
     stations: Sequence[float] | np.ndarray,
     below: float,
 ) -> list[Boulder]:
-    """Angular blocks 0.8-2.0 m across fallen on a chamber's floor (``section``'s, flatter
-    than an ellipse's), one near each station, each wholly ``below`` metres under the axis
-    or lower: a pile that fills the chamber's extra depth and leaves the passage's own
-    height free."""
+    """Angular blocks 0.4-2.3 m across fallen into a chamber (``section``'s floor,
+    flatter than an ellipse's), one near each station, each dropped from ``below`` metres
+    under the axis, or from its own size over the floor where that is lower: they come to
+    rest on the floor and on each other (`cavenav.world.procedural.settled_blocks`), a
+    pile in the chamber's extra depth."""
     out = []
     for at in stations:
         i = int(np.searchsorted(s, at + shapes.uniform(-1.0, 1.0)))
@@ -264,8 +265,8 @@ def _breakdown(
         r = shapes.uniform(0.4, 1.0)
         across = shapes.uniform(-0.7, 0.7) * half_w[i]
         floor = -float(extent(half_h[i], across / half_w[i], section.squareness[i]))
-        lift = min(floor + 0.1 * r, -below - 1.0 * r)  # sunk into the floor, rough as it is
-        centre = points[i] + across * left + np.array([0.0, 0.0, lift])
+        drop = min(floor + r, -below)  # from just over the floor: it falls to rest
+        centre = points[i] + across * left + np.array([0.0, 0.0, drop])
         radii = (
             r * shapes.uniform(0.8, 1.3),
             r * shapes.uniform(0.8, 1.3),
@@ -415,6 +416,24 @@ def s2(rng: np.random.Generator, seed: int, knobs: Mapping[str, float]) -> Layou
     )
 
 
+def _pile(shapes: np.random.Generator, x: float, y: float, scale: float) -> list[Boulder]:
+    """A frontal obstacle: a block of breakdown 2.2-2.9 m across (times ``scale``)
+    fallen near (``x``, ``y``), and a smaller one, 1.3-1.6 m, fallen onto it, the pile
+    about 3 m high: up past the axis of a 6 m passage whose floor is silted."""
+    base = Boulder((x, y, -1.0), _scaled((1.6, 1.5, 1.2), scale), int(shapes.integers(2**31)))
+    dx, dy = shapes.uniform(-0.4, 0.4, 2) * scale
+    top = Boulder(
+        (x + dx, y + dy, 1.5), _scaled((0.9, 0.8, 0.7), scale), int(shapes.integers(2**31))
+    )
+    return [base, top]
+
+
+def _wall_block(shapes: np.random.Generator, x: float, y: float, scale: float) -> Boulder:
+    """A lateral obstacle: a block of breakdown 2.7-2.9 m across (times ``scale``)
+    fallen near (``x``, ``y``), at the foot of a wall."""
+    return Boulder((x, y, -1.0), _scaled((1.6, 1.5, 1.5), scale), int(shapes.integers(2**31)))
+
+
 def s3(rng: np.random.Generator, seed: int, knobs: Mapping[str, float]) -> Layout:
     """S3, obstacles: a straight passage with boulders, alternately frontal and lateral."""
     length = 45.0
@@ -431,21 +450,22 @@ def s3(rng: np.random.Generator, seed: int, knobs: Mapping[str, float]) -> Layou
     boulders = []
     for k in range(count):
         station = 14.5 + k * spacing
-        if k % 2 == 0:  # frontal: at the start height, in line with the start near the wall
+        if k % 2 == 0:  # frontal: up to the start height, in line with the start near the wall
             jitter = min(1.5, spacing / 4)
             y = -rng.uniform(station - jitter, station + jitter)
-            centre, radii = (-wall_side * 0.9, y, 0.0), _scaled((1.7, 1.5, 1.7), scale)
-        else:  # lateral: jutting from the other wall
+            boulders += _pile(stones, -wall_side * 0.9, y, scale)
+        else:  # lateral: at the foot of the other wall
             jitter = min(2.0, spacing / 4)
             y = -rng.uniform(station - jitter, station + jitter)
-            centre, radii = (wall_side * 3.6, y, -0.3), _scaled((2.3, 1.8, 1.9), scale)
-        boulders.append(Boulder(centre, radii, angular=int(stones.integers(2**31))))
+            boulders.append(_wall_block(stones, wall_side * 2.2, y, scale))
     kinds = {
         0: "no obstacle",
-        1: "a frontal block of breakdown",
-        2: "a frontal and a lateral block of breakdown",
+        1: "a frontal pile of breakdown",
+        2: "a frontal pile and a lateral block of breakdown",
     }
-    obstacles = kinds.get(count, f"{count} blocks of breakdown, alternately frontal and lateral")
+    obstacles = kinds.get(
+        count, f"{count} piles and blocks of breakdown, alternately frontal and lateral"
+    )
     start = "start near the wall at the frontal obstacle's height" if count else "start near a wall"
     # Breakdown blocks on a silted floor, and a ledge over the far part of the passage.
     section = replace(Section.plain(len(s)), sediment=np.full(len(s), 0.5))
@@ -535,9 +555,10 @@ def _rocks(
     scale: float,
     shapes: np.random.Generator,
 ) -> list[Boulder]:
-    """S5's rocks, one within 2 m of each station: every third on the floor, the others
-    against a wall, angular blocks 0.8-1.25 m across times ``scale`` (their shapes
-    drawn from ``shapes``)."""
+    """S5's rocks, one within 2 m of each station: every third in the middle of the
+    floor, the others at the foot of a wall, angular blocks 1.4-2.5 m across times
+    ``scale`` (their shapes drawn from ``shapes``), each falling from the passage's
+    axis to where it rests."""
     tangent = np.gradient(points, axis=0)
     boulders = []
     for k, at in enumerate(stations):
@@ -546,12 +567,10 @@ def _rocks(
         left = np.array([-t[1], t[0], 0.0]) / max(np.hypot(t[0], t[1]), 1e-9)
         r = rng.uniform(0.8, 1.25)
         if k % 3 == 2:  # a rock on the floor
-            centre = points[i] + np.array([0.0, 0.0, -half_h[i] + 0.3 * r])
-            centre = centre + left * rng.uniform(-1.0, 1.0)
-        else:  # a rock against a wall
+            centre = points[i] + left * rng.uniform(-1.0, 1.0)
+        else:  # a rock at the foot of a wall
             side = 1.0 if rng.random() < 0.5 else -1.0
-            centre = points[i] + side * left * (half_w[i] - 0.2 * r)
-            centre = centre + np.array([0.0, 0.0, rng.uniform(-0.8, 0.8)])
+            centre = points[i] + side * left * rng.uniform(0.45, 0.7) * half_w[i]
         radii = _scaled((r, r * 1.1, r * 0.9), scale)
         boulders.append(Boulder(_vec3(centre), radii, angular=int(shapes.integers(2**31))))
     return boulders
@@ -880,11 +899,11 @@ def long(rng: np.random.Generator, seed: int, knobs: Mapping[str, float]) -> Lay
 
     scale = knobs["obstacle_scale"]
     wall = 1.0 if rng.random() < 0.5 else -1.0  # S3's: frontal off one wall, lateral from the other
-    frontal = Boulder((-wall * 0.9, -rng.uniform(76, 80), 0.0), _scaled((1.7, 1.5, 1.7), scale))
-    lateral = Boulder((wall * 3.6, -rng.uniform(86, 90), -0.3), _scaled((2.3, 1.8, 1.9), scale))
+    frontal_y, lateral_y = -rng.uniform(76, 80), -rng.uniform(86, 90)
     stations = np.linspace(_LEG_B + 9, _LONG - 9, 8)
     shapes = rng.spawn(1)[0]
-    frontal, lateral = (replace(b, angular=int(shapes.integers(2**31))) for b in (frontal, lateral))
+    frontal = _pile(shapes, -wall * 0.9, frontal_y, scale)
+    lateral = _wall_block(shapes, wall * 2.2, lateral_y, scale)
     rocks = _rocks(rng, u, stations, points, half_w, half_h, scale, shapes)
     # Each stretch shaped as its family's: a half-tube and a notch in the first, keyholes
     # in the second, a silted floor under the boulders and stalactites in leg B.
@@ -906,7 +925,7 @@ def long(rng: np.random.Generator, seed: int, knobs: Mapping[str, float]) -> Lay
         _LONG,
         seed,
         roughness=knobs["roughness_m"],
-        boulders=(frontal, lateral, *rocks),
+        boulders=(*frontal, lateral, *rocks),
         section=section,
         speleothems=tuple(speleothems),
         scallops=shapes.uniform(*SCALLOPS_M),

@@ -24,12 +24,22 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterator
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 
 import numpy as np
 from scipy.spatial import cKDTree
 
-__all__ = ["Boulder", "Section", "Speleothem", "carve_scallops", "extent"]
+__all__ = [
+    "BLOCK_CONTACT",
+    "SILT_BURIAL",
+    "STABLE_MARGIN_M",
+    "Boulder",
+    "Section",
+    "Speleothem",
+    "carve_scallops",
+    "extent",
+    "settle_block",
+]
 
 # Sediment ripples: crests across the passage every 0.9 m, 4 cm high (the long, low
 # ripples of a cave's slow currents, which a 0.2 m grid can still carry).
@@ -224,8 +234,29 @@ class Boulder:
         radii = np.asarray(self.radii, np.float64)
         if self.angular is None:
             return (np.linalg.norm(rel / radii, axis=-1) - 1.0) * float(radii.min())
-        planes = _block_planes(self.angular, 0.9 * radii)
-        return np.max(rel @ planes[:, :3].T - planes[:, 3], axis=1)
+        # Term by term, not a matrix product: BLAS rounds differently from CPU to CPU.
+        out = np.full(len(rel), -np.inf)
+        for nx, ny, nz, offset in _block_planes(self.angular, 0.9 * radii):
+            out = np.maximum(out, rel[:, 0] * nx + rel[:, 1] * ny + rel[:, 2] * nz - offset)
+        return out
+
+    def heights(self, dx: np.ndarray, dy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(bottom, top): the heights above the centre of an angular block's underside
+        and top at horizontal offsets (``dx``, ``dy``) from its centre; bottom > top
+        where the vertical there misses the block. A convex block is, along a vertical,
+        above each face that looks down and below each that looks up."""
+        if self.angular is None:
+            raise ValueError("heights are those of an angular block")
+        bottom, top = np.full(np.shape(dx), -np.inf), np.full(np.shape(dx), np.inf)
+        for nx, ny, nz, offset in _block_planes(self.angular, 0.9 * np.asarray(self.radii)):
+            rest = offset - nx * dx - ny * dy
+            if nz < -1e-9:
+                bottom = np.maximum(bottom, rest / nz)
+            elif nz > 1e-9:
+                top = np.minimum(top, rest / nz)
+            else:  # a vertical face: the column is beside the block
+                bottom = np.where(rest < 0.0, np.inf, bottom)
+        return bottom, top
 
 
 def _block_planes(seed: int, half: np.ndarray, cuts: int = 7) -> np.ndarray:
@@ -264,6 +295,87 @@ def _block_planes(seed: int, half: np.ndarray, cuts: int = 7) -> np.ndarray:
         support = float(np.abs(rotation.T @ normal) @ half)  # the box's reach along it
         planes.append((*normal, support * rng.uniform(0.55, 0.85)))
     return np.array(planes)
+
+
+# How a block comes to rest (`settle_block`): lowered until at least this share of its
+# underside meets the rock or the blocks below, and its centre lies over what it meets;
+# where that is silt, sunk by this share of its height more.
+BLOCK_CONTACT = 0.25
+# How far within what holds it a block's centre must lie: on the edge it would tip.
+STABLE_MARGIN_M = 0.05
+SILT_BURIAL = (0.1, 0.3)
+
+
+def settle_block(
+    block: Boulder,
+    x: np.ndarray,
+    y: np.ndarray,
+    z: np.ndarray,
+    rock: np.ndarray,
+    silt: np.ndarray | None,
+) -> tuple[Boulder, np.ndarray]:
+    """``block`` moved up or down to where it rests, and the (k, 2) points it rests on
+    or leans against.
+
+    The columns at (``x``, ``y``) (n,) hold ``rock`` (n, m), the field at heights ``z``
+    (m,) rising (rock where 0 or more), and ``silt`` (n, m), whether that rock is silt.
+    A column that is rock at its top is wall, not floor: it is left out. The block drops
+    until a quarter of its underside (`BLOCK_CONTACT`) meets what lies below, and on
+    until its centre (of mass, the block being convex and even) lies within what it
+    meets, or between that and the wall it leans on (the columns of wall under it): a
+    block on a point, or on one edge of its underside, would topple. Where most
+    of that is silt it sinks further, 10-30 % of its height (`SILT_BURIAL`), as a block
+    that fell into mud does. A block that finds nothing below it (all wall) stays where
+    it was.
+    """
+    cx, cy, _ = block.centre
+    bottom, top = block.heights(x - cx, y - cy)
+    solid = rock >= 0.0
+    last = solid.shape[1] - 1 - np.argmax(solid[:, ::-1], axis=1)  # highest rock voxel
+    floored = solid.any(axis=1) & ~solid[:, -1] & (bottom <= top)
+    if not floored.any():
+        return block, np.empty((0, 2))
+    n = np.flatnonzero(floored)
+    k = last[n]
+    low, high = rock[n, k], rock[n, k + 1]
+    surface = z[k] + (z[k + 1] - z[k]) * low / (low - high)  # where the field crosses 0
+    need = surface - bottom[n]  # the centre's height at which each column touches
+    order = np.argsort(-need, kind="stable")
+    wall = np.stack([x[~floored & (bottom <= top)], y[~floored & (bottom <= top)]], axis=1)
+    count = _resting_count(np.stack([x[n], y[n]], axis=1)[order], wall, (cx, cy))
+    at = float(need[order[count - 1]])
+    touching = need >= at
+    if silt is not None and silt[n[touching], k[touching]].mean() > 0.5:
+        height = float(np.max(top[n] - bottom[n]))
+        at -= height * np.random.default_rng(block.angular).uniform(*SILT_BURIAL)
+    contact = np.concatenate([np.stack([x[n[touching]], y[n[touching]]], axis=1), wall])
+    return replace(block, centre=(float(cx), float(cy), at)), contact
+
+
+def _resting_count(points: np.ndarray, wall: np.ndarray, centre: tuple[float, float]) -> int:
+    """How many of ``points`` (k, 2), taken in order, a block must meet to rest: a
+    quarter of them (`BLOCK_CONTACT`) at least, and enough that ``centre`` lies within
+    the convex hull of those and of the ``wall`` (j, 2) it leans on, by
+    `STABLE_MARGIN_M` at least (all of them if it
+    never does). The hull only grows as points are added, so the least such count is
+    found by bisection."""
+    from scipy.spatial import ConvexHull, QhullError
+
+    def over(count: int) -> bool:
+        try:
+            hull = ConvexHull(np.concatenate([points[:count], wall]))
+        except (QhullError, ValueError):  # too few, or all in a line
+            return False
+        return bool(np.all(hull.equations @ (*centre, 1.0) <= -STABLE_MARGIN_M))
+
+    low = max(1, int(np.ceil(BLOCK_CONTACT * len(points))))
+    if over(low) or not over(len(points)):
+        return low if over(low) else len(points)
+    high = len(points)  # over(high); not over(low)
+    while high - low > 1:
+        middle = (low + high) // 2
+        low, high = (low, middle) if over(middle) else (middle, high)
+    return high
 
 
 @dataclass(frozen=True)
@@ -315,7 +427,11 @@ def carve_scallops(
     The dishes are the cells of a jittered lattice of ``size`` spacing (each wall point
     belongs to its nearest lattice point, and lies deeper the nearer it is), so the
     rims are the cells' borders as the wall cuts them: the polygonal, cusped pattern of
-    real scallops. Only voxels within reach of the wall are touched.
+    real scallops. Each lattice point lies anywhere in its cell: kept off the cell's
+    edges, the points would leave the rims bunched near the lattice's planes, a ring of
+    rims every ``size`` metres along a passage that runs along the lattice (and the
+    lattice's own lines in every spectrum of the wall); jittered over the whole cell, the
+    rims spread evenly. Only voxels within reach of the wall are touched.
     """
     if size <= 0 or depth <= 0:
         return
@@ -328,7 +444,7 @@ def carve_scallops(
     cells = np.stack(
         np.meshgrid(*(np.arange(first[k], last[k]) for k in range(3)), indexing="ij"), -1
     ).reshape(-1, 3)
-    seeds = (cells + rng.uniform(0.15, 0.85, cells.shape)) * size
+    seeds = (cells + rng.uniform(0.0, 1.0, cells.shape)) * size
     distance, _ = cKDTree(seeds).query(points)
     reach = 0.8 * size
     closeness = 1.0 - np.minimum(distance / reach, 1.0) ** 2

@@ -6,16 +6,29 @@ every sample. The field is negative in water and positive in rock:
     phi(p) = min over nearby samples i of  |o| - |o| / r(o),
              o = p - c_i,   r(o) = sqrt((o.n_i / a_i)^2 + (o.u_i / b_i)^2 + (o.t_i / a_i)^2)
 
-(the radial distance from the sample to its elliptical section). The main passage's
-sections take the shapes of real caves where a `Section` says so (flat roofs, keyholes,
-ceiling half-tubes, notches, ledges: `cavenav.world.morphology`); then fractal noise
-roughens the walls, scallops are cut into them, silt is laid over the floor, and
-boulders, breakdown and speleothems are made rock. Side branches are tubes of their
+(the radial distance from the sample to its elliptical section). The samples are taken
+every `MESH_SAMPLE_M` along the centre line, whatever spacing the layout drew it at (its
+profiles and sections interpolated): where two samples' ellipsoids meet they leave a
+seam, a ring of rock around the passage d^2 / 8a high that creases the wall by d / a
+radians, for samples d apart. At the layouts' 0.25 m that was a ring every 0.25 m,
+2.4 mm high and creased by 5 degrees; at 0.1 m it is 0.4 mm and 2 degrees, finer than
+the voxels carry. The main passage's sections take the shapes of real caves where a
+`Section` says so (flat roofs, keyholes, ceiling half-tubes, notches, ledges:
+`cavenav.world.morphology`); then fractal noise roughens the walls, scallops are cut
+into them, silt is laid over the floor, and boulders, breakdown and speleothems are
+made rock. Side branches are tubes of their
 own and the field is the least of all tubes', so junctions merge by themselves and every
 tube ends in a rounded, closed end. Marching cubes at the zero level gives watertight walls
-with obstacles merged for free. The grid is cut just past the exit, so the passage runs
-through the grid's boundary and the surface stays open there: rays leave the cave through
-that portal as they would through a real exit.
+with obstacles merged for free. The faces past a plane 1.5 m beyond the exit are left
+out, so the surface stays open there: rays leave the cave through that portal as they
+would through a real exit.
+
+Nothing repeats along a passage (issue 49; `cavenav.world.rings` measures it). The voxel
+grid is turned about z by `GRID_YAW`, so that no passage laid along x or y, as most
+families' are, runs along it: along the grid, marching cubes builds the wall of slabs one
+voxel thick, each a ring of facets creased where it meets the next, and the lattices
+that the wall noise and the scallops are drawn on, which lie in the grid's frame, put
+their planes across the passage, a ring of creases every lattice spacing.
 
 Memory stays bounded for long caves: the tubes are evaluated block by block, only in the
 blocks within reach of a centre-line (the rest of the grid is rock), and the noise a slab
@@ -42,7 +55,7 @@ from scipy.spatial import cKDTree
 from cavenav.core.errors import CavenavWarning, MeshError
 from cavenav.core.files import write_then_rename
 from cavenav.world.mesh import CaveMesh, make_mesh
-from cavenav.world.morphology import Boulder, Section, Speleothem, carve_scallops
+from cavenav.world.morphology import Boulder, Section, Speleothem, carve_scallops, settle_block
 
 __all__ = [
     "GENERATOR_VERSION",
@@ -57,10 +70,34 @@ __all__ = [
     "gaussian_smooth",
     "resample",
     "rounded_corners",
+    "settled_blocks",
 ]
 
 # Bump whenever the generator's output changes, so cached meshes are rebuilt.
-GENERATOR_VERSION = 2
+GENERATOR_VERSION = 3
+
+# The voxel grid's turn about z from the world's axes (see the module's notes): 31.7
+# degrees, whose tangent (the golden ratio's inverse) no fraction of small numbers comes
+# near, so a passage along x or y meets the grid's planes at no short period. A turn of
+# points is written term by term (no BLAS, whose kernels round differently by CPU).
+GRID_YAW = math.atan(2.0 / (1.0 + math.sqrt(5.0)))
+_COS, _SIN = math.cos(GRID_YAW), math.sin(GRID_YAW)
+
+# The spacing of the tubes' samples when they are meshed (see the module's notes).
+MESH_SAMPLE_M = 0.1
+
+
+def _to_grid(points: np.ndarray) -> np.ndarray:
+    """(n, 3) world points in the turned grid's frame."""
+    x, y = points[:, 0], points[:, 1]
+    return np.stack([_COS * x + _SIN * y, _COS * y - _SIN * x, points[:, 2]], axis=1)
+
+
+def _to_world(points: np.ndarray) -> np.ndarray:
+    """(n, 3) points of the turned grid's frame in the world's."""
+    x, y = points[:, 0], points[:, 1]
+    return np.stack([_COS * x - _SIN * y, _SIN * x + _COS * y, points[:, 2]], axis=1)
+
 
 # Voxels handled at once (about 2 M: a few tens of MB of temporaries), and the side of
 # the blocks the tubes are evaluated in (8 voxels, 1.6 m at 0.2 m: fine enough to skip
@@ -289,11 +326,15 @@ class _Tube:
         half_height: np.ndarray,
         section: Section | None = None,
     ) -> _Tube:
-        pts = np.asarray(centreline, np.float64)
+        old = arc_length(np.asarray(centreline, np.float64))
+        stations = np.linspace(0.0, old[-1], int(round(old[-1] / MESH_SAMPLE_M)) + 1)
+        pts = along(np.asarray(centreline, np.float64), stations)
         tangent, normal, up = _frames(pts)
-        half_w = np.asarray(half_width, np.float64)
-        half_h = np.asarray(half_height, np.float64)
-        return cls(pts, tangent, normal, up, half_w, half_h, cKDTree(pts), arc_length(pts), section)
+        half_w = np.interp(stations, old, np.asarray(half_width, np.float64))
+        half_h = np.interp(stations, old, np.asarray(half_height, np.float64))
+        if section is not None:
+            section = Section(*(np.interp(stations, old, a) for a in section.arrays()))
+        return cls(pts, tangent, normal, up, half_w, half_h, cKDTree(pts), stations, section)
 
     @property
     def size(self) -> float:
@@ -448,23 +489,41 @@ def cache_dir() -> Path:
 def _generate(spec: PassageSpec, name: str) -> CaveMesh:
     from skimage.measure import marching_cubes
 
+    phi, sediment, lo, axes, main = _rock_field(spec)
+    _add_rocks(phi, sediment, spec, lo, axes)
+    del sediment
+    verts, faces, _, _ = marching_cubes(phi, level=0.0, spacing=(spec.voxel,) * 3)
+    verts = _to_world(verts + lo)
+    exit_at = arc_length(np.asarray(spec.centreline, np.float64))[spec.exit_index]
+    faces = _open_exit(verts, faces, main, int(np.argmin(np.abs(main.along - exit_at))))
+    return make_mesh(verts, _largest_components(faces, len(verts)), name)
+
+
+def settled_blocks(spec: PassageSpec) -> list[tuple[Boulder, np.ndarray]]:
+    """Where the angular blocks of ``spec`` (its boulders', then its breakdown's) come to
+    rest in the cave built from it, each with the (k, 2) points of the floor or of the
+    blocks under it that it rests on (`settle_block`). The spec's centres are where each
+    block starts to fall: the cave's rough floor, which only the built field knows,
+    decides where it stops."""
+    phi, sediment, lo, axes, _ = _rock_field(spec)
+    return _add_rocks(phi, sediment, spec, lo, axes, with_speleothems=False)
+
+
+def _rock_field(
+    spec: PassageSpec,
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, list[np.ndarray], _Tube]:
+    """The field of the cave's passages, walls roughened and scalloped, silt laid (rock
+    where 0 or more), the sediment's own field (None without silt), the grid's corner and
+    axes in the turned grid's frame, and the main passage's tube."""
     voxel = spec.voxel
     tubes = [_Tube.of(spec.centreline, spec.half_width, spec.half_height, spec.section)]
     tubes += [_Tube.of(b.centreline, b.half_width, b.half_height) for b in spec.branches]
     reach = max(tube.size for tube in tubes) + 1.0 + spec.roughness
 
-    every_point = np.concatenate([tube.points for tube in tubes])
+    # The grid, turned by GRID_YAW, holds every tube; the exit is opened after meshing.
+    every_point = _to_grid(np.concatenate([tube.points for tube in tubes]))
     lo = every_point.min(axis=0) - reach
     hi = every_point.max(axis=0) + reach
-    # Cut the grid 1.5 m past the exit along its (axis-aligned) direction: open portal.
-    main = tubes[0]
-    exit_dir = main.tangent[spec.exit_index]
-    axis = int(np.argmax(np.abs(exit_dir)))
-    cut = main.points[spec.exit_index, axis] + 1.5 * np.sign(exit_dir[axis])
-    if exit_dir[axis] > 0:
-        hi[axis] = cut
-    else:
-        lo[axis] = cut
     shape = tuple(int(np.ceil((hi[k] - lo[k]) / voxel)) + 1 for k in range(3))
     axes = [lo[k] + voxel * np.arange(shape[k]) for k in range(3)]
 
@@ -473,7 +532,7 @@ def _generate(spec: PassageSpec, name: str) -> CaveMesh:
     phi = np.full(shape, reach, np.float32)
     sediment = None if spec.section is None else np.full(shape, -np.inf, np.float32)
     for idx in _blocks_near(every_point, lo, voxel, shape, reach):
-        grid = np.stack([axes[k][idx[:, k]] for k in range(3)], axis=1)
+        grid = _to_world(np.stack([axes[k][idx[:, k]] for k in range(3)], axis=1))
         value, floor = tubes[0].field(grid, reach)
         for tube in tubes[1:]:
             value = np.minimum(value, tube.field(grid, reach)[0])
@@ -489,36 +548,80 @@ def _generate(spec: PassageSpec, name: str) -> CaveMesh:
     carve_scallops(phi, lo, voxel, spec.scallops, spec.scallops / 8, rng)
     if sediment is not None:  # laid over the rough rock: flat where it fills, rock pokes through
         np.maximum(phi, sediment, out=phi)
-        del sediment
-
-    _add_rocks(phi, spec, lo, axes)
-    verts, faces, _, _ = marching_cubes(phi, level=0.0, spacing=(voxel,) * 3)
-    verts = verts + lo
-    return make_mesh(verts, _largest_components(faces, len(verts)), name)
+    return phi, sediment, lo, axes, tubes[0]
 
 
-def _add_rocks(phi: np.ndarray, spec: PassageSpec, lo: np.ndarray, axes: list[np.ndarray]) -> None:
+def _open_exit(verts: np.ndarray, faces: np.ndarray, main: _Tube, exit_index: int) -> np.ndarray:
+    """``faces`` but those whose centre lies past the plane 1.5 m beyond the exit, across
+    the exit's direction (which must be an axis): the passage runs on past that plane, so
+    the surface stays open where it crossed it, in a rim as ragged as a facet."""
+    exit_dir = main.tangent[exit_index]
+    axis = int(np.argmax(np.abs(exit_dir)))
+    sign = float(np.sign(exit_dir[axis]))
+    cut = main.points[exit_index, axis] + 1.5 * sign
+    past = (verts[faces, axis].sum(axis=1) / 3.0 - cut) * sign > 0.0
+    return faces[~past]
+
+
+def _add_rocks(
+    phi: np.ndarray,
+    sediment: np.ndarray | None,
+    spec: PassageSpec,
+    lo: np.ndarray,
+    axes: list[np.ndarray],
+    with_speleothems: bool = True,
+) -> list[tuple[Boulder, np.ndarray]]:
     """Make rock (in place) of the boulders, breakdown and speleothems of ``spec``, each
-    evaluated only in the part of the grid (corner ``lo``, coordinates ``axes``) within
-    its reach."""
+    evaluated only in the part of the grid (corner ``lo``, coordinates ``axes``, in the
+    turned grid's frame) within its reach. The angular blocks fall first, one by one in
+    the spec's order, each onto the floor and the blocks already down (`settle_block`);
+    they are returned where they came to rest, with what they rest on."""
 
-    def rock(
-        centre: np.ndarray, reach_m: float, outside: Callable[[np.ndarray], np.ndarray]
-    ) -> None:
-        b_lo = np.maximum(((centre - reach_m - 1.0 - lo) / spec.voxel).astype(int), 0)
-        b_hi = np.minimum(((centre + reach_m + 1.0 - lo) / spec.voxel).astype(int) + 1, phi.shape)
-        if np.any(b_hi <= b_lo):
+    def region(centre: np.ndarray, reach_m: float) -> tuple[slice, ...] | None:
+        at = _to_grid(np.asarray(centre, np.float64)[None])[0]
+        b_lo = np.maximum(((at - reach_m - 1.0 - lo) / spec.voxel).astype(int), 0)
+        b_hi = np.minimum(((at + reach_m + 1.0 - lo) / spec.voxel).astype(int) + 1, phi.shape)
+        return None if np.any(b_hi <= b_lo) else tuple(slice(b_lo[k], b_hi[k]) for k in range(3))
+
+    def rock(centre: np.ndarray, reach_m: float, outside: Callable[[np.ndarray], np.ndarray]):  # noqa: ANN202
+        sl = region(centre, reach_m)
+        if sl is None:
             return
-        sl = tuple(slice(b_lo[k], b_hi[k]) for k in range(3))
         sub = np.stack(np.meshgrid(*[axes[k][sl[k]] for k in range(3)], indexing="ij"), -1)
-        inside = -outside(sub.reshape(-1, 3)).reshape(sub.shape[:3])
+        inside = -outside(_to_world(sub.reshape(-1, 3))).reshape(sub.shape[:3])
         phi[sl] = np.maximum(phi[sl], inside)
 
+    settled = []
     for boulder in (*spec.boulders, *spec.breakdown):
+        if boulder.angular is not None:
+            boulder, contact = _settle(phi, sediment, boulder, region, axes)
+            settled.append((boulder, contact))
         rock(np.asarray(boulder.centre), boulder.reach, boulder.field)
-    for cone in spec.speleothems:
+    for cone in spec.speleothems if with_speleothems else ():
         middle = np.array([cone.x, cone.y, (cone.bottom + cone.top) / 2])
         rock(middle, max(cone.reach, (cone.top - cone.bottom) / 2), cone.field)
+    return settled
+
+
+def _settle(
+    phi: np.ndarray,
+    sediment: np.ndarray | None,
+    block: Boulder,
+    region: Callable[[np.ndarray, float], tuple[slice, ...] | None],
+    axes: list[np.ndarray],
+) -> tuple[Boulder, np.ndarray]:
+    """`settle_block` on the grid's columns around ``block``, each from the height of the
+    block's centre (where it starts to fall: in the water) down to the grid's floor."""
+    sl = region(np.asarray(block.centre), block.reach)
+    if sl is None:
+        return block, np.empty((0, 2))
+    tops = int(np.searchsorted(axes[2], block.centre[2])) + 1
+    columns = (sl[0], sl[1], slice(0, min(tops, phi.shape[2])))
+    gx, gy = np.meshgrid(axes[0][sl[0]], axes[1][sl[1]], indexing="ij")
+    xy = _to_world(np.stack([gx.ravel(), gy.ravel(), np.zeros(gx.size)], axis=1))
+    rock = phi[columns].reshape(gx.size, -1)
+    silt = None if sediment is None else (sediment[columns] >= phi[columns]).reshape(gx.size, -1)
+    return settle_block(block, xy[:, 0], xy[:, 1], axes[2][columns[2]], rock, silt)
 
 
 def _blocks_near(
