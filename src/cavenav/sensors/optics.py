@@ -33,7 +33,7 @@ import math
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from functools import lru_cache
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
@@ -47,6 +47,7 @@ __all__ = [
     "FULL_SCALE_NITS",
     "JERLOV_KD",
     "KARST_SPRING_BLACK_DISK_M",
+    "KELVIN_LIMITS",
     "LAMP_MOUNTS",
     "LUMA",
     "PHOTOPIC_BAND",
@@ -408,6 +409,11 @@ def lamp_colour(kelvin: float) -> np.ndarray:
     return (colour / colour[1]).astype(np.float32)
 
 
+# The colour temperatures a white balance may name, in kelvin: the black-body locus is
+# tabulated over them (`cavenav.sensors.white_balance`), wider than any camera's control.
+KELVIN_LIMITS = (1000.0, 40000.0)
+
+
 @dataclass(frozen=True)
 class Optics:
     """Everything that shapes the colour image (and, optionally, degrades depth).
@@ -458,9 +464,20 @@ class Optics:
         denoise: strength of the camera's spatial noise filter (0: off, 1: full).
         compression: quality of the lossy compression a video camera applies (JPEG,
             1-100; 0: none).
-        white_balance: strength of the camera's auto white balance (grey world): 0
-            keeps the sensor's raw colours, where distant rock turns blue-green; 1 makes
-            every frame's mean grey. Cameras correct part of the way.
+        white_balance: None (default) for the camera's own auto white balance, as the
+            BlueROV2's camera does it (`cavenav.sensors.white_balance`): a colour
+            temperature on the black-body locus, found from the frame's mean colour and
+            held within `white_balance_range`, so a blue-green cast off the locus stays;
+            a number for grey world at that strength instead (the white balance before
+            the camera's, 0.7 then): 0 keeps the sensor's raw colours, where distant
+            rock turns blue-green; 1 makes every frame's mean grey.
+        white_balance_kelvin: None (default), or a fixed colour temperature, as the
+            camera's manual control (V4L2 ``white_balance_temperature`` with
+            ``white_balance_automatic`` off): gains that make a source of this
+            temperature white, whatever the frame. 6,500 K keeps the sensor's colours.
+        white_balance_range: the least and most colour temperature, in kelvin, that the
+            camera's auto white balance may choose: the BlueROV2 camera's control range,
+            2,800-6,500 K (incandescent to daylight, the range V4L2 asks of a driver).
         rock_colour: mean reflectance of bare rock (limestone: warm grey).
         sediment_colour: reflectance of silt on up-facing surfaces.
         specular: reflectance of wet rock toward the mirror direction at normal
@@ -493,7 +510,9 @@ class Optics:
     tone: Literal["camera", "soft"] = "camera"
     denoise: float = 1.0
     compression: int = 85
-    white_balance: float = 0.7
+    white_balance: float | None = None
+    white_balance_kelvin: float | None = None
+    white_balance_range: tuple[float, float] = (2800.0, 6500.0)
     rock_colour: RGB = (0.40, 0.37, 0.33)
     sediment_colour: RGB = (0.46, 0.40, 0.30)
     specular: float = 0.02
@@ -506,6 +525,35 @@ class Optics:
                 f"unknown water type '{self.water}'; choose one of {', '.join(WATER_TYPES)}"
             )
         bluerov2_lamps(self.lamp_count, self.lamp_beam_deg)  # refuse a count no vehicle has
+        self._check_white_balance()
+
+    def _check_white_balance(self) -> None:
+        """Refuse a white balance no camera has: two modes at once, a strength outside
+        0-1, a temperature off the tabulated locus (`KELVIN_LIMITS`)."""
+        if self.white_balance is not None and self.white_balance_kelvin is not None:
+            raise ConfigError(
+                f"white balance: grey world (white_balance={self.white_balance}) and a fixed "
+                f"temperature (white_balance_kelvin={self.white_balance_kelvin}) both set; "
+                "set one, or neither for the camera's own auto white balance"
+            )
+        if self.white_balance is not None and not 0.0 <= self.white_balance <= 1.0:
+            raise ConfigError(f"white_balance: {self.white_balance}; a strength from 0 to 1")
+        low, high = self.white_balance_range
+        fixed = () if self.white_balance_kelvin is None else (self.white_balance_kelvin,)
+        lowest, highest = KELVIN_LIMITS
+        if not lowest <= low <= high <= highest or not all(lowest <= k <= highest for k in fixed):
+            raise ConfigError(
+                f"white balance: {self.white_balance_range} K, {self.white_balance_kelvin} K; "
+                f"temperatures from {lowest:,.0f} to {highest:,.0f} K, the range's least first"
+            )
+
+    @property
+    def white_balance_mode(self) -> Literal["camera", "grey-world", "manual"]:
+        """Which white balance the camera applies: its own auto white balance, grey world
+        (`white_balance` set) or a fixed temperature (`white_balance_kelvin` set)."""
+        if self.white_balance_kelvin is not None:
+            return "manual"
+        return "camera" if self.white_balance is None else "grey-world"
 
     @property
     def fitted_lamps(self) -> tuple[Lamp, ...]:
@@ -567,7 +615,9 @@ class _OpticsTable(BaseModel):
     noise: float | None = Field(None, ge=0, le=20)
     vignetting: float | None = Field(None, ge=0, le=1)
     exposure: float | Literal["auto"] | None = None
-    white_balance: float | None = Field(None, ge=0, le=1)
+    white_balance: Annotated[float, Field(ge=0, le=1)] | Literal["camera"] | None = None
+    white_balance_kelvin: float | None = Field(None, ge=KELVIN_LIMITS[0], le=KELVIN_LIMITS[1])
+    white_balance_range: tuple[float, float] | None = None
     lamp_count: int | None = Field(None, ge=1, le=len(LAMP_MOUNTS))
     lamp_lumens: float | None = Field(None, ge=0, le=100_000)
     lamp_beam_deg: float | None = Field(None, ge=10, le=170)
@@ -612,10 +662,33 @@ def optics_from_table(
     changes = {k: v for k, v in model.model_dump().items() if v is not None}
     if changes.get("exposure") == "auto":
         changes["exposure"] = None
+    _white_balance_changes(changes, where)
     base = base or Optics()
     if "gain_max" in changes:
         changes["gain_range"] = (base.gain_range[0], changes.pop("gain_max"))
     return replace(base, **changes)
+
+
+def _white_balance_changes(changes: dict[str, Any], where: str) -> None:
+    """The white balance as a layer of settings gives it, in ``changes`` (in place).
+
+    The layer that sets the white balance decides it whole, so that layers stack: a
+    strength (grey world, the one setting of files written before the camera's own auto
+    white balance, which keep their meaning) or "camera" clears a fixed temperature
+    beneath, and a fixed temperature clears a strength beneath.
+    """
+    strength, kelvin = changes.get("white_balance"), changes.get("white_balance_kelvin")
+    if strength is not None and kelvin is not None:
+        raise ConfigError(
+            f"{where}: 'white_balance' ({strength}) and 'white_balance_kelvin' ({kelvin}) "
+            "both set; keep one: a strength for grey world, 'camera' for the camera's "
+            "own auto white balance, or a fixed temperature"
+        )
+    if strength is not None:
+        changes["white_balance"] = None if strength == "camera" else strength
+        changes["white_balance_kelvin"] = None
+    elif kelvin is not None:
+        changes["white_balance"] = None
 
 
 # The tone curve is tabulated over the bits of a float32: bits >> TONE_SHIFT keep the

@@ -47,6 +47,7 @@ from cavenav.sensors.lighting import (
 )
 from cavenav.sensors.optics import HALO_SIGMA_DEG, Optics, tone_lut
 from cavenav.sensors.stereo import stereo_depth
+from cavenav.sensors.white_balance import white_balance_gains
 from cavenav.world.procedural import cpu_independent
 from cavenav.world.raycast import RayCaster
 from cavenav.world.silt import (
@@ -160,12 +161,12 @@ def grid_mean(row_sums: np.ndarray, columns: int) -> np.ndarray:
 def camera_response(mean: np.ndarray, optics: Optics) -> tuple[np.ndarray, float]:
     """White-balance gains (3,) and exposure gain for a frame whose mean colour is ``mean``.
 
-    Grey-world auto white balance, part of the way (`Optics.white_balance`), then the
-    exposure that brings mean luminance to `Optics.exposure_key` within the gain range.
+    The white balance of `Optics.white_balance_mode` (by default the BlueROV2 camera's own
+    auto white balance; `white_balance.white_balance_gains`), then the exposure that
+    brings the balanced mean luminance to `Optics.exposure_key` within the gain range.
     """
     mean = np.maximum(mean.astype(np.float64), 1e-9)
-    luminance = float(mean @ (0.25, 0.5, 0.25))
-    gains = np.clip((luminance / mean) ** optics.white_balance, 0.25, 4.0)
+    gains = white_balance_gains(mean, optics)
     gain = optics.exposure
     if gain is None:
         low, high = optics.gain_range
