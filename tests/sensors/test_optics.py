@@ -179,7 +179,7 @@ def test_jerlov_waters_grow_murkier_and_their_load_scatters_more_as_it_grows():
     assert np.all(np.diff(green) > 0)
     albedo = np.array([w.scattering[1] / w.attenuation[1] for w in waters])
     assert albedo[0] < 0.05  # the clearest: pure seawater, which mostly absorbs
-    assert albedo[-1] == pytest.approx(0.83, abs=0.03)  # Petzold's turbid harbour: 0.83
+    assert albedo[-1] == pytest.approx(0.83, abs=0.03)  # as Petzold's turbid harbour: 0.83
     assert waters[0].phase_g == 0.0  # molecules scatter evenly
     assert waters[-1].phase_g == pytest.approx(0.924, abs=0.002)  # particles, forward
     with pytest.raises(ConfigError, match="Jerlov water type 'XI'"):

@@ -50,6 +50,9 @@ __all__ = [
     "KELVIN_LIMITS",
     "LAMP_MOUNTS",
     "LUMA",
+    "Lamp",
+    "MEASURED_FIRST",
+    "Optics",
     "PHOTOPIC_BAND",
     "PUBLISHED_JERLOV_GREEN",
     "PURE_WATER_BLACK_DISK_M",
@@ -57,8 +60,6 @@ __all__ = [
     "TONE_SHIFT",
     "VISIBILITY_CONTRAST",
     "WATER_TYPES",
-    "Lamp",
-    "Optics",
     "Water",
     "black_clamp",
     "bluerov2_lamps",
@@ -66,6 +67,7 @@ __all__ = [
     "jerlov_water",
     "lamp_colour",
     "optics_from_table",
+    "published_scattering",
     "tone_lut",
     "visibility_m",
 ]
@@ -143,11 +145,41 @@ JERLOV_KD: dict[str, tuple[float, ...]] = {
 }
 # The camera's broad bands (R, G, B) in nanometres, as `lamp_colour` integrates them.
 CAMERA_BANDS_NM = ((600, 650), (520, 570), (450, 490))
-# Petzold's (1972) three measured waters at 530 nm, absorption and scattering in 1/m
-# (Mobley 1994, Light and Water, Table 3.10): clear ocean, coastal ocean, turbid harbour.
-PETZOLD_530NM = ((0.114, 0.037), (0.179, 0.220), (0.366, 1.824))
 PARTICLE_BACKSCATTER = 0.0183  # share scattered backward: Petzold's average particles
 PARTICLE_G = 0.924  # their mean cosine (the Henyey-Greenstein g that matches it)
+
+
+# What the presets stand for. Jerlov's types as published, (a, b) in 1/m at 525 and 550 nm
+# (the wavelengths of JERLOV_NM in the camera's green band, which `jerlov_water` averages):
+# Solonenko and Mobley (2015, Inherent optical properties of Jerlov water types, Appl.
+# Opt. 54(17), 5392, Tables 4-8), fitted to Jerlov's Kd with bio-optical models; and
+# Williamson and Hollins (2022, Measured IOPs of Jerlov water types, Appl. Opt. 61(33),
+# 9951), from measured a and b (types IB to 5C). Read from the tables of the `jerlov`
+# package (github.com/tishibashi-cpu/jerlov), which transcribes both.
+PUBLISHED_JERLOV_GREEN: dict[str, dict[str, tuple[tuple[float, float], ...]]] = {
+    "Solonenko and Mobley 2015": {
+        "I": ((0.046, 0.00205), (0.062, 0.0017)),
+        "IA": ((0.0468, 0.00402), (0.0622, 0.00354)),
+        "IB": ((0.0469, 0.0565), (0.0623, 0.0536)),
+        "II": ((0.0469, 0.387), (0.0622, 0.358)),
+        "III": ((0.0507, 1.06), (0.0646, 0.980)),
+        "1C": ((0.068, 0.395), (0.076, 0.365)),
+        "3C": ((0.078, 1.15), (0.082, 1.06)),
+        "5C": ((0.127, 1.44), (0.117, 1.33)),
+        "7C": ((0.233, 2.54), (0.195, 2.35)),
+        "9C": ((0.430, 3.38), (0.348, 3.12)),
+    },
+    "Williamson and Hollins 2022": {
+        "IB": ((0.0516, 0.125), (0.0655, 0.122)),
+        "II": ((0.0609, 0.181), (0.0724, 0.177)),
+        "III": ((0.0821, 0.292), (0.0878, 0.287)),
+        "1C": ((0.0972, 0.433), (0.0988, 0.427)),
+        "3C": ((0.132, 0.654), (0.128, 0.644)),
+        "5C": ((0.174, 1.21), (0.159, 1.19)),
+    },
+}
+# The source `jerlov_water` takes a type's scattering from: the one that measured it.
+MEASURED_FIRST = ("Williamson and Hollins 2022", "Solonenko and Mobley 2015")
 
 
 def _band_mean(values: tuple[float, ...], band: tuple[int, int]) -> tuple[float, float]:
@@ -161,21 +193,16 @@ def _seawater_scattering(nm: float) -> float:
     return 0.0029 * (500.0 / nm) ** 4.32
 
 
-def _load_albedo(excess: float) -> float:
-    """The share of the load's attenuation (what the water carries beyond the clearest
-    water's: particles and dissolved matter) that is scattering rather than absorption,
-    at 530 nm, for a load whose a + b_b is ``excess`` (1/m): as in Petzold's waters of
-    that load, interpolated in the logarithm of the load, held beyond the clearest and
-    the most turbid. Dissolved matter only absorbs and dominates light loads; silt
-    scatters and dominates heavy ones."""
-    clearest = _band_mean(JERLOV_KD["I"], CAMERA_BANDS_NM[1])[0]  # type I's green a + b_b
-    loads, albedos = [], []
-    for a, b in PETZOLD_530NM:
-        particles = b - _seawater_scattering(530.0)
-        load = a + PARTICLE_BACKSCATTER * particles - clearest
-        loads.append(math.log(load))
-        albedos.append(particles / (particles + a - clearest))
-    return float(np.interp(math.log(max(excess, 1e-9)), loads, albedos))
+def published_scattering(name: str) -> float:
+    """Jerlov type ``name``'s scattering b in the camera's green band (525 and 550 nm
+    averaged), 1/m, from the first source of `MEASURED_FIRST` that gives it:
+    Williamson and Hollins measured a and b in waters of types IB to 5C; Solonenko and
+    Mobley's values, fitted to Jerlov's Kd by bio-optical models, fill in the rest."""
+    for source in MEASURED_FIRST:
+        if name in PUBLISHED_JERLOV_GREEN[source]:
+            pairs = PUBLISHED_JERLOV_GREEN[source][name]
+            return sum(b for _, b in pairs) / len(pairs)
+    raise KeyError(name)
 
 
 def jerlov_water(name: str) -> Water:
@@ -185,23 +212,20 @@ def jerlov_water(name: str) -> Water:
     Jerlov measured Kd, not the a and b an image needs. Near the surface, under a high
     sun, Kd = a + b_b to within about 10% (the light is nearly collimated, and only what
     is scattered backward is lost to it), which is why his clearest type matches pure
-    water's absorption (Pope and Fry 1997). So, per band: the clearest type's Kd is
-    pure seawater's a + b_b; the rest of a type's Kd is its load. The load's scattering
-    comes from its albedo in Petzold's measured waters (`_load_albedo`, in green) and
-    falls as 1 / wavelength (Gordon and Morel 1983); its absorption is what remains of
-    Kd. The phase function's g is the scatterers' mean: 0 for the molecules,
-    `PARTICLE_G` for the load.
+    water's absorption (Pope and Fry 1997). Kd fixes b_b, 1.8% of a particle's b, and
+    so says next to nothing of b itself, which sets how far one sees. So b is the
+    published one (`published_scattering`, in green), the particles' part falling as
+    1 / wavelength into the other bands (Gordon and Morel 1983), and the absorption is
+    what remains of Kd once b_b is taken out. The phase function's g is the scatterers'
+    mean: 0 for the molecules, `PARTICLE_G` for the particles.
     """
     if name not in JERLOV_KD:
         raise ConfigError(
             f"unknown Jerlov water type '{name}'; choose one of {', '.join(JERLOV_KD)}"
         )
     kd = JERLOV_KD[name]
-    green, green_nm = _band_mean(kd, CAMERA_BANDS_NM[1])
-    excess = max(green - _band_mean(JERLOV_KD["I"], CAMERA_BANDS_NM[1])[0], 0.0)
-    albedo = _load_albedo(excess)
-    ratio = albedo / (1.0 - albedo)  # the load's b / a
-    load_green = ratio * excess / (1.0 + PARTICLE_BACKSCATTER * ratio)
+    green_nm = _band_mean(kd, CAMERA_BANDS_NM[1])[1]
+    load_green = max(published_scattering(name) - _seawater_scattering(green_nm), 0.0)
     a, b, load = [], [], []
     for band in CAMERA_BANDS_NM:
         k, nm = _band_mean(kd, band)
@@ -220,16 +244,17 @@ def jerlov_water(name: str) -> Water:
 # pure-water absorption (Pope and Fry 1997) plus typical particle and organic loads;
 # then Jerlov's types, as `jerlov_water` derives them ("jerlov-II", "jerlov-3C", ...).
 # Against them, by their green a + b_b: clear lies between types IA and IB, ocean near
-# IB, coastal near II and turbid near 1C (its silt scatters four times as much).
+# IB, coastal near II and turbid near 1C; coastal and turbid scatter as much as the
+# published II and 1C do (Williamson and Hollins 2022), so they see as far: 15 and 8 m.
 WATER_TYPES: dict[str, Water] = {
     # Spring-fed karst (cenotes, Florida springs): visibility of tens of metres.
     "clear": Water(absorption=(0.29, 0.060, 0.020), scattering=(0.010, 0.012, 0.015)),
     # Open ocean, Jerlov type I-II.
     "ocean": Water(absorption=(0.31, 0.065, 0.030), scattering=(0.040, 0.050, 0.060)),
     # Coastal water: greener, walls beyond five metres fade into the lamps' haze.
-    "coastal": Water(absorption=(0.34, 0.085, 0.11), scattering=(0.065, 0.07, 0.075)),
+    "coastal": Water(absorption=(0.34, 0.085, 0.11), scattering=(0.15, 0.17, 0.19)),
     # Silty water after rain or a careless fin kick: rock beyond 3 m is lost in the veil.
-    "turbid": Water(absorption=(0.40, 0.14, 0.22), scattering=(0.19, 0.20, 0.21)),
+    "turbid": Water(absorption=(0.40, 0.14, 0.22), scattering=(0.34, 0.36, 0.38)),
 } | {f"jerlov-{name}": jerlov_water(name) for name in JERLOV_KD}
 CAVE_WATERS = ("clear", "ocean", "coastal", "turbid")  # the presets made for caves
 
@@ -273,35 +298,6 @@ def visibility_m(water: Water, contrast: float = VISIBILITY_CONTRAST) -> float:
     return math.log(1.0 / contrast) / c if c > 0.0 else math.inf
 
 
-# What the presets stand for. Jerlov's types as published, (a, b) in 1/m at 525 and 550 nm
-# (the wavelengths of JERLOV_NM in the camera's green band, which `jerlov_water` averages):
-# Solonenko and Mobley (2015, Inherent optical properties of Jerlov water types, Appl.
-# Opt. 54(17), 5392, Tables 4-8), fitted to Jerlov's Kd with bio-optical models; and
-# Williamson and Hollins (2022, Measured IOPs of Jerlov water types, Appl. Opt. 61(33),
-# 9951), from measured a and b (types IB to 5C). Read from the tables of the `jerlov`
-# package (github.com/tishibashi-cpu/jerlov), which transcribes both.
-PUBLISHED_JERLOV_GREEN: dict[str, dict[str, tuple[tuple[float, float], ...]]] = {
-    "Solonenko and Mobley 2015": {
-        "I": ((0.046, 0.00205), (0.062, 0.0017)),
-        "IA": ((0.0468, 0.00402), (0.0622, 0.00354)),
-        "IB": ((0.0469, 0.0565), (0.0623, 0.0536)),
-        "II": ((0.0469, 0.387), (0.0622, 0.358)),
-        "III": ((0.0507, 1.06), (0.0646, 0.980)),
-        "1C": ((0.068, 0.395), (0.076, 0.365)),
-        "3C": ((0.078, 1.15), (0.082, 1.06)),
-        "5C": ((0.127, 1.44), (0.117, 1.33)),
-        "7C": ((0.233, 2.54), (0.195, 2.35)),
-        "9C": ((0.430, 3.38), (0.348, 3.12)),
-    },
-    "Williamson and Hollins 2022": {
-        "IB": ((0.0516, 0.125), (0.0655, 0.122)),
-        "II": ((0.0609, 0.181), (0.0724, 0.177)),
-        "III": ((0.0821, 0.292), (0.0878, 0.287)),
-        "1C": ((0.0972, 0.433), (0.0988, 0.427)),
-        "3C": ((0.132, 0.654), (0.128, 0.644)),
-        "5C": ((0.174, 1.21), (0.159, 1.19)),
-    },
-}
 # Black-disk sighting ranges, metres, in the clearest karst spring measured and in pure
 # water: Te Waikoropupu Springs (New Zealand), 63 m by divers in 1993 (Davies-Colley and
 # Smith 1995, Optically pure waters in Waikoropupu Springs) and about 75 m from a green
