@@ -39,8 +39,11 @@ __version__ = "0.1.0"
 # per cent of the pixels are interpolated rather than shaded alone (a faster step).
 # Set 5: the sharp bends of S4 and long turn along a short curve instead of at a point,
 # which takes away the straight seam their outer walls had; the other families' caves
-# are unchanged.
-SCENARIO_SET = "5"
+# are unchanged. Set 6 (issue 49): rock photographed at the centimetre scale; the
+# BlueROV2 camera's own white balance; coastal and turbid water as murky as the Jerlov
+# types they stand for; no rings along the passages (generator version 3); every block
+# of breakdown fallen to rest on the floor or on other blocks.
+SCENARIO_SET = "6"
 
 __all__ = ["SCENARIO_SET", "__version__"]
 
