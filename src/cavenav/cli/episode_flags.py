@@ -16,6 +16,7 @@ from cavenav.cli.flags import (
     Backend,
     DepthSource,
     Group,
+    LineColour,
     SonarKind,
     Sounder,
     WaterType,
@@ -201,6 +202,8 @@ def episode_settings(
     gusts: float | None = EPISODE.gusts,
     battery_wh: float | None = EPISODE.battery_wh,
     noise_seed: int | None = EPISODE.seed,
+    guideline: bool | None = EPISODE.guideline,
+    guideline_colour: str | None = EPISODE.guideline_colour,
 ) -> EpisodeConfig:
     """`EpisodeConfig` from the episode, sensor and optics flags, one keyword each (so a flag
     renamed in `SETTINGS` alone fails when a command is declared); frames and shield stay.
@@ -237,6 +240,8 @@ def episode_settings(
         gusts=gusts,
         battery_wh=battery_wh,
         noise_seed=noise_seed,
+        guideline=guideline,
+        guideline_colour=guideline_colour,
     )
 
 
@@ -424,6 +429,19 @@ NoiseSeedOpt = Annotated[
         min=0,
     ),
 ]
+GuidelineOpt = Annotated[
+    bool | None,
+    typer.Option(
+        "--guideline/--no-guideline",
+        help="a diver's guideline tied along the passage to the exit, 3 mm thick, with line "
+        "arrows pointing out; the camera sees it and the VLM's prompt says so (default: "
+        "the scenario file's 'guideline', else none, as in the paper)",
+    ),
+]
+GuidelineColourOpt = Annotated[
+    LineColour | None,
+    typer.Option(help="the guideline's colour (default: the scenario file's, else white)"),
+]
 SETTINGS = Group(
     (
         "steps",
@@ -452,6 +470,8 @@ SETTINGS = Group(
         "gusts",
         "battery_wh",
         "noise_seed",
+        "guideline",
+        "guideline_colour",
     ),
     episode_settings,
 )

@@ -48,6 +48,8 @@ from cavenav.cli.episode_flags import (
     DischargeOpt,
     DvlOpt,
     EnergyPromptOpt,
+    GuidelineColourOpt,
+    GuidelineOpt,
     GustsOpt,
     HistoryOpt,
     ImageFormatOpt,
@@ -140,6 +142,8 @@ def run(
     gusts: GustsOpt = EPISODE.gusts,
     battery_wh: BatteryWhOpt = EPISODE.battery_wh,
     noise_seed: NoiseSeedOpt = EPISODE.seed,
+    guideline: GuidelineOpt = EPISODE.guideline,
+    guideline_colour: GuidelineColourOpt = None,
     backend: BackendOpt = BACKEND,
     base_url: BaseUrlOpt = None,
     model: ModelOpt = None,
@@ -228,6 +232,8 @@ def render(
     resolution: ResolutionOpt = None,
     sounder_resolution: SounderResolutionOpt = None,
     difficulty: DifficultyOpt = None,
+    guideline: GuidelineOpt = EPISODE.guideline,
+    guideline_colour: GuidelineColourOpt = None,
 ) -> None:
     """Write a contact sheet: colour and depth views from poses along the passage."""
     settings = SETTINGS.value(locals())

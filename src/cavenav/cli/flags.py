@@ -21,11 +21,13 @@ import typer
 
 from cavenav.sensors.depth import EXR_COMPRESSIONS
 from cavenav.sensors.optics import WATER_TYPES
+from cavenav.world.guideline import GUIDELINE_COLOURS
 
 __all__ = [
     "Backend",
     "ExrCompression",
     "Group",
+    "LineColour",
     "Sounder",
     "WaterType",
     "bounded",
@@ -67,6 +69,9 @@ class Backend(StrEnum):
     openai = "openai"
     transformers = "transformers"
 
+
+# The guideline's colours, named as `cavenav.world.guideline.GUIDELINE_COLOURS` names them.
+LineColour = StrEnum("LineColour", {name: name for name in GUIDELINE_COLOURS})  # type: ignore[misc]
 
 # Water presets, named as `cavenav.sensors.optics.WATER_TYPES` names them.
 WaterType = StrEnum("WaterType", {name: name for name in WATER_TYPES})  # type: ignore[misc]

@@ -305,6 +305,10 @@ class Observation:
             from a vehicle's colour image) or "none".
         sonar: the imaging sonar's image, when the vehicle carries one.
         dvl: the Doppler velocity log's reading, when the vehicle carries one.
+        guideline: the colour of the diver's guideline tied along this cave ("white" or
+            "yellow"), which the colour image may show; None where there is none. What
+            a diver is told before a dive, not a reading: the VLM pilot's prompt says it
+            (`cavenav.pilots.prompt.Instruments`).
     """
 
     rgb: np.ndarray
@@ -322,6 +326,7 @@ class Observation:
     depth_source: str = "exact"
     sonar: SonarImage | None = None
     dvl: DvlReading | None = None
+    guideline: str | None = None
 
     def __eq__(self, other: object) -> bool:
         """Field by field, the images by value (NaN equal to NaN)."""

@@ -69,7 +69,7 @@ def passage_poses(
 def render_views(
     scenario: Scenario, sensors: SensorConfig, poses: list[tuple[Pose, float]]
 ) -> list[GalleryView]:
-    rig = SensorRig(RayCaster(scenario.mesh), sensors)
+    rig = SensorRig(RayCaster(scenario.mesh), sensors, scenario.guideline)
     views = []
     for pose, distance in poses:
         obs = rig.observe(pose)

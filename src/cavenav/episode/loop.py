@@ -95,10 +95,11 @@ def step_budget(scenario: Scenario, config: EpisodeConfig) -> int:
 
 def make_env(scenario: Scenario, config: EpisodeConfig, motion: Motion | None = None) -> gym.Env:
     """The environment an episode of ``config`` flies (`EpisodeConfig.for_episode`):
-    budget, the stuck limit, then the shield if asked."""
+    budget, the stuck limit, then the shield if asked; the cave with the guideline it
+    asks for (`EpisodeConfig.cave`)."""
     config = config.for_episode(scenario)
     env: gym.Env = CaveNavEnv(
-        scenario,
+        config.cave(scenario),
         sensors=config.sensors,
         body=config.body,
         rules=config.rules,
@@ -134,6 +135,7 @@ def run_episode(
         ScenarioError: the start pose is not inside the passage or touches a wall.
     """
     config = (config or EpisodeConfig()).for_episode(scenario)  # recorded as flown
+    scenario = config.cave(scenario)  # with the guideline it asks for
     env = make_env(scenario, config, motion)
     _, info = env.reset(seed=config.seed)  # checks the start before any folder is written
     log = _episode_log(scenario, pilot, config, info)

@@ -100,6 +100,7 @@ class EpisodeLog:
             "started_at": datetime.now(UTC).isoformat(timespec="seconds"),
             "scenario_description": scenario.description,
             "difficulty": scenario.difficulty.to_dict() if scenario.difficulty else None,
+            "guideline": scenario.guideline.to_dict() if scenario.guideline else None,
             "mesh": scenario.mesh.name,
             "triangles": scenario.mesh.triangle_count,
             "start_pose": scenario.start.to_dict(),

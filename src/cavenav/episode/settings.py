@@ -24,6 +24,7 @@ from cavenav.motion.energy import checked_budget
 from cavenav.sensors.config import SENSOR_KEYS, SIZE_KEYS, SensorConfig
 from cavenav.sensors.depth import EXR_COMPRESSIONS, ExrCompression
 from cavenav.world.current import Current
+from cavenav.world.guideline import check_colour
 from cavenav.world.scenario import Difficulty
 from cavenav.world.scenarios import Scenario, load_scenario
 
@@ -86,6 +87,12 @@ class EpisodeConfig:
             None never does (the energy is recorded either way).
         rules: the strategy's distances; the standoff counts "steps below standoff".
         body: the vehicle's size, mass and thrust (`cavenav.core.types.VehicleBody`).
+        guideline: lay a diver's guideline along the cave (`cavenav.world.guideline`;
+            ``--guideline``); False takes away one a scenario file lays; None keeps the
+            cave's own (the families have none, as in the paper). The cave is the same
+            rock for rock either way (`cave`).
+        guideline_colour: "white" or "yellow", the colour of the line flown; None keeps
+            the cave's own, else white.
     """
 
     max_steps: int | None = None
@@ -110,6 +117,8 @@ class EpisodeConfig:
     battery_wh: float | None = None
     rules: Rules = DEFAULT_RULES
     body: VehicleBody = field(default_factory=VehicleBody)
+    guideline: bool | None = None
+    guideline_colour: str | None = None
 
     def __post_init__(self) -> None:
         if self.exr_compression not in EXR_COMPRESSIONS:
@@ -127,6 +136,10 @@ class EpisodeConfig:
         )
         self.current_for({})  # a bad value fails here, not in a worker
         checked_budget(self.battery_wh)
+        if self.guideline is not None and not isinstance(self.guideline, bool):
+            raise ConfigError(f"guideline must be true, false or unset, not {self.guideline!r}")
+        if self.guideline_colour is not None:
+            check_colour(self.guideline_colour)
         seed = self.seed
         if seed is not None and (not isinstance(seed, int) or isinstance(seed, bool) or seed < 0):
             raise ConfigError(f"the noise seed must be a whole number of 0 or more, not {seed!r}")
@@ -170,7 +183,24 @@ class EpisodeConfig:
         """The cave ``scenario`` (a family or a scenario file) with ``seed`` and these
         difficulty knobs; a sweep sets each knob on the families that have it instead
         (`cavenav.evaluation.sweep.SweepConfig.difficulty_for`)."""
-        return load_scenario(scenario, seed, difficulty=Difficulty.from_dict(self.difficulty))
+        cave = load_scenario(scenario, seed, difficulty=Difficulty.from_dict(self.difficulty))
+        return self.cave(cave)
+
+    def cave(self, scenario: Scenario) -> Scenario:
+        """``scenario`` as this configuration flies it: with a guideline laid along it
+        (`Scenario.with_guideline`) where `guideline` is True or the cave has one, in
+        `guideline_colour` where set, or with none where `guideline` is False. The rock,
+        start and exits are the cave's own whichever it is.
+
+        Raises:
+            ScenarioError: a guideline asked of a cave with no centre line.
+        """
+        if self.guideline is False:
+            return scenario.without_guideline()
+        own = scenario.guideline
+        if not (self.guideline or own):
+            return scenario
+        return scenario.with_guideline(self.guideline_colour or (own.colour if own else "white"))
 
     def sensors_for(self, cave: Scenario) -> SensorConfig:
         """The sensors in ``cave``: `sensors`, the cave's [optics] and [sensors] tables,
@@ -223,7 +253,7 @@ class EpisodeConfig:
             episode["noise_seed"] = self.seed
         if self.exr_compression != "none":  # no sweep flag sets it: absent, as before
             episode["exr_compression"] = self.exr_compression
-        for key in _WATER:  # absent in still water with no budget, as before they existed
+        for key in (*_WATER, *_LINE):  # absent when unset, as before they existed
             if getattr(self, key) != getattr(_DEFAULTS, key):
                 episode[key] = getattr(self, key)
         sensors: dict[str, Any] = {
@@ -253,7 +283,7 @@ class EpisodeConfig:
         frames = episode.pop("frames", "all")
         episode.setdefault("noise_seed", 0)  # see `to_dict`
         return configured(
-            **{k: episode[k] for k in (*_EPISODE_KEYS, *_WATER) if k in episode},
+            **{k: episode[k] for k in (*_EPISODE_KEYS, *_WATER, *_LINE) if k in episode},
             **sensors,
             difficulty=data.get("difficulty", {}),
         ).with_frames(frames)
@@ -306,5 +336,7 @@ _DEFAULT_RIG = SensorConfig()
 _EPISODE_KEYS = ("steps", "stuck_after", "shield", "exr_compression", "noise_seed")
 # The settings of the water and the battery, kept in sweep.json's "episode" when set.
 _WATER = ("discharge_m3s", "gusts", "battery_wh")
+# The guideline's settings, kept in sweep.json's "episode" when set.
+_LINE = ("guideline", "guideline_colour")
 # What sweep.json has no place for.
 _UNKEPT = ("plots", "current", "rules", "body")

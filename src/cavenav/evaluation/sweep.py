@@ -348,15 +348,17 @@ def _too_many(seeds: str) -> ConfigError:
 def check_grid(config: SweepConfig) -> None:
     """Refuse a grid whose episodes could only crash, before anything is written: an
     unknown scenario, a scenario file that does not read, a difficulty knob that its
-    family lacks or out of its range, two scenarios sharing run folders. Each is checked
+    family lacks or out of its range, a guideline in a cave with no centre line, two
+    scenarios sharing run folders. Each is checked
     as its episodes would load it (`SweepConfig.difficulty_for`), in milliseconds: no
     cave is built (`cavenav.world.scenarios.check_scenario`).
 
     Raises:
         ConfigError, MeshError, ScenarioError: naming the scenario and what is wrong.
     """
+    guideline = bool(config.settings.guideline)  # laid along a centre line
     for scenario in config.scenarios:
-        check_scenario(scenario, config.difficulty_for(scenario))
+        check_scenario(scenario, config.difficulty_for(scenario), guideline)
     plan(config)
 
 
@@ -482,6 +484,7 @@ class EpisodeWorker:
                 return self._caves[key]
         difficulty = self.config.difficulty_for(job.scenario)
         cave = load_scenario(job.scenario, job.seed, difficulty=difficulty)
+        cave = self.config.settings.cave(cave)  # with the guideline the sweep asks for
         with self._lock:
             self._caves[key] = cave
             while len(self._caves) > self._caves_kept:

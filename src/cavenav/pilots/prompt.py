@@ -132,7 +132,8 @@ def _render(template: str, fields: dict[str, str], source: str) -> str:
 @dataclass(frozen=True)
 class Instruments:
     """What the observations say about the sensors beyond the paper's: the depth image's
-    source and the imaging sonar, when there is one (the prompt then explains them)."""
+    source and the imaging sonar, when there is one, and the colour of the cave's
+    guideline, when there is one (the prompt then explains them)."""
 
     depth_source: str = "exact"
     sonar_kind: str | None = None
@@ -140,17 +141,18 @@ class Instruments:
     sonar_beam_deg: float = 0.0
     sonar_aperture_deg: float = 0.0
     sonar_span_deg: float = 0.0
+    guideline: str | None = None
 
     @classmethod
     def of(cls, observation: Observation) -> Instruments:
         sonar = observation.sonar
         if sonar is None:
-            return cls(observation.depth_source)
+            return cls(observation.depth_source, guideline=observation.guideline)
         bearings = sonar.bearings_deg
         span = float(bearings.max() - bearings.min()) if sonar.kind == "multibeam" else 360.0
         return cls(
             observation.depth_source, sonar.kind, sonar.range_m, sonar.beam_width_deg,
-            sonar.aperture_deg, span,
+            sonar.aperture_deg, span, observation.guideline,
         )  # fmt: skip
 
     def fields(self) -> dict[str, str]:
@@ -187,7 +189,8 @@ def render_system(
             pilot passes each observation's own).
         hfov_deg: their horizontal field of view, likewise.
         instruments: the depth camera's source and the sonar, likewise: a stereo
-            camera's and a sonar's sections follow the paper's prompt when present.
+            camera's and a sonar's sections follow the paper's prompt when present, and
+            so does the cave line's (``prompts/guideline.md``) where the cave has one.
 
     The closing sections, how the model answers, are the design's (``config.design``,
     `cavenav.pilots.designs`): ``prompts/direct.md``, ``arrows.md`` or ``waypoint.md``
@@ -208,6 +211,9 @@ def render_system(
         text += "\n\n" + _template("stereo.md")
     if instruments.sonar_kind is not None:
         text += "\n\n" + _render(_template("sonar.md"), instruments.fields(), "sonar.md")
+    if instruments.guideline is not None:
+        line = {"guideline_colour": instruments.guideline}
+        text += "\n\n" + _render(_template("guideline.md"), line, "guideline.md")
     if config.map_image:
         text += "\n\n" + _render(_template("map.md"), fields, "map.md")
     if config.energy:

@@ -15,6 +15,7 @@ from collections.abc import Iterator, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass
+from functools import cached_property
 
 import numba
 import numpy as np
@@ -24,6 +25,7 @@ from cavenav.core.types import Observation, Pose
 from cavenav.sensors.camera import CameraIntrinsics, camera_to_world, look_frame
 from cavenav.sensors.config import SENSOR_KEYS, SensorConfig
 from cavenav.sensors.depth import normalise_depth, unknown_depth
+from cavenav.sensors.guideline import LineRenderer
 from cavenav.sensors.kernels import (
     PHOTO_SHARE,
     SHARE,
@@ -48,6 +50,7 @@ from cavenav.sensors.lighting import (
 from cavenav.sensors.optics import HALO_SIGMA_DEG, Optics, tone_lut
 from cavenav.sensors.stereo import stereo_depth
 from cavenav.sensors.white_balance import white_balance_gains
+from cavenav.world.guideline import Guideline
 from cavenav.world.procedural import cpu_independent
 from cavenav.world.raycast import RayCaster
 from cavenav.world.silt import (
@@ -217,8 +220,15 @@ class SensorRig:
 
     _filled_for: Pose | None = None  # the pose `rays` last filled the ray buffer for
 
-    def __init__(self, caster: RayCaster, config: SensorConfig | None = None):
-        self.caster = caster
+    def __init__(
+        self,
+        caster: RayCaster,
+        config: SensorConfig | None = None,
+        guideline: Guideline | None = None,
+    ):
+        """``guideline``: a diver's line tied along the cave, which the camera draws at its
+        true size (`cavenav.sensors.guideline`); None: none, and nothing of it runs."""
+        self.caster, self.guideline = caster, guideline
         self.config = config or SensorConfig()
         cfg = self.config
         self._pixel_dirs = cfg.camera.directions.reshape(-1, 3)
@@ -387,6 +397,7 @@ class SensorRig:
             self._row_sums,
         )  # fmt: skip
         spread_halo(self._halo, HALO_CELL, self._halo_weights, self._grid)
+        lined = self._draw_line(surfaces, ray_tuple, scene, lamp_tuple, water, (rot, origin))
         gains, gain = camera_response(grid_mean(self._row_sums, self._grid.shape[1]), optics)
         key = _frame_key(cfg.seed if noise_seed is None else noise_seed, pose)
         sensor = (gains, gain, optics.vignetting, optics.noise, key, optics.black_level)
@@ -400,8 +411,9 @@ class SensorRig:
             sensor, depth_range, camera.width, light, self._signal, depth_png,
         )  # fmt: skip
         signal, work = self._signal, self._luma
+        self._lay_line_depth(depth, depth_png, depth_range, key)
         develop_image(signal, camera.width, sensor, optics.denoise, self._lut, rgb, work)
-        if particles:
+        if particles or lined:
             self._speck_blocks[:] = 0  # shade_frame has zeroed the specks it read
         shape = (camera.height, camera.width)
         image = compress(rgb.reshape(*shape, 3), optics.compression)
@@ -412,6 +424,30 @@ class SensorRig:
             depth_m, png, image, light.reshape(*shape, 3) if radiance else None, particles
         )
         return frame, readings
+
+    @cached_property
+    def _line(self) -> LineRenderer | None:
+        """The guideline's renderer and its work buffers, made for the first frame."""
+        return None if self.guideline is None else LineRenderer(self.guideline, self.config.camera)
+
+    def _draw_line(
+        self, cast: tuple, rays: tuple, scene: tuple, lamps: tuple, water: tuple, view: tuple
+    ) -> bool:
+        """Draw the guideline into the marine snow's buffers (`LineRenderer.draw`) once the
+        camera has metered the frame: the line moves the exposure by parts in a thousand,
+        and left out of it, every pixel the line does not cover is as it is without the
+        line. Whether it touched a pixel."""
+        if self._line is None:
+            return False
+        buffers = (self._specks, self._speck_blocks)
+        return self._line.draw(cast, rays, scene, lamps, water, view, *buffers) > 0
+
+    def _lay_line_depth(
+        self, depth: np.ndarray, png: np.ndarray, depth_range: tuple, key: np.uint64
+    ) -> None:
+        """The line's depth into the shaded frame's, where it covers half a pixel or more."""
+        if self._line is not None:
+            self._line.lay_depth(depth, png, depth_range, key)
 
     def _depth_as_seen(
         self, depth: np.ndarray, png: np.ndarray, rgb: np.ndarray, key: np.uint64
@@ -513,4 +549,5 @@ class SensorRig:
             step=step,
             has_depth=cfg.depth_source != "none",
             depth_source=cfg.depth_source,
+            guideline=None if self.guideline is None else self.guideline.colour,
         )

@@ -68,7 +68,7 @@ class CaveSensors:
         """
         self.sub, self.scenario = sub, scenario
         self.caster = RayCaster(scenario.mesh)
-        self._rig = SensorRig(self.caster, sensors)
+        self._rig = SensorRig(self.caster, sensors, scenario.guideline)
         self._lock = threading.Lock()  # the rig's buffers serve one caller at a time
         self._sonars: dict[tuple[int, float], Sonar] = {}  # by the samples and range asked
         start = sub.config

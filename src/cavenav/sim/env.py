@@ -476,7 +476,8 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
         sensors = self.sensors
         sonar = None if sensors.sonar is None else Sonar(caster, SONARS[sensors.sonar])
         dvl = DopplerLog(caster) if sensors.dvl else None
-        return _World(key, cave, caster, SensorRig(caster, sensors), sonar, dvl)
+        rig = SensorRig(caster, sensors, cave.guideline)
+        return _World(key, cave, caster, rig, sonar, dvl)
 
     # ------------------------------------------------------------------ the API
     def reset(

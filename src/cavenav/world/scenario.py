@@ -33,6 +33,7 @@ from cavenav.core.errors import ConfigError, ScenarioError
 from cavenav.core.types import Pose
 from cavenav.world import families
 from cavenav.world.families import Layout
+from cavenav.world.guideline import Guideline, lay_guideline
 from cavenav.world.mesh import CaveMesh
 from cavenav.world.procedural import build_cave
 
@@ -101,6 +102,11 @@ class Scenario:
         water: the flow the cave has unless an episode says otherwise (a scenario file's
             [water] table: ``discharge_m3s``, ``gusts``; `cavenav.world.current.Current`).
             The families are still water (SPEC section 5); empty: still.
+        guideline: a diver's guideline tied along the passage to the exit
+            (`cavenav.world.guideline`; `with_guideline`), which the camera sees; None:
+            none, as in the paper's caves.
+        junctions: arc lengths along the centre line where side passages leave the way
+            on (the maze's branches): a guideline gets an arrow at each.
     """
 
     name: str
@@ -116,6 +122,34 @@ class Scenario:
     entrances: tuple[ExitPortal, ...] = ()
     step_budget: int | None = None
     water: Mapping[str, Any] = field(default_factory=dict)  # a file's [water], a family's own
+    guideline: Guideline | None = None
+    junctions: tuple[float, ...] = ()
+
+    def with_guideline(self, colour: str = "white") -> Scenario:
+        """This cave with a guideline laid along its centre line (`lay_guideline`, seeded
+        by the cave's seed): the same rock, start and exits, plus the line. A cave that
+        has a line of that colour already is returned as it is.
+
+        Raises:
+            ScenarioError: the cave has no centre line to lay it along.
+            ConfigError: an unknown colour.
+        """
+        if self.guideline is not None and self.guideline.colour == colour:
+            return self
+        if self.centreline is None:
+            raise ScenarioError(
+                f"{self.name}: a guideline is laid along the passage's centre line, and this "
+                "cave has none; give its scenario file a centreline"
+            )
+        line = lay_guideline(
+            self.mesh, self.centreline, start_arc=self._start_arc, seed=self.seed or 0,
+            colour=colour, junctions=self.junctions,
+        )  # fmt: skip
+        return replace(self, guideline=line)
+
+    def without_guideline(self) -> Scenario:
+        """This cave with no guideline."""
+        return self if self.guideline is None else replace(self, guideline=None)
 
     def exited(self, position: np.ndarray) -> bool:
         """Whether ``position`` lies past any exit portal."""
@@ -561,6 +595,7 @@ def procedural_scenario(name: str, seed: int = 0, difficulty: Difficulty | None 
     mesh_name = f"{key}-seed{seed}" + (f"-{difficulty.tag}" if difficulty.tag else "")
     mesh = build_cave(spec, name=mesh_name)
     centreline = spec.centreline[: spec.exit_index + 1]
+    junctions = tuple(_arc_length_at(centreline, branch.centreline[0]) for branch in spec.branches)
     return Scenario(
         key,
         mesh,
@@ -572,6 +607,7 @@ def procedural_scenario(name: str, seed: int = 0, difficulty: Difficulty | None 
         difficulty=difficulty,
         step_budget=layout.step_budget,
         optics=layout.optics,
+        junctions=junctions,
     )
 
 

@@ -37,6 +37,8 @@ A mesh file (its path relative to the file)::
     radius = 3.0
     centreline = [[0.0, 10.0, 2.0], [0.0, -10.0, 2.0]]   # optional: progress is
                                 # measured along it (metres, from start to exit)
+    guideline = true            # optional: a diver's guideline tied along the centre
+                                # line (true: white, or "yellow"); needs the centreline
 
 A cave of several meshes lists them as pieces instead of ``mesh = "path"``; each is
 turned by ``yaw_deg`` about the vertical through its own origin (positive turns +y
@@ -60,6 +62,7 @@ built at ``seed``: "hard S1" kept as a file, to sweep seeds over::
     family = "S1"
     [difficulty]                # optional: knobs of `Difficulty`
     constriction_m = 2.4
+    guideline = "yellow"        # optional, as above (default false: no line)
     [optics]                    # optional, as above
     [sensors]                   # optional, as above
     [water]                     # optional, as above
@@ -74,12 +77,21 @@ from pathlib import Path
 from typing import Annotated, Any, Literal, TypeVar
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    StrictBool,
+    ValidationError,
+    ValidationInfo,
+    field_validator,
+)
 from pydantic_core import InitErrorDetails
 
 from cavenav.core.errors import ConfigError, MeshError, ScenarioError, invalid_field
 from cavenav.core.types import Pose
 from cavenav.world.collision import VehicleBody
+from cavenav.world.guideline import GUIDELINE_COLOURS, GuidelineColour
 from cavenav.world.mesh import CaveMesh, join_meshes, load_mesh, place_mesh, sphere_directions
 from cavenav.world.raycast import RayCaster
 from cavenav.world.scenario import (
@@ -110,12 +122,25 @@ _Coordinate = Annotated[float, Field(ge=-_MAX_COORDINATE_M, le=_MAX_COORDINATE_M
 _Point = tuple[_Coordinate, _Coordinate, _Coordinate]  # metres; also a normal's direction
 _Yaw = Annotated[float, Field(ge=-360.0, le=360.0)]  # degrees: one turn either way
 _Scale = Annotated[float, Field(ge=_SCALE_RANGE[0], le=_SCALE_RANGE[1])]
+# A guideline: true (white), false (none) or its colour (`cavenav.world.guideline`).
+_Guideline = Annotated[
+    StrictBool | GuidelineColour,
+    Field(description="a diver's guideline: true (white), its colour, or false"),
+]
 
 
 class _StartModel(BaseModel):
     model_config = _STRICT
     position: _Point
     yaw_deg: _Yaw = Field(0.0, description="0 heads along -y; positive turns left")
+
+
+def _guideline_value(v: Any) -> Any:
+    """A file's ``guideline`` as written: true, false or a colour, else refused by name."""
+    if isinstance(v, bool) or (isinstance(v, str) and v in GUIDELINE_COLOURS):
+        return v
+    colours = " or ".join(f'"{name}"' for name in GUIDELINE_COLOURS)
+    raise ValueError(f"give true, false or the line's colour ({colours}), not {v!r}")
 
 
 def _nonzero_normal(v: tuple[float, float, float], kind: str) -> tuple[float, float, float]:
@@ -214,6 +239,22 @@ class _ScenarioFileModel(BaseModel):
     )
     sensors: _SensorsModel = Field(default_factory=_SensorsModel)
     water: _WaterModel = Field(default_factory=_WaterModel)
+    guideline: _Guideline = False
+
+    @field_validator("guideline", mode="before")
+    @classmethod
+    def _line(cls, v: Any) -> Any:
+        return _guideline_value(v)
+
+    @field_validator("guideline")
+    @classmethod
+    def _laid_along_a_centreline(cls, v: bool | str, info: ValidationInfo) -> bool | str:
+        if v is not False and info.data.get("centreline") is None:
+            raise ValueError(
+                "a guideline is laid along the passage's centre line; give centreline = "
+                "[[x, y, z], ...] from the start to the exit"
+            )
+        return v
 
     @field_validator("exit", "entrance", mode="before")
     @classmethod
@@ -257,6 +298,12 @@ class _FamilyFileModel(BaseModel):
     )
     sensors: _SensorsModel = Field(default_factory=_SensorsModel)
     water: _WaterModel = Field(default_factory=_WaterModel)
+    guideline: _Guideline = False
+
+    @field_validator("guideline", mode="before")
+    @classmethod
+    def _line(cls, v: Any) -> Any:
+        return _guideline_value(v)
 
     @field_validator("family")
     @classmethod
@@ -356,7 +403,7 @@ def _mesh_scenario(path: Path, model: _ScenarioFileModel) -> Scenario:
     exits = tuple(ExitPortal(p.point, p.normal, p.radius) for p in model.exit)
     entrances = tuple(ExitPortal(p.point, p.normal, p.radius) for p in model.entrance)
     centreline = None if model.centreline is None else np.array(model.centreline, np.float64)
-    return Scenario(
+    cave = Scenario(
         model.name or path.stem,
         mesh,
         start,
@@ -369,6 +416,7 @@ def _mesh_scenario(path: Path, model: _ScenarioFileModel) -> Scenario:
         entrances=entrances,
         step_budget=model.step_budget,
     )
+    return _guided(cave, model.guideline)
 
 
 def _chained_mesh(path: Path, model: _ScenarioFileModel) -> CaveMesh:
@@ -391,7 +439,7 @@ def _family_scenario(
 ) -> Scenario:
     """The file's family at ``seed``, with its knobs updated by ``override``."""
     cave = procedural_scenario(model.family, seed, _family_difficulty(path, model, override))
-    return replace(
+    cave = replace(
         cave,
         name=model.name or path.stem,
         description=model.description or cave.description,
@@ -399,6 +447,15 @@ def _family_scenario(
         sensors=model.sensors.model_dump(exclude_none=True),
         water=model.water.model_dump(exclude_none=True) or cave.water,
     )
+    return _guided(cave, model.guideline)
+
+
+def _guided(cave: Scenario, guideline: bool | str) -> Scenario:
+    """``cave`` with the guideline a file's ``guideline`` key asks for: none for false,
+    a white one for true, else one of that colour."""
+    if guideline is False:
+        return cave
+    return cave.with_guideline("white" if guideline is True else str(guideline))
 
 
 def _family_difficulty(
@@ -422,15 +479,19 @@ def _family_difficulty(
     return difficulty
 
 
-def check_scenario(name_or_path: str, difficulty: Difficulty | None = None) -> None:
+def check_scenario(
+    name_or_path: str, difficulty: Difficulty | None = None, guideline: bool = False
+) -> None:
     """Refuse what `load_scenario` would refuse, without building the cave or reading a
     mesh: a sweep checks its whole grid this way in milliseconds (a cave takes seconds),
-    so that bad input never becomes a sweep of errors.
+    so that bad input never becomes a sweep of errors. ``guideline``: the episodes lay a
+    guideline, which needs a centre line.
 
     Raises:
         ConfigError: a scenario file that does not read or validate.
         MeshError: a mesh file the scenario file names is missing.
-        ScenarioError: an unknown family, or a knob the family lacks or out of its range.
+        ScenarioError: an unknown family, a knob the family lacks or out of its range, or
+            a guideline asked of a mesh file that gives no centre line.
     """
     if name_or_path in SCENARIOS:
         SCENARIOS[name_or_path].resolve(difficulty)
@@ -445,6 +506,11 @@ def check_scenario(name_or_path: str, difficulty: Difficulty | None = None) -> N
     for piece in model.mesh:
         if not (path.parent / piece.path).is_file():
             raise MeshError(f"{path}: mesh file not found: {path.parent / piece.path}")
+    if guideline and model.centreline is None:
+        raise ScenarioError(
+            f"{path}: a guideline is laid along the passage's centre line, and this file "
+            "gives none; add centreline = [[x, y, z], ...] from the start to the exit"
+        )
 
 
 def load_scenario(
