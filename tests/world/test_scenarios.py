@@ -19,7 +19,7 @@ from cavenav.core.types import Pose
 from cavenav.sensors.rig import SensorConfig
 from cavenav.world import scenario as scenarios_module
 from cavenav.world.collision import VehicleBody, clearance
-from cavenav.world.procedural import cache_dir, resample
+from cavenav.world.procedural import cache_dir, resample, settled_blocks
 from cavenav.world.raycast import RayCaster
 from cavenav.world.scenario import KNOB_FACTS
 from cavenav.world.scenarios import (
@@ -86,10 +86,32 @@ def test_procedural_caves_have_the_promised_shape(name: str) -> None:
     assert scenario.exit_distance(scenario.start.position) >= 30.0
 
 
+def _obstacles(boulders) -> list[list]:  # noqa: ANN001
+    """S3's boulders grouped into obstacles: a pile's blocks lie within a metre of its base
+    (S5's rocks, as many as 20 in 60 m, are each an obstacle, however close)."""
+    groups: list[list] = []
+    for boulder in boulders:
+        xy = np.asarray(boulder.centre[:2])
+        near = [g for g in groups if np.linalg.norm(np.asarray(g[0].centre[:2]) - xy) < 1.0]
+        if near:
+            near[0].append(boulder)
+        else:
+            groups.append([boulder])
+    return groups
+
+
+def _height_span(block) -> tuple[float, float]:  # noqa: ANN001
+    x, y = np.meshgrid(np.arange(-3, 3, 0.05), np.arange(-3, 3, 0.05))
+    bottom, top = block.heights(x.ravel(), y.ravel())
+    inside = bottom <= top
+    return block.centre[2] + bottom[inside].min(), block.centre[2] + top[inside].max()
+
+
 def test_s3_starts_near_a_wall_at_the_height_of_the_frontal_obstacle() -> None:
     layout = SCENARIOS["S3"].layout(0)
-    frontal = layout.spec.boulders[0]
-    assert layout.start.z == pytest.approx(frontal.centre[2])
+    pile = [block for block, _ in settled_blocks(layout.spec)][:2]  # the frontal pile
+    low, high = _height_span(pile[0])[0], max(_height_span(b)[1] for b in pile)
+    assert low < layout.start.z - 1.0 and layout.start.z + 0.3 < high
     scenario = load_scenario("S3", seed=0)
     assert clearance(RayCaster(scenario.mesh), scenario.start) < 2.0  # close to the wall
 
@@ -351,7 +373,8 @@ def test_a_hairpin_keeps_its_closed_end_behind_the_exit_plane() -> None:
 )
 def test_obstacles_is_the_number_of_boulders_between_start_and_exit(name: str, count: int) -> None:
     layout = SCENARIOS[name].layout(2, Difficulty(obstacles=count))
-    assert len(layout.spec.boulders) == count
+    boulders = layout.spec.boulders
+    assert len(_obstacles(boulders) if name == "S3" else boulders) == count
     points = layout.spec.centreline
     for boulder in layout.spec.boulders:
         nearest = int(np.argmin(np.linalg.norm(points - np.asarray(boulder.centre), axis=1)))
@@ -360,8 +383,10 @@ def test_obstacles_is_the_number_of_boulders_between_start_and_exit(name: str, c
 
 def test_s3_boulders_alternate_frontal_and_lateral_along_the_passage() -> None:
     layout = SCENARIOS["S3"].layout(0, Difficulty(obstacles=5))
-    x = np.array([b.centre[0] for b in layout.spec.boulders])
-    y = np.array([b.centre[1] for b in layout.spec.boulders])
+    obstacles = _obstacles(layout.spec.boulders)
+    assert [len(g) for g in obstacles] == [2, 1, 2, 1, 2], "frontal piles of two, lateral blocks"
+    x = np.array([g[0].centre[0] for g in obstacles])
+    y = np.array([g[0].centre[1] for g in obstacles])
     assert np.all(np.diff(y) < 0), "each farther along -y than the one before"
     frontal, lateral = x[0::2], x[1::2]
     assert np.sign(frontal).tolist() == [np.sign(layout.start.x)] * 3, "in line with the start"

@@ -421,7 +421,7 @@ def _pile(shapes: np.random.Generator, x: float, y: float, scale: float) -> list
     fallen near (``x``, ``y``), and a smaller one, 1.3-1.6 m, fallen onto it, the pile
     about 3 m high: up past the axis of a 6 m passage whose floor is silted."""
     base = Boulder((x, y, -1.0), _scaled((1.6, 1.5, 1.2), scale), int(shapes.integers(2**31)))
-    dx, dy = shapes.uniform(-0.4, 0.4, 2) * scale
+    dx, dy = shapes.uniform(-0.4, 0.4, 2)  # on the base whatever its scale
     top = Boulder(
         (x + dx, y + dy, 1.5), _scaled((0.9, 0.8, 0.7), scale), int(shapes.integers(2**31))
     )
