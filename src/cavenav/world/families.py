@@ -80,7 +80,7 @@ def _straighten_ends(
 def _winding(s: np.ndarray, heading: np.ndarray, length: float) -> tuple[np.ndarray, np.ndarray]:
     """The plan (x, y) of a passage along -y that turns by ``heading`` (radians, positive
     to +x) at stations ``s``: straight near the start and, so that the exit runs along
-    the axis the grid is cut across, over the last 8 m. The start is at the origin."""
+    the axis the surface is opened across, over the last 8 m. The start is at the origin."""
     heading = _straighten_ends(s, heading, length)
     heading[s > length - 8] = 0.0
     heading = gaussian_smooth(heading, 6)
@@ -492,7 +492,7 @@ def s4(rng: np.random.Generator, seed: int, knobs: Mapping[str, float]) -> Layou
     leg = 30.0
     side = 1.0 if rng.random() < 0.5 else -1.0
     bend = knobs["bend_deg"]
-    # The grid is cut across the exit direction, which must be an axis: the second leg
+    # The surface is opened across the exit direction, which must be an axis: the second leg
     # runs along side * x and the first leg is turned instead. ``back`` points from the
     # corner up the first leg: +y for 90 degrees, tilted toward the second leg for less.
     tilt = math.radians(bend - 90.0)

@@ -130,18 +130,20 @@ class PassageSpec:
         centreline: (n, 3) polyline from a point behind the start to a point past the exit.
         half_width: (n,) horizontal half-size of the section at each point, metres.
         half_height: (n,) vertical half-size of the section at each point, metres.
-        boulders: ellipsoids of rock carved out of the passage.
-        exit_index: index of the centre-line point where the exit plane lies; the grid is
-            cut 1.5 m past it along the exit direction, which must be an axis.
+        boulders: rock in the passage: ellipsoids, which stay where they are put, and
+            angular blocks, which fall from there to rest (`settled_blocks`).
+        exit_index: index of the centre-line point where the exit plane lies; the surface
+            is opened 1.5 m past it across the exit direction, which must be an axis.
         roughness: amplitude of the wall noise in metres (standard deviation; 0.3 looks like rock).
         seed: seeds the wall noise.
         voxel: grid spacing in metres; 0.2 resolves rock detail and stays fast.
-        branches: side passages; none may reach past the exit plane, where the grid is
-            cut, or it would open a second way out.
+        branches: side passages; none may reach past the exit plane, where the surface is
+            opened, or it would open a second way out.
         section: how the main passage's section departs from an ellipse at each
             centre-line point (`Section`); None keeps it elliptical.
-        breakdown: blocks fallen from a collapsed roof, lying on the floor: rock like the
-            boulders, but part of the cave's floor rather than obstacles in its way.
+        breakdown: blocks fallen from a collapsed roof, falling to rest on the floor as
+            the angular boulders do, after them: part of the cave's floor rather than
+            obstacles in its way.
         speleothems: stalactites, stalagmites and columns, rock like the boulders.
         scallops: how wide the scallops dissolved into every wall are, metres (their
             depth is an eighth of that); 0 leaves the walls unscalloped.
