@@ -49,6 +49,21 @@ def test_gymnasium_make_needs_nothing_but_import_cavenav() -> None:
     assert info["scenario"] == "S4" and info["collision"] is False
 
 
+def test_a_family_flown_by_name_gets_the_guideline_asked_for() -> None:
+    """`guideline` lays the line in every cave flown, as --guideline does; the caves shared
+    between environments keep none."""
+    shared: dict = {}
+    lined = CaveNavEnv("S1", guideline="yellow", resolution=(64, 48), caves=shared)
+    plain = CaveNavEnv("S1", resolution=(64, 48), caves=shared)
+    lined.reset(seed=0)
+    plain.reset(seed=0)
+    assert lined.scenario.guideline is not None and lined.scenario.guideline.colour == "yellow"
+    assert plain.scenario.guideline is None
+    assert lined.scenario.mesh is plain.scenario.mesh  # the same rock
+    with pytest.raises(ConfigError, match="choose one of white, yellow"):
+        CaveNavEnv("S1", guideline="red")
+
+
 def test_a_vector_of_two_environments_steps() -> None:
     envs = gym.vector.SyncVectorEnv([lambda: CaveNavEnv("S1") for _ in range(2)])
     obs, _ = envs.reset(seed=[1, 2])

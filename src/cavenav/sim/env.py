@@ -47,6 +47,7 @@ from cavenav.sensors.sonar import SONARS, Sonar
 from cavenav.world.collision import clearance, swept_collision
 from cavenav.world.current import Current, CurrentField, carry
 from cavenav.world.geodesic import NoPath, shortest_path_of
+from cavenav.world.guideline import check_colour
 from cavenav.world.raycast import RayCaster
 from cavenav.world.scenarios import SCENARIOS, Scenario, load_scenario, validate_start
 from cavenav.world.silt import SiltCloud
@@ -382,6 +383,7 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
         current: Current | None = None,
         battery_wh: float | None = None,
         caves: MutableMapping[tuple[str, int | None], tuple[Scenario, RayCaster]] | None = None,
+        guideline: str | None = None,
     ):
         """
         Args:
@@ -407,6 +409,9 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
                 drift from the pose the kinematics command (`Motion.drift`).
             current: the water's flow; battery_wh: an energy budget (class docstring).
             caves: built caves and ray casters shared by environments (`cavenav.sim.vector_env`).
+            guideline: a diver's line of this colour ("white" or "yellow") laid in every
+                cave flown, as ``--guideline`` lays it (`Scenario.with_guideline`); None:
+                a line only where a scenario file asks for one.
         """
         _check_modes(render_mode, action_format)
         self.render_mode, self.body = render_mode, body or VehicleBody()
@@ -417,6 +422,7 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
         self.current, self.battery_wh = _water(motion, current), checked_budget(battery_wh)
         self.cruise, self.power = Cruise(), _power(self.sensors, self.body)
         self._default_scenario, self._default_cave_seed = scenario, cave_seed
+        self._guideline = None if guideline is None else check_colour(guideline)
         self._world, self._caves = None, caves
         self.observation_space, self.action_space = _spaces(self.sensors, action_format, space)  # type: ignore[assignment]
         self.pose, self.observation = None, None
@@ -472,6 +478,8 @@ class CaveNavEnv(gym.Env[dict[str, np.ndarray], str | np.ndarray]):
         validate_start(cave, caster, self.body)
         if self._caves is not None:
             self._caves[key] = cave, caster
+        if self._guideline is not None:  # on this environment's cave, not the shared one
+            cave = cave.with_guideline(self._guideline)
         self._world = None  # free the previous cave's tables before building the next
         sensors = self.sensors
         sonar = None if sensors.sonar is None else Sonar(caster, SONARS[sensors.sonar])
