@@ -57,3 +57,12 @@ def test_a_sweep_with_the_line_keeps_it_in_sweep_json(tmp_path: Path) -> None:
 def test_a_colour_the_line_does_not_come_in_is_refused() -> None:
     done = cavenav("run", "S1", "--guideline-colour", "red", "--steps", "1")
     assert done.returncode == 2 and "red" in done.stderr
+
+
+def test_fly_and_the_fake_subs_camera_take_the_line_too() -> None:
+    """`fly --sim` and `fake-sub --scene` load their cave through the episode settings,
+    as `run` does; the fake sub with no cave has no camera to draw a line with."""
+    for command in ("fly", "fake-sub"):
+        assert "--guideline" in cavenav(command, "--help").stdout
+    alone = cavenav("fake-sub", "--guideline")
+    assert alone.returncode == 2 and "give --scene" in alone.stderr

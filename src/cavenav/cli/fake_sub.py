@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING, Annotated, Any
 import typer
 
 from cavenav.cli.common import built
+from cavenav.cli.episode_flags import GuidelineColourOpt, GuidelineOpt
 from cavenav.cli.flags import finite
 from cavenav.cli.output import console
 from cavenav.cli.vehicle_flags import (
@@ -73,6 +74,8 @@ def fake_sub(
     ping_down_port: PingDownPortOpt = SCENE.ping_down_port,
     sonar_port: SonarPortOpt = SCENE.sonar_port,
     dvl_port: DvlPortOpt = SCENE.dvl_port,
+    guideline: GuidelineOpt = None,
+    guideline_colour: GuidelineColourOpt = None,
 ) -> None:
     """A simulated ArduSub autopilot on MAVLink, for `cavenav fly` with no vehicle; with
     --scene, its camera and sounders too, rendered in a cave."""
@@ -93,8 +96,11 @@ def fake_sub(
     )
 
     if cave.scene is not None:
-        _serve_in_a_cave(settings, EpisodeConfig(), cave, _show_fake_sub)
+        lined = EpisodeConfig(guideline=guideline, guideline_colour=guideline_colour)
+        _serve_in_a_cave(settings, lined, cave, _show_fake_sub)
         return
+    if guideline or guideline_colour:
+        raise typer.BadParameter("the guideline is drawn by the camera of a cave: give --scene")
     console.print(f"fake ArduSub sending to {settings.address}; Ctrl-C stops it")
     with contextlib.suppress(KeyboardInterrupt):
         serve(settings, on_state=_show_fake_sub)
