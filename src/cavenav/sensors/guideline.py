@@ -46,11 +46,11 @@ from cavenav.sensors.kernels import (
     PHOTO_SHARE,
     SHARE,
     _curve,
-    _gauss,
+    _depth_level,
+    _noisy_depth,
     _own_light,
     _photo_at,
     _veil,
-    mix,
 )
 from cavenav.world.guideline import Guideline
 
@@ -352,13 +352,9 @@ def lay_line_depth(touched, deep, near, t, depth_png, depth_range, frame_key):  
     d_min, d_max, _, depth_noise = depth_range
     for j in range(deep):
         i = touched[j]
-        depth = near[i]
-        if depth_noise > 0.0:
-            h = mix(frame_key ^ np.uint64(t.shape[0] + i))
-            depth = max(depth + depth_noise * (depth / 10.0) ** 2 * _gauss(h), 0.0)
+        depth = _noisy_depth(i, near[i], t.shape[0], frame_key, depth_noise)
         t[i] = depth
-        level = (min(depth, d_max) - d_min) * (255.0 / (d_max - d_min))
-        depth_png[i] = np.uint8(min(max(level, 0.0), 255.0) + 0.5)
+        depth_png[i] = _depth_level(depth, d_min, d_max)
         near[i] = np.inf
 
 

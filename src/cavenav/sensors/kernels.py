@@ -948,12 +948,27 @@ def _finish(i, l0, l1, l2, lamp_return, hit, col, t, frame_key, depth_range, row
             depth = np.inf  # too little of the lamps' light came back
             t[i] = depth
         elif depth_noise > 0.0:
-            h = mix(frame_key ^ np.uint64(t.shape[0] + i))
-            depth = max(depth + depth_noise * (depth / 10.0) ** 2 * _gauss(h), 0.0)
+            depth = _noisy_depth(i, depth, t.shape[0], frame_key, depth_noise)
             t[i] = depth
-    level = (min(depth, d_max) - d_min) * (255.0 / (d_max - d_min))
-    depth_png[i] = np.uint8(min(max(level, 0.0), 255.0) + 0.5)
+    depth_png[i] = _depth_level(depth, d_min, d_max)
     row_light[col, 0], row_light[col, 1], row_light[col, 2] = l0, l1, l2
+
+
+@numba.njit(inline="always")
+def _noisy_depth(i, depth, n, frame_key, depth_noise):  # noqa: ANN001, ANN202
+    """Pixel i's ``depth`` (of a frame of ``n`` pixels) with the depth camera's noise,
+    which grows as the square of the range, seeded by the frame and the pixel."""
+    if depth_noise > 0.0:
+        h = mix(frame_key ^ np.uint64(n + i))
+        depth = max(depth + depth_noise * (depth / 10.0) ** 2 * _gauss(h), 0.0)
+    return depth
+
+
+@numba.njit(inline="always")
+def _depth_level(depth, d_min, d_max):  # noqa: ANN001, ANN202
+    """The depth PNG's 8-bit level of ``depth``: d_min black, d_max and beyond white."""
+    level = (min(depth, d_max) - d_min) * (255.0 / (d_max - d_min))
+    return np.uint8(min(max(level, 0.0), 255.0) + 0.5)
 
 
 @numba.njit(fastmath=_FAST, cache=True, nogil=True)

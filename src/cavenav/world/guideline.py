@@ -39,7 +39,7 @@ import numpy as np
 
 from cavenav.core.errors import ConfigError
 from cavenav.world.mesh import CaveMesh
-from cavenav.world.procedural import along, arc_length
+from cavenav.world.procedural import along, arc_length, arc_length_at
 from cavenav.world.raycast import RayCaster
 
 __all__ = [
@@ -429,25 +429,13 @@ def _arrows(
     places.append(max(total - 1.5, places[0]))
     for station in junctions:
         centre = along(path, np.array([float(station)]))[0]
-        places.append(_nearest_arc(ties, line, centre))
+        places.append(arc_length_at(ties, centre))
     places = sorted(places)
     kept = [p for k, p in enumerate(places) if k == 0 or p - places[k - 1] > 1.0]
     span = np.clip(np.searchsorted(line, kept, side="right") - 1, 0, len(ties) - 2)
     directions = ties[span + 1] - ties[span]
     directions /= np.maximum(np.linalg.norm(directions, axis=1, keepdims=True), 1e-12)
     return along(ties, np.array(kept)), directions
-
-
-def _nearest_arc(points: np.ndarray, arcs: np.ndarray, target: np.ndarray) -> float:
-    """Arc length along the polyline ``points`` (arc lengths ``arcs``) of its point
-    nearest ``target``."""
-    a, b = points[:-1], points[1:]
-    seg = b - a
-    length2 = np.maximum((seg**2).sum(axis=1), 1e-12)
-    t = np.clip(((target - a) * seg).sum(axis=1) / length2, 0.0, 1.0)
-    gap = np.linalg.norm(a + t[:, None] * seg - target, axis=1)
-    k = int(np.argmin(gap))
-    return float(arcs[k] + t[k] * np.sqrt(length2[k]))
 
 
 def _facing(arrows: np.ndarray, directions: np.ndarray, path: np.ndarray) -> np.ndarray:

@@ -64,6 +64,7 @@ __all__ = [
     "PassageSpec",
     "along",
     "arc_length",
+    "arc_length_at",
     "build_cave",
     "cache_dir",
     "cpu_independent",
@@ -242,6 +243,18 @@ def resample(points: np.ndarray, spacing: float) -> tuple[np.ndarray, np.ndarray
 def arc_length(points: np.ndarray) -> np.ndarray:
     """(k,) arc length of a polyline's (k, 3) points from its first."""
     return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(points, axis=0), axis=1))])
+
+
+def arc_length_at(polyline: np.ndarray, point: np.ndarray) -> float:
+    """Arc length along ``polyline`` (n, 3) of its point nearest ``point`` (3,)."""
+    a, b = polyline[:-1], polyline[1:]
+    seg = b - a
+    length2 = np.maximum((seg**2).sum(axis=1), 1e-12)
+    t = np.clip(((point - a) * seg).sum(axis=1) / length2, 0.0, 1.0)
+    gap = np.linalg.norm(a + t[:, None] * seg - point, axis=1)
+    k = int(np.argmin(gap))
+    lengths = np.sqrt(length2)
+    return float(lengths[:k].sum() + t[k] * lengths[k])
 
 
 def along(points: np.ndarray, stations: np.ndarray) -> np.ndarray:

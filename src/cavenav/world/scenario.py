@@ -35,7 +35,7 @@ from cavenav.world import families
 from cavenav.world.families import Layout
 from cavenav.world.guideline import Guideline, lay_guideline
 from cavenav.world.mesh import CaveMesh
-from cavenav.world.procedural import build_cave
+from cavenav.world.procedural import arc_length_at, build_cave
 
 __all__ = [
     "HELD_OUT_SEEDS",
@@ -172,13 +172,13 @@ class Scenario:
         """
         if self.centreline is None:
             return self.exit_distance(self.start.position) - self.exit_distance(position)
-        return _arc_length_at(self.centreline, np.asarray(position, np.float64)) - self._start_arc
+        return arc_length_at(self.centreline, np.asarray(position, np.float64)) - self._start_arc
 
     @cached_property
     def _start_arc(self) -> float:
         """Arc length of the start along the centre line: asked for at every step."""
         assert self.centreline is not None
-        return _arc_length_at(self.centreline, self.start.position)
+        return arc_length_at(self.centreline, self.start.position)
 
     @property
     def passage_length_m(self) -> float:
@@ -187,20 +187,8 @@ class Scenario:
         if self.centreline is None:
             return self.exit_distance(self.start.position)
         return float(np.linalg.norm(np.diff(self.centreline, axis=0), axis=1).sum()) - (
-            _arc_length_at(self.centreline, self.start.position)
+            arc_length_at(self.centreline, self.start.position)
         )
-
-
-def _arc_length_at(polyline: np.ndarray, point: np.ndarray) -> float:
-    """Arc length along ``polyline`` (n, 3) of its point nearest ``point`` (3,)."""
-    a, b = polyline[:-1], polyline[1:]
-    seg = b - a
-    length2 = np.maximum((seg**2).sum(axis=1), 1e-12)
-    t = np.clip(((point - a) * seg).sum(axis=1) / length2, 0.0, 1.0)
-    gap = np.linalg.norm(a + t[:, None] * seg - point, axis=1)
-    k = int(np.argmin(gap))
-    lengths = np.sqrt(length2)
-    return float(lengths[:k].sum() + t[k] * lengths[k])
 
 
 # ------------------------------------------------------------------ difficulty
@@ -595,7 +583,7 @@ def procedural_scenario(name: str, seed: int = 0, difficulty: Difficulty | None 
     mesh_name = f"{key}-seed{seed}" + (f"-{difficulty.tag}" if difficulty.tag else "")
     mesh = build_cave(spec, name=mesh_name)
     centreline = spec.centreline[: spec.exit_index + 1]
-    junctions = tuple(_arc_length_at(centreline, branch.centreline[0]) for branch in spec.branches)
+    junctions = tuple(arc_length_at(centreline, branch.centreline[0]) for branch in spec.branches)
     return Scenario(
         key,
         mesh,

@@ -79,6 +79,7 @@ from typing import Annotated, Any, Literal, TypeVar
 import numpy as np
 from pydantic import (
     BaseModel,
+    BeforeValidator,
     ConfigDict,
     Field,
     StrictBool,
@@ -122,17 +123,6 @@ _Coordinate = Annotated[float, Field(ge=-_MAX_COORDINATE_M, le=_MAX_COORDINATE_M
 _Point = tuple[_Coordinate, _Coordinate, _Coordinate]  # metres; also a normal's direction
 _Yaw = Annotated[float, Field(ge=-360.0, le=360.0)]  # degrees: one turn either way
 _Scale = Annotated[float, Field(ge=_SCALE_RANGE[0], le=_SCALE_RANGE[1])]
-# A guideline: true (white), false (none) or its colour (`cavenav.world.guideline`).
-_Guideline = Annotated[
-    StrictBool | GuidelineColour,
-    Field(description="a diver's guideline: true (white), its colour, or false"),
-]
-
-
-class _StartModel(BaseModel):
-    model_config = _STRICT
-    position: _Point
-    yaw_deg: _Yaw = Field(0.0, description="0 heads along -y; positive turns left")
 
 
 def _guideline_value(v: Any) -> Any:
@@ -141,6 +131,20 @@ def _guideline_value(v: Any) -> Any:
         return v
     colours = " or ".join(f'"{name}"' for name in GUIDELINE_COLOURS)
     raise ValueError(f"give true, false or the line's colour ({colours}), not {v!r}")
+
+
+# A guideline: true (white), false (none) or its colour (`cavenav.world.guideline`).
+_Guideline = Annotated[
+    StrictBool | GuidelineColour,
+    BeforeValidator(_guideline_value),
+    Field(description="a diver's guideline: true (white), its colour, or false"),
+]
+
+
+class _StartModel(BaseModel):
+    model_config = _STRICT
+    position: _Point
+    yaw_deg: _Yaw = Field(0.0, description="0 heads along -y; positive turns left")
 
 
 def _nonzero_normal(v: tuple[float, float, float], kind: str) -> tuple[float, float, float]:
@@ -241,11 +245,6 @@ class _ScenarioFileModel(BaseModel):
     water: _WaterModel = Field(default_factory=_WaterModel)
     guideline: _Guideline = False
 
-    @field_validator("guideline", mode="before")
-    @classmethod
-    def _line(cls, v: Any) -> Any:
-        return _guideline_value(v)
-
     @field_validator("guideline")
     @classmethod
     def _laid_along_a_centreline(cls, v: bool | str, info: ValidationInfo) -> bool | str:
@@ -299,11 +298,6 @@ class _FamilyFileModel(BaseModel):
     sensors: _SensorsModel = Field(default_factory=_SensorsModel)
     water: _WaterModel = Field(default_factory=_WaterModel)
     guideline: _Guideline = False
-
-    @field_validator("guideline", mode="before")
-    @classmethod
-    def _line(cls, v: Any) -> Any:
-        return _guideline_value(v)
 
     @field_validator("family")
     @classmethod
