@@ -332,7 +332,8 @@ def settle_block(
     bottom, top = block.heights(x - cx, y - cy)
     solid = rock >= 0.0
     last = solid.shape[1] - 1 - np.argmax(solid[:, ::-1], axis=1)  # highest rock voxel
-    floored = solid.any(axis=1) & ~solid[:, -1] & (bottom <= top)
+    under = bottom <= top  # the columns the block lies over
+    floored = solid.any(axis=1) & ~solid[:, -1] & under
     if not floored.any():
         return block, np.empty((0, 2))
     n = np.flatnonzero(floored)
@@ -341,7 +342,7 @@ def settle_block(
     surface = z[k] + (z[k + 1] - z[k]) * low / (low - high)  # where the field crosses 0
     need = surface - bottom[n]  # the centre's height at which each column touches
     order = np.argsort(-need, kind="stable")
-    wall = np.stack([x[~floored & (bottom <= top)], y[~floored & (bottom <= top)]], axis=1)
+    wall = np.stack([x[under & ~floored], y[under & ~floored]], axis=1)
     count = _resting_count(np.stack([x[n], y[n]], axis=1)[order], wall, (cx, cy))
     at = float(need[order[count - 1]])
     touching = need >= at
