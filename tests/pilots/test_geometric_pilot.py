@@ -16,7 +16,8 @@ from cavenav.episode.settings import EpisodeConfig
 from cavenav.motion import kinematics
 from cavenav.motion.actions import DEFAULT_SPACE, format_action, parse_action
 from cavenav.pilots.base import Pilot
-from cavenav.pilots.geometric import GeometricPilot, GeometricPilotConfig
+from cavenav.pilots.geometric import GeometricPilot, GeometricPilotConfig, _ViewOpening
+from cavenav.safety.cave_map import Opening
 from cavenav.safety.shield import Hazard, Shield, Surroundings, crawlway_move, move_hazard
 from cavenav.sensors.depth import normalise_depth
 from cavenav.sensors.rig import SensorRig
@@ -250,3 +251,39 @@ def test_boxed_in_it_searches_a_full_circle_then_backs_out() -> None:
     assert modes == ["search"] * 8 + ["back out"] * 2
     pilot.reset()
     assert pilot.state.mode.name == "follow"
+
+
+def test_at_a_fork_it_keeps_the_way_the_passage_has_led_not_the_bigger_looking_branch() -> None:
+    # Maze seed 1007's junction: 33 m from the start, turned 25 degrees toward a side
+    # passage, which fills the view; the main passage shows at the view's edge.
+    pilot = GeometricPilot()
+    pilot.map.position = np.array([33.0, 2.0, 0.0])
+    pilot.map.heading = math.radians(25.0)
+    side = _ViewOpening(bearing=6.0, elevation=-3.0, free_m=17.4, size=1781.0, visited=False,
+                        tight=False)  # fmt: skip
+    main = replace(side, bearing=-24.0, free_m=20.0, size=101.0)
+    assert pilot._way_on([side, main]) is main
+    # Two openings much the same way (either side of a boulder): the bigger one.
+    beside = replace(main, bearing=-14.0, size=500.0)
+    assert pilot._way_on([side, beside, main]) is beside
+    assert pilot._way_on([side, main, beside]) is beside
+    assert pilot._way_on([side]) is side
+    # A crawlway is no fork of a passage the body fits with the full margin.
+    assert pilot._way_on([side, replace(main, tight=True)]) is side
+    # Near the start there is no way the passage has led yet: the biggest.
+    pilot.map.position = np.array([2.0, 0.0, 0.0])
+    assert pilot._way_on([side, main]) is side
+
+
+def test_backing_out_it_tries_first_the_remembered_opening_that_leads_on() -> None:
+    # 40 m from the start, facing back up a dead end: the opening nearest its heading is
+    # a side passage across the way it came; the one that leads on lies behind it.
+    pilot = GeometricPilot()
+    pilot.map.position = np.array([40.0, 0.0, 0.0])
+    pilot.map.heading = math.radians(180.0)
+    across = Opening(bearing_deg=-60.0, free_m=12.0, visited=False, end=(40.0, 12.0, 0.0))
+    on = Opening(bearing_deg=170.0, free_m=12.0, visited=False, end=(52.0, -2.0, 0.0))
+    following = pilot.state
+    backing_out = following.backing_out_of(pilot.map.position)
+    assert pilot._in_order([across, on], backing_out) == [on, across]
+    assert pilot._in_order([across, on], following) == [across, on]  # nearest the heading

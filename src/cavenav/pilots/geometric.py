@@ -13,11 +13,14 @@ the prompt's strategy (SPEC section 3), so it is the yardstick a VLM pilot must 
 2. Steer toward the middle of the farthest-reaching bearings (the passage's continuation)
    that lead somewhere new: the pilot's map of what it saw and where it flew
    (`cavenav.safety.cave_map`, placed by dead reckoning) tells a new direction from the way back.
+   At a fork it keeps to the way the passage has led from the start, not to the branch
+   that looks biggest from where the vehicle happens to point.
 3. When nothing new is in view, turn toward an unexplored opening the map remembers;
    failing that, search by turning in place one way (never back and forth) through a full
    circle; only then is it a dead end, and the pilot backs out along the way it came,
-   taking the first unexplored opening it passes. Turning back and forth on one spot
-   (a heading it cannot take) starts that search too. Follow, search and back out are
+   taking the unexplored opening it passes that leads on most nearly the way the passage
+   has led. Turning back and forth on one spot (a heading it cannot take) starts that
+   search too. Follow, search and back out are
    the pilot's modes (`_Mode`), changed only by the named transitions of its `_State`.
 4. Centre vertically between ceiling and floor, following the passage's slope ahead.
 5. Cap forward motion by the standoff rules: none within 1.5 m of an obstacle ahead,
@@ -537,7 +540,7 @@ class GeometricPilot:
         reach = self.config.open_range_m if state.mode.strict else 0.0
         new = [o for o in scene.openings if not o.visited and o.free_m >= reach]
         if new:
-            heading = self._follow(scene, new[0], "the passage continues", half_view)
+            heading = self._follow(scene, self._way_on(new), "the passage continues", half_view)
             return heading, state.following()
         remembered, in_view, impassable = self._unexplored(scene, half_view, state)
         state = state.setting_aside(impassable)
@@ -556,6 +559,21 @@ class GeometricPilot:
                 return way_back, state
         return self._search_round(scene, state)
 
+    def _way_on(self, new: list[_ViewOpening]) -> _ViewOpening:
+        """Of the new openings in view, the one to follow: at a fork, the
+        one that leads on most nearly the way the passage has led from the start, the
+        largest of those within 15 degrees of it. How big an opening looks says more
+        about where the vehicle happens to point than about the cave: a side passage
+        straight ahead looks bigger than the main one at the edge of the view."""
+        forks = [o for o in new if o.tight == new[0].tight]
+        travel = self.map.position[:2]  # from the start, the map's origin
+        if len(forks) < 2 or np.linalg.norm(travel) < 5.0:
+            return new[0]
+        led = math.atan2(travel[1], travel[0])
+        turns = [abs(_wrap_deg(math.degrees(self.map.heading - led) + o.bearing)) for o in forks]
+        near = [o for o, t in zip(forks, turns, strict=True) if t <= min(turns) + 15.0]
+        return max(near, key=lambda o: o.size)
+
     def _unexplored(
         self, scene: _Scene, half_view: float, state: _State
     ) -> tuple[Opening | None, _ViewOpening | None, tuple[np.ndarray, ...]]:
@@ -567,7 +585,7 @@ class GeometricPilot:
         crack too narrow for the body): the caller sets it aside for good.
         """
         impassable: list[np.ndarray] = []
-        for opening in sorted(self.map.openings(), key=lambda o: abs(o.bearing_deg)):
+        for opening in self._in_order(self.map.openings(), state):
             end = np.asarray(opening.end)
             set_aside = state.set_aside + tuple(impassable)
             if self._explored(end, state) or _near_any(end, set_aside, 2.0):
@@ -583,6 +601,24 @@ class GeometricPilot:
                 return opening, along[0], tuple(impassable)
             impassable.append(end)
         return None, None, tuple(impassable)
+
+    def _in_order(self, openings: list[Opening], state: _State) -> list[Opening]:
+        """Remembered openings in the order to try them: the one nearest the heading
+        first; but backing out of a dead end, the one that leads on most nearly the way
+        the vehicle has come from the start. The heading then points back along the dead
+        end, and the opening nearest it is often the next side passage across the one
+        the vehicle was following (a maze's junction): the way on is the one that keeps
+        going away from the entrance."""
+        travel = self.map.position[:2]  # from the start, the map's origin
+        if not state.mode.backing_out or np.linalg.norm(travel) < 5.0:
+            return sorted(openings, key=lambda o: abs(o.bearing_deg))
+
+        def turn_from_travel(opening: Opening) -> float:
+            way = np.asarray(opening.end[:2]) - self.map.position[:2]
+            cosine = way @ travel / (np.linalg.norm(way) * np.linalg.norm(travel) + 1e-9)
+            return -float(cosine)
+
+        return sorted(openings, key=turn_from_travel)
 
     def _back_out(
         self, scene: _Scene, half_view: float, state: _State
@@ -964,6 +1000,11 @@ def _cap_forward(
 def _turn(yaw: float, situation: str) -> _Heading:
     """A turn in place."""
     return _Heading(yaw, 0.0, 0.0, False, situation)
+
+
+def _wrap_deg(angle: float) -> float:
+    """``angle`` in degrees, wrapped into [-180, 180)."""
+    return (angle + 180.0) % 360.0 - 180.0
 
 
 def _near_any(point: np.ndarray, points: tuple[np.ndarray, ...], distance: float) -> bool:
