@@ -926,15 +926,49 @@ def _smooth_cell(grid, a, b) -> bool:  # noqa: ANN001
     return True
 
 
+# The channels of shade_grid's grid that shade_frame interpolates: 1 / depth, the straight
+# light (RGB), the lamps' green light returned, the rock's own light (RGB).
+_BLENDED = (0, 4, 5, 6, 7, 8, 9, 10)
+
+
 @numba.njit(inline="always")
-def _blend(grid, a, b, k, w00, w01, w10, w11) -> float:  # noqa: ANN001
-    """Bilinear interpolation of channel k between grid points (a, b) and (a + 1, b + 1)."""
-    return (
-        w00 * grid[a, b, k]
-        + w01 * grid[a, b + 1, k]
-        + w10 * grid[a + 1, b, k]
-        + w11 * grid[a + 1, b + 1, k]
-    )
+def _down_to_row(grid, a, fy) -> np.ndarray:  # noqa: ANN001
+    """(W', 8) float64: the `_BLENDED` channels of grid rows a and a + 1, blended the
+    fraction ``fy`` of the way down: a pixel row's values at the grid's columns."""
+    blended = np.empty((grid.shape[1], len(_BLENDED)))
+    for b in range(grid.shape[1]):
+        for k in range(len(_BLENDED)):
+            upper = grid[a, b, _BLENDED[k]]
+            blended[b, k] = upper + fy * (grid[a + 1, b, _BLENDED[k]] - upper)
+    return blended
+
+
+@numba.njit(inline="always")
+def _across(at_row, b, k, fx) -> float:  # noqa: ANN001
+    """Channel k of ``at_row`` (`_down_to_row`) the fraction ``fx`` of the way from grid
+    column b to b + 1."""
+    return at_row[b, k] + fx * (at_row[b + 1, k] - at_row[b, k])
+
+
+@numba.njit(inline="always")
+def _photo_down_to_row(photo, row) -> np.ndarray:  # noqa: ANN001
+    """(W'',) float64: `photograph_rock_grid`'s points blended down to pixel ``row``."""
+    y0 = row // PHOTO_SHARE
+    fy = (row - y0 * PHOTO_SHARE) / PHOTO_SHARE
+    y1 = min(y0 + 1, photo.shape[0] - 1)
+    blended = np.empty(photo.shape[1])
+    for x in range(photo.shape[1]):
+        blended[x] = photo[y0, x, 0] + fy * (photo[y1, x, 0] - photo[y0, x, 0])
+    return blended
+
+
+@numba.njit(inline="always")
+def _photo_across(photo_row, col) -> float:  # noqa: ANN001
+    """The photographed rock's factor at pixel ``col`` of the row of ``photo_row``."""
+    x0 = col // PHOTO_SHARE
+    fx = (col - x0 * PHOTO_SHARE) / PHOTO_SHARE
+    x1 = min(x0 + 1, photo_row.shape[0] - 1)
+    return photo_row[x0] + fx * (photo_row[x1] - photo_row[x0])
 
 
 @numba.njit(inline="always")
@@ -971,7 +1005,7 @@ def _depth_level(depth, d_min, d_max):  # noqa: ANN001, ANN202
     return np.uint8(min(max(level, 0.0), 255.0) + 0.5)
 
 
-@numba.njit(fastmath=_FAST, cache=True, nogil=True)
+@_parallel_kernel
 def spread_halo(
     halo: np.ndarray,  # (H', W', 3) float32: forward-scattered light at the grid's points
     cell: int,  # grid points a side of the cells the blur works on
@@ -1010,7 +1044,7 @@ def spread_halo(
                         blurred[j, k, c] += weights[t + radius] * coarse[jj, kk, c]
         coarse = blurred
     centre = (cell - 1) / 2.0
-    for a in range(rows):
+    for a in numba.prange(rows):  # each point its own: the same on any number of threads
         y = min(max((a - centre) / cell, 0.0), tall - 1.0)
         y0 = int(y)
         y1, fy = min(y0 + 1, tall - 1), y - y0
@@ -1064,8 +1098,11 @@ def _develop_row(row, width, row_light, ray_length, specks, speck_blocks, camera
     then lifts the noise of the channels it lifts.
     """
     gains, gain, vignetting, noise, frame_key, _ = camera
-    read2 = (READ_NOISE * noise) ** 2
-    shot = SHOT_NOISE * noise / 3.0
+    read2 = np.float32((READ_NOISE * noise) ** 2)
+    shot = np.float32(SHOT_NOISE * noise / 3.0)
+    g0, g1, g2 = (np.float32(gains[0] * gain), np.float32(gains[1] * gain),
+                  np.float32(gains[2] * gain))  # fmt: skip
+    zero = np.float32(0.0)  # in float32, as the signal is
     start = row * width
     for b in range(speck_blocks.shape[1]):
         if speck_blocks[row // SHARE, b]:
@@ -1078,19 +1115,19 @@ def _develop_row(row, width, row_light, ray_length, specks, speck_blocks, camera
     for col in range(width):
         i = start + col
         l0, l1, l2 = row_light[col, 0], row_light[col, 1], row_light[col, 2]
-        lens = _lens(ray_length[i], vignetting)
+        lens = np.float32(_lens(ray_length[i], vignetting))
         v0, v1, v2 = l0 * lens, l1 * lens, l2 * lens
         if noise > 0.0:
             # Read noise plus shot noise of the pixel's mean level; three deviates from
             # one 64-bit hash.
             h = mix(frame_key ^ np.uint64(i))
-            sigma = math.sqrt(read2 + shot * abs(v0 + v1 + v2))
-            v0 += sigma * _uniform(h, 0)
-            v1 += sigma * _uniform(h, 21)
-            v2 += sigma * _uniform(h, 42)
-        signal[i, 0] = gains[0] * gain * max(v0, 0.0)
-        signal[i, 1] = gains[1] * gain * max(v1, 0.0)
-        signal[i, 2] = gains[2] * gain * max(v2, 0.0)
+            sigma = np.float32(math.sqrt(read2 + shot * abs(v0 + v1 + v2)))
+            v0 += sigma * np.float32(_uniform(h, 0))
+            v1 += sigma * np.float32(_uniform(h, 21))
+            v2 += sigma * np.float32(_uniform(h, 42))
+        signal[i, 0] = g0 * max(v0, zero)
+        signal[i, 1] = g1 * max(v1, zero)
+        signal[i, 2] = g2 * max(v2, zero)
 
 
 # The sensor's noise at noise = 1, in units of full scale before the gain. An ROV camera
@@ -1140,10 +1177,11 @@ def develop_image(
     if filtering:
         _sigma_filter(own, width, (gains[0], gains[1], gains[2]), gain, noise, denoise, shift)
     floor, stretch = np.float32(black), np.float32(1.0 / (1.0 - black))
-    for i in numba.prange(n):
-        moved = shift[i] if filtering else 0.0
+    zero = np.float32(0.0)
+    for i in numba.prange(n):  # in float32, as the signal is
+        moved = shift[i] if filtering else zero
         y = own[i] + moved
-        scale = stretch * max(y - floor, 0.0) / y if y > 0.0 else 0.0
+        scale = stretch * max(y - floor, zero) / y if y > zero else zero
         rgb[i, 0] = _tone(lut, (signal[i, 0] + moved) * scale)
         rgb[i, 1] = _tone(lut, (signal[i, 1] + moved) * scale)
         rgb[i, 2] = _tone(lut, (signal[i, 2] + moved) * scale)
@@ -1244,6 +1282,10 @@ def shade_frame(
         smooth_cell = False
         pending = np.empty(width, np.int64)
         row_light = np.empty((width, 3), np.float32)
+        # The grid's and the photographs' points blended down to this row once, so that
+        # a pixel blends only across: a quarter of the multiplications.
+        at_row = _down_to_row(grid, a, fy)
+        photo_row = _photo_down_to_row(photo, row)
         count = 0
         for col in range(width):
             if col % SHARE == 0:  # entering the cell between grid columns b and b + 1
@@ -1258,8 +1300,6 @@ def shade_frame(
             if smooth_cell and tri != _NO_HIT:
                 inverse = 1.0 / t[i]
                 fx = (col - left) * across
-                w00, w01 = (1.0 - fx) * (1.0 - fy), fx * (1.0 - fy)
-                w10, w11 = (1.0 - fx) * fy, fx * fy
                 if (
                     # On a corner's own triangle, or facing as the corners do: the normals
                     # (12 bytes a pixel) are read only where the triangles change.
@@ -1268,18 +1308,15 @@ def shade_frame(
                         or normals[i, 0] * grid[a, b, 1] + normals[i, 1] * grid[a, b, 2]
                         + normals[i, 2] * grid[a, b, 3] >= SAME_FACING
                     )
-                    and abs(_blend(grid, a, b, 0, w00, w01, w10, w11) - inverse) <= 0.02 * inverse
+                    and abs(_across(at_row, b, 0, fx) - inverse) <= 0.02 * inverse
                 ):  # fmt: skip
-                    more = _interpolated(photo, row, col, PHOTO_SHARE, 0) - 1.0
+                    more = _photo_across(photo_row, col) - 1.0
                     _finish(
-                        i, _blend(grid, a, b, 4, w00, w01, w10, w11)
-                        + more * _blend(grid, a, b, 8, w00, w01, w10, w11),
-                        _blend(grid, a, b, 5, w00, w01, w10, w11)
-                        + more * _blend(grid, a, b, 9, w00, w01, w10, w11),
-                        _blend(grid, a, b, 6, w00, w01, w10, w11)
-                        + more * _blend(grid, a, b, 10, w00, w01, w10, w11),
-                        _blend(grid, a, b, 7, w00, w01, w10, w11), True, col, t, frame_key,
-                        depth_range, row_light, depth_png,
+                        i, _across(at_row, b, 1, fx) + more * _across(at_row, b, 5, fx),
+                        _across(at_row, b, 2, fx) + more * _across(at_row, b, 6, fx),
+                        _across(at_row, b, 3, fx) + more * _across(at_row, b, 7, fx),
+                        _across(at_row, b, 4, fx), True, col, t, frame_key, depth_range,
+                        row_light, depth_png,
                     )  # fmt: skip
                     continue
             pending[count] = col
@@ -1291,7 +1328,7 @@ def shade_frame(
                 i, row, col, cast, rays, scene, lamps, water
             )
             if triangle[i] != _NO_HIT:
-                more = _interpolated(photo, row, col, PHOTO_SHARE, 0) - 1.0
+                more = _photo_across(photo_row, col) - 1.0
                 l0, l1, l2 = l0 + more * r0, l1 + more * r1, l2 + more * r2
             h0, h1, h2 = _halo_at(halo, row, col)
             _finish(
