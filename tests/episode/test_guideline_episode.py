@@ -7,7 +7,9 @@ import json
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
 import pytest
+from PIL import Image
 
 from cavenav.core.errors import ConfigError
 from cavenav.episode.loop import run_episode
@@ -73,6 +75,20 @@ def test_the_run_folder_records_the_line_flown(tmp_path: Path) -> None:
     assert summary["config"]["guideline"] is True
     plain = run_episode(cave, GeometricPilot(), replace(QUIET, max_steps=1))
     assert plain.summary["guideline"] is None
+
+
+def test_the_top_down_plot_draws_the_line_in_its_colour(tmp_path: Path) -> None:
+    cave = load_scenario(str(write_guided_room(tmp_path)))
+    config = replace(QUIET, max_steps=2, plots=True, guideline=True, guideline_colour="yellow")
+    run_episode(cave, GeometricPilot(), config, tmp_path / "lined")
+    run_episode(cave, GeometricPilot(), replace(config, guideline=False), tmp_path / "plain")
+
+    def goldenrod_pixels(run: str) -> int:
+        image = np.asarray(Image.open(tmp_path / run / "topdown.png").convert("RGB"), int)
+        return int((np.abs(image - (218, 165, 32)).max(axis=2) <= 12).sum())
+
+    assert goldenrod_pixels("lined") > 50
+    assert goldenrod_pixels("plain") == 0
 
 
 def test_the_geometric_pilot_takes_no_notice_of_the_line_in_colour() -> None:

@@ -1,9 +1,10 @@
 """Top-down and side-view plots of a trajectory inside its cave (SPEC section 7).
 
 topdown.png projects every wall triangle onto the horizontal plane (the cave's
-footprint) and draws the path coloured by clearance. side.png unrolls the path: distance
-travelled against height, with the ceiling and floor straight above and below each point,
-so undulating and bending caves read the same way.
+footprint) and draws the path coloured by clearance, and the cave line where one is
+laid. side.png unrolls the path: distance travelled against height, with the ceiling and
+floor straight above and below each point, so undulating and bending caves read the
+same way.
 
 Figures are made with `matplotlib.figure.Figure`, never pyplot: pyplot's global state is
 not thread-safe, and sweeps finish several episodes at once in one process.
@@ -26,12 +27,20 @@ from matplotlib.patches import Circle
 from cavenav.core.files import save_figure
 from cavenav.core.types import Pose
 from cavenav.episode.records import EpisodeSummary
+from cavenav.world.guideline import Guideline
 from cavenav.world.mesh import CaveMesh
 from cavenav.world.procedural import along, arc_length
 from cavenav.world.raycast import RayCaster
 from cavenav.world.scenarios import ExitPortal, Scenario
 
-__all__ = ["draw_exits", "draw_footprint", "footprint_raster", "plot_episode", "plot_flight"]
+__all__ = [
+    "draw_exits",
+    "draw_footprint",
+    "draw_guideline",
+    "footprint_raster",
+    "plot_episode",
+    "plot_flight",
+]
 
 _CMAP = "viridis"
 # Light grey under the path's colours, as 8-bit RGBA (images are not rounded, lines are).
@@ -134,6 +143,22 @@ def draw_exits(ax: Axes, exits: Sequence[ExitPortal]) -> None:
         )
 
 
+def draw_guideline(ax: Axes, line: Guideline | None) -> None:
+    """The cave line from above, as a diver's survey shows it: its spans between the
+    tie-offs, dots at the ties and a chevron at each line arrow, pointing to the exit
+    (white line drawn dark, to show on the light footprint)."""
+    if line is None:
+        return
+    colour = "goldenrod" if line.colour == "yellow" else "0.2"
+    ties = line.ties
+    ax.plot(ties[:, 0], ties[:, 1], color=colour, lw=0.9, ls="--", zorder=4,
+            label=f"cave line ({line.colour})")  # fmt: skip
+    ax.plot(ties[:, 0], ties[:, 1], ".", color=colour, ms=3, zorder=4)
+    for point, direction in zip(line.arrows, line.arrow_directions, strict=True):
+        heading = float(np.degrees(np.arctan2(direction[1], direction[0])))
+        ax.plot(*point[:2], marker=(3, 0, heading - 90.0), color=colour, ms=7, zorder=4)
+
+
 def _title(s: EpisodeSummary) -> str:
     return (
         f"{s.scenario} · {s.pilot} · seed {'-' if s.seed is None else s.seed} · "
@@ -192,6 +217,7 @@ def _plot_topdown(
     lines = _coloured_path(ax, p[:, 0], p[:, 1], c, norm)
     ax.plot(*p[0, :2], marker="o", color="tab:green", ms=9, zorder=5, label="start")
     draw_exits(ax, scenario.exits)
+    draw_guideline(ax, scenario.guideline)
     hit = summary.collision_pose
     if hit:
         ax.plot(hit.x, hit.y, marker="X", color="tab:red", ms=12, zorder=6, label="collision")
