@@ -20,8 +20,8 @@ the prompt's strategy (SPEC section 3), so it is the yardstick a VLM pilot must 
    circle; only then is it a dead end, and the pilot backs out along the way it came,
    taking the unexplored opening it passes that leads on most nearly the way the passage
    has led. Turning back and forth on one spot (a heading it cannot take) starts that
-   search too. Follow, search and back out are
-   the pilot's modes (`_Mode`), changed only by the named transitions of its `_State`.
+   search too. Follow, search and back out are the pilot's modes (`_Mode`), changed
+   only by the named transitions of its `_State`.
 4. Centre vertically between ceiling and floor, following the passage's slope ahead.
 5. Cap forward motion by the standoff rules: none within 1.5 m of an obstacle ahead,
    0.1-0.2 m (with a turn or a shift) below the 2.0 m standoff, otherwise 0.5-1.0 m.
@@ -559,18 +559,26 @@ class GeometricPilot:
                 return way_back, state
         return self._search_round(scene, state)
 
+    def _way_led(self) -> np.ndarray | None:
+        """(2,) unit horizontal direction in the map from the start (its origin) to here:
+        the way the passage has led; None within 5 m of the start, where it has led
+        nowhere yet."""
+        travel = self.map.position[:2]
+        distance = float(np.linalg.norm(travel))
+        return travel / distance if distance >= 5.0 else None
+
     def _way_on(self, new: list[_ViewOpening]) -> _ViewOpening:
-        """Of the new openings in view, the one to follow: at a fork, the
-        one that leads on most nearly the way the passage has led from the start, the
-        largest of those within 15 degrees of it. How big an opening looks says more
-        about where the vehicle happens to point than about the cave: a side passage
-        straight ahead looks bigger than the main one at the edge of the view."""
+        """Of the new openings in view, the one to follow: at a fork, the one that leads
+        on most nearly the way the passage has led (`_way_led`), the largest of those
+        within 15 degrees of it. How big an opening looks says more about where the
+        vehicle happens to point than about the cave: a side passage straight ahead
+        looks bigger than the main one at the edge of the view."""
         forks = [o for o in new if o.tight == new[0].tight]
-        travel = self.map.position[:2]  # from the start, the map's origin
-        if len(forks) < 2 or np.linalg.norm(travel) < 5.0:
+        led = self._way_led()
+        if len(forks) < 2 or led is None:
             return new[0]
-        led = math.atan2(travel[1], travel[0])
-        turns = [abs(_wrap_deg(math.degrees(self.map.heading - led) + o.bearing)) for o in forks]
+        off_heading = math.degrees(self.map.heading - math.atan2(led[1], led[0]))
+        turns = [abs(_wrap_deg(off_heading + o.bearing)) for o in forks]
         near = [o for o, t in zip(forks, turns, strict=True) if t <= min(turns) + 15.0]
         return max(near, key=lambda o: o.size)
 
@@ -605,20 +613,19 @@ class GeometricPilot:
     def _in_order(self, openings: list[Opening], state: _State) -> list[Opening]:
         """Remembered openings in the order to try them: the one nearest the heading
         first; but backing out of a dead end, the one that leads on most nearly the way
-        the vehicle has come from the start. The heading then points back along the dead
+        the passage has led (`_way_led`). The heading then points back along the dead
         end, and the opening nearest it is often the next side passage across the one
         the vehicle was following (a maze's junction): the way on is the one that keeps
         going away from the entrance."""
-        travel = self.map.position[:2]  # from the start, the map's origin
-        if not state.mode.backing_out or np.linalg.norm(travel) < 5.0:
+        led = self._way_led()
+        if not state.mode.backing_out or led is None:
             return sorted(openings, key=lambda o: abs(o.bearing_deg))
 
-        def turn_from_travel(opening: Opening) -> float:
+        def turn_from_led(opening: Opening) -> float:
             way = np.asarray(opening.end[:2]) - self.map.position[:2]
-            cosine = way @ travel / (np.linalg.norm(way) * np.linalg.norm(travel) + 1e-9)
-            return -float(cosine)
+            return -float(way @ led / (np.linalg.norm(way) + 1e-9))
 
-        return sorted(openings, key=turn_from_travel)
+        return sorted(openings, key=turn_from_led)
 
     def _back_out(
         self, scene: _Scene, half_view: float, state: _State
