@@ -349,9 +349,9 @@ def check_grid(config: SweepConfig) -> None:
     """Refuse a grid whose episodes could only crash, before anything is written: an
     unknown scenario, a scenario file that does not read, a difficulty knob that its
     family lacks or out of its range, a guideline in a cave with no centre line, two
-    scenarios sharing run folders. Each is checked
-    as its episodes would load it (`SweepConfig.difficulty_for`), in milliseconds: no
-    cave is built (`cavenav.world.scenarios.check_scenario`).
+    scenarios sharing run folders. Each is checked as its episodes would load it
+    (`SweepConfig.difficulty_for`), in milliseconds: no cave is built
+    (`cavenav.world.scenarios.check_scenario`).
 
     Raises:
         ConfigError, MeshError, ScenarioError: naming the scenario and what is wrong.

@@ -23,7 +23,9 @@ frame is shaded (`LineRenderer.draw`):
   lens's vignetting, the sensor's noise, the white balance and the gain:
   `kernels.splat_particles`), the difference the line makes: its coverage times the
   line's radiance less the rock's that it hides (`kernels._own_light`, with the
-  photographed rock's factor). The camera meters the frame with the line in it.
+  photographed rock's factor). The camera meters the frame without it: the line would
+  move the exposure by parts in a thousand, and left out, every pixel it does not cover
+  is as it is without the line (`SensorRig._draw_line`).
 - The depth image takes the line's planar depth where the line covers half a pixel or
   more, its true size (within 3.8 m of the lens for a 3 mm line, at 640 px), and the
   depth camera's noise there as anywhere (`LineRenderer.lay_depth`, after shading).

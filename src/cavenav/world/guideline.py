@@ -264,11 +264,9 @@ def _channel(caster: RayCaster, centre: np.ndarray, left: np.ndarray) -> np.ndar
     """The point at the height of ``centre`` above the lowest floor within 1.2 m of it
     across the passage (along ``left``; in the water, not through a wall), the nearest
     the middle of those within `CHANNEL_M` of the lowest; None where no floor is found."""
-    found = []
-    for start in centre + np.outer([0.0, -0.6, 0.6, -1.2, 1.2], left):
-        hit = None if _blocked(caster, centre, start) else _hit(caster, start, -_UP, _REACH_M)
-        if hit is not None:
-            found.append((float(hit[2]), start))
+    starts = centre + np.outer([0.0, -0.6, 0.6, -1.2, 1.2], left)
+    hits = _hits_from(caster, centre, starts, -_UP, _REACH_M)
+    found = [(float(hit[2]), start) for start, hit in hits]
     if not found:
         return None
     lowest = min(z for z, _ in found)
@@ -289,12 +287,25 @@ def _knob(
     stations = station + KNOB_REACH_M * np.array([0.0, -0.5, 0.5, -1.0, 1.0])
     end = float(arc_length(path)[-1]) - BEFORE_EXIT_M / 2  # no knob past the exit
     shifts = along(path, np.clip(stations, 0.0, max(end, station)))
+    starts = origin + shifts - shifts[0]
+    found = [
+        (float((hit - start) @ direction), hit)
+        for start, hit in _hits_from(caster, origin, starts, direction, reach)
+    ]
+    return min(found, key=lambda pair: pair[0])[1] if found else None
+
+
+def _hits_from(
+    caster: RayCaster, origin: np.ndarray, starts: np.ndarray, direction: np.ndarray, reach: float
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(start, `_hit`) for each of ``starts`` (k, 3) that the water reaches from ``origin``
+    (no rock between) and whose ray along ``direction`` meets rock within ``reach``."""
     found = []
-    for start in origin + shifts - shifts[0]:
+    for start in starts:
         hit = None if _blocked(caster, origin, start) else _hit(caster, start, direction, reach)
         if hit is not None:
-            found.append((float((hit - start) @ direction), hit))
-    return min(found, key=lambda pair: pair[0])[1] if found else None
+            found.append((start, hit))
+    return found
 
 
 def _hit(

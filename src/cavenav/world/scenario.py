@@ -38,6 +38,7 @@ from cavenav.world.mesh import CaveMesh
 from cavenav.world.procedural import arc_length_at, build_cave
 
 __all__ = [
+    "GUIDELINE_NEEDS_CENTRELINE",
     "HELD_OUT_SEEDS",
     "KNOBS",
     "KNOB_FACTS",
@@ -50,6 +51,12 @@ __all__ = [
     "parse_difficulty",
     "procedural_scenario",
 ]
+
+# Why a cave with no centre line takes no guideline, and what its file should give.
+GUIDELINE_NEEDS_CENTRELINE = (
+    "a guideline is laid along the passage's centre line, and this cave gives none; add "
+    "centreline = [[x, y, z], ...] from the start to the exit to its scenario file"
+)
 
 
 @dataclass(frozen=True)
@@ -137,10 +144,7 @@ class Scenario:
         if self.guideline is not None and self.guideline.colour == colour:
             return self
         if self.centreline is None:
-            raise ScenarioError(
-                f"{self.name}: a guideline is laid along the passage's centre line, and this "
-                "cave has none; give its scenario file a centreline"
-            )
+            raise ScenarioError(f"{self.name}: {GUIDELINE_NEEDS_CENTRELINE}")
         line = lay_guideline(
             self.mesh, self.centreline, start_arc=self._start_arc, seed=self.seed or 0,
             colour=colour, junctions=self.junctions,

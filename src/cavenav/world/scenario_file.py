@@ -96,6 +96,7 @@ from cavenav.world.guideline import GUIDELINE_COLOURS, GuidelineColour
 from cavenav.world.mesh import CaveMesh, join_meshes, load_mesh, place_mesh, sphere_directions
 from cavenav.world.raycast import RayCaster
 from cavenav.world.scenario import (
+    GUIDELINE_NEEDS_CENTRELINE,
     SCENARIOS,
     Difficulty,
     ExitPortal,
@@ -249,10 +250,7 @@ class _ScenarioFileModel(BaseModel):
     @classmethod
     def _laid_along_a_centreline(cls, v: bool | str, info: ValidationInfo) -> bool | str:
         if v is not False and info.data.get("centreline") is None:
-            raise ValueError(
-                "a guideline is laid along the passage's centre line; give centreline = "
-                "[[x, y, z], ...] from the start to the exit"
-            )
+            raise ValueError(GUIDELINE_NEEDS_CENTRELINE)
         return v
 
     @field_validator("exit", "entrance", mode="before")
@@ -501,10 +499,7 @@ def check_scenario(
         if not (path.parent / piece.path).is_file():
             raise MeshError(f"{path}: mesh file not found: {path.parent / piece.path}")
     if guideline and model.centreline is None:
-        raise ScenarioError(
-            f"{path}: a guideline is laid along the passage's centre line, and this file "
-            "gives none; add centreline = [[x, y, z], ...] from the start to the exit"
-        )
+        raise ScenarioError(f"{path}: {GUIDELINE_NEEDS_CENTRELINE}")
 
 
 def load_scenario(
